@@ -1,0 +1,54 @@
+# weatheralign: `make reproduce` (set-up + whole pipeline) and `make test` (set-up + test suite).
+SHELL := /bin/bash
+PYTHON ?= python3.11
+VENV ?= .venv
+PY := $(VENV)/bin/python
+PIP := $(PY) -m pip
+# The CPU build of torch: pip finds it where the machine keeps local wheels (or pass TORCH_PIP_ARGS, e.g. an index
+# that serves +cpu wheels). A bare `torch` from the registry would pull several GB of CUDA packages.
+TORCH_SPEC ?= torch==2.13.0
+TORCH_PIP_ARGS ?=
+STAMP := $(VENV)/.weatheralign-installed
+
+export PREFECT_HOME := $(CURDIR)/.prefect
+export PREFECT_SERVER_ANALYTICS_ENABLED := false
+export PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS := 90
+export PREFECT_LOGGING_LEVEL ?= WARNING
+export MLFLOW_TRACKING_URI ?= sqlite:///$(CURDIR)/mlflow.db
+export OMP_NUM_THREADS ?= 2
+
+.PHONY: setup reproduce test bench prefect-ui mlflow-ui clean-venv
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml Makefile
+	@# open3d 0.20 imports only with libusb-1.0 present
+	@if ! ldconfig -p | grep -q 'libusb-1.0.so.0'; then \
+	  echo "[setup] installing Debian libusb-1.0-0 (needed by open3d)"; \
+	  if [ "$$(id -u)" = 0 ]; then apt-get update -qq && apt-get install -y -qq libusb-1.0-0; \
+	  else sudo apt-get update -qq && sudo apt-get install -y -qq libusb-1.0-0; fi; \
+	fi
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PIP) install -q --upgrade pip setuptools wheel
+	$(PIP) install -q $(TORCH_PIP_ARGS) "$(TORCH_SPEC)"
+	$(PIP) install -q -e ".[test]"
+	$(PY) -c "import torch, open3d, nuscenes, prefect, mlflow; print('[setup] torch', torch.__version__, '| open3d', open3d.__version__, '| prefect', prefect.__version__, '| mlflow', mlflow.__version__)"
+	@touch $(STAMP)
+
+reproduce: setup
+	WEATHERALIGN_PIPELINE_ID=repro-$$(date +%Y%m%d-%H%M%S) $(VENV)/bin/dvc repro
+
+test: setup
+	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+bench: setup
+	$(PY) -m benchmarks.bench_world
+
+prefect-ui: setup
+	$(VENV)/bin/prefect server start
+
+mlflow-ui: setup
+	$(VENV)/bin/mlflow ui --backend-store-uri "$(MLFLOW_TRACKING_URI)" --port 5000
+
+clean-venv:
+	rm -rf $(VENV)

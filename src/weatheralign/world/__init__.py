@@ -1,0 +1,1 @@
+"""The synthetic multi-sensor world: procedural scenes, ray-cast LiDAR and cameras, nuScenes-format output."""

@@ -1,0 +1,280 @@
+"""Rendering of whole samples of the synthetic world: sensor files written into a nuScenes-style dataroot plus the
+records the table writer needs. A sample is self-contained (its scene is regenerated from the seed), so samples can
+be rendered in any order, in parallel, on other machines, and skipped when already done."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+from PIL import Image
+
+from weatheralign import atomic
+from weatheralign.config import WorldConfig
+from weatheralign.geometry import apply, invert, project, quaternion_wxyz
+from weatheralign.world.layout import Actor, SceneLayout, generate_layout
+from weatheralign.world.raycast import WorldRaycaster, cast_rays, scene_of_mesh
+from weatheralign.world.render import CameraFrame, LidarSweep, render_camera, render_lidar_sweep
+from weatheralign.world.rig import Camera, camera_time_offset, firing_pattern, make_cameras
+
+SWEEP_PERIOD_US = 50_000
+KEYFRAME_PERIOD_US = 500_000
+BASE_TIME_US = 1_700_000_000_000_000
+ANNOTATION_RADIUS_M = 75.0
+VISIBILITY_STRIDE = 4
+# extras per LiDAR point (not part of the nuScenes format): firing time, firing column, actor id, material
+LIDAR_EXTRAS_DTYPE = np.dtype([("time_offset", "<f4"), ("column", "<i2"), ("instance", "<i4"), ("material", "u1")])
+
+
+@dataclass(frozen=True)
+class SceneSpec:
+    """Everything needed to regenerate one scene (small and picklable)."""
+
+    index: int
+    name: str
+    log_name: str
+    split: str
+    seed: int
+    t_start_us: int
+    origin: tuple[float, float]
+    heading: float
+
+    def layout(self, cfg: WorldConfig) -> SceneLayout:
+        return generate_layout(self.name, self.seed, self.t_start_us * 1e-6, scene_duration_s(cfg),
+                               (cfg.ego_speed_min, cfg.ego_speed_max), np.array(self.origin), self.heading)
+
+
+@dataclass(frozen=True)
+class SensorRecord:
+    """One written sensor file (a future ``sample_data`` record) with its ego pose."""
+
+    channel: str
+    timestamp_us: int
+    filename: str
+    is_key_frame: bool
+    width: int
+    height: int
+    ego_translation: list[float]
+    ego_rotation: list[float]
+
+
+@dataclass(frozen=True)
+class AnnotationRecord:
+    """One box of one sample (a future ``sample_annotation``); centre/size/yaw in the global frame."""
+
+    instance: int
+    category: str
+    attribute: str
+    center: list[float]
+    size: list[float]
+    yaw: float
+    num_lidar_pts: int
+    visibility: int  # nuScenes visibility token 1..4 (0-40, 40-60, 60-80, 80-100 % visible)
+
+
+@dataclass(frozen=True)
+class SampleResult:
+    """What rendering one keyframe sample produced."""
+
+    scene_index: int
+    sample_index: int
+    timestamp_us: int
+    lidar: list[SensorRecord]  # earlier sweeps first, the keyframe last
+    cameras: list[SensorRecord]
+    annotations: list[AnnotationRecord]
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self))
+
+    @staticmethod
+    def from_json(text: str) -> "SampleResult":
+        d = json.loads(text)
+        return SampleResult(d["scene_index"], d["sample_index"], d["timestamp_us"],
+                            [SensorRecord(**r) for r in d["lidar"]], [SensorRecord(**r) for r in d["cameras"]],
+                            [AnnotationRecord(**a) for a in d["annotations"]])
+
+
+def scene_duration_s(cfg: WorldConfig) -> float:
+    """Time span a scene must cover: the leading sweeps, all keyframes and one sweep of margin [s]."""
+    return ((cfg.sweeps_per_sample + 1) * SWEEP_PERIOD_US + (cfg.samples_per_scene - 1) * KEYFRAME_PERIOD_US) * 1e-6
+
+
+def mini_scene_names(num_train: int, num_val: int) -> tuple[list[str], list[str]]:
+    """Scene names: the nuScenes-mini names when the counts fit (so tools that hard-code the mini split work)."""
+    mini_train = ["scene-0061", "scene-0553", "scene-0655", "scene-0757", "scene-0796", "scene-1077", "scene-1094",
+                  "scene-1100"]
+    mini_val = ["scene-0103", "scene-0916"]
+    if num_train <= len(mini_train) and num_val <= len(mini_val):
+        return mini_train[:num_train], mini_val[:num_val]
+    return ([f"scene-synth-{i:04d}" for i in range(num_train)],
+            [f"scene-synth-{num_train + i:04d}" for i in range(num_val)])
+
+
+def scene_specs(cfg: WorldConfig) -> list[SceneSpec]:
+    """The scenes of the dataset, train first then val, each with its own seed, log, start time and placement."""
+    train, val = mini_scene_names(cfg.num_train_scenes, cfg.num_val_scenes)
+    rng = np.random.default_rng(cfg.seed)
+    specs = []
+    for i, (name, split) in enumerate([(n, "train") for n in train] + [(n, "val") for n in val]):
+        seed = int(rng.integers(0, 2**31 - 1))
+        origin = (float(rng.uniform(250, 750)), float(rng.uniform(250, 750)))
+        heading = float(rng.uniform(-np.pi, np.pi))
+        t_start = BASE_TIME_US + i * 3_600_000_000 + int(rng.integers(0, 1_000_000))
+        specs.append(SceneSpec(i, name, f"wa-{cfg.seed}-synthetic-log{i:03d}", split, seed, t_start, origin, heading))
+    return specs
+
+
+def keyframe_time_us(spec: SceneSpec, cfg: WorldConfig, sample_index: int) -> int:
+    """Timestamp [us] of keyframe ``sample_index``: the end of its LiDAR sweep."""
+    return spec.t_start_us + (cfg.sweeps_per_sample + 1) * SWEEP_PERIOD_US + sample_index * KEYFRAME_PERIOD_US
+
+
+def sensor_filename(folder: str, log_name: str, channel: str, timestamp_us: int, ext: str) -> str:
+    """nuScenes-style relative path, e.g. ``samples/LIDAR_TOP/<log>__LIDAR_TOP__<us>.pcd.bin``."""
+    return f"{folder}/{channel}/{log_name}__{channel}__{timestamp_us}.{ext}"
+
+
+def extras_path(filename: str) -> str:
+    """Relative path of the per-point LiDAR extras of a scan, or the per-pixel range of an image."""
+    channel, base = filename.split("/")[1], filename.split("/")[-1]
+    stem = base.split(".")[0]
+    if channel.startswith("CAM"):
+        return f"extras/range/{channel}/{stem}.npy"
+    return f"extras/{channel}/{stem}.npy"
+
+
+def token(*parts: object) -> str:
+    """A deterministic 32-hex-character token (nuScenes style) from its identifying parts."""
+    return hashlib.md5("/".join(str(p) for p in parts).encode()).hexdigest()
+
+
+def _pose_lists(T: NDArray) -> tuple[list[float], list[float]]:
+    return [float(v) for v in T[:3, 3]], quaternion_wxyz(T[:3, :3])
+
+
+def _sub_rng(seed: int, *parts: int) -> np.random.Generator:
+    return np.random.default_rng([seed, *parts])
+
+
+def _write_sweep(dataroot: Path, filename: str, sweep: LidarSweep) -> None:
+    atomic.write_bytes(dataroot / filename, sweep.points.astype("<f4").tobytes())
+    extras = np.empty(len(sweep.points), LIDAR_EXTRAS_DTYPE)
+    extras["time_offset"] = sweep.time_offsets
+    extras["column"] = sweep.column
+    extras["instance"] = sweep.instance
+    extras["material"] = sweep.material
+    atomic.save_npy(dataroot / extras_path(filename), extras)
+
+
+def _write_camera(dataroot: Path, filename: str, frame: CameraFrame, quality: int) -> None:
+    buf = io.BytesIO()
+    Image.fromarray(frame.image).save(buf, format="JPEG", quality=quality, subsampling=0)
+    atomic.write_bytes(dataroot / filename, buf.getvalue())
+    atomic.save_npy(dataroot / extras_path(filename), frame.range.astype(np.float16))
+
+
+def visible_fraction(layout: SceneLayout, actor: Actor, camera: Camera, frame: CameraFrame,
+                     nthreads: int) -> tuple[int, int]:
+    """(visible, unoccluded) pixel counts of ``actor`` in one camera on a stride-4 pixel grid: pixels where the actor
+    is the nearest surface vs pixels its mesh covers when nothing else exists."""
+    T_global_cam = layout.T_global_ego(frame.timestamp) @ camera.T_ego_cam
+    T_cam_body = invert(T_global_cam) @ actor.T_global_body(frame.timestamp)
+    corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (0, 1)], float)
+    corners *= np.array([actor.size[1] / 2, actor.size[0] / 2, actor.size[2]])
+    pc = apply(T_cam_body, corners)
+    if (pc[:, 2] <= 0.1).all():
+        return 0, 0
+    uv, z = project(pc[pc[:, 2] > 0.1], camera.K)
+    if (pc[:, 2] <= 0.1).any():
+        u0, v0, u1, v1 = 0, 0, camera.width, camera.height
+    else:
+        u0, v0 = np.floor(uv.min(0)).astype(int)
+        u1, v1 = np.ceil(uv.max(0)).astype(int) + 1
+    u0, v0 = max(u0, 0), max(v0, 0)
+    u1, v1 = min(u1, camera.width), min(v1, camera.height)
+    if u0 >= u1 or v0 >= v1:
+        return 0, 0
+    us, vs = np.meshgrid(np.arange(u0, u1, VISIBILITY_STRIDE), np.arange(v0, v1, VISIBILITY_STRIDE))
+    us, vs = us.ravel(), vs.ravel()
+    visible = int((frame.instance[vs, us] == actor.instance).sum())
+    d = np.stack([(us - camera.K[0, 2]) / camera.K[0, 0], (vs - camera.K[1, 2]) / camera.K[1, 1],
+                  np.ones(len(us))], 1)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    T_body_cam = invert(T_cam_body)
+    o = np.broadcast_to(T_body_cam[:3, 3], d.shape)
+    t, _, _ = cast_rays(scene_of_mesh(actor.mesh, nthreads), o, d @ T_body_cam[:3, :3].T)
+    return visible, int(np.isfinite(t).sum())
+
+
+def visibility_token(visible: int, unoccluded: int) -> int:
+    """nuScenes visibility token (1..4) of a visible fraction."""
+    frac = visible / unoccluded if unoccluded else 0.0
+    return 1 + int(frac > 0.4) + int(frac > 0.6) + int(frac > 0.8)
+
+
+def render_sample(spec: SceneSpec, sample_index: int, cfg: WorldConfig, dataroot: Path,
+                  nthreads: int = 0) -> SampleResult:
+    """Render keyframe ``sample_index`` of scene ``spec``: its preceding LiDAR sweeps, the keyframe sweep, the six
+    cameras and the annotations; write the files under ``dataroot``; return the records."""
+    layout = spec.layout(cfg)
+    caster = WorldRaycaster(layout, nthreads=nthreads)
+    pattern = firing_pattern(cfg.lidar)
+    t_key = keyframe_time_us(spec, cfg, sample_index)
+    lidar_records: list[SensorRecord] = []
+    key_sweep: LidarSweep | None = None
+    for j in range(cfg.sweeps_per_sample, -1, -1):
+        t_us = t_key - j * SWEEP_PERIOD_US
+        sweep = render_lidar_sweep(caster, pattern, cfg.lidar, t_us * 1e-6, _sub_rng(spec.seed, t_us % 2**31, 1))
+        folder = "samples" if j == 0 else "sweeps"
+        fname = sensor_filename(folder, spec.log_name, "LIDAR_TOP", t_us, "pcd.bin")
+        _write_sweep(dataroot, fname, sweep)
+        tr, rot = _pose_lists(layout.T_global_ego(t_us * 1e-6))
+        lidar_records.append(SensorRecord("LIDAR_TOP", t_us, fname, j == 0, 0, 0, tr, rot))
+        if j == 0:
+            key_sweep = sweep
+    assert key_sweep is not None
+
+    cameras = make_cameras(cfg.camera.image_scale)
+    period_us = int(round(1e6 / cfg.lidar.frequency_hz))
+    camera_records: list[SensorRecord] = []
+    frames: list[tuple[Camera, CameraFrame]] = []
+    for c, cam in enumerate(cameras):
+        t_us = t_key + int(round(camera_time_offset(cam, period_us * 1e-6) * 1e6))
+        frame = render_camera(caster, cam, cam.pixel_rays(), cfg.camera, t_us * 1e-6,
+                              _sub_rng(spec.seed, t_us % 2**31, 2 + c))
+        fname = sensor_filename("samples", spec.log_name, cam.channel, t_us, "jpg")
+        _write_camera(dataroot, fname, frame, cfg.camera.jpeg_quality)
+        tr, rot = _pose_lists(layout.T_global_ego(t_us * 1e-6))
+        camera_records.append(SensorRecord(cam.channel, t_us, fname, True, cam.width, cam.height, tr, rot))
+        frames.append((cam, frame))
+
+    annotations = annotate(layout, key_sweep, frames, t_key * 1e-6, nthreads)
+    return SampleResult(spec.index, sample_index, t_key, lidar_records, camera_records, annotations)
+
+
+def annotate(layout: SceneLayout, key_sweep: LidarSweep, frames: list[tuple[Camera, CameraFrame]], t_key: float,
+             nthreads: int) -> list[AnnotationRecord]:
+    """Boxes of the actors near the ego at keyframe time ``t_key`` [s] that at least one sensor observes."""
+    ego_xy = layout.T_global_ego(t_key)[:2, 3]
+    counts = np.bincount(key_sweep.instance, minlength=len(layout.actors) + 1)
+    out = []
+    for actor in layout.actors:
+        centre = actor.box_center_at(t_key)
+        if np.hypot(*(centre[:2] - ego_xy)) > ANNOTATION_RADIUS_M:
+            continue
+        visible = unoccluded = 0
+        for cam, frame in frames:
+            v, u = visible_fraction(layout, actor, cam, frame, nthreads)
+            visible, unoccluded = visible + v, unoccluded + u
+        n_pts = int(counts[actor.instance])
+        if n_pts == 0 and visible == 0:
+            continue
+        out.append(AnnotationRecord(actor.instance, actor.category, actor.attribute, [float(v) for v in centre],
+                                    [float(s) for s in actor.size], float(actor.yaw), n_pts,
+                                    visibility_token(visible, unoccluded)))
+    return out

@@ -1,0 +1,117 @@
+"""The synthetic dataset as a whole: the list of sample jobs, resumable rendering, tables and the summary.
+
+A job's records are stored in ``<dataroot>/.progress/`` once all its files exist, tagged with a hash of the world
+config; a rerun skips jobs whose record matches, re-renders the rest, and finally removes sensor files that the
+tables no longer reference (e.g. after a config change), then the progress records.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from collections import Counter
+from collections.abc import Sequence
+from pathlib import Path
+
+from weatheralign import atomic
+from weatheralign.config import WorldConfig
+from weatheralign.world.build import (SampleResult, SceneSpec, extras_path, render_sample, scene_specs)
+from weatheralign.world.rig import T_EGO_LIDAR, make_cameras
+from weatheralign.world.tables import (RoadFootprint, SensorCalibration, build_tables, write_dataset_tables)
+
+PROGRESS_DIR = ".progress"
+SENSOR_DIRS = ("samples", "sweeps", "extras")
+
+
+def config_hash(cfg: WorldConfig) -> str:
+    """Hash of everything that changes the rendered files."""
+    return hashlib.sha256(cfg.model_dump_json().encode()).hexdigest()[:16]
+
+
+def sample_jobs(cfg: WorldConfig) -> list[tuple[SceneSpec, int]]:
+    """Every (scene, keyframe index) of the dataset, in order."""
+    return [(spec, k) for spec in scene_specs(cfg) for k in range(cfg.samples_per_scene)]
+
+
+def _progress_file(dataroot: Path, spec: SceneSpec, sample_index: int) -> Path:
+    return dataroot / PROGRESS_DIR / f"{spec.name}_{sample_index:03d}.json"
+
+
+def load_finished(dataroot: Path, spec: SceneSpec, sample_index: int, cfg: WorldConfig) -> SampleResult | None:
+    """The records of a job finished by an earlier run with the same config, if its files are all present."""
+    marker = _progress_file(dataroot, spec, sample_index)
+    if not marker.is_file():
+        return None
+    data = json.loads(marker.read_text())
+    if data.get("config") != config_hash(cfg):
+        return None
+    result = SampleResult.from_json(data["result"])
+    for rec in result.lidar + result.cameras:
+        if not (dataroot / rec.filename).is_file() or not (dataroot / extras_path(rec.filename)).is_file():
+            return None
+    return result
+
+
+def render_or_resume(spec: SceneSpec, sample_index: int, cfg: WorldConfig, dataroot: Path,
+                     nthreads: int = 0) -> tuple[SampleResult, bool]:
+    """Render one job unless an identical earlier run finished it. Returns (records, rendered_now)."""
+    done = load_finished(dataroot, spec, sample_index, cfg)
+    if done is not None:
+        return done, False
+    result = render_sample(spec, sample_index, cfg, dataroot, nthreads=nthreads)
+    atomic.write_json(_progress_file(dataroot, spec, sample_index),
+                      {"config": config_hash(cfg), "result": result.to_json()})
+    return result, True
+
+
+def rig_calibration(cfg: WorldConfig) -> list[SensorCalibration]:
+    """LIDAR_TOP and the six cameras as calibrated_sensor entries."""
+    sensors = [SensorCalibration("LIDAR_TOP", "lidar", T_EGO_LIDAR, None)]
+    sensors += [SensorCalibration(c.channel, "camera", c.T_ego_cam, c.K) for c in make_cameras(cfg.camera.image_scale)]
+    return sensors
+
+
+def finalize(cfg: WorldConfig, dataroot: Path, results: Sequence[SampleResult]) -> dict:
+    """Write the tables, the map and splits; remove unreferenced sensor files and progress records.
+
+    Returns:
+        the dataset summary: num_scenes, num_samples, num_sweeps, num_annotations, class_counts.
+    """
+    specs = scene_specs(cfg)
+    tables = build_tables(cfg.seed, specs, results, rig_calibration(cfg))
+    roads = []
+    for spec in specs:
+        layout = spec.layout(cfg)
+        r = layout.road
+        roads.append(RoadFootprint(layout.T_global_scene, r.road_half_width, r.crossing_x, r.crossing_half_width))
+    splits = {"weatheralign_train": [s.name for s in specs if s.split == "train"],
+              "weatheralign_val": [s.name for s in specs if s.split == "val"]}
+    write_dataset_tables(dataroot, cfg.version, tables, splits, roads)
+    _remove_unreferenced(dataroot, tables)
+    shutil.rmtree(dataroot / PROGRESS_DIR, ignore_errors=True)
+    lidar = [sd for sd in tables["sample_data"] if sd["filename"].startswith(("samples/LIDAR", "sweeps/LIDAR"))]
+    categories = {c["token"]: c["name"] for c in tables["category"]}
+    inst_cat = {i["token"]: categories[i["category_token"]] for i in tables["instance"]}
+    class_counts = Counter(inst_cat[a["instance_token"]] for a in tables["sample_annotation"])
+    return {
+        "num_scenes": len(tables["scene"]),
+        "num_samples": len(tables["sample"]),
+        "num_sweeps": sum(1 for sd in lidar if not sd["is_key_frame"]),
+        "num_annotations": len(tables["sample_annotation"]),
+        "class_counts": dict(sorted(class_counts.items())),
+    }
+
+
+def _remove_unreferenced(dataroot: Path, tables: dict[str, list[dict]]) -> None:
+    keep = set()
+    for sd in tables["sample_data"]:
+        keep.add((dataroot / sd["filename"]).resolve())
+        keep.add((dataroot / extras_path(sd["filename"])).resolve())
+    for top in SENSOR_DIRS:
+        root = dataroot / top
+        if not root.is_dir():
+            continue
+        for path in root.rglob("*"):
+            if path.is_file() and path.resolve() not in keep:
+                path.unlink()
