@@ -16,6 +16,7 @@ from PIL import Image
 
 from weatheralign import atomic
 from weatheralign.config import WorldConfig
+from weatheralign.data.nuscenes import extras_relpath
 from weatheralign.geometry import apply, invert, project, quaternion_wxyz
 from weatheralign.world.layout import Actor, SceneLayout, generate_layout
 from weatheralign.world.raycast import WorldRaycaster, cast_rays, scene_of_mesh
@@ -139,15 +140,6 @@ def sensor_filename(folder: str, log_name: str, channel: str, timestamp_us: int,
     return f"{folder}/{channel}/{log_name}__{channel}__{timestamp_us}.{ext}"
 
 
-def extras_path(filename: str) -> str:
-    """Relative path of the per-point LiDAR extras of a scan, or the per-pixel range of an image."""
-    channel, base = filename.split("/")[1], filename.split("/")[-1]
-    stem = base.split(".")[0]
-    if channel.startswith("CAM"):
-        return f"extras/range/{channel}/{stem}.npy"
-    return f"extras/{channel}/{stem}.npy"
-
-
 def token(*parts: object) -> str:
     """A deterministic 32-hex-character token (nuScenes style) from its identifying parts."""
     return hashlib.md5("/".join(str(p) for p in parts).encode()).hexdigest()
@@ -168,14 +160,14 @@ def _write_sweep(dataroot: Path, filename: str, sweep: LidarSweep) -> None:
     extras["column"] = sweep.column
     extras["instance"] = sweep.instance
     extras["material"] = sweep.material
-    atomic.save_npy(dataroot / extras_path(filename), extras)
+    atomic.save_npy(dataroot / extras_relpath(filename), extras)
 
 
 def _write_camera(dataroot: Path, filename: str, frame: CameraFrame, quality: int) -> None:
     buf = io.BytesIO()
     Image.fromarray(frame.image).save(buf, format="JPEG", quality=quality, subsampling=0)
     atomic.write_bytes(dataroot / filename, buf.getvalue())
-    atomic.save_npy(dataroot / extras_path(filename), frame.range.astype(np.float16))
+    atomic.save_npy(dataroot / extras_relpath(filename), frame.range.astype(np.float16))
 
 
 def visible_fraction(layout: SceneLayout, actor: Actor, camera: Camera, frame: CameraFrame,

@@ -16,7 +16,8 @@ from pathlib import Path
 
 from weatheralign import atomic
 from weatheralign.config import WorldConfig
-from weatheralign.world.build import (SampleResult, SceneSpec, extras_path, render_sample, scene_specs)
+from weatheralign.data.nuscenes import extras_relpath
+from weatheralign.world.build import SampleResult, SceneSpec, render_sample, scene_specs
 from weatheralign.world.rig import T_EGO_LIDAR, make_cameras
 from weatheralign.world.tables import (RoadFootprint, SensorCalibration, build_tables, write_dataset_tables)
 
@@ -48,7 +49,7 @@ def load_finished(dataroot: Path, spec: SceneSpec, sample_index: int, cfg: World
         return None
     result = SampleResult.from_json(data["result"])
     for rec in result.lidar + result.cameras:
-        if not (dataroot / rec.filename).is_file() or not (dataroot / extras_path(rec.filename)).is_file():
+        if not (dataroot / rec.filename).is_file() or not (dataroot / extras_relpath(rec.filename)).is_file():
             return None
     return result
 
@@ -107,7 +108,7 @@ def _remove_unreferenced(dataroot: Path, tables: dict[str, list[dict]]) -> None:
     keep = set()
     for sd in tables["sample_data"]:
         keep.add((dataroot / sd["filename"]).resolve())
-        keep.add((dataroot / extras_path(sd["filename"])).resolve())
+        keep.add((dataroot / extras_relpath(sd["filename"])).resolve())
     for top in SENSOR_DIRS:
         root = dataroot / top
         if not root.is_dir():

@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from weatheralign.config import LidarConfig
+from weatheralign.data.nuscenes import SWEEP_START_AZIMUTH, sweep_fraction_at_azimuth
 from weatheralign.data.rings import HDL32E_ELEVATIONS_DEG
 from weatheralign.geometry import camera_rotation_from_yaw, make_transform
 
@@ -20,7 +21,6 @@ F64 = NDArray[np.float64]
 # Laser firing within one column: 32 lasers fire 1.152 us apart (HDL-32E datasheet timing).
 LASER_FIRING_STEP_S = 1.152e-6
 T_EGO_LIDAR = make_transform(np.eye(3), np.array([0.943, 0.0, 1.84]))
-SWEEP_START_AZIMUTH = np.pi / 2  # ego +y (left); rotation is clockwise (azimuth decreasing)
 
 
 @dataclass(frozen=True)
@@ -78,12 +78,6 @@ def make_cameras(image_scale: float) -> tuple[Camera, ...]:
         T = make_transform(camera_rotation_from_yaw(yaw), np.array(spec.position))
         cams.append(Camera(spec.channel, K, width, height, T, yaw))
     return tuple(cams)
-
-
-def sweep_fraction_at_azimuth(azimuth: NDArray | float) -> NDArray:
-    """Fraction of the sweep period (0..1) at which a clockwise sweep from `SWEEP_START_AZIMUTH` reaches
-    ``azimuth`` [rad, ego/LiDAR frame, 0 = forward, +pi/2 = left]."""
-    return np.mod(SWEEP_START_AZIMUTH - np.asarray(azimuth), 2 * np.pi) / (2 * np.pi)
 
 
 def camera_time_offset(camera: Camera, period: float) -> float:

@@ -1,0 +1,66 @@
+"""Figures people look at: camera mosaics and LiDAR bird's-eye views with boxes."""
+
+from __future__ import annotations
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
+from numpy.typing import NDArray  # noqa: E402
+from PIL import Image  # noqa: E402
+
+from weatheralign.data.frame import Frame  # noqa: E402
+from weatheralign.geometry import apply, invert  # noqa: E402
+
+MOSAIC_ORDER = (("CAM_FRONT_LEFT", "CAM_FRONT", "CAM_FRONT_RIGHT"), ("CAM_BACK_LEFT", "CAM_BACK", "CAM_BACK_RIGHT"))
+CLASS_COLOURS = {"vehicle.car": "tab:orange", "vehicle.truck": "tab:brown", "vehicle.bus.rigid": "tab:red",
+                 "vehicle.bicycle": "tab:pink", "vehicle.motorcycle": "tab:purple",
+                 "human.pedestrian.adult": "tab:blue", "movable_object.barrier": "tab:gray",
+                 "movable_object.trafficcone": "gold"}
+
+
+def camera_mosaic(frame: Frame, width: int = 1800) -> NDArray[np.uint8]:
+    """The six images in the nuScenes layout (front row, back row) as one uint8 image ``width`` pixels wide."""
+    tile_w = width // 3
+    rows = []
+    for row in MOSAIC_ORDER:
+        tiles = []
+        for ch in row:
+            view = frame.cameras[ch]
+            tile_h = int(round(tile_w * view.height / view.width))
+            tiles.append(np.asarray(Image.fromarray(view.load_image()).resize((tile_w, tile_h), Image.BILINEAR)))
+        rows.append(np.concatenate(tiles, axis=1))
+    return np.concatenate(rows, axis=0)
+
+
+def bev_figure(frame: Frame, extent_m: float = 60.0, title: str = "",
+               point_colour: NDArray | None = None, cmap: str = "viridis") -> Figure:
+    """Bird's-eye view of the scan in the LiDAR frame (coloured by intensity unless ``point_colour`` (N,) is given)
+    with the annotation boxes outlined by class."""
+    scan = frame.lidar
+    p = scan.points
+    colour = np.log1p(scan.intensity_255()) if point_colour is None else point_colour
+    fig, ax = plt.subplots(figsize=(7, 7))
+    ax.scatter(p[:, 0], p[:, 1], s=0.3, c=colour, cmap=cmap, linewidths=0)
+    T = invert(scan.T_global_lidar)
+    for box in frame.boxes:
+        c, s = np.cos(box.yaw), np.sin(box.yaw)
+        w, length = box.size[0], box.size[1]
+        corners = np.array([[length / 2, w / 2], [length / 2, -w / 2], [-length / 2, -w / 2], [-length / 2, w / 2],
+                            [length / 2, w / 2]])
+        xy = corners @ np.array([[c, s], [-s, c]]) + box.center[:2]
+        local = apply(T, np.column_stack([xy, np.full(len(xy), box.center[2])]))
+        ax.plot(local[:, 0], local[:, 1], color=CLASS_COLOURS.get(box.category, "k"), lw=1.2)
+    for name, col in CLASS_COLOURS.items():
+        ax.plot([], [], color=col, label=name.split(".")[-1])
+    ax.legend(loc="upper right", fontsize=7)
+    ax.set_xlim(-extent_m, extent_m)
+    ax.set_ylim(-extent_m, extent_m)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x forward [m]")
+    ax.set_ylabel("y left [m]")
+    ax.set_title(title or f"LIDAR_TOP, {len(p):,} points")
+    fig.tight_layout()
+    return fig
