@@ -24,7 +24,7 @@ from PIL import Image
 from weatheralign.data.errors import DataFormatError, read_float32_records, require_file
 from weatheralign.data.frame import CameraView, Frame, LidarScan
 from weatheralign.data.rings import HDL64E_ELEVATIONS_DEG, rings_from_elevation
-from weatheralign.geometry import NonRigidTransformError, check_rigid, invert
+from weatheralign.geometry import NonRigidTransformError, check_rigid
 
 F64 = NDArray[np.float64]
 
@@ -232,7 +232,8 @@ def load_kitti_frame(velodyne_bin: Path, image: Path | None, calib_json: Path) -
 
     Returns:
         Frame with ``LidarScan(points (N, 5), intensity_max=1.0, num_rings=64, T_ego_lidar=I)`` and, with an image,
-        one `CameraView` ``image_2`` (K from ``P2``, ``T_ego_cam = inv(T_cam_velo)``, size of the actual image).
+        one `CameraView` ``image_2`` (K from ``P2``, ``T_ego_cam = inv(T_cam_velo)``, size of the actual image), so that
+        ``K @ inv(T_ego_cam)[:3] == P2 @ R0_rect @ Tr_velo_to_cam`` up to float64 rounding.
 
     Raises:
         DataFormatError: bad scan, missing image, calibration errors, image size differing from the calibration.
@@ -262,7 +263,9 @@ def load_kitti_frame(velodyne_bin: Path, image: Path | None, calib_json: Path) -
             K=calib.K,
             width=width,
             height=height,
-            T_ego_cam=invert(calib.T_cam_velo),
+            # exact matrix inverse: Tr_velo_to_cam is only orthonormal to ~1e-7 (float32 values), and the transpose
+            # inverse would shift projections by ~1e-6 px against P2 @ R0_rect @ Tr_velo_to_cam
+            T_ego_cam=np.linalg.inv(calib.T_cam_velo),
             T_global_ego=np.eye(4),
             timestamp=0.0,
         )

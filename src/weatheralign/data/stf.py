@@ -3,7 +3,8 @@
 Layouts (both accepted, nested first):
     nested (the real dataset): ``<root>/lidar_hdl64_strongest/<recording>_<frame>.bin``,
         ``<root>/cam_stereo_left_lut/<recording>_<frame>.png``;
-    flat (the shared sample): ``<root>/lidar_hdl64_strongest_<recording>_<frame>.bin``, ``<root>/cam_stereo_left_lut_...``.
+    flat (the shared sample): ``<root>/lidar_hdl64_strongest_<recording>_<frame>.bin``,
+        ``<root>/cam_stereo_left_lut_<recording>_<frame>.png``.
 Calibration: ``calib_cam_stereo_left.json`` (ROS CameraInfo of the 1920 x 1024 camera) and ``calib_tf_tree_full.json``
 (list of ROS ``TransformStamped``), in ``<root>``, ``<root>/calib`` or ``<root>/calibs``.
 
@@ -14,6 +15,11 @@ named quaternion ``{x, y, z, w}``. Both sensors hang off ``body``:
 
 Intrinsics: the ``_lut`` images are rectified, so ``K`` is the left 3x3 block of ``P`` (ROS convention for rectified
 images, as in the dataset's own projection tools); the raw ``K``/``D`` and the rectifying rotation ``R`` are not used.
+
+Ring order: the stored channel is kept as the ring, and STF channels count *upwards*: for points beyond 8 m the
+median elevation rises monotonically with the channel (channel 1 ~ -24 deg ... channel 63 ~ +2.7 deg on the shared
+sample). This is the reverse of the ring-0-is-highest order of `weatheralign.data.rings`; use ``63 - ring`` where
+that order is needed.
 
 Crops: the calibration describes the full 1920 x 1024 image. A stored image of another size is a crop, and ``K`` is
 shifted by the crop origin ``(x0, y0)``: ``cx' = cx - x0``, ``cy' = cy - y0``. The origin is either given by the caller
@@ -124,7 +130,9 @@ def read_tf_tree(path: Path) -> dict[str, tuple[str, F64]]:
     path = Path(path)
     data = _load_json(path, "tf tree")
     if not isinstance(data, list):
-        raise DataFormatError(f"{path}: expected a JSON list of transforms (header.frame_id, child_frame_id, transform)")
+        raise DataFormatError(
+            f"{path}: expected a JSON list of transforms (header.frame_id, child_frame_id, transform)"
+        )
     tree: dict[str, tuple[str, F64]] = {}
     for i, entry in enumerate(data):
         where = f"entry {i}"

@@ -170,11 +170,13 @@ def _person(rng: np.random.Generator, walking: bool) -> tuple[tuple[float, float
     return size, mesh
 
 
-def _static_world(rng: np.random.Generator, road: RoadGeometry) -> list[Mesh]:
-    """Ground, sidewalks with curbs, buildings, trees, lamps and signs in the scene frame."""
+def _static_world(rng: np.random.Generator, road: RoadGeometry) -> tuple[list[Mesh], list[tuple[float, float]]]:
+    """Ground, sidewalks with curbs, buildings, trees, lamps and signs in the scene frame; also the (x, y) of the
+    street furniture, which road users must keep clear of."""
     W, sw = road.road_half_width, road.sidewalk_width
     x_lo, x_hi = -320.0, 380.0
     parts = [box(x_lo, x_hi, -400, 400, -1.0, 0.0, M.ROAD, (0.16, 0.16, 0.17), 0.12)]
+    furniture: list[tuple[float, float]] = []
     gaps: list[tuple[float, float]] = []
     if road.crossing_x is not None:
         gaps.append((road.crossing_x - road.crossing_half_width, road.crossing_x + road.crossing_half_width))
@@ -212,6 +214,7 @@ def _static_world(rng: np.random.Generator, road: RoadGeometry) -> list[Mesh]:
             x = s0 + rng.uniform(2, 8)
             while x < s1 - 2:
                 y = side * (W + 0.75)
+                furniture.append((x, y))
                 kind = rng.random()
                 if kind < 0.6:
                     parts.append(objects.tree(rng.uniform(5, 9), rng.uniform(1.4, 2.6), rng)
@@ -223,7 +226,7 @@ def _static_world(rng: np.random.Generator, road: RoadGeometry) -> list[Mesh]:
                                                       _pick(rng, ((0.8, 0.1, 0.1), (0.1, 0.3, 0.8), (0.9, 0.9, 0.9))))
                                  .transformed(np.eye(3), [x, y, CURB_HEIGHT]))
                 x += rng.uniform(9, 18)
-    return parts
+    return parts, furniture
 
 
 def generate_layout(name: str, seed: int, t_start: float, duration: float, ego_speed_range: tuple[float, float],
@@ -244,9 +247,11 @@ def generate_layout(name: str, seed: int, t_start: float, duration: float, ego_s
     ego_lane_y = -LANE_WIDTH / 2
     T_global_scene = make_transform(yaw_matrix(heading), np.array([origin[0], origin[1], 0.0]))
 
-    static_parts = _static_world(rng, road)
+    static_parts, furniture = _static_world(rng, road)
     times = np.linspace(0.0, duration, 25)
     occ = _Occupancy(times)
+    for fx, fy in furniture:  # trunks, posts (lamp heads and crowns overhang above head height)
+        occ.boxes.append(occ.footprint(fx, fy, 0.0, 0.0, 0.35, 0.35))
     ego_len, ego_w = 4.9, 2.0
     occ.boxes.append(occ.footprint(0.0, ego_lane_y, ego_speed, 0.0, ego_len / 2 + 1.5, ego_w / 2 + 0.3))
 
@@ -341,7 +346,7 @@ def generate_layout(name: str, seed: int, t_start: float, duration: float, ego_s
     # a construction zone: cones along a line, barriers behind them
     if rng.random() < 0.6:
         side = 1.0 if rng.random() < 0.5 else -1.0
-        y_line = side * (W - 0.6) if parking else side * (lanes * LANE_WIDTH + 0.3)
+        y_line = side * (W - 0.6)  # on the road along the curb
         x0 = float(rng.uniform(10, 90))
         for i in range(int(rng.integers(4, 10))):
             size = (rng.uniform(0.35, 0.45), rng.uniform(0.35, 0.45), rng.uniform(0.7, 1.0))

@@ -151,7 +151,7 @@ def barrier(size: tuple[float, float, float], colour: RGB) -> Mesh:
 
 def tree(height: float, crown_radius: float, rng: np.random.Generator) -> Mesh:
     """A street tree: trunk plus a rough ellipsoid crown of varying green."""
-    trunk_h = height - 1.6 * crown_radius
+    trunk_h = max(4.0, height - 1.6 * crown_radius)  # crowns stay above people, vans and trucks
     green = (0.08 + 0.06 * rng.random(), 0.2 + 0.1 * rng.random(), 0.05 + 0.04 * rng.random())
     trunk = cylinder(0.14 + 0.06 * rng.random(), trunk_h + 0.3, M.TRUNK, (0.2, 0.13, 0.08), 0.35, segments=8,
                      centre=(0, 0, (trunk_h + 0.3) / 2), caps=False)

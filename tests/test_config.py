@@ -1,0 +1,62 @@
+from pathlib import Path
+
+import pytest
+
+from weatheralign.config import ConfigError, apply_override, load_params, params_from_dict
+
+from .conftest import REPO
+
+
+def test_repository_params_load_with_defaults():
+    p = load_params(REPO / "params.yaml")
+    assert p.world.num_train_scenes == 8 and p.world.num_val_scenes == 2
+    assert p.world.lidar.firings_per_ring == 1085
+    assert p.paths.data == Path("data")
+
+
+def test_out_of_range_value_names_key_and_range(tmp_path):
+    f = tmp_path / "p.yaml"
+    f.write_text("world:\n  ego_speed_max: 30\n")
+    with pytest.raises(ConfigError) as err:
+        load_params(f)
+    msg = str(err.value)
+    assert "world.ego_speed_max" in msg and "30" in msg and "less than or equal to 12" in msg
+
+
+def test_unknown_key_is_refused():
+    with pytest.raises(ConfigError, match=r"world.num_scenes .*unknown key"):
+        params_from_dict({"world": {"num_scenes": 3}})
+
+
+def test_cross_field_check():
+    with pytest.raises(ConfigError, match="ego_speed_min"):
+        params_from_dict({"world": {"ego_speed_min": 11, "ego_speed_max": 6}})
+
+
+def test_set_overrides_parse_yaml_values(tmp_path):
+    f = tmp_path / "p.yaml"
+    f.write_text("world:\n  seed: 1\n")
+    p = load_params(f, ["world.seed=7", "world.camera.shadows=false", "run.dask_address=tcp://127.0.0.1:8786"])
+    assert p.world.seed == 7 and p.world.camera.shadows is False
+    assert p.run.dask_address == "tcp://127.0.0.1:8786"
+
+
+def test_bad_override_syntax():
+    with pytest.raises(ConfigError, match="key.sub=value"):
+        apply_override({}, "world.seed")
+    with pytest.raises(ConfigError, match="is a value"):
+        apply_override({"world": 3}, "world.seed=1")
+
+
+def test_missing_and_malformed_files(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        load_params(tmp_path / "nope.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("world: [unclosed\n")
+    with pytest.raises(ConfigError, match="not valid YAML"):
+        load_params(bad)
+
+
+def test_nuscenes_source_needs_dataroot():
+    with pytest.raises(ConfigError, match="nuscenes_dataroot"):
+        params_from_dict({"world": {"source": "nuscenes"}})

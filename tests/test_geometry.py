@@ -1,0 +1,59 @@
+import numpy as np
+import pytest
+
+from weatheralign.geometry import (NonRigidTransformError, apply, camera_rotation_from_yaw, check_rigid,
+                                   interpolate_poses, invert, make_transform, project, quaternion_wxyz,
+                                   transform_from_quaternion, yaw_matrix)
+
+
+def test_quaternion_round_trip():
+    rng = np.random.default_rng(0)
+    for _ in range(20):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        T = transform_from_quaternion(q, rng.normal(size=3))
+        q2 = quaternion_wxyz(T[:3, :3])
+        assert np.allclose(transform_from_quaternion(q2, T[:3, 3]), T, atol=1e-12)
+        assert q2[0] >= 0
+
+
+def test_yaw_quaternion_matches_closed_form():
+    q = quaternion_wxyz(yaw_matrix(0.7))
+    assert np.allclose(q, [np.cos(0.35), 0, 0, np.sin(0.35)])
+
+
+def test_invert_and_apply():
+    T = make_transform(yaw_matrix(1.1), np.array([3.0, -2.0, 0.5]))
+    p = np.random.default_rng(1).normal(size=(10, 3))
+    assert np.allclose(apply(invert(T), apply(T, p)), p)
+
+
+@pytest.mark.parametrize("bad, match", [
+    (np.eye(3), "4x4"),
+    (np.diag([1.0, 1.0, 2.0, 1.0]), "orthonormal"),
+    (np.diag([1.0, 1.0, -1.0, 1.0]), "det"),
+    (np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 1, 1.0]]), "last row"),
+    (np.full((4, 4), np.nan), "NaN"),
+])
+def test_check_rigid_rejects(bad, match):
+    with pytest.raises(NonRigidTransformError, match=match):
+        check_rigid(bad, "T_test")
+
+
+def test_interpolate_poses_linear_and_slerp():
+    T0 = make_transform(yaw_matrix(0.0), np.zeros(3))
+    T1 = make_transform(yaw_matrix(0.4), np.array([2.0, 0, 0]))
+    out = interpolate_poses(np.array([0.0, 0.5, 1.0, 2.0]), np.array([0.0, 1.0]), np.stack([T0, T1]))
+    assert np.allclose(out[1][:3, 3], [1.0, 0, 0])
+    assert np.allclose(out[1][:3, :3], yaw_matrix(0.2))
+    assert np.allclose(out[3], T1)  # clamped
+
+
+def test_camera_rotation_projects_forward_point_to_principal_point():
+    K = np.array([[1000.0, 0, 800], [0, 1000.0, 450], [0, 0, 1]])
+    for yaw in (0.0, 1.0, -2.0):
+        R = camera_rotation_from_yaw(yaw)
+        p_ego = np.array([[np.cos(yaw) * 10, np.sin(yaw) * 10, 0.0], [np.cos(yaw) * 10, np.sin(yaw) * 10, 1.0]])
+        uv, z = project(p_ego @ R, K)  # R^T p
+        assert np.allclose(uv[0], [800, 450]) and np.allclose(z, 10)
+        assert uv[1, 1] < 450  # up in the world is up in the image
