@@ -36,7 +36,7 @@ $(STAMP): pyproject.toml Makefile
 	@touch $(STAMP)
 
 reproduce: setup
-	WEATHERALIGN_PIPELINE_ID=repro-$$(date +%Y%m%d-%H%M%S) $(VENV)/bin/dvc repro
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" WEATHERALIGN_PIPELINE_ID=repro-$$(date +%Y%m%d-%H%M%S) dvc repro
 
 test: setup
 	$(PY) -m pytest -q $(PYTEST_ARGS)

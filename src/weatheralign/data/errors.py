@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -13,19 +14,22 @@ class DataFormatError(ValueError):
 
 
 def resolve_inside(root: Path, relative: str, what: str) -> Path:
-    """``root / relative``, refusing absolute paths and ``..`` components that escape ``root``.
+    """``root / relative``, refusing absolute paths and ``..`` components that climb out of ``root``.
+
+    The check is on the path's components, not on where symlinks point: a dataroot whose ``samples/`` is a link to
+    another disk is fine.
 
     Raises:
         DataFormatError: the path leaves the dataroot.
     """
-    root = Path(root).resolve()
+    root = Path(root)
     rel = Path(relative)
     if rel.is_absolute():
         raise DataFormatError(f"{what}: path {relative!r} is absolute; expected a path relative to {root}")
-    full = (root / rel).resolve()
-    if full != root and root not in full.parents:
+    normal = os.path.normpath(rel)
+    if normal == ".." or normal.startswith(".." + os.sep):
         raise DataFormatError(f"{what}: path {relative!r} escapes the dataroot {root}")
-    return full
+    return root / normal
 
 
 def require_file(path: Path, what: str) -> Path:

@@ -47,9 +47,18 @@ def open_nuscenes(dataroot: str | Path, version: str) -> NuScenes:
 
 
 def _transform(record: dict, what: str) -> NDArray[np.float64]:
+    """``T`` (4, 4) of a record's ``rotation`` (unit quaternion w, x, y, z) and ``translation`` (3,) [m]."""
     try:
-        return check_rigid(transform_from_quaternion(record["rotation"], record["translation"]), what)
-    except (KeyError, ValueError, NonRigidTransformError) as err:
+        q = np.asarray(record["rotation"], dtype=np.float64)
+        t = np.asarray(record["translation"], dtype=np.float64)
+        if q.shape != (4,) or t.shape != (3,) or not (np.isfinite(q).all() and np.isfinite(t).all()):
+            raise ValueError(f"expected a finite rotation [w, x, y, z] and translation [x, y, z], got {q.tolist()}, "
+                             f"{t.tolist()}")
+        if abs(np.linalg.norm(q) - 1.0) > 1e-3:
+            raise ValueError(f"rotation quaternion has norm {np.linalg.norm(q):.6f}, expected a unit quaternion "
+                             "(a non-rigid calibration)")
+        return check_rigid(transform_from_quaternion(q, t), what)
+    except (KeyError, TypeError, ValueError, NonRigidTransformError) as err:
         raise DataFormatError(f"{what}: invalid rotation/translation: {err}") from None
 
 

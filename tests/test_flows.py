@@ -1,0 +1,72 @@
+"""Real Prefect flow runs of the `world` stage (thread pool and a Dask cluster), with MLflow tracking."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from flows.common import parse_stage_args
+
+from .conftest import REPO
+
+TINY = ["--set", "world.num_train_scenes=1", "--set", "world.num_val_scenes=1", "--set", "world.samples_per_scene=2",
+        "--set", "world.sweeps_per_sample=1", "--set", "world.camera.image_scale=0.2", "--set", "run.show_progress=false"]
+
+
+def test_cli_rejects_bad_override_naming_the_key(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        parse_stage_args("world", ["--params", str(REPO / "params.yaml"), "--set", "world.ego_speed_max=30"])
+    assert exit_info.value.code == 2
+    assert "world.ego_speed_max = 30 is invalid: Input should be less than or equal to 12" in capsys.readouterr().err
+
+
+def _run_world(tmp: Path, extra: list[str], env: dict[str, str]) -> subprocess.CompletedProcess:
+    args = [sys.executable, "-m", "flows.world", "--params", str(REPO / "params.yaml"), *TINY,
+            "--set", f"paths.data={tmp / 'data'}", "--set", f"paths.reports={tmp / 'reports'}",
+            "--set", f"tracking.mlflow_uri=sqlite:///{tmp / 'mlflow.db'}", *extra]
+    return subprocess.run(args, cwd=tmp, env=env, capture_output=True, text=True, timeout=600)
+
+
+@pytest.mark.flow
+def test_world_flow_thread_pool_and_dask_with_mlflow(tmp_path):
+    from distributed import LocalCluster
+    from mlflow.tracking import MlflowClient
+
+    env = {**os.environ, "PYTHONPATH": str(REPO), "WEATHERALIGN_PIPELINE_ID": "test-pipeline",
+           "PREFECT_LOGGING_LEVEL": "WARNING"}
+    run = _run_world(tmp_path, [], env)
+    assert run.returncode == 0, run.stderr[-3000:]
+    metrics = json.loads((tmp_path / "reports" / "world" / "metrics.json").read_text())
+    assert metrics["num_scenes"] == 2 and metrics["num_samples"] == 4 and metrics["num_sweeps"] == 4
+    assert metrics["samples_rendered_this_run"] == 4 and metrics["seconds_per_sample"] > 0
+    assert metrics["dataroot"] == "data/world" and sum(metrics["class_counts"].values()) == metrics["num_annotations"]
+    assert (tmp_path / "reports" / "world" / "sample_bev.png").stat().st_size > 20_000
+    assert (tmp_path / "reports" / "world" / "sample_cameras.jpg").stat().st_size > 20_000
+    tables = sorted(p.name for p in (tmp_path / "data" / "world" / "v1.0-mini").glob("*.json"))
+    assert len(tables) == 14  # 13 nuScenes tables + splits.json
+
+    # the same stage on an existing Dask cluster: everything already rendered is picked up, not redone
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, protocol="tcp", host="127.0.0.1",
+                      dashboard_address=None) as cluster:
+        run = _run_world(tmp_path, ["--set", f"run.dask_address={cluster.scheduler_address}",
+                                    "--set", "world.samples_per_scene=3"], env)
+    assert run.returncode == 0, run.stderr[-3000:]
+    metrics = json.loads((tmp_path / "reports" / "world" / "metrics.json").read_text())
+    assert metrics["num_samples"] == 6 and metrics["samples_rendered_this_run"] == 6  # config changed: all re-rendered
+
+    client = MlflowClient(tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}")
+    exp = client.get_experiment_by_name("weatheralign")
+    runs = client.search_runs([exp.experiment_id])
+    parents = [r for r in runs if r.data.tags.get("weatheralign.pipeline_id") == "test-pipeline"]
+    children = [r for r in runs if r.data.tags.get("mlflow.parentRunId") == parents[0].info.run_id]
+    assert len(parents) == 1 and len(children) == 2
+    child = children[0]
+    assert child.data.tags["weatheralign.stage"] == "world" and child.data.tags["prefect.flow_run_id"]
+    assert child.data.metrics["num_samples"] in (4, 6) and "world.lidar.firings_per_ring" in child.data.params
+    artifacts = {a.path for a in client.list_artifacts(child.info.run_id, "figures")}
+    assert artifacts == {"figures/sample_bev.png", "figures/sample_cameras.jpg"}
