@@ -94,6 +94,38 @@ class WorldConfig(_Section):
         return self
 
 
+class SnowConfig(_Section):
+    """Snowfall (Hahner 2022): water-equivalent rate, terminal velocity, size distribution, wind."""
+
+    rate_mm_h: Annotated[float, Field(gt=0.0, le=20.0)] = 2.0
+    terminal_velocity_m_s: Annotated[float, Field(ge=0.2, le=5.0)] = 1.5
+    size_distribution: Literal["gunn_marshall", "sekhon_srivastava"] = "gunn_marshall"
+    wind_m_s: tuple[float, float] = (0.0, 0.0)
+    cell_size_m: Annotated[float, Field(ge=0.5, le=10.0)] = 2.0
+
+
+class RainConfig(_Section):
+    """Rain (LISA): Marshall-Palmer drops from the rain rate, one fall velocity for the field, wind."""
+
+    rate_mm_h: Annotated[float, Field(gt=0.0, le=300.0)] = 50.0
+    terminal_velocity_m_s: Annotated[float, Field(ge=0.5, le=12.0)] = 2.0
+    wind_m_s: tuple[float, float] = (0.0, 0.0)
+    min_diameter_m: Annotated[float, Field(ge=1e-5, le=1e-3)] = 5e-5
+    cell_size_m: Annotated[float, Field(ge=0.25, le=10.0)] = 1.0
+
+
+class ParticlesConfig(_Section):
+    """The `particles` stage: one shared particle field per scene and precipitation condition."""
+
+    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 11
+    layer_bottom_m: Annotated[float, Field(ge=-50.0, le=0.0)] = -2.0
+    layer_top_m: Annotated[float, Field(ge=5.0, le=200.0)] = 30.0
+    validation_regions: Annotated[int, Field(ge=1, le=50)] = 4
+    validation_max_particles: Annotated[int, Field(ge=10_000, le=5_000_000)] = 400_000
+    snow: SnowConfig = SnowConfig()
+    rain: RainConfig = RainConfig()
+
+
 class Params(_Section):
     """The whole of params.yaml."""
 
@@ -101,6 +133,7 @@ class Params(_Section):
     run: RunConfig = RunConfig()
     tracking: TrackingConfig = TrackingConfig()
     world: WorldConfig = WorldConfig()
+    particles: ParticlesConfig = ParticlesConfig()
 
 
 def apply_override(tree: dict[str, Any], assignment: str) -> None:

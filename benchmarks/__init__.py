@@ -1,0 +1,1 @@
+"""Speed and memory harness: `python -m benchmarks.<name>` writes reports/benchmarks/*.json."""

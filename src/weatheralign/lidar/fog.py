@@ -1,0 +1,496 @@
+"""LiDAR fog (Hahner et al., ICCV 2021) for any extinction α, vectorised.
+
+Model (``shared/docs/physics.md`` section 2). A homogeneous fog of extinction α [1/m] and backscatter β [1/(m sr)]
+attenuates every hard-target return two-way, ``i_hard = exp(-2 α R_0) i_0``, and returns a soft-target echo of its own:
+
+    P_soft(R) / (C_A P_0 β) = ∫_0^{2τ_H} sin²(π t / 2τ_H) · exp(-2α r) ξ(r) / r² · U(R_0 - r) dt,   r = R - c t / 2.
+
+Its maximum over the receiver's range axis ``R <= R_0`` (the published table generator searches only there) is the
+fog response ``I(R_0)`` [s/m²] at ``R_fog``; ``i_soft = min(I(R_0) i_0 R_0² β / β_0, saturation)``.
+If ``i_soft > i_hard`` the point becomes a fog return at ``R_fog`` along its ray, else it keeps its position with
+``i_hard``. ``R_fog`` is the peak on the receiver axis ``R = c t / 2`` as in physics.md (about 4.6 m for α = 0.06),
+not shifted by the ``c τ_H / 2`` between pulse start and pulse peak.
+
+How ``I(R_0)`` is computed for any α (no tables snapped to 9 values): for ``R <= R_0`` every scatterer ``r <= R``
+lies in front of the target, so ``U`` is 1 and the integrand does not depend on ``R_0``:
+``I(R_0) = max_{R <= R_0} G(R)`` with ``G`` the response of an unobstructed fog, ``G(R) = (2/c) (k * h)(R)``, the
+convolution of the log-concave pulse ``k(s) = sin²(π s / (c τ_H))`` on ``[0, c τ_H]`` with the unimodal
+``h(r) = exp(-2αr) ξ(r) / r²`` (log-concave on the ξ ramp, decreasing after it, for every α >= 0). A convolution
+of a log-concave with a unimodal function is unimodal (Ibragimov), so with ``R*`` the peak of ``G``: ``R_fog = min(R_0, R*)``, ``I(R_0) = G(min(R_0, R*))``. ``G`` is evaluated once per α on a
+5 mm grid that has ``r1`` and ``r2`` (the kinks of ξ) on nodes, by a discrete convolution (trapezoid rule), over
+``[r1, r2 + c τ_H]`` (beyond it ``h`` is decreasing on the whole window, so ``G`` is too), and ``R*`` is refined by a
+parabola through the three nodes around the maximum: ~0.3 ms per α. The per-point part (range from the beam
+origin, interpolation on the uniform grid, comparison, new point) is one fused numba loop.
+
+Traps of the published code, fixed here:
+- intensity scale: the model is homogeneous of degree 1 in intensity; it is evaluated in the scan's own units with the
+  saturation and the noise floor converted from the 0..255 scale, and nothing is rounded (the published code rounds
+  ``i_hard`` to integers, which zeroes 0..1 intensities and turns almost every KITTI point into fog);
+- range noise (optional, seeded) is drawn inside ``[r1, min(R_0, max_range)]``, never behind the sensor or beyond
+  the target or the maximum range;
+- β is an explicit argument (the published parameter object keeps β = 0.046 / MOR(α = 0.06) = 9.21e-4 whatever α);
+- an optional detector noise floor drops returns that the weather pushed below it (label LOST).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from enum import IntEnum
+
+import numpy as np
+from numba import njit
+from numpy.typing import ArrayLike, NDArray
+
+from weatheralign.data.frame import LidarScan
+from weatheralign.lidar.pulse import DEFAULT_SENSOR, SPEED_OF_LIGHT, PulseSensor, overlap
+
+F64 = NDArray[np.float64]
+
+LN20 = math.log(20.0)
+DEFAULT_BETA_MOR = 0.046
+"""Default backscatter as ``β = DEFAULT_BETA_MOR / MOR`` (the paper's grid is 0.023·{1.0, 1.2, …, 2.0} / MOR)."""
+
+REFERENCE_CODE_BETA = DEFAULT_BETA_MOR * 0.06 / LN20
+"""β = 9.21e-4 /(m sr): what the published code actually uses for every α (computed from its default α = 0.06)."""
+
+TABLE_STEP_M = 0.005
+"""Target grid step [m] of the per-α response table."""
+
+
+class FogLabel(IntEnum):
+    """What fog did to a point."""
+
+    UNCHANGED = 0  # bit-identical to the input (α = 0, or zero intensity)
+    ATTENUATED = 1  # same position, intensity exp(-2 α R_0) i_0
+    SCATTERED = 2  # replaced by the fog return at R_fog on its ray
+    LOST = 3  # the weather pushed the return below the detector noise floor: dropped
+
+
+def mor_from_alpha(alpha: float) -> float:
+    """Meteorological optical range ``ln(20) / α`` [m] of extinction ``alpha`` [1/m] (inf for α = 0)."""
+    return math.inf if alpha == 0 else LN20 / alpha
+
+
+def alpha_from_mor(mor: float) -> float:
+    """Extinction ``ln(20) / MOR`` [1/m] of a visibility ``mor`` [m]."""
+    return LN20 / mor
+
+
+def default_beta(alpha: float, beta_mor: float = DEFAULT_BETA_MOR) -> float:
+    """Backscatter ``β = beta_mor / MOR(α)`` [1/(m sr)] (``beta_mor`` = 0.046 by default)."""
+    return beta_mor * alpha / LN20
+
+
+def _check_medium(alpha: float, beta: float) -> None:
+    if not (math.isfinite(alpha) and alpha >= 0.0):
+        raise ValueError(f"fog: alpha = {alpha!r}; expected a finite extinction >= 0 [1/m]")
+    if not (math.isfinite(beta) and beta >= 0.0):
+        raise ValueError(f"fog: beta = {beta!r}; expected a finite backscatter >= 0 [1/(m sr)]")
+
+
+# ------------------------------------------------------------------------------------------- soft-target response
+
+
+@dataclass(frozen=True)
+class SoftTargetResponse:
+    """The fog response of one extinction α: ``I(R_0)`` [s/m²] and ``R_fog`` [m] for any target range.
+
+    Attributes:
+        alpha: extinction [1/m].
+        r_grid: (K,) receiver ranges [m], uniform from ``sensor.r1``.
+        g: (K,) ``G(R) = P_soft(R) / (C_A P_0 β)`` of an unobstructed fog at ``r_grid`` [s/m²].
+        r_peak: ``R*`` [m], the maximum of ``G`` (refined between nodes).
+        g_peak: ``G(R*)`` [s/m²].
+    """
+
+    alpha: float
+    r_grid: F64
+    g: F64
+    r_peak: float
+    g_peak: float
+
+    def __call__(self, r0: ArrayLike) -> tuple[F64, F64]:
+        """``(I(R_0), R_fog)`` for target ranges ``r0`` (any shape) [m]: ``R_fog = min(R_0, R*)``, and
+        ``I = G(R_fog)`` (0 where ``R_0 <= r1``: no overlap, no fog echo)."""
+        r0 = np.asarray(r0, dtype=np.float64)
+        r_fog = np.minimum(r0, self.r_peak)
+        value = np.interp(r_fog, self.r_grid, self.g, left=0.0)
+        value = np.where(r0 >= self.r_peak, self.g_peak, np.minimum(value, self.g_peak))
+        return value, r_fog
+
+
+def soft_target_response(
+    alpha: float, sensor: PulseSensor = DEFAULT_SENSOR, *, step: float = TABLE_STEP_M
+) -> SoftTargetResponse:
+    """Tabulate the fog response of extinction ``alpha`` [1/m] (about 0.3 ms with the default 5 mm ``step``).
+
+    Raises:
+        ValueError: ``alpha`` negative or not finite, or ``step`` not in (0, 0.1] m.
+    """
+    _check_medium(alpha, 0.0)
+    if not 0.0 < step <= 0.1:
+        raise ValueError(f"soft_target_response: step = {step!r}; expected 0 < step <= 0.1 m")
+    length = sensor.pulse_length
+    ramp = sensor.r2 - sensor.r1
+    dr = ramp / math.ceil(ramp / step)  # r1 and r2 (the kinks of ξ) fall on nodes
+    n = int(math.ceil((ramp + length) / dr)) + 3
+    r = sensor.r1 + dr * np.arange(n)
+    h = np.exp(-2.0 * alpha * r) * overlap(r, sensor) / (r * r)
+    s = dr * np.arange(int(math.floor(length / dr)) + 1)
+    k = np.sin(np.pi * s / length) ** 2  # zero with zero slope at both ends: the plain sum is the trapezoid rule
+    g = np.convolve(h, k)[:n] * (dr * 2.0 / SPEED_OF_LIGHT)
+    j = int(np.argmax(g))
+    r_peak, g_peak = float(r[j]), float(g[j])
+    if 0 < j < n - 1:
+        a, b, c = g[j - 1], g[j], g[j + 1]
+        curv = a - 2.0 * b + c
+        if curv < 0.0:
+            shift = 0.5 * (a - c) / curv
+            r_peak = float(r[j] + shift * dr)
+            g_peak = float(b - 0.25 * (a - c) * shift)
+    for arr in (r, g):
+        arr.setflags(write=False)
+    return SoftTargetResponse(alpha=float(alpha), r_grid=r, g=g, r_peak=r_peak, g_peak=g_peak)
+
+
+# ------------------------------------------------------------------------------------------------ per-point model
+
+
+@dataclass(frozen=True)
+class FogIntensities:
+    """Per-point fog outcome without geometry.
+
+    Attributes:
+        intensity: (N,) float64 output intensity, in the input's units (LOST points: the undetected value).
+        labels: (N,) uint8 `FogLabel` values.
+        r_fog: (N,) float64 range [m] of each point's fog echo (meaningful where SCATTERED).
+    """
+
+    intensity: F64
+    labels: NDArray[np.uint8]
+    r_fog: F64
+
+
+def fog_intensities(
+    r0: ArrayLike,
+    i0: ArrayLike,
+    alpha: float,
+    beta: float,
+    *,
+    intensity_max: float = 255.0,
+    sensor: PulseSensor = DEFAULT_SENSOR,
+    noise_floor: float | None = None,
+    response: SoftTargetResponse | None = None,
+) -> FogIntensities:
+    """Hard attenuation vs fog echo for points at ranges ``r0`` (N,) [m] with clear intensities ``i0`` (N,).
+
+    Args:
+        r0: range of each point from its beam origin [m].
+        i0: clear intensity on ``0..intensity_max`` (compared as float32, the point-cloud dtype).
+        alpha, beta: extinction [1/m] and backscatter [1/(m sr)].
+        intensity_max: the intensity scale of ``i0`` (255 or 1); the sensor saturation and the noise floor, given on
+            the 0..255 scale, are converted to it, so a 0..1 scan behaves exactly like the same scan on 0..255.
+        noise_floor: detector floor on the 0..255 scale, or None. A return is LOST when its output intensity is below
+            the floor and (as float32) below its clear intensity: points already under the floor in clear weather were
+            detected nevertheless, so only a return the weather weakened further is dropped.
+        response: a precomputed `soft_target_response` of this ``alpha`` (e.g. when sweeping β), or None.
+
+    Returns:
+        `FogIntensities`. The label of a non-scattered point is UNCHANGED when its float32 intensity is bit-identical
+        to the input's, else ATTENUATED.
+    """
+    params = _kernel_params(alpha, beta, intensity_max, sensor, noise_floor, response)
+    r0 = np.ascontiguousarray(r0, dtype=np.float64).ravel()
+    i0 = np.ascontiguousarray(i0, dtype=np.float32).ravel()
+    if r0.shape != i0.shape:
+        raise ValueError(f"fog_intensities: r0 {r0.shape} and i0 {i0.shape} differ")
+    intensity = np.empty(len(r0))
+    labels = np.empty(len(r0), dtype=np.uint8)
+    r_fog = np.empty(len(r0))
+    _intensity_kernel(r0, i0, *params, intensity, labels, r_fog)
+    return FogIntensities(intensity=intensity, labels=labels, r_fog=r_fog)
+
+
+def _kernel_params(
+    alpha: float,
+    beta: float,
+    intensity_max: float,
+    sensor: PulseSensor,
+    noise_floor: float | None,
+    response: SoftTargetResponse | None,
+) -> tuple:
+    """The scalar/array arguments shared by the numba kernels, validated."""
+    _check_medium(alpha, beta)
+    if intensity_max not in (1.0, 255.0):
+        raise ValueError(f"fog: intensity_max must be 1.0 or 255.0, got {intensity_max!r}")
+    if noise_floor is not None and not (math.isfinite(noise_floor) and noise_floor >= 0.0):
+        raise ValueError(f"fog: noise_floor = {noise_floor!r}; expected None or a finite value >= 0 (0..255 scale)")
+    if response is None:
+        response = soft_target_response(alpha, sensor)
+    elif response.alpha != alpha:
+        raise ValueError(f"fog: response is for alpha = {response.alpha}, not {alpha}")
+    grid = response.r_grid
+    saturation = sensor.saturation * intensity_max / 255.0
+    floor = -1.0 if noise_floor is None else noise_floor * intensity_max / 255.0
+    return (float(grid[0]), float(grid[1] - grid[0]), response.g, response.r_peak, response.g_peak, float(alpha),
+            float(beta) / sensor.beta_0, saturation, floor)
+
+
+@njit(cache=True, nogil=True)
+def _fog_one(r0, i0, r_start, dr, g, r_peak, g_peak, alpha, soft_gain, saturation, floor):  # pragma: no cover
+    """(intensity, label, r_fog) of one return: the scalar model of `fog_intensities` (float64, float32 i0)."""
+    if r0 >= r_peak:
+        integral = g_peak
+        r_fog = r_peak
+    else:
+        r_fog = r0
+        pos = (r0 - r_start) / dr
+        if pos <= 0.0:
+            integral = 0.0
+        else:
+            j = int(pos)
+            if j >= len(g) - 1:
+                integral = g[len(g) - 1]
+            else:
+                frac = pos - j
+                integral = g[j] + frac * (g[j + 1] - g[j])
+            integral = min(integral, g_peak)
+    i0_64 = np.float64(i0)
+    i_hard = math.exp(-2.0 * alpha * r0) * i0_64
+    i_soft = min(integral * i0_64 * r0 * r0 * soft_gain, saturation)
+    if i_soft > i_hard:
+        out, label = i_soft, 2
+    else:
+        out = i_hard
+        label = 0 if np.float32(i_hard) == i0 else 1
+    if label != 0 and floor >= 0.0 and out < floor and np.float32(out) < i0:
+        label = 3
+    return out, label, r_fog
+
+
+@njit(cache=True, nogil=True)
+def _intensity_kernel(r0, i0, r_start, dr, g, r_peak, g_peak, alpha, soft_gain, saturation, floor,
+                      intensity, labels, r_fog):  # pragma: no cover
+    for n in range(len(r0)):
+        intensity[n], labels[n], r_fog[n] = _fog_one(r0[n], i0[n], r_start, dr, g, r_peak, g_peak, alpha,
+                                                    soft_gain, saturation, floor)
+
+
+@njit(cache=True, nogil=True)
+def _points_kernel(points, origins, r_start, dr, g, r_peak, g_peak, alpha, soft_gain, saturation, floor,
+                   out, labels, r0_out, r_fog_out):  # pragma: no cover
+    """Fog every row of ``points`` (N, 5) float32 into ``out`` (a copy of ``points``); origins (N, 3) or (0, 3)."""
+    has_origin = origins.shape[0] > 0
+    for n in range(points.shape[0]):
+        ox = oy = oz = 0.0
+        if has_origin:
+            ox, oy, oz = origins[n, 0], origins[n, 1], origins[n, 2]
+        dx = np.float64(points[n, 0]) - ox
+        dy = np.float64(points[n, 1]) - oy
+        dz = np.float64(points[n, 2]) - oz
+        r0 = math.sqrt(dx * dx + dy * dy + dz * dz)
+        value, label, r_fog = _fog_one(r0, points[n, 3], r_start, dr, g, r_peak, g_peak, alpha, soft_gain,
+                                       saturation, floor)
+        labels[n] = label
+        r0_out[n] = r0
+        r_fog_out[n] = r_fog
+        if label == 1:
+            out[n, 3] = value
+        elif label == 2:
+            f = r_fog / r0
+            out[n, 0] = ox + dx * f
+            out[n, 1] = oy + dy * f
+            out[n, 2] = oz + dz * f
+            out[n, 3] = value
+        elif label == 3:
+            out[n, 3] = value
+
+
+# -------------------------------------------------------------------------------------------------- point clouds
+
+
+@dataclass(frozen=True)
+class FogResult:
+    """A fogged scan.
+
+    Attributes:
+        points: (M, 5) float32 ``x, y, z, intensity, ring`` in the input's frame and intensity scale; the kept input
+            points in input order (LOST ones removed), SCATTERED ones moved to their fog echo.
+        labels: (M,) uint8 `FogLabel` of each output point (never LOST).
+        source_index: (M,) int64 row of each output point in the input.
+        input_labels: (N,) uint8 `FogLabel` of every input point, LOST included.
+        alpha, beta: the medium [1/m], [1/(m sr)].
+        intensity_max: intensity scale of ``points`` (255 or 1), that of the input.
+        counts: number of input points per label name: ``{"UNCHANGED": n0, "ATTENUATED": n1, "SCATTERED": n2,
+            "LOST": n3}``.
+    """
+
+    points: NDArray[np.float32]
+    labels: NDArray[np.uint8]
+    source_index: NDArray[np.int64]
+    input_labels: NDArray[np.uint8]
+    alpha: float
+    beta: float
+    intensity_max: float
+    counts: dict[str, int] = field(default_factory=dict)
+
+    def apply_to(self, scan: LidarScan) -> LidarScan:
+        """``scan`` with these points (per-point times and sweep indices re-indexed to the kept points)."""
+        if len(scan.points) != len(self.input_labels):
+            raise ValueError(f"FogResult of {len(self.input_labels)} points applied to a scan of {len(scan.points)}")
+        pick = self.source_index
+        return replace(
+            scan,
+            points=self.points,
+            time_offsets=None if scan.time_offsets is None else scan.time_offsets[pick],
+            sweep_index=None if scan.sweep_index is None else scan.sweep_index[pick],
+        )
+
+
+def _as_generator(rng: np.random.Generator | int | None) -> np.random.Generator:
+    if rng is None:
+        raise ValueError("fog: range_noise needs rng (a seed or numpy Generator); there is no global RNG")
+    return rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+
+
+def fog_point_arrays(
+    points: NDArray[np.float32],
+    origins: NDArray | None,
+    alpha: float,
+    beta: float,
+    *,
+    intensity_max: float = 255.0,
+    sensor: PulseSensor = DEFAULT_SENSOR,
+    noise_floor: float | None = None,
+    range_noise: float | None = None,
+    rng: np.random.Generator | int | None = None,
+    response: SoftTargetResponse | None = None,
+) -> FogResult:
+    """Fog on a bare point array (the array-level core of `simulate_fog`).
+
+    Args:
+        points: (N, 5) float32 ``x, y, z`` [m], intensity on ``0..intensity_max``, ring; never modified.
+        origins: (N, 3) beam origin of each point [m] in the same frame, or None for the frame origin.
+        alpha, beta: extinction [1/m] and backscatter [1/(m sr)].
+        intensity_max: 255 or 1, the scale of ``points[:, 3]`` (kept in the output).
+        sensor: pulse parameters (τ_H, overlap, β_0, max range, saturation).
+        noise_floor: detector floor on the 0..255 scale, or None (see `fog_intensities`).
+        range_noise: half-width [m] of a uniform jitter of fog-echo ranges, or None. The jittered range is drawn
+            uniformly from ``[max(r1, R_fog - w), min(R_fog + w, R_0, max_range)]``: never behind the sensor, past the
+            target or beyond the maximum range.
+        rng: seed or Generator; required when ``range_noise`` is set.
+        response: precomputed `soft_target_response` of ``alpha``, or None.
+
+    Returns:
+        `FogResult`; with ``alpha == 0`` and ``beta == 0`` the points are the input's, bit for bit.
+    """
+    points = np.asarray(points)
+    if points.ndim != 2 or points.shape[1] != 5 or points.dtype != np.float32:
+        raise ValueError(f"fog: points must be float32 (N, 5), got {points.dtype} {points.shape}")
+    if range_noise is not None and not (math.isfinite(range_noise) and range_noise >= 0.0):
+        raise ValueError(f"fog: range_noise = {range_noise!r}; expected None or a finite half-width >= 0 m")
+    gen = _as_generator(rng) if range_noise else None
+    params = _kernel_params(alpha, beta, intensity_max, sensor, noise_floor, response)
+    n = len(points)
+    if origins is None:
+        origins = np.zeros((0, 3))
+    else:
+        origins = np.ascontiguousarray(origins, dtype=np.float64)
+        if origins.shape != (n, 3):
+            raise ValueError(f"fog: origins must be (N, 3) = ({n}, 3), got {origins.shape}")
+    out = np.array(points, dtype=np.float32, order="C", copy=True)
+    labels = np.empty(n, dtype=np.uint8)
+    r0 = np.empty(n)
+    r_fog = np.empty(n)
+    _points_kernel(np.ascontiguousarray(points), origins, *params, out, labels, r0, r_fog)
+    if gen is not None:
+        _jitter_fog_ranges(points, origins, out, labels, r0, r_fog, range_noise, sensor, gen)
+    counts = np.bincount(labels, minlength=len(FogLabel))
+    if counts[FogLabel.LOST]:
+        keep = np.flatnonzero(labels != FogLabel.LOST)
+        out, kept_labels = out[keep], labels[keep]
+    else:
+        keep, kept_labels = np.arange(n, dtype=np.int64), labels
+    return FogResult(
+        points=out,
+        labels=kept_labels,
+        source_index=keep.astype(np.int64, copy=False),
+        input_labels=labels,
+        alpha=float(alpha),
+        beta=float(beta),
+        intensity_max=float(intensity_max),
+        counts={label.name: int(counts[label]) for label in FogLabel},
+    )
+
+
+def _jitter_fog_ranges(
+    points: NDArray[np.float32],
+    origins: F64,
+    out: NDArray[np.float32],
+    labels: NDArray[np.uint8],
+    r0: F64,
+    r_fog: F64,
+    half_width: float,
+    sensor: PulseSensor,
+    gen: np.random.Generator,
+) -> None:
+    """Move the SCATTERED rows of ``out`` (in place) to a range drawn uniformly from
+    ``[max(r1, R_fog - w), min(R_fog + w, R_0, max_range)]`` on their ray."""
+    hit = np.flatnonzero(labels == FogLabel.SCATTERED)
+    if not len(hit):
+        return
+    lo = np.maximum(sensor.r1, r_fog[hit] - half_width)
+    hi = np.minimum(np.minimum(r_fog[hit] + half_width, r0[hit]), sensor.max_range)
+    r_new = lo + gen.random(len(hit)) * np.maximum(hi - lo, 0.0)
+    origin = origins[hit] if len(origins) else np.zeros((len(hit), 3))
+    ray = points[hit, :3].astype(np.float64) - origin
+    out[hit, :3] = origin + ray * (r_new / r0[hit])[:, None]
+
+
+def beam_origins_fast(scan: LidarScan, num_knots: int = 64) -> F64 | None:
+    """(N, 3) beam origins [m] like `LidarScan.beam_origins`, or None where every beam starts at the frame origin.
+
+    The exact origins are evaluated at ``num_knots`` firing times spread over the sweep plus every pose time inside
+    it, and interpolated linearly in time in between (the origin path is smooth between pose times; the error is
+    well below a micrometre for a 50 ms sweep), which is ~25x faster than interpolating one pose per point.
+    """
+    if scan.time_offsets is None or scan.poses is None or scan.pose_times is None or len(scan.points) == 0:
+        return None
+    times = scan.point_times()
+    t_lo, t_hi = float(times.min()), float(times.max())
+    pose_times = np.asarray(scan.pose_times, dtype=np.float64)
+    knots = np.unique(np.concatenate([np.linspace(t_lo, t_hi, max(num_knots, 2)),
+                                      pose_times[(pose_times > t_lo) & (pose_times < t_hi)]]))
+    T_global_lidar_t = scan.global_poses_at(knots) @ scan.T_ego_lidar
+    T_lidar_global = np.linalg.inv(scan.T_global_lidar)
+    at_knots = T_global_lidar_t[:, :3, 3] @ T_lidar_global[:3, :3].T + T_lidar_global[:3, 3]
+    return np.stack([np.interp(times, knots, at_knots[:, k]) for k in range(3)], axis=1)
+
+
+def simulate_fog(
+    scan: LidarScan,
+    alpha: float,
+    beta: float,
+    *,
+    sensor: PulseSensor = DEFAULT_SENSOR,
+    noise_floor: float | None = None,
+    range_noise: float | None = None,
+    rng: np.random.Generator | int | None = None,
+) -> FogResult:
+    """Fog a LiDAR scan (Hahner et al. 2021 for any α), each beam from its own origin (moving ego).
+
+    Args:
+        scan: the clear scan (any intensity scale; the result keeps it).
+        alpha: extinction [1/m] (``MOR = ln 20 / α``); 0 returns the input unchanged when ``beta`` is 0 too.
+        beta: backscatter [1/(m sr)], e.g. `default_beta` (0.046 / MOR).
+        sensor: pulse parameters.
+        noise_floor: detector noise floor on the 0..255 scale, or None to keep every return.
+        range_noise: optional uniform half-width [m] of the fog-echo range jitter (bounded; needs ``rng``).
+        rng: seed or numpy Generator for the range jitter.
+
+    Returns:
+        `FogResult` (use ``result.apply_to(scan)`` for a `LidarScan`).
+    """
+    return fog_point_arrays(scan.points, beam_origins_fast(scan), alpha, beta, intensity_max=scan.intensity_max,
+                            sensor=sensor, noise_floor=noise_floor, range_noise=range_noise, rng=rng)
