@@ -25,8 +25,8 @@ def test_cli_rejects_bad_override_naming_the_key(capsys):
     assert "world.ego_speed_max = 30 is invalid: Input should be less than or equal to 12" in capsys.readouterr().err
 
 
-def _run_world(tmp: Path, extra: list[str], env: dict[str, str]) -> subprocess.CompletedProcess:
-    args = [sys.executable, "-m", "flows.world", "--params", str(REPO / "params.yaml"), *TINY,
+def _run_world(tmp: Path, extra: list[str], env: dict[str, str], stage: str = "world") -> subprocess.CompletedProcess:
+    args = [sys.executable, "-m", f"flows.{stage}", "--params", str(REPO / "params.yaml"), *TINY,
             "--set", f"paths.data={tmp / 'data'}", "--set", f"paths.reports={tmp / 'reports'}",
             "--set", f"tracking.mlflow_uri=sqlite:///{tmp / 'mlflow.db'}", *extra]
     return subprocess.run(args, cwd=tmp, env=env, capture_output=True, text=True, timeout=600)
@@ -50,6 +50,18 @@ def test_world_flow_thread_pool_and_dask_with_mlflow(tmp_path):
     tables = sorted(p.name for p in (tmp_path / "data" / "world" / "v1.0-mini").glob("*.json"))
     assert len(tables) == 14  # 13 nuScenes tables + splits.json
 
+    # the particles stage on the world just written
+    run = _run_world(tmp_path, ["--set", "particles.validation_regions=2"], env, stage="particles")
+    assert run.returncode == 0, run.stderr[-3000:]
+    particles = json.loads((tmp_path / "reports" / "particles" / "metrics.json").read_text())
+    fields = json.loads((tmp_path / "data" / "particles" / "fields.json").read_text())
+    assert set(fields) == {"snow", "rain"} and [f["scene"] for f in fields["snow"]] == ["scene-0061", "scene-0103"]
+    for condition in ("snow", "rain"):
+        assert particles[condition]["max_abs_z_score"] < 5 and particles[condition]["min_size_chi2_pvalue"] > 1e-4
+        assert particles[condition]["expected_particles_lidar_volume"] > 1e6
+    for figure in ("size_histograms.png", "side_view_snow.png", "side_view_rain.png"):
+        assert (tmp_path / "reports" / "particles" / figure).stat().st_size > 20_000
+
     # the same stage on an existing Dask cluster: everything already rendered is picked up, not redone
     with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, protocol="tcp", host="127.0.0.1",
                       dashboard_address=None) as cluster:
@@ -64,9 +76,33 @@ def test_world_flow_thread_pool_and_dask_with_mlflow(tmp_path):
     runs = client.search_runs([exp.experiment_id])
     parents = [r for r in runs if r.data.tags.get("weatheralign.pipeline_id") == "test-pipeline"]
     children = [r for r in runs if r.data.tags.get("mlflow.parentRunId") == parents[0].info.run_id]
-    assert len(parents) == 1 and len(children) == 2
-    child = children[0]
+    assert len(parents) == 1 and len(children) == 3
+    assert sorted(c.data.tags["weatheralign.stage"] for c in children) == ["particles", "world", "world"]
+    child = next(c for c in children if c.data.tags["weatheralign.stage"] == "world")
     assert child.data.tags["weatheralign.stage"] == "world" and child.data.tags["prefect.flow_run_id"]
     assert child.data.metrics["num_samples"] in (4, 6) and "world.lidar.firings_per_ring" in child.data.params
     artifacts = {a.path for a in client.list_artifacts(child.info.run_id, "figures")}
     assert artifacts == {"figures/sample_bev.png", "figures/sample_cameras.jpg"}
+
+
+def test_real_nuscenes_dataroot_is_checked_in_place(tiny_world):
+    """world.source=nuscenes: the stage reads a given dataroot (here the tiny world standing in for nuScenes-mini)
+    and reports it without writing into it."""
+    from flows.world import _summarise_real
+    from weatheralign.config import params_from_dict
+
+    before = sorted(p.stat().st_mtime_ns for p in tiny_world.dataroot.rglob("*") if p.is_file())
+    params = params_from_dict({"world": {"source": "nuscenes", "nuscenes_dataroot": str(tiny_world.dataroot),
+                                         "version": tiny_world.params.world.version}})
+    root, summary = _summarise_real(params)
+    assert root == tiny_world.dataroot
+    for key in ("num_scenes", "num_samples", "num_sweeps", "num_annotations", "class_counts"):
+        assert summary[key] == tiny_world.summary[key]
+    assert sorted(p.stat().st_mtime_ns for p in tiny_world.dataroot.rglob("*") if p.is_file()) == before
+
+
+def test_dvc_pipeline_definition_parses():
+    dvc = Path(sys.executable).with_name("dvc")
+    out = subprocess.run([str(dvc), "stage", "list"], cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split()[0] == "world"

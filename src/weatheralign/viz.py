@@ -64,3 +64,52 @@ def bev_figure(frame: Frame, extent_m: float = 60.0, title: str = "",
     ax.set_title(title or f"LIDAR_TOP, {len(p):,} points")
     fig.tight_layout()
     return fig
+
+
+def size_histogram_figure(diameters: dict[str, NDArray], pdfs: dict[str, tuple[NDArray, NDArray]]) -> Figure:
+    """Realised diameter histograms (density per mm) against the size distributions' pdfs, one panel per
+    condition. ``diameters``: condition -> (N,) [m]; ``pdfs``: condition -> (D grid [m], pdf [1/m])."""
+    fig, axes = plt.subplots(1, len(diameters), figsize=(5.5 * len(diameters), 4), squeeze=False)
+    for ax, (name, d) in zip(axes[0], diameters.items()):
+        grid, pdf = pdfs[name]
+        bins = np.linspace(float(grid[0]), float(grid[-1]), 40)
+        ax.hist(d * 1e3, bins=bins * 1e3, density=True, alpha=0.55, label=f"materialised ({len(d):,})")
+        ax.plot(grid * 1e3, pdf * 1e-3, "k-", lw=1.5, label="size distribution")
+        ax.set_yscale("log")
+        ax.set_xlabel("diameter [mm]")
+        ax.set_ylabel("probability density [1/mm]")
+        ax.set_title(name)
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def particle_side_view(xz: NDArray, diameters: NDArray, lidar_origin: tuple[float, float],
+                       elevations_deg: NDArray, camera_origin: tuple[float, float], camera_half_vfov_deg: float,
+                       extent: tuple[float, float, float, float], title: str) -> Figure:
+    """Side view (ego x forward vs z up) of particles ``xz`` (N, 2) [m] sized by ``diameters`` (N,) [m], with the
+    LiDAR's ring beams and the front camera's vertical field of view drawn from their mounting points."""
+    fig, ax = plt.subplots(figsize=(11, 4))
+    x0, x1, z0, z1 = extent
+    ax.scatter(xz[:, 0], xz[:, 1], s=np.clip(diameters * 1e3, 0.3, 12), c="tab:blue", alpha=0.6,
+               linewidths=0, label=f"particles ({len(xz):,})")
+    for k, e in enumerate(np.deg2rad(elevations_deg)):
+        r = x1 - lidar_origin[0]
+        end = (lidar_origin[0] + r * np.cos(e), lidar_origin[1] + r * np.sin(e))
+        ax.plot([lidar_origin[0], end[0]], [lidar_origin[1], end[1]], color="tab:red", lw=0.4, alpha=0.7,
+                label="LiDAR rings" if k == 0 else None)
+    for k, sign in enumerate((1, -1)):
+        a = np.deg2rad(sign * camera_half_vfov_deg)
+        r = x1 - camera_origin[0]
+        ax.plot([camera_origin[0], camera_origin[0] + r], [camera_origin[1], camera_origin[1] + r * np.tan(a)],
+                color="tab:green", lw=1.5, label="CAM_FRONT field of view" if k == 0 else None)
+    ax.axhline(0.0, color="k", lw=0.8)
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(z0, z1)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x forward [m]")
+    ax.set_ylabel("z up [m]")
+    ax.set_title(title)
+    ax.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    return fig

@@ -1,0 +1,82 @@
+"""Precipitation conditions as concrete, reproducible particle fields: one field per (scene, condition).
+
+A `FieldSpec` is everything needed to rebuild a `ParticleField` exactly (seed, size distribution parameters,
+velocity, reference time, layer, cell size). The `particles` stage writes them to JSON; the `simulate` stage rebuilds
+the same fields from that file, so a change of rate or seed reruns exactly the stages it must. The "unaligned"
+ablation gives the cameras ``unaligned_seed(seed)``: a field of identical statistics with independent particles.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import asdict, dataclass
+from typing import Literal
+
+from weatheralign.config import ParticlesConfig
+from weatheralign.medium.distributions import RainSizeDistribution, SnowSizeDistribution
+from weatheralign.medium.field import ParticleField, fall_velocity, unaligned_seed
+
+Precipitation = Literal["snow", "rain"]
+PRECIPITATION: tuple[Precipitation, ...] = ("snow", "rain")
+
+
+@dataclass(frozen=True)
+class FieldSpec:
+    """A reproducible particle field of one scene and condition (JSON-serialisable).
+
+    Attributes:
+        condition: ``snow`` or ``rain``; scene: scene name; seed: the field seed (the LiDAR's and, when aligned,
+        the cameras'); rate_mm_h: snowfall (water equivalent) or rain rate; terminal_velocity_m_s: fall speed;
+        size_distribution: ``gunn_marshall``/``sekhon_srivastava`` (snow) or ``marshall_palmer`` (rain);
+        wind_m_s: (2,) horizontal wind; t_ref: field reference time [s]; layer (z_min, z_max) [m]; cell_size [m];
+        min_diameter_m: smallest drop (rain) or 0 (snow).
+    """
+
+    condition: str
+    scene: str
+    seed: int
+    rate_mm_h: float
+    terminal_velocity_m_s: float
+    size_distribution: str
+    wind_m_s: tuple[float, float]
+    t_ref: float
+    z_min: float
+    z_max: float
+    cell_size: float
+    min_diameter_m: float = 0.0
+
+    def field(self, aligned: bool = True) -> ParticleField:
+        """The field; ``aligned=False`` gives the independent twin of identical statistics."""
+        if self.condition == "snow":
+            dist = SnowSizeDistribution(self.rate_mm_h, self.terminal_velocity_m_s, model=self.size_distribution)
+        elif self.condition == "rain":
+            dist = RainSizeDistribution(self.rate_mm_h, d_min=self.min_diameter_m)
+        else:
+            raise ValueError(f"condition = {self.condition!r} is invalid: expected 'snow' or 'rain'")
+        return ParticleField(seed=self.seed if aligned else unaligned_seed(self.seed), distribution=dist,
+                             velocity=fall_velocity(self.terminal_velocity_m_s, self.wind_m_s), t_ref=self.t_ref,
+                             z_min=self.z_min, z_max=self.z_max, cell_size=self.cell_size)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    @staticmethod
+    def from_dict(d: dict) -> "FieldSpec":
+        return FieldSpec(**{**d, "wind_m_s": tuple(d["wind_m_s"])})
+
+
+def field_seed(base_seed: int, condition: str, scene: str) -> int:
+    """A deterministic per-(scene, condition) seed derived from the stage seed."""
+    digest = hashlib.sha256(f"{base_seed}/{condition}/{scene}".encode()).digest()
+    return int.from_bytes(digest[:7], "little")
+
+
+def field_spec(cfg: ParticlesConfig, condition: Precipitation, scene: str, t_ref: float) -> FieldSpec:
+    """The field of ``condition`` over ``scene`` (reference time ``t_ref`` [s], e.g. the scene's first sample)."""
+    c = cfg.snow if condition == "snow" else cfg.rain
+    return FieldSpec(
+        condition=condition, scene=scene, seed=field_seed(cfg.seed, condition, scene), rate_mm_h=c.rate_mm_h,
+        terminal_velocity_m_s=c.terminal_velocity_m_s,
+        size_distribution=cfg.snow.size_distribution if condition == "snow" else "marshall_palmer",
+        wind_m_s=tuple(float(w) for w in c.wind_m_s), t_ref=t_ref, z_min=cfg.layer_bottom_m, z_max=cfg.layer_top_m,
+        cell_size=c.cell_size_m, min_diameter_m=cfg.rain.min_diameter_m if condition == "rain" else 0.0)
