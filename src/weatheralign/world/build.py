@@ -11,6 +11,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
+import open3d as o3d
 from numpy.typing import NDArray
 from PIL import Image
 
@@ -149,11 +150,13 @@ def _pose_lists(T: NDArray) -> tuple[list[float], list[float]]:
     return [float(v) for v in T[:3, 3]], quaternion_wxyz(T[:3, :3])
 
 
-def _sub_rng(seed: int, *parts: int) -> np.random.Generator:
+def sensor_rng(seed: int, *parts: int) -> np.random.Generator:
+    """The generator of one sensor capture: derived from the scene seed, the timestamp and the sensor index."""
     return np.random.default_rng([seed, *parts])
 
 
-def _write_sweep(dataroot: Path, filename: str, sweep: LidarSweep) -> None:
+def write_sweep(dataroot: Path, filename: str, sweep: LidarSweep) -> None:
+    """The sweep's points (``filename``, float32 N x 5) and its per-point extras (`LIDAR_EXTRAS_DTYPE`, .npy)."""
     atomic.write_bytes(dataroot / filename, sweep.points.astype("<f4").tobytes())
     extras = np.empty(len(sweep.points), LIDAR_EXTRAS_DTYPE)
     extras["time_offset"] = sweep.time_offsets
@@ -163,17 +166,19 @@ def _write_sweep(dataroot: Path, filename: str, sweep: LidarSweep) -> None:
     atomic.save_npy(dataroot / extras_relpath(filename), extras)
 
 
-def _write_camera(dataroot: Path, filename: str, frame: CameraFrame, quality: int) -> None:
+def write_camera(dataroot: Path, filename: str, frame: CameraFrame, quality: int) -> None:
+    """The image (``filename``, JPEG at ``quality``, no chroma subsampling) and its range map (float16 .npy)."""
     buf = io.BytesIO()
     Image.fromarray(frame.image).save(buf, format="JPEG", quality=quality, subsampling=0)
     atomic.write_bytes(dataroot / filename, buf.getvalue())
     atomic.save_npy(dataroot / extras_relpath(filename), frame.range.astype(np.float16))
 
 
-def visible_fraction(layout: SceneLayout, actor: Actor, camera: Camera, frame: CameraFrame,
-                     nthreads: int) -> tuple[int, int]:
+def visible_fraction(layout: SceneLayout, actor: Actor, actor_scene: o3d.t.geometry.RaycastingScene, camera: Camera,
+                     frame: CameraFrame) -> tuple[int, int]:
     """(visible, unoccluded) pixel counts of ``actor`` in one camera on a stride-4 pixel grid: pixels where the actor
-    is the nearest surface vs pixels its mesh covers when nothing else exists."""
+    is the nearest surface vs pixels its mesh (``actor_scene``: `scene_of_mesh` of it, body frame) covers when nothing
+    else exists."""
     T_global_cam = layout.T_global_ego(frame.timestamp) @ camera.T_ego_cam
     T_cam_body = invert(T_global_cam) @ actor.T_global_body(frame.timestamp)
     corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (0, 1)], float)
@@ -199,7 +204,7 @@ def visible_fraction(layout: SceneLayout, actor: Actor, camera: Camera, frame: C
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     T_body_cam = invert(T_cam_body)
     o = np.broadcast_to(T_body_cam[:3, 3], d.shape)
-    t, _, _ = cast_rays(scene_of_mesh(actor.mesh, nthreads), o, d @ T_body_cam[:3, :3].T)
+    t, _, _ = cast_rays(actor_scene, o, d @ T_body_cam[:3, :3].T)
     return visible, int(np.isfinite(t).sum())
 
 
@@ -221,10 +226,10 @@ def render_sample(spec: SceneSpec, sample_index: int, cfg: WorldConfig, dataroot
     key_sweep: LidarSweep | None = None
     for j in range(cfg.sweeps_per_sample, -1, -1):
         t_us = t_key - j * SWEEP_PERIOD_US
-        sweep = render_lidar_sweep(caster, pattern, cfg.lidar, t_us * 1e-6, _sub_rng(spec.seed, t_us % 2**31, 1))
+        sweep = render_lidar_sweep(caster, pattern, cfg.lidar, t_us * 1e-6, sensor_rng(spec.seed, t_us % 2**31, 1))
         folder = "samples" if j == 0 else "sweeps"
         fname = sensor_filename(folder, spec.log_name, "LIDAR_TOP", t_us, "pcd.bin")
-        _write_sweep(dataroot, fname, sweep)
+        write_sweep(dataroot, fname, sweep)
         tr, rot = _pose_lists(layout.T_global_ego(t_us * 1e-6))
         lidar_records.append(SensorRecord("LIDAR_TOP", t_us, fname, j == 0, 0, 0, tr, rot))
         if j == 0:
@@ -237,10 +242,9 @@ def render_sample(spec: SceneSpec, sample_index: int, cfg: WorldConfig, dataroot
     frames: list[tuple[Camera, CameraFrame]] = []
     for c, cam in enumerate(cameras):
         t_us = t_key + int(round(camera_time_offset(cam, period_us * 1e-6) * 1e6))
-        frame = render_camera(caster, cam, cam.pixel_rays(), cfg.camera, t_us * 1e-6,
-                              _sub_rng(spec.seed, t_us % 2**31, 2 + c))
+        frame = render_camera(caster, cam, cfg.camera, t_us * 1e-6, sensor_rng(spec.seed, t_us % 2**31, 2 + c))
         fname = sensor_filename("samples", spec.log_name, cam.channel, t_us, "jpg")
-        _write_camera(dataroot, fname, frame, cfg.camera.jpeg_quality)
+        write_camera(dataroot, fname, frame, cfg.camera.jpeg_quality)
         tr, rot = _pose_lists(layout.T_global_ego(t_us * 1e-6))
         camera_records.append(SensorRecord(cam.channel, t_us, fname, True, cam.width, cam.height, tr, rot))
         frames.append((cam, frame))
@@ -260,8 +264,9 @@ def annotate(layout: SceneLayout, key_sweep: LidarSweep, frames: list[tuple[Came
         if np.hypot(*(centre[:2] - ego_xy)) > ANNOTATION_RADIUS_M:
             continue
         visible = unoccluded = 0
+        scene = scene_of_mesh(actor.mesh, nthreads)
         for cam, frame in frames:
-            v, u = visible_fraction(layout, actor, cam, frame, nthreads)
+            v, u = visible_fraction(layout, actor, scene, cam, frame)
             visible, unoccluded = visible + v, unoccluded + u
         n_pts = int(counts[actor.instance])
         if n_pts == 0 and visible == 0:

@@ -1,21 +1,30 @@
-"""Ray casting against the scene geometry (open3d `RaycastingScene`, Embree) for every sensor.
+"""Ray casting against the scene geometry for every sensor.
 
-Static geometry lives in one cached BVH. Moving actors are handled exactly for both kinds of sensor:
-- a global-shutter camera at time t casts against a small BVH of the actors posed at t;
-- a rolling LiDAR casts each beam at its own firing time into each actor's body frame (ray moved by the inverse
-  actor pose at that time), so that a 50 ms sweep sees a moving car where it is at each firing.
+Any set of rays (a rolling LiDAR sweep) is cast with open3d `RaycastingScene` (Embree): static geometry lives in one
+cached BVH, each moving actor has its own cached BVH in its body frame. Every ray is cast at its own time: rays that
+can reach an actor (its bounding sphere where it is at the ray's time, found by a numba kernel that tests chunks of
+consecutive rays before single rays) are moved into the actor's body frame by the inverse actor pose at that time
+and cast there, so that a 50 ms sweep sees a moving car where it is at each firing.
+
+The two big coherent ray sets of a camera image are answered by `raster` instead, with the same results at a fraction
+of the cost: pixel rays (one origin, one instant) by rasterising every triangle with the actors posed at that
+instant; shadow rays (one direction, the sun) by `SunGrid`s of the static scene (built once) and of the posed actors.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import open3d as o3d
+from numba import njit
 from numpy.typing import NDArray
 
 from weatheralign.world.layout import Actor, SceneLayout
-from weatheralign.world.meshes import Mesh, concat
+from weatheralign.world.meshes import Mesh
+from weatheralign.world.raster import (SunGrid, Vec3, gather_rows, pinhole_hits, sun_blocked, sun_grid,
+                                       triangle_normals)
 from weatheralign.geometry import yaw_matrix
 
 
@@ -54,6 +63,127 @@ def cast_rays(scene: o3d.t.geometry.RaycastingScene, origins: NDArray,
     return t, prim, normal
 
 
+RAY_CHUNK = 64  # consecutive rays that share one bounding cone in the candidate search
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _chunk_bounds(origins: NDArray, dirs: NDArray, times: NDArray, tmax: NDArray, lo: int,
+                  hi: int) -> tuple[Vec3, float, Vec3, float, float, float, float]:
+    """Bounds of rays ``lo:hi``: origin centre and radius, direction cone axis and cosine of its half-angle (-1:
+    unbounded), time range, largest ``tmax``."""
+    x0 = y0 = z0 = np.inf
+    x1 = y1 = z1 = -np.inf
+    ax = ay = az = 0.0
+    t0, t1, far = np.inf, -np.inf, 0.0
+    for i in range(lo, hi):
+        x0, x1 = min(x0, origins[i, 0]), max(x1, origins[i, 0])
+        y0, y1 = min(y0, origins[i, 1]), max(y1, origins[i, 1])
+        z0, z1 = min(z0, origins[i, 2]), max(z1, origins[i, 2])
+        ax, ay, az = ax + dirs[i, 0], ay + dirs[i, 1], az + dirs[i, 2]
+        t0, t1, far = min(t0, times[i]), max(t1, times[i]), max(far, tmax[i])
+    centre = (0.5 * (x0 + x1), 0.5 * (y0 + y1), 0.5 * (z0 + z1))
+    spread = 0.5 * np.sqrt((x1 - x0) ** 2 + (y1 - y0) ** 2 + (z1 - z0) ** 2)
+    norm = np.sqrt(ax * ax + ay * ay + az * az)
+    if norm < 1e-6:
+        return centre, spread, (0.0, 0.0, 0.0), -1.0, t0, t1, far
+    ax, ay, az = ax / norm, ay / norm, az / norm
+    cos_cone = 1.0
+    for i in range(lo, hi):
+        cos_cone = min(cos_cone, dirs[i, 0] * ax + dirs[i, 1] * ay + dirs[i, 2] * az)
+    return centre, spread, (ax, ay, az), cos_cone, t0, t1, far
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _chunk_may_reach(centre: Vec3, spread: float, axis: Vec3, cos_cone: float, far: float, sphere: Vec3,
+                     radius: float) -> bool:
+    """Whether any ray from within ``spread`` of ``centre`` in the cone (``axis``, ``cos_cone``), no longer than
+    ``far``, can meet the ball of ``radius`` around ``sphere`` (a conservative test)."""
+    rx, ry, rz = sphere[0] - centre[0], sphere[1] - centre[1], sphere[2] - centre[2]
+    dist = np.sqrt(rx * rx + ry * ry + rz * rz)
+    reach = radius + spread
+    if dist <= reach:
+        return True
+    if dist - reach > far:
+        return False
+    if cos_cone <= 0.0:
+        return True
+    # the angle between the axis and the ball <= the cone's half-angle + the ball's angular radius
+    sin_b = reach / dist
+    cos_sum = cos_cone * np.sqrt(1.0 - sin_b * sin_b) - np.sqrt(1.0 - cos_cone * cos_cone) * sin_b
+    return rx * axis[0] + ry * axis[1] + rz * axis[2] >= cos_sum * dist
+
+
+@njit(nogil=True, cache=True)
+def _actor_candidates(origins: NDArray, dirs: NDArray, times: NDArray, tmax: NDArray, positions: NDArray,
+                      velocities: NDArray, t_refs: NDArray, radii: NDArray) -> tuple[NDArray, NDArray]:
+    """Rays (N,) that pass within ``radii`` (A,) of actor bottom-centres ``positions + velocities (t - t_refs)``
+    ((A, 3), (A, 3), (A,)) at each ray's own ``times`` (N,), in front of the origin and before ``tmax`` (N,) [m].
+
+    Returns ray indices grouped by actor (ascending within an actor) and (A + 1,) start offsets per actor.
+    """
+    n, n_act = len(origins), len(radii)
+    speeds = np.sqrt((velocities**2).sum(axis=1))
+    pairs = np.empty((max(1024, n // 16), 2), np.int64)
+    count = 0
+    for lo in range(0, n, RAY_CHUNK):
+        hi = min(lo + RAY_CHUNK, n)
+        centre, spread, axis, cos_cone, t0, t1, far = _chunk_bounds(origins, dirs, times, tmax, lo, hi)
+        for a in range(n_act):
+            dt = 0.5 * (t0 + t1) - t_refs[a]
+            sphere = (positions[a, 0] + velocities[a, 0] * dt, positions[a, 1] + velocities[a, 1] * dt,
+                      positions[a, 2] + velocities[a, 2] * dt)
+            reach = radii[a] + speeds[a] * 0.5 * (t1 - t0)  # the ball around the actor over the chunk's times
+            if not _chunk_may_reach(centre, spread, axis, cos_cone, far, sphere, reach):
+                continue
+            r = radii[a]
+            for i in range(lo, hi):
+                dt = times[i] - t_refs[a]
+                rel0 = positions[a, 0] + velocities[a, 0] * dt - origins[i, 0]
+                rel1 = positions[a, 1] + velocities[a, 1] * dt - origins[i, 1]
+                rel2 = positions[a, 2] + velocities[a, 2] * dt - origins[i, 2]
+                along = rel0 * dirs[i, 0] + rel1 * dirs[i, 1] + rel2 * dirs[i, 2]
+                perp2 = rel0 * rel0 + rel1 * rel1 + rel2 * rel2 - along * along
+                if perp2 < r * r and along > -r and along - r < tmax[i]:
+                    if count == len(pairs):
+                        grown = np.empty((2 * len(pairs), 2), np.int64)
+                        grown[:count] = pairs
+                        pairs = grown
+                    pairs[count, 0], pairs[count, 1] = i, a
+                    count += 1
+    starts = np.zeros(n_act + 1, np.int64)
+    for k in range(count):
+        starts[pairs[k, 1] + 1] += 1
+    starts = np.cumsum(starts)
+    fill = starts[:-1].copy()
+    rays = np.empty(count, np.int64)
+    for k in range(count):  # stable counting sort by actor
+        a = pairs[k, 1]
+        rays[fill[a]] = pairs[k, 0]
+        fill[a] += 1
+    return rays, starts
+
+
+@njit(nogil=True, cache=True)
+def _finish_kernel(gid: NDArray, normal: NDArray, dirs: NDArray, tri_material: NDArray,
+                   tri_albedo: NDArray, tri_reflectivity: NDArray, tri_instance: NDArray, material: NDArray,
+                   albedo: NDArray, reflectivity: NDArray, instance: NDArray) -> None:
+    """Per-hit triangle attributes by global triangle id ``gid`` (N,) (-1: none), normals turned towards the ray
+    origin in place."""
+    for i in range(len(gid)):
+        g = gid[i]
+        if g >= 0:
+            material[i], reflectivity[i], instance[i] = tri_material[g], tri_reflectivity[g], tri_instance[g]
+            for c in range(3):
+                albedo[i, c] = tri_albedo[g, c]
+        else:
+            material[i], reflectivity[i], instance[i] = 0, 0.0, 0
+            for c in range(3):
+                albedo[i, c] = 0.0
+        if normal[i, 0] * dirs[i, 0] + normal[i, 1] * dirs[i, 1] + normal[i, 2] * dirs[i, 2] > 0:
+            for c in range(3):
+                normal[i, c] = -normal[i, c]
+
+
 class WorldRaycaster:
     """Casts rays into one `SceneLayout` at given times."""
 
@@ -64,98 +194,110 @@ class WorldRaycaster:
         self._moving: tuple[Actor, ...] = tuple(a for a in layout.actors if a.moving)
         self._moving_scenes = [scene_of_mesh(a.mesh, nthreads) for a in self._moving]
         self._moving_radius = np.array([np.linalg.norm(a.mesh.vertices, axis=1).max() for a in self._moving])
+        # one triangle table: the static mesh, then each moving actor's mesh (global triangle id = offset + id)
+        meshes = [layout.static_mesh, *(a.mesh for a in self._moving)]
+        self._offsets = np.cumsum([0] + [m.num_triangles for m in meshes])
+        self._tri_material = np.concatenate([m.material for m in meshes])
+        self._tri_albedo = np.concatenate([m.albedo for m in meshes]).astype(np.float32)
+        self._tri_reflectivity = np.concatenate([m.reflectivity for m in meshes]).astype(np.float32)
+        self._tri_instance = np.concatenate([m.instance for m in meshes]).astype(np.int32)
+        vertex_offsets = np.cumsum([0] + [len(m.vertices) for m in meshes])
+        self._triangles = np.concatenate([m.triangles.astype(np.int64) + o for m, o in zip(meshes, vertex_offsets)])
+        self._static_counts = (len(layout.static_mesh.vertices), layout.static_mesh.num_triangles)
+        self._normals = [triangle_normals(m) for m in meshes]  # static: global frame; actors: body frame
 
-    def _empty_hits(self, n: int) -> tuple[NDArray, NDArray, NDArray, int]:
-        return np.full(n, np.inf), np.zeros((n, 3), np.float32), np.zeros(n, np.int64), 0
+    def _candidates(self, origins: NDArray, directions: NDArray, times: NDArray,
+                    tmax: NDArray) -> list[tuple[int, NDArray[np.int64]]]:
+        """(moving actor index, ray indices) for each moving actor that some ray may hit before ``tmax`` (N,)."""
+        if not self._moving:
+            return []
+        positions = np.array([a.position for a in self._moving], np.float64)
+        velocities = np.array([a.velocity for a in self._moving], np.float64)
+        t_refs = np.array([a.t_ref for a in self._moving], np.float64)
+        rays, starts = _actor_candidates(origins, directions, times, tmax, positions, velocities, t_refs,
+                                         self._moving_radius)
+        return [(k, rays[starts[k]:starts[k + 1]]) for k in range(len(self._moving)) if starts[k + 1] > starts[k]]
 
-    def _finish(self, t: NDArray, normal: NDArray, tri: NDArray, source: NDArray, meshes: list[Mesh],
-                directions: NDArray) -> Hits:
-        n = len(t)
-        material = np.zeros(n, np.uint8)
-        albedo = np.zeros((n, 3), np.float32)
-        refl = np.zeros(n, np.float32)
-        inst = np.zeros(n, np.int32)
-        for k, mesh in enumerate(meshes):
-            sel = np.flatnonzero((source == k) & np.isfinite(t))
-            if len(sel) == 0:
-                continue
-            ids = tri[sel]
-            material[sel] = mesh.material[ids]
-            albedo[sel] = mesh.albedo[ids]
-            refl[sel] = mesh.reflectivity[ids]
-            inst[sel] = mesh.instance[ids]
-        flip = np.einsum("ij,ij->i", normal, directions) > 0
-        normal = np.where(flip[:, None], -normal, normal).astype(np.float32)
-        return Hits(t, normal, material, albedo, refl, inst)
-
-    def cast_at_time(self, origins: NDArray, directions: NDArray, time: float) -> Hits:
-        """Cast rays (N, 3) origins, (N, 3) unit directions, global frame, all at one instant ``time`` [s]."""
-        n = len(origins)
-        t, normal, tri, _ = self._empty_hits(n)
-        source = np.full(n, -1, np.int64)
-        meshes: list[Mesh] = []
-        if self._static is not None:
-            t, tri, normal = cast_rays(self._static, origins, directions)
-            source[np.isfinite(t)] = 0
-            meshes.append(self.layout.static_mesh)
-        moving = self.moving_mesh_at(time)
-        if moving.num_triangles:
-            tm, trim, nm = cast_rays(scene_of_mesh(moving, self.nthreads), origins, directions)
-            closer = tm < t
-            t = np.where(closer, tm, t)
-            tri = np.where(closer, trim, tri)
-            normal = np.where(closer[:, None], nm, normal)
-            source[closer] = len(meshes)
-            meshes.append(moving)
-        return self._finish(t, normal, tri, source, meshes, directions)
-
-    def moving_mesh_at(self, time: float) -> Mesh:
-        """All moving actors posed at ``time`` [s], in the global frame."""
-        return concat([a.mesh.transformed(yaw_matrix(a.yaw), a.position_at(time)) for a in self._moving])
-
-    def occluded_at_time(self, origins: NDArray, directions: NDArray, time: float) -> NDArray[np.bool_]:
-        """(N,) whether each ray (global frame, at ``time``) hits anything at all (shadow rays)."""
-        rays = np.empty((len(origins), 6), dtype=np.float32)
-        rays[:, :3] = origins
-        rays[:, 3:] = directions
-        rays_t = o3d.core.Tensor(rays)
-        occ = np.zeros(len(origins), bool)
-        if self._static is not None:
-            occ |= self._static.test_occlusions(rays_t).numpy().astype(bool)
-        moving = self.moving_mesh_at(time)
-        if moving.num_triangles:
-            occ |= scene_of_mesh(moving, self.nthreads).test_occlusions(rays_t).numpy().astype(bool)
-        return occ
+    def _body_rays(self, k: int, origins: NDArray, directions: NDArray, times: NDArray,
+                   idx: NDArray) -> tuple[NDArray, NDArray, NDArray]:
+        """Rays ``idx`` in the body frame of moving actor ``k`` at their times: origins, directions (M, 3) and the
+        body -> global rotation (3, 3)."""
+        actor = self._moving[k]
+        R = yaw_matrix(actor.yaw)
+        o_body = (origins[idx] - actor.position_at(times[idx])) @ R  # R^T (o - p)
+        return o_body, directions[idx] @ R, R
 
     def cast_rolling(self, origins: NDArray, directions: NDArray, times: NDArray) -> Hits:
         """Cast rays whose times differ (a rolling LiDAR sweep): each ray sees every moving actor where it is at
         that ray's time ``times`` (N,) [s]. Origins/directions (N, 3) in the global frame."""
         n = len(origins)
-        t, normal, tri, _ = self._empty_hits(n)
-        source = np.full(n, -1, np.int64)
-        meshes: list[Mesh] = []
         if self._static is not None:
             t, tri, normal = cast_rays(self._static, origins, directions)
-            source[np.isfinite(t)] = 0
-            meshes.append(self.layout.static_mesh)
-        normal = normal.astype(np.float32)
-        for actor, scene, radius in zip(self._moving, self._moving_scenes, self._moving_radius):
-            centre = actor.position_at(times)  # (N, 3)
-            rel = centre - origins
-            along = np.einsum("ij,ij->i", rel, directions)
-            perp2 = np.einsum("ij,ij->i", rel, rel) - along**2
-            cand = np.flatnonzero((perp2 < radius**2) & (along > -radius) & (along - radius < t))
-            if len(cand) == 0:
-                continue
+            gid = np.where(np.isfinite(t), tri, -1)
+            normal = normal.astype(np.float32, copy=False)
+        else:
+            t, gid, normal = np.full(n, np.inf), np.full(n, -1, np.int64), np.zeros((n, 3), np.float32)
+        for k, idx in self._candidates(origins, directions, times, t):
+            o_body, d_body, R = self._body_rays(k, origins, directions, times, idx)
+            tb, trib, nb = cast_rays(self._moving_scenes[k], o_body, d_body)
+            closer = tb < t[idx]
+            sel = idx[closer]
+            t[sel] = tb[closer]
+            gid[sel] = self._offsets[k + 1] + trib[closer]
+            normal[sel] = (nb[closer] @ R.T).astype(np.float32)
+        return self._finish(t, gid, normal, directions)
+
+    def _finish(self, t: NDArray, gid: NDArray, normal: NDArray, directions: NDArray) -> Hits:
+        """`Hits` from hit distances (N,), global triangle ids (N,) (-1: none) and normals (N, 3) float32 (turned
+        towards the ray origin in place)."""
+        n = len(t)
+        hits = Hits(t, normal, np.empty(n, np.uint8), np.empty((n, 3), np.float32), np.empty(n, np.float32),
+                    np.empty(n, np.int32))
+        _finish_kernel(gid, normal, directions, self._tri_material, self._tri_albedo, self._tri_reflectivity,
+                       self._tri_instance, hits.material, hits.albedo, hits.reflectivity, hits.instance)
+        return hits
+
+    def cast_at_time(self, origins: NDArray, directions: NDArray, time: float) -> Hits:
+        """Cast rays (N, 3) origins, (N, 3) unit directions, global frame, all at one instant ``time`` [s]."""
+        return self.cast_rolling(origins, directions, np.full(len(origins), time))
+
+    def cast_camera(self, K: NDArray, T_global_cam: NDArray, width: int, height: int, time: float,
+                    directions: NDArray) -> Hits:
+        """Hits of the pixel-centre rays (row-major, H*W) of a pinhole camera with intrinsics ``K`` (3, 3) and pose
+        ``T_global_cam`` (4, 4) at ``time`` [s]; ``directions`` (H*W, 3) are those rays' unit global directions.
+
+        The same as `cast_at_time` of those rays (of coincident surfaces, the later triangle), computed by
+        rasterising every triangle with an exact per-pixel ray test (several times cheaper than tracing each pixel).
+        """
+        R, o = T_global_cam[:3, :3], T_global_cam[:3, 3]
+        moving, moving_normals = self._moving_at(time)
+        verts_cam = (np.concatenate([self.layout.static_mesh.vertices, moving]) - o) @ R  # R^T (v - o)
+        ranges, gid = pinhole_hits(verts_cam, self._triangles, K, width, height)
+        normal = gather_rows(np.concatenate([self._normals[0], moving_normals]).astype(np.float32), gid)
+        return self._finish(ranges, gid, normal, directions)
+
+    def _moving_at(self, time: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The moving actors' vertices (V, 3) (in the order of `_triangles`) and triangle normals (T, 3) posed at
+        ``time`` [s], global frame."""
+        vertices, normals = [np.zeros((0, 3))], [np.zeros((0, 3))]
+        for actor, body_normals in zip(self._moving, self._normals[1:]):
             R = yaw_matrix(actor.yaw)
-            o_body = (origins[cand] - centre[cand]) @ R  # R^T (o - p)
-            d_body = directions[cand] @ R
-            tb, trib, nb = cast_rays(scene, o_body, d_body)
-            closer = tb < t[cand]
-            idx = cand[closer]
-            t[idx] = tb[closer]
-            tri[idx] = trib[closer]
-            normal[idx] = (nb[closer] @ R.T).astype(np.float32)
-            source[idx] = len(meshes)
-            meshes.append(actor.mesh)
-        return self._finish(t, normal, tri, source, meshes, directions)
+            vertices.append(actor.mesh.vertices @ R.T + actor.position_at(time))
+            normals.append(body_normals @ R.T)
+        return np.concatenate(vertices), np.concatenate(normals)
+
+    @cached_property
+    def _sun_grid(self) -> SunGrid:
+        mesh = self.layout.static_mesh
+        return sun_grid(mesh.vertices, mesh.triangles, self.layout.sun_direction)
+
+    def sun_blocked(self, points: NDArray, time: float) -> NDArray[np.bool_]:
+        """(N,) whether the ray from each global point (N, 3) towards the sun meets anything at ``time`` [s] (shadow
+        rays; by `SunGrid`: the static one of the scene, and one of the moving actors posed at ``time``)."""
+        blocked = sun_blocked(self._sun_grid, points)
+        if self._moving:
+            n_vertices, n_triangles = self._static_counts
+            moving = sun_grid(self._moving_at(time)[0], self._triangles[n_triangles:] - n_vertices,
+                              self.layout.sun_direction)
+            blocked |= sun_blocked(moving, points)
+        return blocked

@@ -5,14 +5,15 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from weatheralign.config import CameraConfig, LidarConfig
 from weatheralign.geometry import invert
 from weatheralign.world.layout import SceneLayout
-from weatheralign.world.raycast import WorldRaycaster
+from weatheralign.world.raycast import Hits, WorldRaycaster
 from weatheralign.world.rig import T_EGO_LIDAR, Camera, FiringPattern
-from weatheralign.world.shading import encode_srgb, lidar_intensity, shade, sky_colour, texture
+from weatheralign.world.shading import camera_pixels, lidar_intensity, texture
 
 SHADOW_EPS = 0.02  # m, shadow ray start offset along the normal
 
@@ -86,36 +87,68 @@ def render_lidar_sweep(caster: WorldRaycaster, pattern: FiringPattern, cfg: Lida
                       hits.instance[idx], surf_mat)
 
 
-def render_camera(caster: WorldRaycaster, camera: Camera, rays_cam: NDArray[np.float32], cfg: CameraConfig,
-                  timestamp: float, rng: np.random.Generator) -> CameraFrame:
-    """Render ``camera`` exposed at ``timestamp`` [s]; ``rays_cam`` (H*W, 3) are its unit pixel rays
-    (`Camera.pixel_rays`). Colour: textured materials lit by sun (with cast shadows) and sky, sky background,
-    aerial perspective, sensor noise."""
+@njit(nogil=True, cache=True)
+def _camera_dirs(K: NDArray, R: NDArray, width: int, height: int) -> NDArray[np.float32]:
+    out = np.empty((height * width, 3), np.float32)
+    for v in range(height):
+        y = (v - K[1, 2]) / K[1, 1]
+        for u in range(width):
+            x = (u - K[0, 2]) / K[0, 0]
+            inv = 1.0 / np.sqrt(x * x + y * y + 1.0)
+            i = v * width + u
+            for c in range(3):
+                out[i, c] = (R[c, 0] * x + R[c, 1] * y + R[c, 2]) * inv
+    return out
+
+
+def pixel_directions(camera: Camera, T_global_cam: NDArray) -> NDArray[np.float32]:
+    """(H*W, 3) unit global directions of the rays through the pixel centres (row-major: u = col, v = row) of
+    ``camera`` posed at ``T_global_cam`` (4, 4)."""
+    return _camera_dirs(camera.K, np.ascontiguousarray(T_global_cam[:3, :3]), camera.width, camera.height)
+
+
+@njit(nogil=True, cache=True)
+def _shadow_starts(origin: NDArray, dirs: NDArray, ranges: NDArray, normals: NDArray,
+                   sun: NDArray) -> tuple[NDArray[np.int64], NDArray[np.float32]]:
+    """Hits whose surface faces the sun: their indices (M,) and shadow-ray origins (M, 3) float32, ``SHADOW_EPS``
+    off the surface along the normal."""
+    idx = np.empty(len(dirs), np.int64)
+    starts = np.empty((len(dirs), 3), np.float32)
+    m = 0
+    for i in range(len(dirs)):
+        if not np.isfinite(ranges[i]) or normals[i, 0] * sun[0] + normals[i, 1] * sun[1] + normals[i, 2] * sun[2] <= 0:
+            continue
+        for c in range(3):
+            starts[m, c] = origin[c] + dirs[i, c] * ranges[i] + SHADOW_EPS * normals[i, c]
+        idx[m] = i
+        m += 1
+    return idx[:m], starts[:m]
+
+
+def sun_lit(caster: WorldRaycaster, origin: NDArray, dirs: NDArray, hits: Hits, timestamp: float,
+            shadows: bool) -> NDArray[np.bool_]:
+    """(N,) whether the sun lights each camera hit (rays from ``origin`` (3,) along ``dirs`` (N, 3)): the surface faces
+    the sun and, with ``shadows``, nothing blocks the way to it at ``timestamp`` [s]."""
+    idx, starts = _shadow_starts(np.asarray(origin, np.float64), dirs, hits.range, hits.normal,
+                                 caster.layout.sun_direction)
+    lit = np.zeros(len(dirs), bool)
+    lit[idx] = ~caster.sun_blocked(starts, timestamp) if shadows else True
+    return lit
+
+
+def render_camera(caster: WorldRaycaster, camera: Camera, cfg: CameraConfig, timestamp: float,
+                  rng: np.random.Generator) -> CameraFrame:
+    """Render ``camera`` exposed at ``timestamp`` [s]. Colour: textured materials lit by sun (with cast shadows) and
+    sky, sky background, aerial perspective, sensor noise."""
     layout = caster.layout
     T_global_cam = layout.T_global_ego(timestamp) @ camera.T_ego_cam
-    dirs = rays_cam @ T_global_cam[:3, :3].T.astype(np.float32)
+    dirs = pixel_directions(camera, T_global_cam)
     origin = T_global_cam[:3, 3]
-    origins = np.broadcast_to(origin.astype(np.float32), dirs.shape)
-    hits = caster.cast_at_time(origins, dirs, timestamp)
-    hit = np.flatnonzero(np.isfinite(hits.range))
-    rgb = np.empty((len(dirs), 3), np.float32)
-    miss = np.flatnonzero(~np.isfinite(hits.range))
-    rgb[miss] = sky_colour(layout, dirs[miss])
-    if len(hit):
-        pos = origin + dirs[hit] * hits.range[hit, None]
-        normals = hits.normal[hit]
-        surf = texture(layout, pos, normals, hits.material[hit], hits.albedo[hit], hits.reflectivity[hit])
-        if cfg.shadows:
-            start = (pos + SHADOW_EPS * normals).astype(np.float32)
-            sun = np.broadcast_to(layout.sun_direction.astype(np.float32), start.shape)
-            facing = (normals @ layout.sun_direction) > 0
-            shadow = np.ones(len(hit), bool)
-            shadow[facing] = caster.occluded_at_time(start[facing], sun[facing], timestamp)
-        else:
-            shadow = (normals @ layout.sun_direction) <= 0
-        rgb[hit] = shade(layout, surf, normals, dirs[hit], shadow, hits.range[hit])
-    noise = rng.standard_normal(rgb.shape, dtype=np.float32) * np.float32(cfg.noise_std) if cfg.noise_std else None
-    image = encode_srgb(rgb, noise).reshape(camera.height, camera.width, 3)
+    hits = caster.cast_camera(camera.K, T_global_cam, camera.width, camera.height, timestamp, dirs)
+    lit = sun_lit(caster, origin, dirs, hits, timestamp, cfg.shadows)
+    noise = rng.standard_normal(dirs.shape, dtype=np.float32) if cfg.noise_std else None
+    image = camera_pixels(layout, origin, dirs, hits.range, hits.normal, hits.material, hits.albedo,
+                          hits.reflectivity, lit, noise, cfg.noise_std).reshape(camera.height, camera.width, 3)
     rng_map = hits.range.astype(np.float32).reshape(camera.height, camera.width)
     inst = hits.instance.reshape(camera.height, camera.width)
     return CameraFrame(timestamp, image, rng_map, inst)

@@ -56,15 +56,6 @@ class Camera:
     T_ego_cam: F64
     yaw: float
 
-    def pixel_rays(self) -> NDArray[np.float32]:
-        """(H*W, 3) unit ray directions in the camera frame for pixel centres, row-major (u = col, v = row)."""
-        u, v = np.meshgrid(np.arange(self.width, dtype=np.float64), np.arange(self.height, dtype=np.float64))
-        x = (u - self.K[0, 2]) / self.K[0, 0]
-        y = (v - self.K[1, 2]) / self.K[1, 1]
-        d = np.stack([x, y, np.ones_like(x)], -1).reshape(-1, 3)
-        d /= np.linalg.norm(d, axis=1, keepdims=True)
-        return d.astype(np.float32)
-
 
 def make_cameras(image_scale: float) -> tuple[Camera, ...]:
     """The six cameras at ``image_scale`` of 1600 x 900 (intrinsics scaled accordingly)."""
