@@ -43,7 +43,7 @@ def bev_figure(frame: Frame, extent_m: float = 60.0, title: str = "",
     p = scan.points
     colour = np.log1p(scan.intensity_255()) if point_colour is None else point_colour
     fig, ax = plt.subplots(figsize=(7, 7))
-    ax.scatter(p[:, 0], p[:, 1], s=0.3, c=colour, cmap=cmap, linewidths=0)
+    ax.scatter(p[:, 0], p[:, 1], s=1.2, c=colour, cmap=cmap, linewidths=0)
     T = invert(scan.T_global_lidar)
     for box in frame.boxes:
         c, s = np.cos(box.yaw), np.sin(box.yaw)
@@ -54,7 +54,7 @@ def bev_figure(frame: Frame, extent_m: float = 60.0, title: str = "",
         local = apply(T, np.column_stack([xy, np.full(len(xy), box.center[2])]))
         ax.plot(local[:, 0], local[:, 1], color=CLASS_COLOURS.get(box.category, "k"), lw=1.2)
     for name, col in CLASS_COLOURS.items():
-        ax.plot([], [], color=col, label=name.split(".")[-1])
+        ax.plot([], [], color=col, label=name.split(".", 1)[-1])
     ax.legend(loc="upper right", fontsize=7)
     ax.set_xlim(-extent_m, extent_m)
     ax.set_ylim(-extent_m, extent_m)
