@@ -57,3 +57,16 @@ def test_camera_rotation_projects_forward_point_to_principal_point():
         uv, z = project(p_ego @ R, K)  # R^T p
         assert np.allclose(uv[0], [800, 450]) and np.allclose(z, 10)
         assert uv[1, 1] < 450  # up in the world is up in the image
+
+
+def test_atomic_write_leaves_no_partial_file_and_readable_output(tmp_path):
+    from weatheralign import atomic
+
+    target = tmp_path / "sub" / "out.json"
+    atomic.write_json(target, {"a": 1})
+    assert target.read_text() == '{"a": 1}' and (target.stat().st_mode & 0o777) == 0o644
+    with pytest.raises(RuntimeError):
+        with atomic.atomic_path(tmp_path / "sub" / "half.bin") as tmp:
+            tmp.write_bytes(b"partial")
+            raise RuntimeError("interrupted")
+    assert sorted(p.name for p in (tmp_path / "sub").iterdir()) == ["out.json"]
