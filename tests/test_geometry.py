@@ -1,3 +1,5 @@
+import json
+
 import numpy as np
 import pytest
 
@@ -64,7 +66,7 @@ def test_atomic_write_leaves_no_partial_file_and_readable_output(tmp_path):
 
     target = tmp_path / "sub" / "out.json"
     atomic.write_json(target, {"a": 1})
-    assert target.read_text() == '{"a": 1}' and (target.stat().st_mode & 0o777) == 0o644
+    assert json.loads(target.read_text()) == {"a": 1} and (target.stat().st_mode & 0o777) == 0o644
     with pytest.raises(RuntimeError):
         with atomic.atomic_path(tmp_path / "sub" / "half.bin") as tmp:
             tmp.write_bytes(b"partial")
