@@ -32,13 +32,27 @@ def _run_world(tmp: Path, extra: list[str], env: dict[str, str], stage: str = "w
     return subprocess.run(args, cwd=tmp, env=env, capture_output=True, text=True, timeout=600)
 
 
+@pytest.fixture
+def prefect_server(monkeypatch):
+    """A Prefect API server for the flow runs and for Dask workers (workers in other processes need a server they
+    can reach; a flow's temporary in-process server is not visible to them)."""
+    from prefect.server.api.server import SubprocessASGIServer
+
+    server = SubprocessASGIServer()
+    server.start(timeout=120)
+    monkeypatch.setenv("PREFECT_API_URL", server.api_url)
+    monkeypatch.setenv("PYTHONPATH", str(REPO))
+    yield server.api_url
+    server.stop()
+
+
 @pytest.mark.flow
-def test_world_flow_thread_pool_and_dask_with_mlflow(tmp_path):
+def test_world_flow_thread_pool_and_dask_with_mlflow(tmp_path, prefect_server):
     from distributed import LocalCluster
     from mlflow.tracking import MlflowClient
 
     env = {**os.environ, "PYTHONPATH": str(REPO), "WEATHERALIGN_PIPELINE_ID": "test-pipeline",
-           "PREFECT_LOGGING_LEVEL": "WARNING"}
+           "PREFECT_LOGGING_LEVEL": "WARNING", "PREFECT_API_URL": prefect_server}
     run = _run_world(tmp_path, [], env)
     assert run.returncode == 0, run.stderr[-3000:]
     metrics = json.loads((tmp_path / "reports" / "world" / "metrics.json").read_text())
@@ -63,7 +77,7 @@ def test_world_flow_thread_pool_and_dask_with_mlflow(tmp_path):
         assert (tmp_path / "reports" / "particles" / figure).stat().st_size > 20_000
 
     # the same stage on an existing Dask cluster: everything already rendered is picked up, not redone
-    with LocalCluster(n_workers=1, threads_per_worker=2, processes=False, protocol="tcp", host="127.0.0.1",
+    with LocalCluster(n_workers=1, threads_per_worker=2, processes=True, protocol="tcp", host="127.0.0.1",
                       dashboard_address=None) as cluster:
         run = _run_world(tmp_path, ["--set", f"run.dask_address={cluster.scheduler_address}",
                                     "--set", "world.samples_per_scene=3"], env)
