@@ -23,7 +23,8 @@ from scipy.spatial.transform import Rotation
 from weatheralign.atomic import write_json
 from weatheralign.data.frame import LidarScan
 from weatheralign.data.rings import HDL32E_ELEVATIONS_DEG
-from weatheralign.lidar.fog import FogResult, default_beta, simulate_fog
+from weatheralign.lidar.fog import FogResult, simulate_fog
+from weatheralign.medium.fog import default_beta
 
 REPO = Path(__file__).resolve().parents[1]
 REPORT = REPO / "reports" / "benchmarks" / "lidar.json"

@@ -24,13 +24,12 @@ from weatheralign.lidar import FogLabel, PulseSensor, c_a_p0_from_intensity, har
 from weatheralign.lidar.fog import (
     REFERENCE_CODE_BETA,
     beam_origins_fast,
-    default_beta,
     fog_intensities,
     fog_point_arrays,
-    mor_from_alpha,
     simulate_fog,
     soft_target_response,
 )
+from weatheralign.medium.fog import default_beta, mor_from_alpha
 from weatheralign.lidar.pulse import SPEED_OF_LIGHT
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"

@@ -44,12 +44,10 @@ from numpy.typing import ArrayLike, NDArray
 
 from weatheralign.data.frame import LidarScan
 from weatheralign.lidar.pulse import DEFAULT_SENSOR, SPEED_OF_LIGHT, PulseSensor, overlap
+from weatheralign.medium.fog import DEFAULT_BETA_MOR, LN20
 
 F64 = NDArray[np.float64]
 
-LN20 = math.log(20.0)
-DEFAULT_BETA_MOR = 0.046
-"""Default backscatter as ``β = DEFAULT_BETA_MOR / MOR`` (the paper's grid is 0.023·{1.0, 1.2, …, 2.0} / MOR)."""
 
 REFERENCE_CODE_BETA = DEFAULT_BETA_MOR * 0.06 / LN20
 """β = 9.21e-4 /(m sr): what the published code actually uses for every α (computed from its default α = 0.06)."""
@@ -65,21 +63,6 @@ class FogLabel(IntEnum):
     ATTENUATED = 1  # same position, intensity exp(-2 α R_0) i_0
     SCATTERED = 2  # replaced by the fog return at R_fog on its ray
     LOST = 3  # the weather pushed the return below the detector noise floor: dropped
-
-
-def mor_from_alpha(alpha: float) -> float:
-    """Meteorological optical range ``ln(20) / α`` [m] of extinction ``alpha`` [1/m] (inf for α = 0)."""
-    return math.inf if alpha == 0 else LN20 / alpha
-
-
-def alpha_from_mor(mor: float) -> float:
-    """Extinction ``ln(20) / MOR`` [1/m] of a visibility ``mor`` [m]."""
-    return LN20 / mor
-
-
-def default_beta(alpha: float, beta_mor: float = DEFAULT_BETA_MOR) -> float:
-    """Backscatter ``β = beta_mor / MOR(α)`` [1/(m sr)] (``beta_mor`` = 0.046 by default)."""
-    return beta_mor * alpha / LN20
 
 
 def _check_medium(alpha: float, beta: float) -> None:
