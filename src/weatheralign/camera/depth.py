@@ -1,0 +1,801 @@
+"""Dense camera depth from sparse LiDAR for real data (physics.md section 2; the synthetic world has exact depth).
+
+The result is the per-pixel **ray length** [m] (distance from the camera centre, as `CameraView.load_range` gives for
+the synthetic world and as Koschmieder's law needs), ``inf`` for sky. Stages (`dense_depth`):
+
+1. **Projection** (`camera_points`): the aggregated, ego-motion-compensated scan (every point in the LiDAR frame at
+   the scan timestamp) goes to the global frame with the scan's pose and into the camera with the camera's pose at
+   its *own* timestamp (``CameraView.T_global_cam``); static points land exactly. Each point keeps its firing time
+   relative to the exposure (``LidarScan.point_times``), so points of older sweeps are known as older.
+2. **Z-buffer, ghost and parallax filters** (`sparse_depth`, `drop_occluded`): the nearest point per pixel (pixel
+   centres at integer ``(u, v)``). Points fired within ``stale_s`` of the exposure are fresh; an older point whose
+   depth disagrees with the fresh points around it is a moving object's ghost and is dropped (older sweeps only
+   fill where the fresh sweep has no points). Points that have nearer points both above and below (or left and
+   right) lie behind a foreground surface that the LiDAR, mounted elsewhere, saw past: the camera cannot see them.
+3. **Planar interpolation** (`triangulate`): a Delaunay triangulation of the projected points in the image;
+   inverse depth is linear in the image over a planar patch, so each triangle whose corners lie on one surface
+   (similar depths, or a near-horizontal patch such as the road) is filled exactly for planes. Triangles across
+   depth edges or spanning more than a few LiDAR ring gaps are dropped.
+4. **Morphological fill** (`morphological_fill`, IP-Basic, Ku et al. 2018, with OpenCV): inverted depth so that
+   dilation keeps the nearest surface, multiscale diamond dilation by depth bin, hole closing, masked hole fill,
+   median and bilateral blur. It fills what the triangles left (depth edges, thin objects). Kernel sizes follow the
+   measured point spacing in the image, so one setting serves a 32-beam LiDAR at 1600 x 900 and a 64-beam at KITTI
+   resolution.
+5. **Image-guided refinement** (`refine_edges`): every pixel not covered by a surface triangle picks, among the
+   confident depths of its neighbourhood, the near or the far surface by a joint-bilateral vote (colour similarity
+   to the image, spatial distance) and takes that surface's weighted inverse depth: depth edges snap to image edges
+   instead of the dilation's nearest-wins halo.
+6. **Sky and holes**: nothing above the LiDAR's top elevation ever returns, so a pixel whose viewing ray (taken to
+   the LiDAR frame, `above_fov_mask`) points above ``lidar_top_elevation_deg`` and has no LiDAR support nearby is
+   sky; with an image, only where the image agrees (`image_sky`: bright, bluish or neutral, smooth, above the
+   horizon, connected to the top border, not continuing a LiDAR-hit surface) - and then also below the top
+   elevation where the LiDAR had no return (sky at the end of a street). Unsupported pixels above the field of view
+   that the image shows as structure (facades above the top ring) keep the camera z of the highest known pixel of
+   their column (a vertical surface continued upwards), with low confidence: "sky is far only where it really is
+   sky". Holes below it without returns are filled across when one surface surrounds them (dark paint, glass),
+   else from the farthest surface around (beyond range, or in the LiDAR's shadow behind a foreground object).
+
+``DenseDepth.confidence`` is 1 for planar interpolation between LiDAR points and for sky decided by both the LiDAR
+and the image, 0.5 for the morphological fill / refined edges, 0.25 for upward continuation and nearest fill; it is
+0.5 for sky without an image. ``valid`` is ``confidence >= 0.5``.
+
+Accuracy and cost (synthetic world, 3 aggregated HDL-32E sweeps, 48 images of 1600 x 900 from all six cameras,
+against the exact ray length, pixels below the LiDAR's top elevation): median relative error 0.05 %, 90th
+percentile 1.0 %, 95th 4.7 % (IP-Basic alone: median 1.1 %, 90th percentile 7.5 % on CAM_FRONT); 93 % of the sky
+above the top elevation is inf, 4.7 % of the structure above it is taken for sky. ~0.35 s per image on 2 shared
+CPU cores (morphological fill 0.10 s, triangles 0.05 s, refinement ~0.05-0.1 s).
+
+Known limits: buildings beyond the LiDAR's range (100 m) get the farthest depth around, not theirs; a pale, smooth
+facade entirely above the top ring, meeting the sky without a visible edge, can be taken for sky; LiDAR points seen
+through car windows give the window the depth behind it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numba import njit
+from numpy.typing import NDArray
+from scipy.ndimage import median_filter
+from scipy.spatial import Delaunay, QhullError
+
+from weatheralign.data.frame import CameraView, LidarScan
+
+F32 = NDArray[np.float32]
+F64 = NDArray[np.float64]
+BoolA = NDArray[np.bool_]
+
+CONF_PLANAR = 1.0
+CONF_FILL = 0.5
+CONF_EXTENDED = 0.25
+
+
+@dataclass(frozen=True)
+class DepthParams:
+    """Settings of `dense_depth` (defaults tuned on the synthetic world against its exact range maps).
+
+    Attributes:
+        min_depth_m: points closer than this camera z [m] are ignored (returns from the ego vehicle and the sensor
+            mounts, e.g. 79 points at z ~0.5 m on the top rows of the STF sample).
+        same_surface_ratio: a triangle is one surface if its corner depths differ by at most this factor.
+        ground_tilt_deg: ... or if its 3-D normal is within this angle of the ego's up axis (road, pavement)
+        ground_height_range_m: ... and its corners differ in height by at most this [m].
+        max_edge_gaps: longest triangle edge, in measured vertical point gaps.
+        occlusion_ratio: a point is hidden if nearer points (depth below ``z / ratio``) flank it on both sides.
+        support_gaps: a pixel within this many point gaps of a LiDAR point has LiDAR support (never sky).
+        sky_margin_deg: a ray is above the LiDAR's field of view if its elevation exceeds the top elevation by this.
+        stale_s: points fired more than this before/after the exposure [s] are stale: dropped where fresh points
+            around disagree with their depth (moving objects of older sweeps), and second to fresh ones per pixel.
+        refine_radius_gaps: half-window of the image-guided refinement, in point gaps.
+        refine_sigma_colour: colour scale of the refinement's joint-bilateral weight (sRGB in [0, 1]).
+        edge_ratio: neighbourhood depth spread above which the refinement chooses between near and far surfaces.
+        hole_spread: a hole without returns whose rim depths span at most this factor is one surface (filled
+            across); other holes are filled from the farthest surface around.
+    """
+
+    min_depth_m: float = 1.0
+    same_surface_ratio: float = 1.15
+    ground_tilt_deg: float = 12.0
+    ground_height_range_m: float = 0.5
+    max_edge_gaps: float = 2.8
+    occlusion_ratio: float = 1.1
+    support_gaps: float = 1.2
+    sky_margin_deg: float = 0.0
+    stale_s: float = 0.03
+    refine_radius_gaps: float = 0.6
+    refine_sigma_colour: float = 0.08
+    edge_ratio: float = 1.1
+    hole_spread: float = 1.3
+
+
+@dataclass(frozen=True)
+class DenseDepth:
+    """Dense depth of one camera image.
+
+    Attributes:
+        range: (H, W) float32 ray length from the camera centre [m]; ``inf`` = sky.
+        confidence: (H, W) float32 in [0, 1] (see the module docstring).
+        valid: (H, W) bool, ``confidence >= 0.5`` (depth backed by nearby LiDAR points, or decided sky).
+        sky: (H, W) bool, pixels declared sky (``range == inf``).
+        above_fov: (H, W) bool, pixels whose ray points above the LiDAR's top elevation.
+        num_points: LiDAR points used (after z-buffer and parallax filter).
+    """
+
+    range: F32
+    confidence: F32
+    valid: BoolA
+    sky: BoolA
+    above_fov: BoolA
+    num_points: int
+
+
+@dataclass(frozen=True)
+class CameraPoints:
+    """LiDAR points in a camera frame at the camera's exposure time.
+
+    Attributes:
+        xyz: (N, 3) float64 camera-frame coordinates [m] (OpenCV axes).
+        dt: (N,) float64 firing time minus exposure time [s] (0 where unknown).
+        R_lidar_cam: (3, 3) rotation camera -> LiDAR frame (for the field-of-view test).
+        up_cam: (3,) the ego's up axis in camera coordinates.
+    """
+
+    xyz: F64
+    dt: F64
+    R_lidar_cam: F64
+    up_cam: F64
+
+
+# ------------------------------------------------------------------------------------------------ geometry
+
+
+def camera_points(scan: LidarScan, camera: CameraView) -> CameraPoints:
+    """Project a (multi-sweep, ego-motion-compensated) scan into ``camera`` at the camera's own timestamp.
+
+    A point ``p`` of the scan lies at ``T_global_lidar(t_scan) p`` in the world (the scan's compensation); the
+    camera sees it at ``inv(T_global_cam(t_cam))`` of that. Firing times come from ``scan.point_times()``.
+    """
+    T_cam_lidar = np.linalg.inv(camera.T_global_cam) @ scan.T_global_lidar
+    xyz = scan.points[:, :3].astype(np.float64) @ T_cam_lidar[:3, :3].T + T_cam_lidar[:3, 3]
+    dt = scan.point_times() - camera.timestamp
+    return CameraPoints(xyz=xyz, dt=dt, R_lidar_cam=T_cam_lidar[:3, :3].T.copy(),
+                        up_cam=(camera.T_ego_cam[:3, :3].T @ np.array([0.0, 0.0, 1.0])))
+
+
+def estimate_top_elevation_deg(scan: LidarScan, min_range_m: float = 8.0) -> float:
+    """The scan's top beam elevation [deg] in its sensor frame, from its reference sweep's points beyond
+    ``min_range_m`` (nearer points spread in elevation: the lasers sit a few cm apart): the highest per-ring median
+    elevation where rings are stored (synthetic HDL-32E: 10.67; STF HDL-64: 2.72), else the 99.5 % quantile.
+
+    Raises:
+        ValueError: no point beyond ``min_range_m``.
+    """
+    p = scan.points
+    if scan.sweep_index is not None:
+        p = p[scan.sweep_index == 0]
+    xyz = p[:, :3].astype(np.float64)
+    horiz = np.hypot(xyz[:, 0], xyz[:, 1])
+    far = np.hypot(horiz, xyz[:, 2]) > min_range_m
+    if not far.any():
+        raise ValueError(f"estimate_top_elevation_deg: no points beyond {min_range_m} m")
+    elev = np.degrees(np.arctan2(xyz[far, 2], horiz[far]))
+    rings = p[far, 4].astype(np.int64)
+    counts = np.bincount(rings)
+    top = None
+    for ring in np.flatnonzero(counts >= 20):
+        med = float(np.median(elev[rings == ring]))
+        top = med if top is None else max(top, med)
+    return top if top is not None else float(np.quantile(elev, 0.995))
+
+
+def pixel_ray_norms(K: F64, width: int, height: int) -> F32:
+    """(H, W) float32 ``|K^-1 (u, v, 1)|``: ray length per unit camera z at pixel centres (integer u, v)."""
+    x = (np.arange(width) - K[0, 2]) / K[0, 0]
+    y = (np.arange(height) - K[1, 2]) / K[1, 1]
+    x = x - K[0, 1] * y[:, None] / K[0, 0] if K[0, 1] != 0 else np.broadcast_to(x, (height, width))
+    return np.sqrt(x * x + (y * y)[:, None] + 1.0).astype(np.float32)
+
+
+def above_fov_mask(K: F64, width: int, height: int, R_lidar_cam: F64, top_elevation_deg: float) -> BoolA:
+    """(H, W) bool: the pixel's viewing direction, rotated into the LiDAR frame, is above ``top_elevation_deg``."""
+    M = (R_lidar_cam @ np.linalg.inv(K)).astype(np.float32)  # pixel (u, v, 1) -> LiDAR-frame direction
+    u = np.arange(width, dtype=np.float32)
+    v = np.arange(height, dtype=np.float32)[:, None]
+    d = [M[i, 0] * u + M[i, 1] * v + M[i, 2] for i in range(3)]
+    tan_top = np.float32(math.tan(math.radians(top_elevation_deg)))
+    return d[2] > tan_top * np.sqrt(d[0] * d[0] + d[1] * d[1])
+
+
+def above_horizon_mask(K: F64, width: int, height: int, up_cam: F64, margin_deg: float = 1.0) -> BoolA:
+    """(H, W) bool: the pixel's viewing direction is above the ego's horizontal plane minus ``margin_deg``."""
+    M = np.linalg.inv(K).astype(np.float32)
+    u = np.arange(width, dtype=np.float32)
+    v = np.arange(height, dtype=np.float32)[:, None]
+    d = [M[i, 0] * u + M[i, 1] * v + M[i, 2] for i in range(3)]
+    up = np.asarray(up_cam, dtype=np.float32)
+    along = d[0] * up[0] + d[1] * up[1] + d[2] * up[2]
+    norm = np.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    return along > np.float32(math.sin(math.radians(-margin_deg))) * norm
+
+
+# ------------------------------------------------------------------------------------------------ sparse depth
+
+
+@dataclass(frozen=True)
+class SparseDepth:
+    """The z-buffered projection. ``z``: (H, W) float32 camera z [m], 0 where empty; ``index``: (M,) indices of the
+    kept points; ``uv``: (M, 2) their sub-pixel image positions; ``pix``: (M, 2) int (v, u) pixels."""
+
+    z: F32
+    index: NDArray[np.int64]
+    uv: F64
+    pix: NDArray[np.int64]
+
+
+def _zbuffer(lin: NDArray[np.int64], z: F64, stale: NDArray[np.int8]) -> NDArray[np.int64]:
+    """Positions (into ``lin``) of the winner of each pixel ``lin``: fresh before stale, then nearest."""
+    order = np.lexsort((z, stale, lin))
+    lin_s = lin[order]
+    first = np.ones(len(order), bool)
+    first[1:] = lin_s[1:] != lin_s[:-1]
+    return order[first]
+
+
+def sparse_depth(points: CameraPoints, K: F64, width: int, height: int, params: DepthParams) -> SparseDepth:
+    """Nearest point per pixel, with older sweeps checked against the fresh one.
+
+    Points fired within ``stale_s`` of the exposure are *fresh*; older (stale) points of static surfaces land
+    exactly, but those of moving objects are ghosts at old positions. A stale point is dropped where fresh points
+    surround it (a window of about one ring gap) and its depth lies outside their depth range (by more than
+    ``occlusion_ratio``); where no fresh point is near, stale points fill the gaps (the purpose of aggregation).
+    In a pixel shared by a fresh and a stale point, the fresh one wins.
+    """
+    xyz = points.xyz
+    z = xyz[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = K[0, 0] * xyz[:, 0] / z + K[0, 1] * xyz[:, 1] / z + K[0, 2]
+        v = K[1, 1] * xyz[:, 1] / z + K[1, 2]
+    ui, vi = np.rint(u), np.rint(v)
+    ok = (z > params.min_depth_m) & (ui >= 0) & (ui < width) & (vi >= 0) & (vi < height)
+    idx = np.flatnonzero(ok)
+    pv_all, pu_all = vi[idx].astype(np.int64), ui[idx].astype(np.int64)
+    lin = pv_all * width + pu_all
+    stale = (np.abs(points.dt[idx]) > params.stale_s).astype(np.int8)
+    zi = z[idx]
+    fresh = stale == 0
+    if stale.any() and fresh.sum() >= 3:
+        win = _zbuffer(lin[fresh], zi[fresh], stale[fresh])
+        zf = np.zeros((height, width), np.float32)
+        zf[pv_all[fresh][win], pu_all[fresh][win]] = zi[fresh][win]
+        gap_v, gap_h = point_gaps(zf > 0)
+        k = np.ones((int(round(1.5 * gap_v)) | 1, int(round(2 * gap_h)) | 1), np.uint8)
+        fmax = cv2.dilate(zf, k)
+        fmin = cv2.erode(np.where(zf > 0, zf, np.float32(1e30)).astype(np.float32), k)
+        r = params.occlusion_ratio
+        s_v, s_u = pv_all[~fresh], pu_all[~fresh]
+        zs = zi[~fresh]
+        ghost = (fmax[s_v, s_u] > 0) & ((zs < fmin[s_v, s_u] / r) | (zs > fmax[s_v, s_u] * r))
+        keep = np.ones(len(idx), bool)
+        keep[np.flatnonzero(~fresh)[ghost]] = False
+        idx, pv_all, pu_all, lin, stale, zi = idx[keep], pv_all[keep], pu_all[keep], lin[keep], stale[keep], zi[keep]
+    win = _zbuffer(lin, zi, stale)
+    sel = idx[win]
+    out = np.zeros((height, width), np.float32)
+    pv, pu = pv_all[win], pu_all[win]
+    out[pv, pu] = z[sel]
+    return SparseDepth(z=out, index=sel, uv=np.column_stack([u[sel], v[sel]]), pix=np.column_stack([pv, pu]))
+
+
+def point_gaps(mask: BoolA) -> tuple[float, float]:
+    """(vertical, horizontal) typical gap [px] between neighbouring LiDAR points in the image.
+
+    Horizontal: the median distance between consecutive occupied pixels of a row (points along a ring).
+    Vertical: rings are first joined into curves by a horizontal dilation over that gap; then the 75th percentile of
+    the distances between consecutive occupied pixels of a column (the ring spacing; denser on the ground where
+    several sweeps interleave). Both at least 2.
+    """
+
+    def gaps(m: BoolA, q: float) -> float:
+        r, c = np.nonzero(m)  # row-major: consecutive entries of one row are neighbours along the row
+        if len(r) < 2:
+            return 2.0
+        d = np.diff(c)[(r[1:] == r[:-1])]
+        d = d[d > 1]
+        return float(max(2.0, np.percentile(d, q))) if len(d) else 2.0
+
+    gap_h = gaps(mask, 50.0)
+    k = int(round(gap_h)) | 1
+    joined = cv2.dilate(mask.astype(np.uint8), np.ones((1, k), np.uint8)) > 0
+    return gaps(joined.T, 75.0), gap_h
+
+
+def drop_occluded(z: F32, gap_v: float, gap_h: float, ratio: float) -> F32:
+    """Remove points that nearer points flank above and below (or left and right): seen by the LiDAR past a
+    foreground surface that hides them from the camera. ``z`` (H, W) float32, 0 = empty; returns a filtered copy."""
+    big = np.float32(np.inf)
+    zz = np.where(z > 0, z, big).astype(np.float32)
+    hv = int(round(1.5 * gap_v)) + 1
+    wv = int(round(gap_h)) | 1
+    hh = int(round(1.5 * gap_h)) + 1
+    wh = int(round(0.5 * gap_v)) | 1
+    k_v = np.ones((hv, wv), np.uint8)
+    k_h = np.ones((wh, hh), np.uint8)
+    border = cv2.BORDER_CONSTANT
+    up = cv2.erode(zz, k_v, anchor=(wv // 2, hv - 1), borderType=border, borderValue=float(big))
+    down = cv2.erode(zz, k_v, anchor=(wv // 2, 0), borderType=border, borderValue=float(big))
+    left = cv2.erode(zz, k_h, anchor=(hh - 1, wh // 2), borderType=border, borderValue=float(big))
+    right = cv2.erode(zz, k_h, anchor=(0, wh // 2), borderType=border, borderValue=float(big))
+    lim = zz / np.float32(ratio)
+    hidden = (z > 0) & (((up < lim) & (down < lim)) | ((left < lim) & (right < lim)))
+    out = z.copy()
+    out[hidden] = 0.0
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ triangles
+
+
+@njit(cache=True, nogil=True)
+def _raster_inverse_depth(tri: NDArray, uv: NDArray, inv_z: NDArray, keep: NDArray, out: NDArray) -> None:
+    """Rasterise kept triangles (T, 3) of image points ``uv`` (N, 2) into ``out`` (H, W), linearly interpolating
+    ``inv_z`` (N,) at integer pixel centres (inclusive edges; nearest surface where two triangles overlap)."""
+    H, W = out.shape
+    for t in range(tri.shape[0]):
+        if not keep[t]:
+            continue
+        a, b, c = tri[t, 0], tri[t, 1], tri[t, 2]
+        x0, y0, x1, y1, x2, y2 = uv[a, 0], uv[a, 1], uv[b, 0], uv[b, 1], uv[c, 0], uv[c, 1]
+        den = (y1 - y2) * (x0 - x2) + (x2 - x1) * (y0 - y2)
+        if abs(den) < 1e-9:
+            continue
+        umin = max(0, int(math.ceil(min(x0, x1, x2))))
+        umax = min(W - 1, int(math.floor(max(x0, x1, x2))))
+        vmin = max(0, int(math.ceil(min(y0, y1, y2))))
+        vmax = min(H - 1, int(math.floor(max(y0, y1, y2))))
+        for v in range(vmin, vmax + 1):
+            for u in range(umin, umax + 1):
+                l0 = ((y1 - y2) * (u - x2) + (x2 - x1) * (v - y2)) / den
+                l1 = ((y2 - y0) * (u - x2) + (x0 - x2) * (v - y2)) / den
+                l2 = 1.0 - l0 - l1
+                if l0 >= -1e-7 and l1 >= -1e-7 and l2 >= -1e-7:
+                    val = l0 * inv_z[a] + l1 * inv_z[b] + l2 * inv_z[c]
+                    if val > out[v, u]:
+                        out[v, u] = val
+
+
+def triangulate(uv: F64, xyz: F64, up_cam: F64, height: int, width: int, max_edge_px: float,
+                params: DepthParams) -> F32:
+    """(H, W) float32 inverse camera z [1/m] (0 = not covered) from planar triangles of the projected points.
+
+    Args:
+        uv: (M, 2) sub-pixel image positions; xyz: (M, 3) their camera-frame points [m]; up_cam: (3,) ego up axis.
+        max_edge_px: longest allowed triangle edge [px].
+    """
+    out = np.zeros((height, width), np.float32)
+    if len(uv) < 3:
+        return out
+    try:
+        tri = Delaunay(uv).simplices.astype(np.int64)
+    except QhullError:
+        return out
+    z = xyz[:, 2]
+    zt = z[tri]
+    same = zt.max(axis=1) <= params.same_surface_ratio * zt.min(axis=1)
+    e = uv[tri[:, [1, 2, 0]]] - uv[tri]
+    longest = np.sqrt((e * e).sum(axis=2)).max(axis=1)
+    P = xyz[tri]
+    n = np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0])
+    n_norm = np.linalg.norm(n, axis=1)
+    h = P @ up_cam
+    flat = (np.abs(n @ up_cam) >= math.cos(math.radians(params.ground_tilt_deg)) * np.maximum(n_norm, 1e-12)) & (
+        h.max(axis=1) - h.min(axis=1) <= params.ground_height_range_m)
+    keep = (longest <= max_edge_px) & (same | flat)
+    _raster_inverse_depth(tri, uv, (1.0 / z).astype(np.float64), keep, out)
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ IP-Basic fill
+
+
+def _diamond(width: int, height: int) -> NDArray[np.uint8]:
+    """A (height, width) diamond (rhombus) kernel, odd sizes."""
+    w, h = max(1, width | 1), max(1, height | 1)
+    y, x = np.mgrid[0:h, 0:w]
+    return ((np.abs(x - w // 2) / max(w // 2, 1) + np.abs(y - h // 2) / max(h // 2, 1)) <= 1.0).astype(np.uint8)
+
+
+def morphological_fill(z: F32, gap_v: float, gap_h: float) -> F32:
+    """IP-Basic-style completion of a sparse z image (H, W) float32 (0 = empty) -> (H, W) float32 z [m], 0 where
+    still empty. Kernels are scaled to the point gaps ``gap_v``, ``gap_h`` [px] (KITTI's IP-Basic: ~5 px gaps).
+
+    Inverted depth (``max - z``) makes dilation prefer the nearest surface; near points (< 15 m) get the largest
+    diamond, far ones (> 30 m) the smallest; then hole closing, masked hole fill below the top of each column,
+    median blur (outliers) and bilateral blur (smooths while keeping edges), and back to depth.
+    """
+    valid = z > 0
+    if not valid.any():
+        return np.zeros_like(z)
+    z_max = float(z[valid].max()) + 1.0
+    inv = np.where(valid, np.float32(z_max) - z, 0.0).astype(np.float32)
+    kv, kh = 1.2 * gap_v, 1.2 * gap_h
+    out = inv.copy()
+    for lo, hi, scale in ((30.0, np.inf, 0.6), (15.0, 30.0, 0.8), (0.0, 15.0, 1.0)):
+        part = np.where(valid & (z > lo) & (z <= hi), inv, 0.0).astype(np.float32)
+        dil = cv2.dilate(part, _diamond(int(round(kh * scale)) + 2, int(round(kv * scale)) + 2))
+        out[dil > 0.1] = dil[dil > 0.1]
+    out = cv2.morphologyEx(out, cv2.MORPH_CLOSE, np.ones((5, 5), np.uint8))
+    med = cv2.medianBlur(out, 5)
+    filled = out > 0.1
+    out[filled] = med[filled]
+    top = np.cumsum(out > 0.1, axis=0) > 0  # at or below the highest filled pixel of each column
+    k = np.ones((5, 5), np.uint8)
+    for _ in range(max(3, int(round(gap_v / 4)))):
+        empty = (out < 0.1) & top
+        if not empty.any():
+            break
+        dil = cv2.dilate(out, k)
+        out[empty] = dil[empty]
+    filled = out > 0.1
+    med = cv2.medianBlur(out, 5)
+    out[filled] = med[filled]
+    bil = cv2.bilateralFilter(out, 5, 0.5, 2.0)
+    out[filled] = bil[filled]
+    return np.where(filled, np.float32(z_max) - out, 0.0).astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------------------ refinement
+
+
+@njit(cache=True, nogil=True)
+def _refine_kernel(inv_fill: NDArray, conf_inv: NDArray, todo: NDArray, image: NDArray, radius: int, step: int,
+                   sigma_c: float, sigma_s: float, out: NDArray) -> None:
+    """Joint-bilateral near/far vote (see `refine_edges`) at pixels with ``todo`` > 0, which holds the inverse depth
+    splitting near from far there; ``out`` comes pre-filled with ``inv_fill`` and is changed where the vote flips.
+    Single-threaded and GIL-free: Prefect's thread pool runs several images at once (numba's parallel workqueue
+    layer is not safe for concurrent callers)."""
+    H, W = inv_fill.shape
+    ic = 1.0 / (2.0 * sigma_c * sigma_c)
+    isq = 1.0 / (2.0 * sigma_s * sigma_s)
+    for v in range(H):
+        for u in range(W):
+            mid = todo[v, u]
+            if mid <= 0.0:
+                continue
+            v0, v1 = max(0, v - radius), min(H - 1, v + radius)
+            u0, u1 = max(0, u - radius), min(W - 1, u + radius)
+            wn, wf, sn, sf = 0.0, 0.0, 0.0, 0.0
+            for q in range(v0, v1 + 1, step):
+                for r in range(u0, u1 + 1, step):
+                    c = conf_inv[q, r]
+                    if c <= 0.0:
+                        continue
+                    d0 = image[v, u, 0] - image[q, r, 0]
+                    d1 = image[v, u, 1] - image[q, r, 1]
+                    d2 = image[v, u, 2] - image[q, r, 2]
+                    w = math.exp(-(d0 * d0 + d1 * d1 + d2 * d2) * ic - ((q - v) ** 2 + (r - u) ** 2) * isq)
+                    if c >= mid:
+                        wn += w
+                        sn += w * c
+                    else:
+                        wf += w
+                        sf += w * c
+            if wn + wf <= 1e-12:
+                continue
+            fill_near = inv_fill[v, u] >= mid
+            if wn >= wf and not fill_near:
+                out[v, u] = sn / wn
+            elif wf > wn and fill_near:
+                out[v, u] = sf / wf
+
+
+def refine_edges(inv_fill: F32, conf_inv: F32, todo: BoolA, image: NDArray, radius: int,
+                 params: DepthParams) -> F32:
+    """Image-guided choice of the surface at uncertain pixels near depth edges (joint-bilateral near/far vote).
+
+    For a ``todo`` pixel whose window holds confident inverse depths spreading by more than ``params.edge_ratio``
+    (a depth edge), the confident samples split at the geometric mean of the extremes into a near and a far
+    surface; each sample votes with ``exp(-|c_p - c_q|^2 / 2 sigma_c^2 - |p - q|^2 / 2 radius^2)``. If the winner is
+    not the surface the fill chose, the pixel takes the winner's weighted mean inverse depth.
+
+    Args:
+        inv_fill: (H, W) inverse z [1/m] of the fill (0 = none); conf_inv: (H, W) inverse z of confident pixels
+            (LiDAR points and planar triangles; 0 = none); todo: (H, W) pixels to refine; image: (H, W, 3) float32
+            sRGB in [0, 1]; radius: half-window [px] (sampled on an ~11 x 11 grid).
+
+    Returns:
+        (H, W) float32 refined inverse z.
+    """
+    k = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    near = cv2.dilate(conf_inv, k)
+    far = cv2.erode(np.where(conf_inv > 0, conf_inv, np.float32(1e30)).astype(np.float32), k)
+    edge = todo & (near > np.float32(params.edge_ratio) * far) & (inv_fill > 0)
+    mid = np.where(edge, np.sqrt(near * np.where(edge, far, 0.0)), 0.0).astype(np.float32)
+    out = inv_fill.copy()
+    step = max(1, int(round((2 * radius + 1) / 11)))  # ~11 x 11 samples per window
+    _refine_kernel(inv_fill, conf_inv, mid, image, int(radius), step, float(params.refine_sigma_colour),
+                   float(max(radius, 1)), out)
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ sky
+
+
+def image_sky(image: NDArray, lidar_pixels: BoolA | None = None, allowed: BoolA | None = None,
+              point_gap_px: float = 8.0, scale: int = 4, max_gradient: float = 0.04, min_brightness: float = 0.75,
+              max_contact: float = 0.3) -> BoolA:
+    """(H, W) bool: pixels that look like sky: smooth (blurred largest per-channel gradient below ``max_gradient``
+    per px at 1/``scale``), bright (max channel >= ``min_brightness`` x the 99th percentile of the upper third),
+    bluish or neutral (blue >= red - 0.03) and connected (4-neighbourhood) to the image's top border through such
+    pixels.
+
+    ``allowed`` (H, W) restricts the sky to where it can be (above the horizon: far pale ground fades into the sky
+    through the haze at the horizon and would otherwise join it). The sky returns nothing to a LiDAR: the smooth
+    region is cut along the LiDAR points (``lidar_pixels`` (H, W); each point extended sideways by its horizontal
+    spacing ``point_gap_px`` so a ring becomes a line), and a region that meets those cuts over more than
+    ``max_contact`` of its columns continues a LiDAR-hit surface (a pale facade above the top ring): not sky.
+    Finally the skyline is sharpened at full resolution by colour (`_grow_sky`).
+    """
+    f = _as_float_rgb(image)
+    h, w = f.shape[:2]
+    s = max(1, min(scale, h // 8, w // 8))
+    fs = cv2.resize(f, (max(1, w // s), max(1, h // s)), interpolation=cv2.INTER_AREA) if s > 1 else f
+    gx = cv2.Sobel(fs, cv2.CV_32F, 1, 0, ksize=3) / 8.0
+    gy = cv2.Sobel(fs, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    mag = cv2.GaussianBlur(np.sqrt(gx * gx + gy * gy).max(axis=2), (5, 5), 0)  # colour edges too
+    V = fs.max(axis=2)
+    ref = float(np.percentile(V[: max(1, len(V) // 3)], 99))
+    like = (mag < max_gradient) & (V >= min_brightness * ref) & (fs[..., 2] >= fs[..., 0] - 0.03)
+    if allowed is not None:
+        like &= cv2.resize(allowed.astype(np.uint8), like.shape[::-1], interpolation=cv2.INTER_NEAREST) > 0
+    if lidar_pixels is not None and lidar_pixels.any():
+        # LiDAR points are surfaces: cut the smooth region along them (short horizontal runs join a ring's points)
+        pv, pu = np.nonzero(lidar_pixels)
+        pts = np.zeros(like.shape, np.uint8)
+        pts[np.minimum(pv // s, like.shape[0] - 1), np.minimum(pu // s, like.shape[1] - 1)] = 1
+        run = max(3, int(round(2 * point_gap_px / s)) | 1)
+        cut = (cv2.dilate(pts, np.ones((1, run), np.uint8)) > 0) & like
+        like &= ~cut
+    else:
+        cut = np.zeros_like(like)
+    n, lab = cv2.connectedComponents(like.astype(np.uint8), connectivity=4)
+    top_labels = np.unique(lab[0][like[0]])
+    top_labels = top_labels[top_labels > 0]
+    if cut.any() and len(top_labels):
+        # a region that continues smoothly into LiDAR-hit surface along much of its width (a pale facade above the
+        # top ring) is that surface; real sky meets LiDAR points only at a few columns (a pale pole or wall edge)
+        wl = like.shape[1]
+        neighbour = cv2.dilate(lab.astype(np.float32), np.ones((3, 3), np.uint8)).astype(np.int64)
+        cv, cu = np.nonzero(cut)
+        touch = neighbour[cv, cu]
+        keys = np.unique(touch[touch > 0] * wl + cu[touch > 0])
+        contact = np.bincount(keys // wl, minlength=n)
+        lv, lu = np.nonzero(like)
+        span = np.bincount(np.unique(lab[lv, lu] * wl + lu) // wl, minlength=n)
+        solid = contact > max_contact * np.maximum(span, 1)
+        top_labels = top_labels[~solid[top_labels]]
+    sky = np.isin(lab, top_labels) & like
+    if s > 1:
+        sky_full = cv2.resize(sky.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
+        sky = _grow_sky(sky_full, sky, f, fs, grow_px=3 * s)
+        if allowed is not None:
+            sky &= allowed
+    return sky
+
+
+def _grow_sky(sky: BoolA, sky_small: BoolA, rgb: F32, rgb_small: F32, grow_px: int, tol: float = 0.04) -> BoolA:
+    """Extend ``sky`` (H, W) by up to ``grow_px`` into pixels whose colour is within ``tol`` (every channel) of the
+    local mean sky colour (from the downsampled ``sky_small`` / ``rgb_small``): the gradient blur of `image_sky`
+    leaves a few pixels at the skyline undecided."""
+    if not sky.any():
+        return sky
+    m = sky_small.astype(np.float32)
+    k = (5, 5)
+    weight = cv2.boxFilter(m, -1, k, normalize=False)
+    local = cv2.boxFilter(rgb_small * m[..., None], -1, k, normalize=False) / np.maximum(weight, 1e-6)[..., None]
+    h, w = sky.shape
+    local = cv2.resize(local, (w, h), interpolation=cv2.INTER_NEAREST)
+    ring = cv2.dilate(sky.astype(np.uint8), np.ones((2 * grow_px + 1, 2 * grow_px + 1), np.uint8)) > 0
+    vv, uu = np.nonzero(ring & ~sky)
+    close = np.abs(rgb[vv, uu] - local[vv, uu]).max(axis=1) <= tol
+    out = sky.copy()
+    out[vv[close], uu[close]] = True
+    return out
+
+
+def _as_float_rgb(image: NDArray) -> F32:
+    a = np.asarray(image)
+    if a.ndim != 3 or a.shape[2] != 3:
+        raise ValueError(f"image: expected (H, W, 3) RGB, got shape {a.shape}")
+    if a.dtype == np.uint8:
+        return a.astype(np.float32) * np.float32(1.0 / 255.0)
+    return np.clip(a, 0.0, 1.0).astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------------------ main
+
+
+def _enclosed_holes(z: F32, holes: BoolA, spread: float) -> BoolA:
+    """(H, W) bool: the connected ``holes`` (8-neighbourhood) not touching the image border whose surrounding known
+    depths (``z > 0`` on their 1-px rim) span at most a factor ``spread``: one surface all around."""
+    n, lab = cv2.connectedComponents(holes.astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return np.zeros_like(holes)
+    grown = cv2.dilate(lab.astype(np.float32), np.ones((3, 3), np.uint8)).astype(np.int64)
+    rim = (grown > 0) & ~holes & (z > 0)
+    lbl, val = grown[rim], z[rim]
+    zmin = np.full(n, np.inf)
+    zmax = np.zeros(n)
+    np.minimum.at(zmin, lbl, val)
+    np.maximum.at(zmax, lbl, val)
+    border = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
+    ok = np.isfinite(zmin) & (zmax <= spread * zmin)
+    ok[border] = False
+    ok[0] = False
+    return ok[lab]
+
+
+def _far_fill(z: F32, holes: BoolA, gap_v: float, gap_h: float, iterations: int = 12) -> F32:
+    """Fill ``holes`` of ``z`` (H, W) (0 = unknown) from their surroundings, farthest value first: repeated
+    ``gap``-sized max filters (dilation of z itself) written only into still-empty hole pixels."""
+    out = z.copy()
+    todo = holes & (out <= 0)
+    k = np.ones((max(3, int(round(gap_v)) | 1), max(3, int(round(2 * gap_h)) | 1)), np.uint8)
+    for _ in range(iterations):
+        if not todo.any():
+            break
+        dil = cv2.dilate(out, k)
+        fill = todo & (dil > 0)
+        out[fill] = dil[fill]
+        todo &= ~fill
+    return out
+
+
+def _nearest_fill(z: F32, known: BoolA, todo: BoolA) -> F32:
+    """Copy into ``todo`` pixels the value of the nearest ``known`` pixel (L2 distance transform labels)."""
+    if not todo.any() or not known.any():
+        return z
+    _, labels = cv2.distanceTransformWithLabels((~known).astype(np.uint8), cv2.DIST_L2, 5,
+                                                labelType=cv2.DIST_LABEL_PIXEL)
+    kv, ku = np.nonzero(known)  # label k (1-based) = k-th zero pixel of the input in row-major order
+    lut = np.zeros(len(kv) + 1, np.float32)
+    lut[1:] = z[kv, ku]
+    out = z.copy()
+    out[todo] = lut[labels[todo]]
+    return out
+
+
+def complete_depth(points: CameraPoints, K: F64, width: int, height: int, image: NDArray | None,
+                   top_elevation_deg: float, params: DepthParams = DepthParams()) -> DenseDepth:
+    """Dense ray length (H, W) for camera-frame LiDAR points (see the module docstring for the stages).
+
+    Args:
+        points: LiDAR points in the camera frame at the exposure (`camera_points`).
+        K: (3, 3) intrinsics [px]; width, height: image size [px].
+        image: (H, W, 3) uint8 sRGB or float [0, 1] clear image (guides refinement and sky), or None.
+        top_elevation_deg: the LiDAR's highest beam elevation [deg] in its own frame.
+    """
+    H, W = int(height), int(width)
+    if image is not None and np.asarray(image).shape[:2] != (H, W):
+        raise ValueError(f"image shape {np.asarray(image).shape[:2]} != camera size {(H, W)}")
+    norms = pixel_ray_norms(K, W, H)
+    above = above_fov_mask(K, W, H, points.R_lidar_cam, top_elevation_deg + params.sky_margin_deg)
+    sp = sparse_depth(points, K, W, H, params)
+    occupied = sp.z > 0
+    gap_v, gap_h = point_gaps(occupied)
+    z_sparse = drop_occluded(sp.z, gap_v, gap_h, params.occlusion_ratio)
+    kept = z_sparse[sp.pix[:, 0], sp.pix[:, 1]] > 0
+    num = int(kept.sum())
+    if num < 3:
+        raise ValueError(f"complete_depth: only {num} LiDAR points project into the {W}x{H} image (nearer than "
+                         f"{params.min_depth_m} m excluded); check the camera/LiDAR calibration and timestamps")
+    conf = np.zeros((H, W), np.float32)
+    gap = max(gap_v, gap_h)
+    inv_tri = triangulate(sp.uv[kept], points.xyz[sp.index[kept]], points.up_cam, H, W,
+                          params.max_edge_gaps * gap, params)
+    z_fill = morphological_fill(z_sparse, gap_v, gap_h)
+    planar = inv_tri > 0
+    inv = np.where(planar, inv_tri, np.where(z_fill > 0, 1.0 / np.maximum(z_fill, 1e-6), 0.0)).astype(np.float32)
+    conf[planar] = CONF_PLANAR
+    conf[~planar & (z_fill > 0)] = CONF_FILL
+    img = _as_float_rgb(image) if image is not None else None
+    if img is not None:
+        conf_inv = np.where(planar, inv_tri, 0.0).astype(np.float32)
+        conf_inv[z_sparse > 0] = 1.0 / z_sparse[z_sparse > 0]
+        todo = ~planar & (inv > 0)
+        inv = refine_edges(inv, conf_inv, todo, img, int(round(params.refine_radius_gaps * gap)), params)
+    # LiDAR support and sky
+    dist = cv2.distanceTransform((z_sparse <= 0).astype(np.uint8), cv2.DIST_L2, 3)
+    supported = (dist <= params.support_gaps * gap) | planar
+    if img is not None:
+        # no return and sky in the image; below the field of view too (sky behind the end of a street), where the
+        # image's sky region (connected to the top border) reaches down unsupported
+        sky = ~supported & image_sky(img, z_sparse > 0, above_horizon_mask(K, W, H, points.up_cam, 0.0), gap_h)
+    else:
+        sky = above & ~supported
+    sky_conf = CONF_PLANAR if img is not None else CONF_FILL
+    z = np.where(inv > 0, 1.0 / np.maximum(inv, 1e-9), 0.0).astype(np.float32)
+    z[sky] = 0.0
+    have = z > 0
+    if not have.any():
+        sky = np.ones((H, W), bool)
+    else:
+        # holes inside the field of view had no return. Enclosed by one surface (max/min boundary depth within
+        # `hole_spread`): that surface absorbed or passed the pulse (dark paint, glass), so it continues across
+        # (nearest fill). Otherwise a surface beyond the LiDAR's range or in its shadow behind a foreground object:
+        # the farthest depth around (not the nearest) fills it.
+        holes = (z <= 0) & ~sky & ~above
+        enclosed = _enclosed_holes(z, holes, params.hole_spread)
+        z = _nearest_fill(z, z > 0, enclosed)
+        z = _far_fill(z, holes & ~enclosed, gap_v, gap_h)
+        # structures above the field of view: the column's highest known camera z continued upwards (a vertical
+        # surface in an upright camera keeps its z along an image column); the top values are median-filtered
+        # along the row over a few point spacings so a thin pole does not paint a streak up to the image top
+        have = z > 0
+        first = np.argmax(have, axis=0)
+        has_col = have.any(axis=0)
+        rows = np.arange(H)[:, None]
+        z_top = z[first, np.arange(W)]
+        if has_col.sum() >= 3:
+            cols = np.flatnonzero(has_col)
+            size = max(3, int(round(4 * gap_h)) | 1)
+            z_top[cols] = median_filter(z_top[cols], size=size, mode="nearest")
+        up = (rows < first[None, :]) & has_col[None, :] & ~sky
+        z = np.where(up, z_top[None, :], z)
+        rest = (z <= 0) & ~sky
+        z = _nearest_fill(z, z > 0, rest)
+        conf[(conf == 0) & ~sky] = CONF_EXTENDED
+    conf[sky] = sky_conf
+    rng = np.where(sky, np.float32(np.inf), z * norms).astype(np.float32)
+    return DenseDepth(range=rng, confidence=conf, valid=conf >= 0.5, sky=sky, above_fov=above, num_points=num)
+
+
+def dense_depth(
+    lidar: LidarScan | NDArray,
+    camera: CameraView,
+    image: NDArray | None = None,
+    lidar_top_elevation_deg: float | None = None,
+    *,
+    T_ego_lidar: F64 | None = None,
+    params: DepthParams = DepthParams(),
+) -> DenseDepth:
+    """Dense ray-length map of ``camera`` from LiDAR.
+
+    Args:
+        lidar: a `LidarScan` (aggregate sweeps first, e.g. ``load_lidar(nusc, token, nsweeps=3)``), or an (N, 3)
+            array of points in the LiDAR frame **at the camera's timestamp** (then ``T_ego_lidar`` is needed, and
+            the ego's up axis is taken from the camera's extrinsics).
+        camera: the view (K, size, ``T_ego_cam``, ``T_global_ego`` at its own timestamp).
+        image: (H, W, 3) clear image (uint8 sRGB or float [0, 1]); None = ``camera.load_image()``.
+        lidar_top_elevation_deg: the LiDAR's top beam elevation [deg]; None = `estimate_top_elevation_deg` of the scan
+            (required for an array).
+        T_ego_lidar: (4, 4) LiDAR -> ego, for an array input.
+        params: `DepthParams`.
+
+    Returns:
+        `DenseDepth`: ``range`` (H, W) float32 ray length [m], inf = sky, plus confidence/validity/sky masks.
+        About 0.35 s per 1600 x 900 image on 2 shared cores (3 HDL-32E sweeps; printed by the tests).
+
+    Raises:
+        ValueError: fewer than 3 LiDAR points in the image; a point array without ``T_ego_lidar`` or top elevation.
+    """
+    if isinstance(lidar, LidarScan):
+        pts = camera_points(lidar, camera)
+        top = (estimate_top_elevation_deg(lidar) if lidar_top_elevation_deg is None
+               else float(lidar_top_elevation_deg))
+    else:
+        xyz = np.asarray(lidar, dtype=np.float64)
+        if xyz.ndim != 2 or xyz.shape[1] < 3:
+            raise ValueError(f"lidar points: expected (N, 3), got {xyz.shape}")
+        if T_ego_lidar is None or lidar_top_elevation_deg is None:
+            raise ValueError("dense_depth with a point array needs T_ego_lidar and lidar_top_elevation_deg")
+        T_cam_lidar = np.linalg.inv(camera.T_ego_cam) @ np.asarray(T_ego_lidar, dtype=np.float64)
+        pts = CameraPoints(xyz=xyz[:, :3] @ T_cam_lidar[:3, :3].T + T_cam_lidar[:3, 3], dt=np.zeros(len(xyz)),
+                           R_lidar_cam=T_cam_lidar[:3, :3].T.copy(),
+                           up_cam=camera.T_ego_cam[:3, :3].T @ np.array([0.0, 0.0, 1.0]))
+        top = float(lidar_top_elevation_deg)
+    img = camera.load_image() if image is None else image
+    return complete_depth(pts, camera.K, camera.width, camera.height, img, top, params)
+

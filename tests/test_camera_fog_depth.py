@@ -1,0 +1,377 @@
+"""Camera fog (Koschmieder on linear radiance, one airlight per scene, guided-filtered transmission) and dense camera
+depth from LiDAR (against the synthetic world's exact range maps, and on the real STF / KITTI samples).
+
+Pictures for a human check are written to ``/tmp/weatheralign_camera_fog/``.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from weatheralign.camera.depth import (
+    DenseDepth,
+    above_fov_mask,
+    camera_points,
+    complete_depth,
+    dense_depth,
+    estimate_top_elevation_deg,
+    pixel_ray_norms,
+)
+from weatheralign.camera.fog import (
+    NEUTRAL_AIRLIGHT,
+    decode_srgb_u8,
+    encode_srgb_u8,
+    estimate_airlight,
+    fog_image,
+    linear_to_srgb,
+    refine_transmission,
+    srgb_to_linear,
+    transmission,
+)
+from weatheralign.data.kitti import load_kitti_frame
+from weatheralign.data.nuscenes import load_camera, load_lidar, open_nuscenes
+from weatheralign.data.stf import load_stf_frame
+from weatheralign.medium.fog import FogMedium
+
+REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+STF_ID = "2019-09-11_19-13-44_00960"
+PICTURES = Path("/tmp/weatheralign_camera_fog")
+CHANNELS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_FRONT_LEFT")
+
+
+def _need(path: Path) -> Path:
+    if not path.exists():
+        pytest.skip(f"real sample not available: {path}")
+    return path
+
+
+def _save(image: np.ndarray, name: str) -> Path:
+    PICTURES.mkdir(parents=True, exist_ok=True)
+    path = PICTURES / name
+    Image.fromarray(image).save(path)
+    return path
+
+
+def _small_K(width: int = 160, height: int = 90, f: float = 80.0) -> np.ndarray:
+    return np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
+
+
+# ------------------------------------------------------------------------------------------------ colour space
+
+
+def test_srgb_codes_round_trip_and_encoding_is_exactly_rounded():
+    codes = np.arange(256, dtype=np.uint8)
+    assert np.array_equal(encode_srgb_u8(decode_srgb_u8(codes)), codes)
+    x = np.random.default_rng(3).random(200_000).astype(np.float32) ** 3
+    exact = np.rint(255.0 * linear_to_srgb(x.astype(np.float64))).astype(np.uint8)
+    assert np.array_equal(encode_srgb_u8(x), exact)
+    # the decoding is the IEC 61966-2-1 curve: mid-grey code 128 is ~21.6 % linear radiance
+    assert decode_srgb_u8(np.array([128], np.uint8))[0] == pytest.approx(0.2158605, abs=1e-6)
+
+
+# ------------------------------------------------------------------------------------------------ Koschmieder
+
+
+def test_koschmieder_closed_form_uses_ray_length_in_linear_radiance():
+    """Uniform J on a fronto-parallel wall at z = 30 m: each pixel is J t + A (1 - t) in linear light with
+    t = exp(-alpha * ray length); the corner pixel's ray is longer than the centre's, so it carries more fog."""
+    W, H = 160, 90
+    K = _small_K(W, H)
+    ray = pixel_ray_norms(K, W, H).astype(np.float64) * 30.0
+    J_code = np.array([60, 110, 170], np.uint8)
+    image = np.broadcast_to(J_code, (H, W, 3)).copy()
+    A = np.array([0.8, 0.8, 0.8])
+    alpha = FogMedium.with_default_beta(0.03).camera_extinction
+    out = fog_image(image, ray.astype(np.float32), alpha, A, refine=False)
+
+    t = np.exp(-alpha * ray)[..., None]
+    expected_lin = srgb_to_linear(J_code / 255.0) * t + srgb_to_linear(A) * (1.0 - t)
+    expected = np.rint(255.0 * linear_to_srgb(expected_lin)).astype(int)
+    assert np.abs(out.astype(int) - expected).max() <= 1
+    # a naive sRGB-space blend is clearly different (the law is applied to radiance)
+    naive = np.rint(255.0 * ((J_code / 255.0) * t + A * (1.0 - t))).astype(int)
+    assert np.abs(naive - expected).max() >= 5
+
+    centre, corner = out[H // 2, W // 2].astype(int), out[0, 0].astype(int)
+    assert ray[0, 0] > 1.2 * ray[H // 2, W // 2]
+    A_code = np.rint(255 * A).astype(int)
+    assert np.abs(corner - A_code).sum() < np.abs(centre - A_code).sum() - 5
+    # z-depth would give the same fog everywhere: the result is not uniform
+    assert len({tuple(p) for p in out.reshape(-1, 3)}) > 5
+
+
+def test_alpha_zero_returns_the_input_bitwise():
+    rng = np.random.default_rng(0)
+    image = rng.integers(0, 256, (90, 160, 3), dtype=np.uint8)
+    ranges = rng.uniform(1.0, 300.0, (90, 160)).astype(np.float32)
+    ranges[:20] = np.inf
+    for refine in (False, True):
+        out = fog_image(image, ranges, 0.0, [0.8, 0.8, 0.8], refine=refine)
+        assert out.dtype == np.uint8 and np.array_equal(out, image) and out is not image
+    assert np.array_equal(transmission(ranges, 0.0), np.ones_like(ranges))
+    t = transmission(ranges, 0.02)
+    assert np.all(t[:20] == 0.0) and np.all((t[20:] > 0) & (t[20:] < 1))
+
+
+def test_transmission_rejects_bad_input():
+    with pytest.raises(ValueError, match="alpha"):
+        transmission(np.ones((2, 2)), -0.1)
+    with pytest.raises(ValueError, match="NaN or negative"):
+        transmission(np.array([[1.0, np.nan]]), 0.01)
+    with pytest.raises(ValueError, match="shape"):
+        fog_image(np.zeros((4, 4, 3), np.uint8), np.ones((3, 4)), 0.01, 0.8)
+    with pytest.raises(ValueError, match="airlight"):
+        fog_image(np.zeros((4, 4, 3), np.uint8), np.ones((4, 4)), 0.01, [0.8, 1.2, 0.8])
+
+
+# ------------------------------------------------------------------------------------------------ airlight
+
+
+def _scene(sky_colour: tuple[int, int, int], cameras_with_sky: tuple[int, ...], seed: int = 1):
+    rng = np.random.default_rng(seed)
+    images, ranges = [], []
+    for k in range(6):
+        img = rng.integers(20, 160, (90, 160, 3), dtype=np.uint8)
+        rng_map = rng.uniform(2.0, 80.0, (90, 160)).astype(np.float32)
+        if k in cameras_with_sky:
+            img[:30] = sky_colour
+            rng_map[:30] = np.inf
+        images.append(img)
+        ranges.append(rng_map)
+    return images, ranges
+
+
+def test_one_airlight_per_scene_equals_the_sky_colour():
+    sky = (182, 201, 224)
+    images, ranges = _scene(sky, cameras_with_sky=(0, 1, 3))
+    A = estimate_airlight(images, ranges, neutral=False)
+    assert A.shape == (3,)
+    assert np.allclose(A, np.array(sky) / 255.0, atol=1 / 255)
+    # pooled over all cameras: camera order does not matter
+    order = [3, 5, 0, 2, 4, 1]
+    assert np.array_equal(estimate_airlight([images[i] for i in order], [ranges[i] for i in order], neutral=False), A)
+    # one value for every camera: in dense fog every camera's sky shows the same airlight, no seams
+    fogged = [fog_image(img, rng_map, 0.05, A, refine=False) for img, rng_map in zip(images, ranges)]
+    sky_pixels = np.concatenate([f[:30].reshape(-1, 3) for f, r in zip(fogged, ranges) if np.isinf(r[0, 0])])
+    assert len(np.unique(sky_pixels, axis=0)) == 1
+    assert np.array_equal(sky_pixels[0], np.rint(255 * A).astype(np.uint8))
+    # no sky anywhere: neutral grey
+    images_ns, ranges_ns = _scene(sky, cameras_with_sky=())
+    assert np.allclose(estimate_airlight(images_ns, ranges_ns), NEUTRAL_AIRLIGHT)
+    # neutral=True keeps the luminance, drops the colour
+    grey = estimate_airlight(images, ranges, neutral=True)
+    assert grey[0] == grey[1] == grey[2]
+    lum = float(np.dot([0.2126, 0.7152, 0.0722], srgb_to_linear(A)))
+    assert srgb_to_linear(grey[0]) == pytest.approx(lum, rel=1e-9)
+
+
+def test_airlight_without_ranges_uses_the_dark_channel_of_the_sky():
+    sky = (200, 212, 230)
+    images, _ = _scene(sky, cameras_with_sky=(2,))
+    A = estimate_airlight(images, neutral=False)  # no ranges: dark channel, top 0.1 %, median colour
+    assert np.allclose(A, np.array(sky) / 255.0, atol=2 / 255)
+    dark, _ = _scene(sky, cameras_with_sky=())
+    assert np.allclose(estimate_airlight(dark), NEUTRAL_AIRLIGHT)  # nothing bright enough to be sky
+
+
+# ------------------------------------------------------------------------------------------------ guided filter
+
+
+def test_guided_filter_keeps_edges_and_follows_smooth_transmission():
+    H, W = 120, 200
+    rng = np.random.default_rng(5)
+    guide = np.full((H, W, 3), 0.25, np.float32)
+    guide[:, W // 2:] = 0.8
+    t = np.where(np.arange(W) < W // 2, 0.3, 0.75).astype(np.float32)[None].repeat(H, 0)
+    t_noisy = (t + rng.normal(0, 0.03, t.shape)).astype(np.float32)
+    for subsample in (1, 2):
+        ref = refine_transmission(t_noisy, guide, radius=20, eps=1e-3, subsample=subsample)
+        # the step of the guide stays sharp in t: two pixels either side of the edge keep ~all of the 0.45 jump
+        assert ref[:, W // 2 + 1].mean() - ref[:, W // 2 - 2].mean() > 0.4
+        # the noise is gone on the flat parts and the level kept
+        flat = ref[30:90, 20:70]
+        assert abs(flat.mean() - 0.3) < 0.01 and flat.std() < 0.01
+    # a smooth transmission under a uniform guide is left (almost) as it was
+    ramp = np.linspace(0.2, 0.9, W, dtype=np.float32)[None].repeat(H, 0)
+    out = refine_transmission(ramp, np.full((H, W, 3), 128, np.uint8))
+    assert np.abs(out - ramp)[:, 25:-25].max() < 0.01
+    assert out.min() >= 0.0 and out.max() <= 1.0
+
+
+# ------------------------------------------------------------------------------------------------ synthetic world
+
+
+@pytest.fixture(scope="module")
+def world_frame(tiny_world):
+    nusc = open_nuscenes(tiny_world.dataroot, tiny_world.params.world.version)
+    sample = nusc.sample[0]
+    scan = load_lidar(nusc, sample["data"]["LIDAR_TOP"], nsweeps=3)
+    cams = {ch: load_camera(nusc, sample["data"][ch]) for ch in CHANNELS}
+    return scan, cams
+
+
+def _errors(dd: DenseDepth, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    below = ~dd.above_fov & np.isfinite(gt)
+    rel = np.abs(dd.range[below].astype(np.float64) - gt[below]) / gt[below]
+    rel[~np.isfinite(rel)] = np.inf  # ground truth finite but we said sky: counts as a total miss
+    return rel, below
+
+
+def test_dense_depth_matches_the_exact_range_of_the_synthetic_world(world_frame, capsys):
+    scan, cams = world_frame
+    assert scan.sweep_index is not None and int(scan.sweep_index.max()) == 2  # 3 sweeps aggregated
+    top = estimate_top_elevation_deg(scan)
+    assert top == pytest.approx(10.67, abs=0.1)  # HDL-32E
+    cam = cams["CAM_FRONT"]
+    image = cam.load_image()
+    gt = cam.load_range().astype(np.float64)
+    dense_depth(scan, cam, image, top)  # warm-up (numba)
+    t0 = time.perf_counter()
+    dd = dense_depth(scan, cam, image, top)
+    seconds = time.perf_counter() - t0
+    assert dd.range.shape == (900, 1600) and dd.range.dtype == np.float32
+    assert not np.isnan(dd.range).any() and np.all(dd.range > 0)
+    rel, below = _errors(dd, gt)
+    median, p90 = float(np.median(rel)), float(np.percentile(rel, 90))
+    # sky: above the LiDAR's top elevation, inf in the ground truth -> inf here
+    sky_gt = dd.above_fov & np.isposinf(gt)
+    sky_hit = float(np.isinf(dd.range[sky_gt]).mean()) if sky_gt.any() else float("nan")
+    valid = dd.valid & below
+    rel_valid = np.abs(dd.range[valid] - gt[valid]) / gt[valid]
+    with capsys.disabled():
+        print(f"\n[dense depth CAM_FRONT, 3 sweeps, {dd.num_points} points] median rel err {median:.4f}, "
+              f"p90 {p90:.4f} over {below.sum()} px below the LiDAR top elevation; valid px ({valid.mean():.2f} "
+              f"of image) median {np.median(rel_valid):.4f}, p90 {np.percentile(rel_valid, 90):.4f}; sky above top "
+              f"elevation inf in both: {sky_hit:.3f} of {sky_gt.sum()} px; {seconds:.3f} s per 1600x900 image")
+    assert median < 0.05
+    assert p90 < 0.25
+    assert np.percentile(rel_valid, 90) < 0.05  # pixels flagged valid are trustworthy
+    assert sky_gt.sum() > 1000 and sky_hit > 0.9
+    # the LiDAR never returns from above its top elevation: no finite-range LiDAR support marks sky there
+    pts = camera_points(scan, cam)
+    assert np.array_equal(dd.above_fov, above_fov_mask(cam.K, cam.width, cam.height, pts.R_lidar_cam, top))
+
+
+def test_dense_depth_other_cameras_and_lidar_only(world_frame):
+    scan, cams = world_frame
+    top = estimate_top_elevation_deg(scan)
+    for ch in ("CAM_BACK", "CAM_FRONT_LEFT"):
+        cam = cams[ch]
+        dd = dense_depth(scan, cam, cam.load_image(), top)
+        rel, _ = _errors(dd, cam.load_range().astype(np.float64))
+        assert np.median(rel) < 0.05, ch
+    # without an image, every unsupported pixel above the top elevation is sky, nothing below it is
+    cam = cams["CAM_FRONT"]
+    pts = camera_points(scan, cam)
+    dd = complete_depth(pts, cam.K, cam.width, cam.height, None, top)
+    assert not (dd.sky & ~dd.above_fov).any()
+    gt = cam.load_range()
+    sky_gt = dd.above_fov & np.isposinf(gt)
+    assert np.isinf(dd.range[sky_gt]).mean() > 0.95
+    assert np.median(_errors(dd, gt.astype(np.float64))[0]) < 0.05
+
+
+def test_dense_depth_from_a_point_array_matches_the_scan_path(world_frame):
+    scan, cams = world_frame
+    cam = cams["CAM_FRONT"]
+    image = cam.load_image()
+    top = estimate_top_elevation_deg(scan)
+    a = dense_depth(scan, cam, image, top)
+    # the same points given as an array in the LiDAR frame at the camera's time (static world: exact)
+    T_lidar_cam_time = np.linalg.inv(cam.T_global_ego @ scan.T_ego_lidar) @ scan.T_global_lidar
+    xyz = scan.points[:, :3].astype(np.float64) @ T_lidar_cam_time[:3, :3].T + T_lidar_cam_time[:3, 3]
+    b = dense_depth(xyz, cam, image, top, T_ego_lidar=scan.T_ego_lidar)
+    both = np.isfinite(a.range) & np.isfinite(b.range)
+    assert both.mean() > 0.7 and np.median(np.abs(a.range[both] - b.range[both])) < 1e-3
+    with pytest.raises(ValueError, match="T_ego_lidar"):
+        dense_depth(xyz, cam, image, top)
+
+
+def test_fogged_synthetic_camera_looks_like_fog(world_frame):
+    """Exact ranges of the synthetic world, one airlight from its six cameras, alpha = 0.01 and 0.04."""
+    _, cams = world_frame
+    images = {ch: cams[ch].load_image() for ch in CHANNELS}
+    ranges = {ch: cams[ch].load_range() for ch in CHANNELS}
+    A = estimate_airlight([images[ch] for ch in CHANNELS], [ranges[ch] for ch in CHANNELS])
+    img, rng_map = images["CAM_FRONT"], ranges["CAM_FRONT"]
+    near, far = rng_map < 15.0, np.isfinite(rng_map) & (rng_map > 120.0)
+    A_code = 255.0 * A
+    contrast = {}
+    for alpha in (0.01, 0.04):
+        t0 = time.perf_counter()
+        out = fog_image(img, rng_map, alpha, A, refine=True)
+        seconds = time.perf_counter() - t0
+        _save(out, f"synthetic_CAM_FRONT_alpha{alpha}.png")
+        dist = np.abs(out.astype(np.float64) - A_code).sum(axis=2)
+        contrast[alpha] = (dist[near].mean(), dist[far].mean())
+        assert seconds < 5.0
+    _save(img, "synthetic_CAM_FRONT_clear.png")
+    # far things fade into the airlight, near things stay clear; more so in denser fog
+    clear = np.abs(img.astype(np.float64) - A_code).sum(axis=2)
+    for alpha, (d_near, d_far) in contrast.items():
+        assert d_near > 0.6 * clear[near].mean()
+    assert contrast[0.04][1] < 0.1 * clear[far].mean()
+    assert contrast[0.04][1] < contrast[0.01][1]
+
+
+# ------------------------------------------------------------------------------------------------ real data
+
+
+@pytest.fixture(scope="module")
+def stf_frame():
+    return load_stf_frame(_need(REAL / "stf"), STF_ID)
+
+
+@pytest.fixture(scope="module")
+def kitti_frame():
+    k = _need(REAL / "kitti")
+    return load_kitti_frame(k / "000008.bin", k / "000008.png", k / "calib.json")
+
+
+def _check_real(frame, channel: str, expected_top: float) -> tuple[DenseDepth, np.ndarray]:
+    cam = frame.cameras[channel]
+    image = cam.load_image()
+    top = estimate_top_elevation_deg(frame.lidar)
+    assert top == pytest.approx(expected_top, abs=0.5)
+    dd = dense_depth(frame.lidar, cam, image, top)
+    rng = dd.range
+    assert rng.shape == image.shape[:2] and rng.dtype == np.float32
+    assert not np.isnan(rng).any() and np.all(rng > 0)
+    finite = np.isfinite(rng)
+    assert 0.8 < finite.mean() < 1.0  # some sky, mostly scene
+    assert dd.sky.sum() > 0 and np.array_equal(dd.sky, ~finite)
+    rows = np.nonzero(dd.sky)[0]
+    assert rows.max() < image.shape[0] // 2  # sky only in the upper half
+    assert 5.0 < float(np.median(rng[finite])) < 60.0
+    # at the LiDAR points themselves the dense map agrees with the points
+    pts = camera_points(frame.lidar, cam)
+    z = pts.xyz[:, 2]
+    u = np.rint(cam.K[0, 0] * pts.xyz[:, 0] / z + cam.K[0, 2]).astype(int)
+    v = np.rint(cam.K[1, 1] * pts.xyz[:, 1] / z + cam.K[1, 2]).astype(int)
+    ok = (z > 1.0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    ray = np.linalg.norm(pts.xyz[ok], axis=1)
+    rel = np.abs(rng[v[ok], u[ok]] - ray) / ray
+    assert np.median(rel) < 0.02
+    return dd, image
+
+
+def test_dense_depth_and_fog_on_seeing_through_fog(stf_frame):
+    dd, image = _check_real(stf_frame, "cam_stereo_left", expected_top=2.72)
+    A = estimate_airlight([image], [dd.range])
+    assert np.all((A > 0.6) & (A < 0.95))  # the overcast sky of the sample, near-neutral
+    for alpha in (0.01, 0.04):
+        out = fog_image(image, dd.range, alpha, A)
+        _save(out, f"stf_{STF_ID}_alpha{alpha}.png")
+        assert out.shape == image.shape and not np.array_equal(out, image)
+    _save(image, f"stf_{STF_ID}_clear.png")
+
+
+def test_dense_depth_on_kitti(kitti_frame):
+    dd, image = _check_real(kitti_frame, "image_2", expected_top=2.0)
+    _save(fog_image(image, dd.range, 0.04, estimate_airlight([image], [dd.range], neutral=True)),
+          "kitti_000008_alpha0.04.png")
