@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 
 class ConfigError(ValueError):
@@ -126,6 +126,45 @@ class ParticlesConfig(_Section):
     rain: RainConfig = RainConfig()
 
 
+class SimulateConfig(_Section):
+    """The `simulate` stage: one weather condition (aligned or unaligned) applied to a copy of the clean dataset.
+
+    Fog levels are the literature values (``alpha`` [1/m], ``beta = fog_beta_mor / MOR``) until the calibration stage
+    overrides them through these keys. ``fog_beta_light`` / ``fog_beta_dense`` (None: from ``fog_beta_mor``) set beta
+    directly. Unaligned fog: the cameras' alpha is drawn uniformly in ``[fog_alpha_light, fog_alpha_dense]``, once per
+    scene (seed ``fog_seed``), independently of the LiDAR's level.
+    """
+
+    condition: Literal["fog_light", "fog_dense", "snow", "rain"] = "snow"
+    aligned: bool = True
+    fog_alpha_light: Annotated[float, Field(gt=0.0, le=0.5)] = 0.01
+    fog_alpha_dense: Annotated[float, Field(gt=0.0, le=0.5)] = 0.04
+    fog_beta_mor: Annotated[float, Field(ge=0.0, le=1.0)] = 0.046
+    fog_beta_light: Annotated[float, Field(ge=0.0, le=1.0)] | None = None
+    fog_beta_dense: Annotated[float, Field(ge=0.0, le=1.0)] | None = None
+    fog_seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 7
+    noise_floor: Annotated[float, Field(ge=0.0, le=50.0)] = 0.5
+    rain_appearance: Literal["rain", "rain_opaque_drops"] = "rain"
+    exposure_s: Annotated[float, Field(ge=0.0, le=0.1)] = 0.005
+    near_clip_m: Annotated[float, Field(gt=0.0, le=5.0)] = 0.5
+    refine_transmission: bool = True
+    max_samples: Annotated[int, Field(ge=0)] = 0
+    sweeps: bool = False
+
+    @field_validator("aligned", mode="before")
+    @classmethod
+    def _alignment_word(cls, v: Any) -> Any:
+        """Also accept the DVC matrix words ``aligned`` / ``unaligned``."""
+        return {"aligned": True, "unaligned": False}.get(v, v) if isinstance(v, str) else v
+
+    @model_validator(mode="after")
+    def _check(self) -> "SimulateConfig":
+        if self.fog_alpha_light > self.fog_alpha_dense:
+            raise ValueError(f"fog_alpha_light ({self.fog_alpha_light}) must not exceed fog_alpha_dense "
+                             f"({self.fog_alpha_dense})")
+        return self
+
+
 class Params(_Section):
     """The whole of params.yaml."""
 
@@ -134,6 +173,7 @@ class Params(_Section):
     tracking: TrackingConfig = TrackingConfig()
     world: WorldConfig = WorldConfig()
     particles: ParticlesConfig = ParticlesConfig()
+    simulate: SimulateConfig = SimulateConfig()
 
 
 def apply_override(tree: dict[str, Any], assignment: str) -> None:
