@@ -27,8 +27,6 @@ import argparse
 import json
 import resource
 import statistics
-import subprocess
-import sys
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -37,6 +35,7 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.common import merge_entries, run_worker
 from weatheralign.atomic import write_json
 
 REPO = Path(__file__).resolve().parents[1]
@@ -205,21 +204,8 @@ def _worker(spec: dict) -> dict:
     }
 
 
-def _run_worker(spec: dict) -> dict:
-    proc = subprocess.run([sys.executable, "-m", "benchmarks.bench_camera", "--worker", json.dumps(spec)],
-                          cwd=REPO, capture_output=True, text=True, check=False)
-    if proc.returncode != 0:
-        raise RuntimeError(f"worker failed for {spec['workload']}:\n{proc.stderr[-4000:]}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
-def merge_entries(path: Path, entries: list[dict[str, Any]]) -> Any:
-    """The JSON list at ``path`` with the entries of the same ``workload`` replaced by ``entries``."""
-    data: Any = json.loads(path.read_text()) if path.is_file() else []
-    old = data.get("entries", []) if isinstance(data, dict) else list(data)
-    ours = {e["workload"] for e in entries}
-    merged = [e for e in old if not (isinstance(e, dict) and e.get("workload") in ours)] + entries
-    return {**data, "entries": merged} if isinstance(data, dict) else merged
 
 
 def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
@@ -242,7 +228,7 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     ]
     entries = []
     for spec in specs:
-        m = _run_worker({**spec, "runs": args.runs, "png_dir": args.png_dir})
+        m = run_worker("benchmarks.bench_camera", {**spec, "runs": args.runs, "png_dir": args.png_dir})
         median = statistics.median(m["seconds"])
         ref = spec["reference_seconds"]
         entry = {"workload": spec["workload"], "num_points": m["num_points"], "seconds_median": median,

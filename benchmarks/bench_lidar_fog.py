@@ -10,7 +10,6 @@ time on this 2-core machine (Hahner's per-point Python loop: 0.37 s for 35k poin
 from __future__ import annotations
 
 import argparse
-import json
 import resource
 import statistics
 import time
@@ -20,6 +19,7 @@ from typing import Any, Callable
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from benchmarks.common import merge_entries
 from weatheralign.atomic import write_json
 from weatheralign.data.frame import LidarScan
 from weatheralign.data.rings import HDL32E_ELEVATIONS_DEG
@@ -157,17 +157,6 @@ def bench(workload: str, scan: LidarScan, runs: int, source: str) -> dict[str, A
     }
 
 
-def merge_entries(path: Path, entries: list[dict[str, Any]]) -> Any:
-    """The content of ``path`` with the entries of the same ``workload`` replaced by ``entries`` (fog workloads are
-    named ``fog_*``; snow and rain add theirs). The file is a JSON list of entries; a JSON object holding the list
-    under ``"entries"`` keeps that shape and its other keys."""
-    data: Any = json.loads(path.read_text()) if path.is_file() else []
-    old = data.get("entries", []) if isinstance(data, dict) else list(data)
-    ours = {e["workload"] for e in entries}
-    merged = [e for e in old if not (isinstance(e, dict) and e.get("workload") in ours)] + entries
-    if isinstance(data, dict):
-        return {**data, "entries": merged}
-    return merged
 
 
 def main(argv: list[str] | None = None) -> list[dict[str, Any]]:

@@ -25,8 +25,6 @@ import json
 import os
 import resource
 import statistics
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -34,6 +32,7 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.common import merge_entries, run_worker
 from weatheralign.atomic import write_json
 from weatheralign.data.frame import LidarScan
 
@@ -165,25 +164,11 @@ def _worker(spec: dict) -> dict:
     }
 
 
-def _run_worker(spec: dict) -> dict:
-    proc = subprocess.run([sys.executable, "-m", "benchmarks.bench_lidar_particles", "--worker", json.dumps(spec)],
-                          cwd=REPO, capture_output=True, text=True, check=False)
-    if proc.returncode != 0:
-        raise RuntimeError(f"worker failed for {spec['workload']}:\n{proc.stderr[-4000:]}")
-    return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
 # ------------------------------------------------------------------------------------------------------ main
 
 
-def merge_entries(path: Path, entries: list[dict[str, Any]]) -> Any:
-    """The content of ``path`` with the entries of the same ``workload`` replaced by ``entries``; every other
-    workload's entry (fog's) is kept. A JSON list, or an object holding the list under ``"entries"``."""
-    data: Any = json.loads(path.read_text()) if path.is_file() else []
-    old = data.get("entries", []) if isinstance(data, dict) else list(data)
-    ours = {e["workload"] for e in entries}
-    merged = [e for e in old if not (isinstance(e, dict) and e.get("workload") in ours)] + entries
-    return {**data, "entries": merged} if isinstance(data, dict) else merged
 
 
 def _specs(world_npz: Path, stf_npz: Path | None, runs: int, quick: bool) -> list[dict]:
@@ -260,7 +245,7 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
             specs = [sp for sp in specs if any(k in sp["workload"] for k in keys)]
         for spec in specs:
             load_before = os.getloadavg()[0]
-            m = _run_worker(spec)
+            m = run_worker("benchmarks.bench_lidar_particles", spec)
             median = statistics.median(m["seconds"])
             ref = spec.get("reference_seconds")
             entry = {"workload": spec["workload"], "num_points": m["num_points"], "seconds_median": median,
