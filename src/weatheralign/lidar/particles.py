@@ -263,6 +263,16 @@ def _window(x, sz):  # pragma: no cover
 
 
 @njit(nogil=True, cache=True, inline="always")
+def _wrap_bin(b, n):  # pragma: no cover
+    """Azimuth bin index ``b`` (at most one turn outside ``[0, n)``) wrapped into ``[0, n)``."""
+    if b < 0:
+        return b + n
+    if b >= n:
+        return b - n
+    return b
+
+
+@njit(nogil=True, cache=True, inline="always")
 def _reach_az_bin(n_ra):  # pragma: no cover
     """Azimuth bin width [rad] of a reach map with ``n_ra`` azimuth bins."""
     return 2.0 * math.pi / n_ra
@@ -347,11 +357,7 @@ def _cells_kernel(s_max, cx, cy, cz, e_all, r_max, tanh, reach, d_reach, n_re, n
                                 a_lo, a_hi = 0, n_ra - 1
                         for eb in range(e_lo, e_hi + 1):
                             for ab in range(a_lo, a_hi + 1):
-                                abm = ab
-                                if abm < 0:
-                                    abm += n_ra
-                                elif abm >= n_ra:
-                                    abm -= n_ra
+                                abm = _wrap_bin(ab, n_ra)
                                 if reach[eb, abm] >= need:
                                     ok = True
                                     break
@@ -433,11 +439,7 @@ def _hits_kernel(pos, radius, ids, vel, t_part, edges, thresholds,
                 t_lo = int(math.floor((az_c - ha_c + math.pi) / d_tb))
                 t_hi = int(math.floor((az_c + ha_c + math.pi) / d_tb))
                 for tb in range(t_lo, t_hi + 1):
-                    tbm = tb
-                    if tbm < 0:
-                        tbm += n_tb
-                    elif tbm >= n_tb:
-                        tbm -= n_tb
+                    tbm = _wrap_bin(tb, n_tb)
                     for jj in range(tb_off[tbm], tb_off[tbm + 1]):
                         k = tb_slices[jj]
                         if stamp[k] != i:
