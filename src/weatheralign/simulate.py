@@ -5,8 +5,10 @@ sample:
 
 - LiDAR (keyframe scan): fog with the level's (alpha, beta) (`weatheralign.lidar.simulate_fog`), or the scene's
   particle field ``spec.field()`` (`weatheralign.lidar.simulate_particles`, its default frame = the scan's).
-- Cameras, each at its own timestamp and ego pose: fog by Koschmieder on the exact ray-length map of the synthetic
-  world (`CameraView.load_range`) with one airlight per scene; snow/rain by splatting the field's resolvable
+- Cameras, each at its own timestamp and ego pose: fog by Koschmieder on the camera's ray-length map — exact for
+  the synthetic world (`CameraView.load_range`), dense depth from the LiDAR for real data (`camera_range_map`:
+  `weatheralign.camera.depth.dense_depth` on `DEPTH_SWEEPS` aggregated, ego-compensated sweeps) — with one airlight
+  per scene; snow/rain by splatting the field's resolvable
   particles (`weatheralign.camera.splat`) over the background seen through the unresolved particles' extinction
   (the splat module's contract: transmission ``exp(-τ_u(ℓ))``, same airlight, pre-fogged particle colours), with
   exposure streaks from the ego velocity (finite difference of the scan's ego poses).
@@ -45,6 +47,7 @@ from PIL import Image
 from weatheralign import atomic
 from weatheralign.camera.fog import (decode_srgb_u8, encode_srgb_u8, estimate_airlight, fog_image,
                                      refine_transmission, srgb_to_linear)
+from weatheralign.camera.depth import dense_depth
 from weatheralign.camera.splat import (RAIN, RAIN_OPAQUE_DROPS, SNOW, focal_px, materialize_for_camera,
                                        render_particles, unresolved_extinction_profile)
 from weatheralign.config import SimulateConfig
@@ -55,6 +58,7 @@ from weatheralign.lidar.particles import RAIN_REFLECTIVITY, SNOW_REFLECTIVITY
 from weatheralign.medium.conditions import FieldSpec
 from weatheralign.medium.fog import mor_from_alpha
 from weatheralign.metrics.reprojection import CameraParticles, lidar_particles, reprojection_check
+from weatheralign.provenance import file_stamps, source_digest
 
 CONDITIONS = ("fog_light", "fog_dense", "snow", "rain")
 LABEL_NAMES = ("UNCHANGED", "ATTENUATED", "SCATTERED", "LOST")
@@ -62,6 +66,10 @@ WEATHER_MATERIAL = 255
 """``material`` of a point that is a weather echo (scattered or clutter) in the copied per-point extras."""
 WEATHER_DTYPE = np.dtype([("label", "u1"), ("particle_id", "<i8"), ("source_index", "<i8")])
 PROGRESS_DIR = ".progress"
+SIMULATE_CODE = ("simulate.py", "camera", "lidar", "medium", "metrics", "data", "geometry.py", "provenance.py")
+"""The library code a weather copy depends on (its resume records are tagged with its `source_digest`)."""
+DEPTH_SWEEPS = 3
+"""LiDAR sweeps aggregated for a real camera's dense depth (nuScenes: 3 HDL-32E sweeps cover ~2 % of an image)."""
 
 
 def weather_relpath(filename: str) -> str:
@@ -191,20 +199,29 @@ class CameraWeather:
     drawn: int
 
 
+def camera_range_map(view: CameraView, lidar: LidarScan, image: NDArray | None = None) -> NDArray[np.float32]:
+    """(H, W) float32 ray length [m] of ``view`` (inf = sky): the exact map where the dataset has one (synthetic
+    world), else dense depth from ``lidar`` (aggregate `DEPTH_SWEEPS` sweeps first for nuScenes)."""
+    if view.range_path is not None:
+        return view.load_range()
+    return dense_depth(lidar, view, image).range
+
+
 def simulate_camera(view: CameraView, weather: Weather, cfg: SimulateConfig, airlight: NDArray,
-                    ego_vel: NDArray) -> CameraWeather:
-    """One camera through the weather (see the module docstring). ``airlight``: the scene's sRGB airlight (3,)."""
+                    ego_vel: NDArray, depth_lidar: LidarScan) -> CameraWeather:
+    """One camera through the weather (see the module docstring). ``airlight``: the scene's sRGB airlight (3,);
+    ``depth_lidar``: the LiDAR for a dense ray-length map where the view has no exact one (`camera_range_map`)."""
     spec = weather.field
     if weather.is_fog:
         if weather.camera_alpha <= 0.0:
             return CameraWeather(None, None, 0)
         img = view.load_image()
-        return CameraWeather(fog_image(img, view.load_range(), weather.camera_alpha, airlight,
+        return CameraWeather(fog_image(img, camera_range_map(view, depth_lidar, img), weather.camera_alpha, airlight,
                                        refine=cfg.refine_transmission), None, 0)
     if spec.rate_mm_h <= 0.0:
         return CameraWeather(None, None, 0)
     img = view.load_image()
-    rng = view.load_range()
+    rng = camera_range_map(view, depth_lidar, img)
     fld = spec.field(aligned=weather.aligned)
     look = SNOW if spec.condition == "snow" else (RAIN if cfg.rain_appearance == "rain" else RAIN_OPAQUE_DROPS)
     near = cfg.near_clip_m
@@ -248,12 +265,16 @@ class FrameWeather:
 
 
 def simulate_frame(frame: Frame, weather: Weather, cfg: SimulateConfig, airlight: NDArray,
-                   nthreads: int = 1) -> FrameWeather:
-    """LiDAR and cameras of ``frame`` through ``weather``; for snow/rain also the re-projection errors [px]."""
+                   nthreads: int = 1, depth_lidar: LidarScan | None = None) -> FrameWeather:
+    """LiDAR and cameras of ``frame`` through ``weather``; for snow/rain also the re-projection errors [px].
+
+    ``depth_lidar``: LiDAR for the dense depth of cameras without an exact range map (default: ``frame.lidar``).
+    """
     vel = ego_velocity(frame.lidar)
+    depth_src = frame.lidar if depth_lidar is None else depth_lidar
     with ThreadPoolExecutor(max_workers=max(1, nthreads)) as pool:
         lidar_future = pool.submit(simulate_lidar, frame.lidar, weather, cfg)
-        cams = dict(zip(frame.cameras, pool.map(lambda v: simulate_camera(v, weather, cfg, airlight, vel),
+        cams = dict(zip(frame.cameras, pool.map(lambda v: simulate_camera(v, weather, cfg, airlight, vel, depth_src),
                                                 frame.cameras.values())))
         lidar = lidar_future.result()
     errors, channels = np.zeros(0), []
@@ -267,9 +288,11 @@ def simulate_frame(frame: Frame, weather: Weather, cfg: SimulateConfig, airlight
 
 # ------------------------------------------------------------------------------------------------ the copy
 def config_hash(cfg: SimulateConfig, weather: Weather, source: Path, jpeg_quality: int) -> str:
-    """Hash of everything that changes a sample's weather files."""
+    """Hash of the parameters and the code that change a sample's weather files (the input files are stamped per
+    sample by `simulate_or_resume`)."""
     blob = json.dumps({"cfg": cfg.model_dump(mode="json", exclude={"max_samples"}), "weather": weather.to_dict(),
-                       "source": str(Path(source).resolve()), "jpeg_quality": jpeg_quality}, sort_keys=True)
+                       "source": str(Path(source).resolve()), "jpeg_quality": jpeg_quality,
+                       "code": source_digest(*SIMULATE_CODE)}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
@@ -382,13 +405,17 @@ def simulate_or_resume(nusc, src_root: Path, out_root: Path, sample_token: str, 
     src_root, out_root = Path(src_root), Path(out_root)
     if src_root.resolve() == out_root.resolve():
         raise ValueError(f"the weather copy must not overwrite its input {src_root}")
-    digest = config_hash(cfg, weather, src_root, jpeg_quality)
+    digest = config_hash(cfg, weather, src_root, jpeg_quality) + file_stamps(src_root, _outputs(nusc, sample_token,
+                                                                                                cfg.sweeps))
     done = load_finished(nusc, sample_token, out_root, digest, cfg.sweeps)
     if done is not None:
         return done, False
     t0 = time.time()
     frame = load_frame(nusc, sample_token)
-    fw = simulate_frame(frame, weather, cfg, airlight, nthreads)
+    exact = all(v.range_path is not None for v in frame.cameras.values())
+    depth_lidar = None if exact else load_lidar(nusc, nusc.get("sample", sample_token)["data"]["LIDAR_TOP"],
+                                                DEPTH_SWEEPS)
+    fw = simulate_frame(frame, weather, cfg, airlight, nthreads, depth_lidar)
     write_sample(src_root, out_root, nusc, sample_token, fw, frame, jpeg_quality)
     sweep_counts = {k: 0 for k in (*LABEL_NAMES, "CLUTTER")}
     if cfg.sweeps:  # the same medium through every sweep of the sample (LiDAR only)

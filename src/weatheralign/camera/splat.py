@@ -67,6 +67,11 @@ ALPHA_MAX = 0.99
 ALPHA_MIN = 1.0 / 255.0
 T_MIN = 1e-4
 """A pixel whose transmittance fell below this takes no further particle."""
+CENTROID_Q = 16.0
+"""Mahalanobis² radius (4 σ) of the window over which a particle's rasterised centroid is taken. The centroid is
+alpha-weighted over every pixel of ``q <= max(CENTROID_Q, qmax)`` in front of the scene, including pixels fainter
+than the 1/255 that is composited: a window cut at 1/255 would depend on the opacity, and for a faint streak (opacity
+~0.01) that cut leaves a thin, grid-asymmetric sliver whose centroid is off by up to ~0.8 px."""
 OPACITY_RANGE = (0.01, 0.99)
 """Per-particle base opacities are clipped into this interval (inside (0, 1))."""
 
@@ -431,12 +436,13 @@ _OK, _NEAR, _FAINT, _OFFSCREEN = 0, 1, 2, 3
 @njit(nogil=True, cache=True)
 def _prepare_kernel(pos: NDArray, cov: NDArray, opac0: NDArray, R: NDArray, tr: NDArray, K: NDArray,
                     streak: NDArray, width: int, height: int, near_clip: float, cap_var: float, dilation: float,
-                    u0: NDArray, v0: NDArray, ca: NDArray, cb: NDArray, cc: NDArray, opac: NDArray, qmax: NDArray,
-                    ell: NDArray, rx: NDArray, ry: NDArray, status: NDArray, capped: NDArray,
-                    in_frame: NDArray) -> None:
+                    centroid_q: float, u0: NDArray, v0: NDArray, ca: NDArray, cb: NDArray, cc: NDArray,
+                    opac: NDArray, qmax: NDArray, qwin: NDArray, ell: NDArray, rx: NDArray, ry: NDArray,
+                    status: NDArray, capped: NDArray, in_frame: NDArray) -> None:
     """Per particle: camera-frame position, EWA conic ``(ca, cb, cc)`` of ``Σ'2D⁻¹`` (streak, dilation, cap
-    included), opacity after the streak, the Mahalanobis² bound ``qmax`` of alpha >= 1/255, its half extents and a
-    status (ok / near-clipped / too faint / off screen)."""
+    included), opacity after the streak, the Mahalanobis² bound ``qmax`` of alpha >= 1/255 (off-screen test), the
+    centroid window ``qwin = max(qmax, centroid_q)`` and its half extents (``rx``, ``ry``; ``in_frame``: the whole
+    window inside the image) and a status (ok / near-clipped / too faint / off screen)."""
     fx, sk, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
     sx, sy, sz = streak[0], streak[1], streak[2]
     for i in range(pos.shape[0]):
@@ -507,35 +513,42 @@ def _prepare_kernel(pos: NDArray, cov: NDArray, opac0: NDArray, R: NDArray, tr: 
         cc[i] = a2 / det2
         hx = math.sqrt(q * a2)
         hy = math.sqrt(q * c2)
-        rx[i] = hx
-        ry[i] = hy
         if u + hx < 0.0 or u - hx > width - 1 or v + hy < 0.0 or v - hy > height - 1:
             status[i] = _OFFSCREEN
             continue
         status[i] = _OK
+        qw = max(q, centroid_q)
+        qwin[i] = qw
+        hx = math.sqrt(qw * a2)
+        hy = math.sqrt(qw * c2)
+        rx[i] = hx
+        ry[i] = hy
         in_frame[i] = u - hx >= 0.0 and u + hx <= width - 1 and v - hy >= 0.0 and v + hy <= height - 1
 
 
 @njit(nogil=True, cache=True)
 def _splat_kernel(order: NDArray, u0: NDArray, v0: NDArray, ca: NDArray, cb: NDArray, cc: NDArray, opac: NDArray,
-                  qmax: NDArray, ry: NDArray, ell: NDArray, col: NDArray, rng: NDArray, bg: NDArray, out: NDArray,
-                  acc_t: NDArray, sum_a: NDArray, sum_au: NDArray, sum_av: NDArray, max_a: NDArray,
+                  qwin: NDArray, ry: NDArray, ell: NDArray, col: NDArray, rng: NDArray, bg: NDArray, out: NDArray,
+                  acc_t: NDArray, sum_a: NDArray, sum_w: NDArray, sum_wu: NDArray, sum_wv: NDArray, max_a: NDArray,
                   occluded: NDArray) -> None:
     """Front-to-back compositing of the particles ``order`` (nearest first) over exact per-row ellipse spans.
 
-    Per pixel (x, y) of particle i with ``alpha = min(0.99, o exp(-q/2)) >= 1/255``: skipped (and i marked occluded)
-    where ``ell[i] >= rng[y, x]``; else it enters the footprint statistics and, unless the pixel's transmittance
-    is below `T_MIN`, ``C += T alpha col``, ``T *= 1 - alpha``. ``out`` starts as a copy of the background ``bg``
-    and holds the running composite ``C + T bg`` (updated in place as ``out += T alpha (col - bg)``).
+    Per pixel (x, y) of particle i inside its centroid window ``q <= qwin[i]``, with ``alpha = min(0.99, o
+    exp(-q/2))``: skipped (and i marked occluded) where ``ell[i] >= rng[y, x]``; else it enters the centroid sums
+    (``sum_w``, ``sum_wu``, ``sum_wv``) and, if ``alpha >= 1/255``, the visible-footprint statistics (``sum_a``,
+    ``max_a``) and, unless the pixel's transmittance is below `T_MIN`, the composite ``C += T alpha col``,
+    ``T *= 1 - alpha``. ``out`` starts as a copy of the background ``bg`` and holds the running composite
+    ``C + T bg`` (updated in place as ``out += T alpha (col - bg)``).
     """
     h, w = rng.shape
     for k in range(order.shape[0]):
         i = order[k]
-        u, v, a, b, c, o, q, ln = u0[i], v0[i], ca[i], cb[i], cc[i], opac[i], qmax[i], ell[i]
+        u, v, a, b, c, o, q, ln = u0[i], v0[i], ca[i], cb[i], cc[i], opac[i], qwin[i], ell[i]
         r0, g0, b0 = col[i, 0], col[i, 1], col[i, 2]
         y_lo = max(0, int(math.floor(v - ry[i])) - 1)
         y_hi = min(h - 1, int(math.ceil(v + ry[i])) + 1)
         sa = 0.0
+        sw = 0.0
         su = 0.0
         sv = 0.0
         ma = 0.0
@@ -549,17 +562,19 @@ def _splat_kernel(order: NDArray, u0: NDArray, v0: NDArray, ca: NDArray, cb: NDA
             x_hi = min(w - 1, int(math.ceil(u + (-b * dy + sq) / a)) + 1)
             for x in range(x_lo, x_hi + 1):
                 dx = x - u
-                alpha = o * math.exp(-0.5 * (a * dx * dx + 2.0 * b * dx * dy + c * dy * dy))
-                if alpha < ALPHA_MIN:
+                qp = a * dx * dx + 2.0 * b * dx * dy + c * dy * dy
+                if qp > q:
                     continue
-                if alpha > ALPHA_MAX:
-                    alpha = ALPHA_MAX
                 if ln >= rng[y, x]:
                     occluded[i] = True
                     continue
-                sa += alpha
+                alpha = min(o * math.exp(-0.5 * qp), ALPHA_MAX)
+                sw += alpha
                 su += alpha * x
                 sv += alpha * y
+                if alpha < ALPHA_MIN:
+                    continue
+                sa += alpha
                 if alpha > ma:
                     ma = alpha
                 t = float(acc_t[y, x])
@@ -572,8 +587,9 @@ def _splat_kernel(order: NDArray, u0: NDArray, v0: NDArray, ca: NDArray, cb: NDA
                 out[y, x, 2] += wt * (b0 - bg[y, x, 2])
                 acc_t[y, x] = t * (1.0 - alpha)
         sum_a[i] = sa
-        sum_au[i] = su
-        sum_av[i] = sv
+        sum_w[i] = sw
+        sum_wu[i] = su
+        sum_wv[i] = sv
         max_a[i] = ma
 
 
@@ -584,13 +600,14 @@ class SplatResult:
 
     Attributes:
         image: (H, W, 3) float32 linear RGB, particles composited over the input image.
-        centroids: (N, 2) float64 alpha-weighted centroid (u, v) [px] of the particle's visible footprint (pixels
-            with alpha >= 1/255 in front of the scene, whether or not nearer particles cover them); nan if not drawn.
-        drawn: (N,) bool, the particle has at least one such pixel.
+        centroids: (N, 2) float64 alpha-weighted centroid (u, v) [px] of the particle's footprint: every pixel of
+            its centroid window (``q <= max(CENTROID_Q, qmax)``) in front of the scene, whether or not nearer
+            particles cover it, weighted by ``min(0.99, o exp(-q/2))``; nan if not drawn.
+        drawn: (N,) bool, the particle has at least one composited pixel (alpha >= 1/255 in front of the scene).
         max_alpha: (N,) float32 largest alpha over those pixels (0 if not drawn).
         alpha_sum: (N,) float64 sum of alpha over those pixels [px²] (the particle's visible "energy").
-        unoccluded: (N,) bool, drawn and no pixel of its footprint lies behind the scene depth.
-        in_frame: (N,) bool, its whole footprint (alpha >= 1/255 ellipse) lies inside the image (centroid unclipped).
+        unoccluded: (N,) bool, drawn and no pixel of its centroid window lies behind the scene depth.
+        in_frame: (N,) bool, its whole centroid window lies inside the image (centroid unclipped).
         opacity: (N,) float64 opacity after the streak scaling (nan where near-clipped).
         ray_length: (N,) float64 distance [m] from the camera centre.
         counts: ``input, near_clipped, too_faint, off_screen, capped, occluded_fully, drawn``.
@@ -674,15 +691,15 @@ def render_particles(image_linear: NDArray, range_map: NDArray, K: NDArray, T_ca
     cov, opac0, grey = particle_attributes(ids, dia, appearance)
     R = np.ascontiguousarray(T[:3, :3])
     streak = v_rel * float(exposure_s)  # global frame (the kernel projects with J W)
-    u0, v0, ca, cb, cc, qmax, rx, ry = (np.zeros(n) for _ in range(8))
+    u0, v0, ca, cb, cc, qmax, qwin, rx, ry = (np.zeros(n) for _ in range(9))
     opac = np.full(n, np.nan)
     ell = np.empty(n)
     status = np.empty(n, dtype=np.int8)
     capped = np.zeros(n, dtype=np.bool_)
     in_frame = np.zeros(n, dtype=np.bool_)
     _prepare_kernel(pos, cov, opac0, R, np.ascontiguousarray(T[:3, 3]), K, streak, w, h, float(near_clip),
-                    (float(max_footprint_px) / 3.0) ** 2, DILATION_PX2, u0, v0, ca, cb, cc, opac, qmax, ell, rx, ry,
-                    status, capped, in_frame)
+                    (float(max_footprint_px) / 3.0) ** 2, DILATION_PX2, CENTROID_Q, u0, v0, ca, cb, cc, opac, qmax,
+                    qwin, ell, rx, ry, status, capped, in_frame)
     if unresolved is not None:
         trans = unresolved.transmission(ell, fog_alpha)
     else:
@@ -695,14 +712,14 @@ def render_particles(image_linear: NDArray, range_map: NDArray, K: NDArray, T_ca
     bg = np.ascontiguousarray(img)
     out = bg.copy()
     acc_t = np.ones((h, w), dtype=np.float32)
-    sum_a, sum_au, sum_av, max_a = (np.zeros(n) for _ in range(4))
+    sum_a, sum_w, sum_wu, sum_wv, max_a = (np.zeros(n) for _ in range(5))
     occluded = np.zeros(n, dtype=np.bool_)
-    _splat_kernel(order, u0, v0, ca, cb, cc, opac, qmax, ry, ell, np.ascontiguousarray(col), rng, bg, out, acc_t,
-                  sum_a, sum_au, sum_av, max_a, occluded)
+    _splat_kernel(order, u0, v0, ca, cb, cc, opac, qwin, ry, ell, np.ascontiguousarray(col), rng, bg, out, acc_t,
+                  sum_a, sum_w, sum_wu, sum_wv, max_a, occluded)
 
     drawn = sum_a > 0.0
     with np.errstate(invalid="ignore", divide="ignore"):
-        centroids = np.where(drawn[:, None], np.stack([sum_au, sum_av], axis=1) / sum_a[:, None], np.nan)
+        centroids = np.where(drawn[:, None], np.stack([sum_wu, sum_wv], axis=1) / sum_w[:, None], np.nan)
     counts.update(near_clipped=int(np.sum(status == _NEAR)), too_faint=int(np.sum(status == _FAINT)),
                   off_screen=int(np.sum(status == _OFFSCREEN)), capped=int(np.sum(capped & (status == _OK))),
                   occluded_fully=int(np.sum((status == _OK) & ~drawn & occluded)), drawn=int(drawn.sum()))
@@ -721,12 +738,14 @@ def _naive(image_linear: NDArray, range_map: NDArray, K: NDArray, T_cam_global: 
     """Slow, obviously correct reference of `render_particles` for small images (tests only).
 
     Per particle with plain numpy matrices: ``Σ2D = J W Σ Wᵀ Jᵀ + 0.3 I``, ``Σ'2D`` with the streak, eigenvalues
-    clamped to the cap, ``o' = o min(1, sqrt(det Σ2D / det Σ'2D))``, alpha evaluated at *every* pixel. Per pixel:
+    clamped to the cap, ``o' = o min(1, sqrt(det Σ2D / det Σ'2D))``, alpha evaluated at *every* pixel (centroid weights
+    inside the window ``q <= max(2 ln(255 o'), CENTROID_Q)``). Per pixel:
     the particles with alpha >= 1/255 in front of the scene, sorted by (ray length, id), composited front to back
     in float64 until the transmittance drops below `T_MIN`.
 
     Returns:
-        image (H, W, 3) float64 and the alpha-weighted centroids (N, 2) (nan where nothing is visible).
+        image (H, W, 3) float64 and the alpha-weighted centroids (N, 2) (nan where no pixel with alpha >= 1/255 is
+        visible).
     """
     img = np.asarray(image_linear, dtype=np.float64)
     h, w = img.shape[:2]
@@ -740,6 +759,7 @@ def _naive(image_linear: NDArray, range_map: NDArray, K: NDArray, T_cam_global: 
     air = np.asarray(airlight, dtype=np.float64)
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
     alphas: list[F64] = []
+    weights: list[F64] = []
     keys: list[tuple[float, int]] = []
     colours: list[F64] = []
     lengths: list[float] = []
@@ -762,10 +782,13 @@ def _naive(image_linear: NDArray, range_map: NDArray, K: NDArray, T_cam_global: 
         mean = (K @ p)[:2] / z
         d = np.stack([xx - mean[0], yy - mean[1]], axis=-1)
         q = np.einsum("...i,ij,...j->...", d, np.linalg.inv(S2s), d)
-        alpha = np.minimum(ALPHA_MAX, o * np.exp(-0.5 * q))
-        alpha[alpha < ALPHA_MIN] = 0.0
+        weight = np.minimum(ALPHA_MAX, o * np.exp(-0.5 * q))
+        q_window = max(2.0 * math.log(255.0 * o), CENTROID_Q) if o * 255.0 >= 1.0 else -1.0
+        weight[q > q_window] = 0.0
+        alpha = np.where(weight >= ALPHA_MIN, weight, 0.0)
         t = float(unresolved.transmission(ln, fog_alpha)) if unresolved is not None else math.exp(-fog_alpha * ln)
         alphas.append(alpha)
+        weights.append(weight)
         keys.append((ln, int(ids[i])))
         colours.append(grey[i] * np.asarray(appearance.tint) * t + air * (1.0 - t))
         lengths.append(ln)
@@ -773,15 +796,18 @@ def _naive(image_linear: NDArray, range_map: NDArray, K: NDArray, T_cam_global: 
     out = img.copy()
     cent_num = np.zeros((len(ids), 2))
     cent_den = np.zeros(len(ids))
+    visible = np.zeros(len(ids), dtype=bool)
     rng = np.asarray(range_map, dtype=np.float64)
     for yv in range(h):
         for xv in range(w):
+            for j in range(len(weights)):
+                if weights[j][yv, xv] > 0.0 and lengths[j] < rng[yv, xv]:
+                    cent_num[owners[j]] += weights[j][yv, xv] * np.array([xv, yv])
+                    cent_den[owners[j]] += weights[j][yv, xv]
             hits = [j for j in range(len(alphas))
                     if alphas[j][yv, xv] > 0.0 and lengths[j] < rng[yv, xv]]
             for j in hits:
-                a = alphas[j][yv, xv]
-                cent_num[owners[j]] += a * np.array([xv, yv])
-                cent_den[owners[j]] += a
+                visible[owners[j]] = True
             hits.sort(key=lambda j: keys[j])
             trans, acc = 1.0, np.zeros(3)
             for j in hits:
@@ -792,5 +818,5 @@ def _naive(image_linear: NDArray, range_map: NDArray, K: NDArray, T_cam_global: 
                 trans *= 1.0 - a
             out[yv, xv] = acc + trans * img[yv, xv]
     with np.errstate(invalid="ignore", divide="ignore"):
-        cent = np.where(cent_den[:, None] > 0, cent_num / cent_den[:, None], np.nan)
+        cent = np.where(visible[:, None], cent_num / cent_den[:, None], np.nan)
     return out, cent
