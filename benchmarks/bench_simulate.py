@@ -1,0 +1,138 @@
+"""Whole-stage benchmark: the `simulate` flow on the default world, per condition, on this machine.
+
+Run from the repository root after ``dvc repro particles`` (world + fields; calibrate_fog for the fog conditions):
+``.venv/bin/python -m benchmarks.bench_simulate [--conditions snow-aligned ...]`` (default: all eight).
+
+Each condition runs ``python -m flows.simulate`` as DVC would (Prefect flow, 2 workers, per-sample tasks), writing
+into a scratch folder (``--scratch``, default ``/tmp/weatheralign-bench-simulate``) that links the real world,
+particle fields and fog calibration, so ``data/simulate`` is left alone; the scratch copy is deleted after each
+condition. Reported per condition: wall seconds of the whole command (Python and Prefect start-up included),
+samples per minute, and the stage's own counts and re-projection figures; plus the total over the conditions run
+(target: all eight <= 15 min on 2 cores). The peer figure for LiDAR snow is MultiCorrupt: 12 h for nuScenes on
+32 CPUs. With ``../shared/data/real`` present, the re-projection check is also run on the real STF and KITTI frames
+(dense depth from their scans). Results go to ``reports/benchmarks/simulate.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from benchmarks.common import merge_entries
+from weatheralign.atomic import write_json
+
+REPO = Path(__file__).resolve().parents[1]
+REPORT = REPO / "reports" / "benchmarks" / "simulate.json"
+REAL = REPO.parent / "shared" / "data" / "real"
+ALL = [f"{c}-{a}" for c in ("fog_light", "fog_dense", "snow", "rain") for a in ("aligned", "unaligned")]
+TARGET_ALL_SECONDS = 15 * 60
+MULTICORRUPT = "MultiCorrupt: 12 h of LiDAR snow for nuScenes (34,149 samples) on 32 CPUs"
+
+
+def _scratch(scratch: Path) -> tuple[Path, Path]:
+    """(data, reports) folders in ``scratch`` that link the real world, fields and fog calibration."""
+    data, reports = scratch / "data", scratch / "reports"
+    shutil.rmtree(scratch, ignore_errors=True)
+    data.mkdir(parents=True)
+    (reports / "world").mkdir(parents=True)
+    for name in ("world", "particles", "calibrate_fog"):
+        if (REPO / "data" / name).exists():
+            (data / name).symlink_to(REPO / "data" / name)
+    world = json.loads((REPO / "reports" / "world" / "metrics.json").read_text())
+    world["dataroot"] = str((REPO / world["dataroot"]).resolve())
+    (reports / "world" / "metrics.json").write_text(json.dumps(world))
+    return data, reports
+
+
+def run_condition(name: str, scratch: Path) -> dict[str, Any]:
+    condition, alignment = name.rsplit("-", 1)
+    data, reports = _scratch(scratch)
+    cmd = [sys.executable, "-m", "flows.simulate", "--set", f"simulate.condition={condition}",
+           "--set", f"simulate.aligned={alignment}", "--set", f"paths.data={data}", "--set", f"paths.reports={reports}",
+           "--set", "tracking.enabled=false", "--set", "run.show_progress=false"]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True, env={**os.environ}, check=False)
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        raise RuntimeError(f"simulate {name} failed:\n{proc.stderr[-4000:]}")
+    m = json.loads((reports / "simulate" / name / "metrics.json").read_text())
+    shutil.rmtree(scratch, ignore_errors=True)
+    n = m["num_samples"]
+    return {"workload": f"simulate_{name}_default_world", "num_samples": n, "wall_seconds": wall,
+            "samples_per_minute": 60.0 * n / wall, "stage_seconds_per_sample": m["seconds_per_sample"],
+            "points_scattered": m["points_scattered"], "points_lost": m["points_lost"],
+            "particles_rendered": m["particles_rendered"], "reprojection_mean_px": m["reprojection_mean_px"],
+            "reprojection_max_px": m["reprojection_max_px"], "reprojection_pairs": m["reprojection_pairs"],
+            "cores": os.cpu_count(), "reference": MULTICORRUPT if name.startswith("snow") else None}
+
+
+def real_reprojection() -> list[dict[str, Any]]:
+    """Snow through the real STF and KITTI frames, aligned and unaligned: re-projection figures."""
+    from weatheralign.config import params_from_dict
+    from weatheralign.data.kitti import load_kitti_frame
+    from weatheralign.data.stf import load_stf_frame
+    from weatheralign.medium.conditions import field_spec
+    from weatheralign.simulate import Weather, scene_airlight, simulate_frame
+
+    if not REAL.is_dir():
+        return []
+    params = params_from_dict({})
+    frames = {"stf": lambda: load_stf_frame(REAL / "stf", "2019-09-11_19-13-44_00960"),
+              "kitti": lambda: load_kitti_frame(REAL / "kitti" / "000008.bin", REAL / "kitti" / "000008.png",
+                                                REAL / "kitti" / "calib.json")}
+    out = []
+    for name, load in frames.items():
+        frame = load()
+        spec = field_spec(params.particles, "snow", f"real-{name}", frame.lidar.timestamp)
+        airlight = scene_airlight(list(frame.cameras.values()))
+        for aligned in (True, False):
+            t0 = time.perf_counter()
+            fw = simulate_frame(frame, Weather("snow", aligned, field=spec), params.simulate, airlight, nthreads=2)
+            e = fw.reprojection_px
+            out.append({"workload": f"reprojection_real_{name}_snow_{'aligned' if aligned else 'unaligned'}",
+                        "reprojection_pairs": int(e.size), "reprojection_mean_px": float(e.mean()),
+                        "reprojection_max_px": float(e.max()), "points_scattered": fw.lidar.counts["SCATTERED"],
+                        "particles_rendered": fw.particles_rendered, "seconds": time.perf_counter() - t0,
+                        "depth": "dense depth from the frame's own scan (no exact range map)"})
+    return out
+
+
+def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--conditions", nargs="*", default=ALL, choices=ALL)
+    parser.add_argument("--scratch", type=Path, default=Path("/tmp/weatheralign-bench-simulate"))
+    parser.add_argument("--out", type=Path, default=REPORT)
+    args = parser.parse_args(argv)
+    entries = []
+    for name in args.conditions:
+        e = run_condition(name, args.scratch)
+        entries.append(e)
+        print(f"{name:22s} {e['num_samples']:3d} samples in {e['wall_seconds']:6.1f} s = "
+              f"{e['samples_per_minute']:5.1f} samples/min  reprojection mean/max "
+              f"{e['reprojection_mean_px']} / {e['reprojection_max_px']} px", flush=True)
+    if set(args.conditions) == set(ALL):
+        total = float(np.sum([e["wall_seconds"] for e in entries]))
+        entries.append({"workload": "simulate_all_conditions_default_world", "wall_seconds": total,
+                        "target_seconds": TARGET_ALL_SECONDS, "pass": total <= TARGET_ALL_SECONDS,
+                        "cores": os.cpu_count()})
+        print(f"all eight conditions: {total / 60:.1f} min (target 15 min)")
+    for e in real_reprojection():
+        entries.append(e)
+        print(f"{e['workload']:40s} pairs {e['reprojection_pairs']:5d}  mean {e['reprojection_mean_px']:.4f} px  "
+              f"max {e['reprojection_max_px']:.4f} px")
+    write_json(args.out, merge_entries(args.out, entries), indent=2)
+    print(f"wrote {args.out}")
+    return entries
+
+
+if __name__ == "__main__":
+    main()
