@@ -2,8 +2,9 @@
 
 ``python -m flows.simulate --set simulate.condition=snow --set simulate.aligned=true`` reads the `world` output
 (``reports/world/metrics.json`` names its dataroot) and, for snow/rain, ``<paths.data>/particles/fields.json``;
-writes ``<paths.data>/simulate/<condition>-<aligned|unaligned>/`` (a complete nuScenes dataroot, see
-`weatheralign.simulate`) and ``reports/simulate/<condition>-<aligned|unaligned>/metrics.json`` plus a side-by-side
+for fog with ``simulate.fog_levels: calibrated`` (default), the calibrate_fog stage's tuned levels
+(``<paths.data>/calibrate_fog/fog_levels.json``); writes ``<paths.data>/simulate/<condition>-<aligned|unaligned>/``
+(a complete nuScenes dataroot, see `weatheralign.simulate`) and ``reports/simulate/<condition>-<aligned|unaligned>/metrics.json`` plus a side-by-side
 figure (clean vs weather: LiDAR BEV coloured by label, CAM_FRONT), also logged to an MLflow child run.
 """
 
@@ -21,11 +22,11 @@ from prefect import flow
 from flows.common import gather, parse_stage_args, task_runner, threads_per_task
 from tasks.simulate import simulate_sample_task
 from tasks.tracking import StageTracker
-from weatheralign.config import Params
+from weatheralign.config import Params, SimulateConfig
 from weatheralign.data.errors import DataFormatError
 from weatheralign.data.nuscenes import load_frame, open_nuscenes
-from weatheralign.simulate import (condition_name, finalize_copy, scene_airlight, summarise, weather_for_scene,
-                                   weather_relpath)
+from weatheralign.simulate import (FOG_LEVELS_FILE, condition_name, finalize_copy, fog_level, scene_airlight,
+                                   summarise, weather_for_scene, weather_relpath, with_fog_levels)
 from weatheralign.viz import bev_figure
 
 
@@ -89,10 +90,20 @@ def side_by_side(src_root: Path, out_root: Path, version: str, sample_token: str
     out.save(path)
 
 
+def fog_metrics(cfg: SimulateConfig) -> dict:
+    """For fog: the LiDAR's level (alpha [1/m], beta [1/(m sr)]) and where it came from; nothing otherwise."""
+    if not cfg.condition.startswith("fog_"):
+        return {}
+    alpha, beta = fog_level(cfg, cfg.condition)
+    return {"fog_alpha": alpha, "fog_beta": beta, "fog_levels": cfg.fog_levels}
+
+
 @flow(name="simulate", log_prints=True)
 def simulate_flow(params: Params) -> dict:
     """Write the weather copy of one condition; returns the metrics written to reports/simulate/<name>/."""
     cfg = params.simulate
+    if cfg.condition.startswith("fog_") and cfg.fog_levels == "calibrated":
+        cfg = with_fog_levels(cfg, params.paths.data / FOG_LEVELS_FILE)
     name = condition_name(cfg.condition, cfg.aligned)
     with StageTracker(params, f"simulate/{name}") as tracker:
         tracker.log_params({"simulate": cfg.model_dump(mode="json")})
@@ -121,7 +132,7 @@ def simulate_flow(params: Params) -> dict:
         records = [r for r, _ in outcomes]
         done_now = sum(1 for _, now in outcomes if now)
         metrics = {"dataroot": _rel(out_root), "source": _rel(src_root), "condition": cfg.condition,
-                   "aligned": cfg.aligned, **summarise(records), "samples_simulated_this_run": done_now,
+                   "aligned": cfg.aligned, **fog_metrics(cfg), **summarise(records), "samples_simulated_this_run": done_now,
                    "wall_seconds_per_sample_this_run": round(elapsed / done_now, 3) if done_now else None}
         if records:
             fig_path = tracker.reports / "side_by_side.png"

@@ -60,3 +60,23 @@ def test_missing_and_malformed_files(tmp_path):
 def test_nuscenes_source_needs_dataroot():
     with pytest.raises(ConfigError, match="nuscenes_dataroot"):
         params_from_dict({"world": {"source": "nuscenes"}})
+
+
+def test_reference_section_defaults_and_ranges():
+    p = load_params(REPO / "params.yaml")
+    ref = p.reference
+    assert ref.source == "synthetic" and ref.intensity_max == 255.0 and ref.frames_per_split >= 1
+    assert ref.split_files.clear and ref.alpha_light[1] <= ref.alpha_dense[0]
+    with pytest.raises(ConfigError, match=r"reference.lidar.firings_per_ring = 50 is invalid: .*greater than or equal "
+                                          r"to 90"):
+        params_from_dict({"reference": {"lidar": {"firings_per_ring": 50}}})
+    with pytest.raises(ConfigError, match=r"reference.intensity_max = 100 is invalid"):
+        params_from_dict({"reference": {"intensity_max": 100}})
+    with pytest.raises(ConfigError, match="source 'stf' needs stf_root"):
+        params_from_dict({"reference": {"source": "stf"}})
+    with pytest.raises(ConfigError, match=r"synthetic reference is written on the 0\.\.255 scale"):
+        params_from_dict({"reference": {"intensity_max": 1.0}})
+    with pytest.raises(ConfigError, match=r"alpha_dense = \[0\.07, 0\.03\] must satisfy"):
+        params_from_dict({"reference": {"alpha_dense": [0.07, 0.03]}})
+    stf = params_from_dict({"reference": {"source": "stf", "stf_root": "/x", "intensity_max": 1}})
+    assert stf.reference.intensity_max == 1.0

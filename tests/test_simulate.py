@@ -15,11 +15,12 @@ import numpy as np
 import pytest
 
 from weatheralign.config import params_from_dict
+from weatheralign.data.errors import DataFormatError
 from weatheralign.data.nuscenes import extras_relpath, load_frame, open_nuscenes
 from weatheralign.medium.conditions import field_spec
-from weatheralign.simulate import (Weather, config_hash, finalize_copy, load_finished, scene_airlight, simulate_frame,
-                                   simulate_lidar, simulate_or_resume, summarise, sweep_records, weather_for_scene,
-                                   weather_relpath)
+from weatheralign.simulate import (Weather, config_hash, finalize_copy, fog_level, load_finished, scene_airlight,
+                                   simulate_frame, simulate_lidar, simulate_or_resume, summarise, sweep_records,
+                                   weather_for_scene, weather_relpath, with_fog_levels)
 
 from .conftest import REPO
 
@@ -164,6 +165,9 @@ def test_flow_writes_copy_and_metrics(world, tmp_path):
     params.write_text(json.dumps({"paths": {"data": str(tmp_path / "data"), "reports": str(reports)},
                                   "tracking": {"enabled": False}, "run": {"show_progress": False},
                                   "world": tw.params.world.model_dump(mode="json")}))
+    levels = tmp_path / "data" / "calibrate_fog" / "fog_levels.json"
+    levels.parent.mkdir(parents=True)
+    levels.write_text(json.dumps({"light": {"alpha": 0.012, "beta": 0.0001}, "dense": {"alpha": 0.05, "beta": 0.0007}}))
     run = subprocess.run([sys.executable, "-m", "flows.simulate", "--params", str(params), "--set",
                           "simulate.condition=fog_dense", "--set", "simulate.aligned=unaligned", "--set",
                           "simulate.max_samples=1"], cwd=REPO, capture_output=True, text=True, timeout=600,
@@ -172,6 +176,7 @@ def test_flow_writes_copy_and_metrics(world, tmp_path):
     out = tmp_path / "data" / "simulate" / "fog_dense-unaligned"
     metrics = json.loads((reports / "simulate" / "fog_dense-unaligned" / "metrics.json").read_text())
     assert metrics["samples_simulated_this_run"] == 1 and metrics["condition"] == "fog_dense"
+    assert (metrics["fog_alpha"], metrics["fog_beta"], metrics["fog_levels"]) == (0.05, 0.0007, "calibrated")
     for key in ("dataroot", "points_unchanged", "points_attenuated", "points_scattered", "points_lost",
                 "particles_rendered", "reprojection_mean_px", "reprojection_max_px", "reprojection_pairs",
                 "seconds_per_sample"):
@@ -179,6 +184,28 @@ def test_flow_writes_copy_and_metrics(world, tmp_path):
     assert metrics["points_lost"] + metrics["points_scattered"] > 0 and metrics["reprojection_pairs"] == 0
     assert (reports / "simulate" / "fog_dense-unaligned" / "side_by_side.png").is_file()
     assert len(open_nuscenes(out, tw.params.world.version).sample) == len(nusc.sample)
+
+
+def test_fog_levels_from_the_calibration_file(tmp_path):
+    path = tmp_path / "fog_levels.json"
+    path.write_text(json.dumps({"light": {"alpha": 0.008, "beta": 0.0002}, "dense": {"alpha": 0.03, "beta": 0.001},
+                                "note": "extra keys are ignored"}))
+    tuned = with_fog_levels(CFG, path)
+    assert fog_level(tuned, "fog_light") == (0.008, 0.0002) and fog_level(tuned, "fog_dense") == (0.03, 0.001)
+    assert weather_for_scene(tuned, "scene-0001", None, "fog_dense", True).camera_alpha == 0.03
+    assert tuned.exposure_s == CFG.exposure_s and CFG.fog_alpha_light == 0.01  # the rest unchanged, input intact
+    with pytest.raises(DataFormatError, match="run the calibrate_fog stage"):
+        with_fog_levels(CFG, tmp_path / "absent.json")
+    for bad, match in (({"light": {"alpha": 0.01}, "dense": {"alpha": 0.04, "beta": 0.001}}, "light.beta"),
+                       ({"light": {"alpha": 0.05, "beta": 0.0}, "dense": {"alpha": 0.04, "beta": 0.0}}, "exceeds"),
+                       ({"light": {"alpha": -0.01, "beta": 0.0}, "dense": {"alpha": 0.04, "beta": 0.0}}, "alpha > 0"),
+                       ({"light": {"alpha": "x", "beta": 0.0}, "dense": {"alpha": 0.04, "beta": 0.0}}, "light.alpha")):
+        path.write_text(json.dumps(bad))
+        with pytest.raises(DataFormatError, match=match):
+            with_fog_levels(CFG, path)
+    path.write_text("{not json")
+    with pytest.raises(DataFormatError, match="not valid JSON"):
+        with_fog_levels(CFG, path)
 
 
 def test_sweeps_through_the_same_medium_when_asked(world, tmp_path):

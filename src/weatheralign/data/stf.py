@@ -259,20 +259,31 @@ def find_sensor_file(root: Path, folder: str, sample_id: str, suffix: str, what:
     raise DataFormatError(f"{what}: missing sensor file for sample {sample_id!r}; looked for {nested} and {flat}")
 
 
-def read_stf_points(path: Path, num_rings: int = HDL64_RINGS) -> NDArray[np.float32]:
-    """(N, 5) float32 ``x, y, z`` [m], intensity 0..255, ring (= laser channel, float) from an STF LiDAR ``.bin``.
+def read_stf_points(path: Path, num_rings: int = HDL64_RINGS, intensity_max: float = 255.0) -> NDArray[np.float32]:
+    """(N, 5) float32 ``x, y, z`` [m], intensity, ring (= laser channel, float) from an STF LiDAR ``.bin``.
+
+    Args:
+        path: the ``.bin`` file (float32 x 5 per point).
+        num_rings: number of laser channels (64 for the HDL-64).
+        intensity_max: the declared intensity scale of the file, 255 (Seeing Through Fog) or 1.0 (a 0..1 copy);
+            intensities are returned as stored, on ``0..intensity_max``.
 
     Raises:
         DataFormatError: missing file, size not a multiple of 20 bytes, NaN/inf coordinates, intensity outside
-            0..255, or a channel that is not an integer in ``0..num_rings-1``.
+            ``0..intensity_max`` (e.g. a 0..255 scan declared as 0..1), or a channel that is not an integer in
+            ``0..num_rings-1``.
     """
+    if intensity_max not in (1.0, 255.0):
+        raise DataFormatError(f"{path}: intensity_max = {intensity_max!r}; expected the declared scale 255 or 1.0")
     points = read_float32_records(Path(path), 5, "STF LiDAR scan")
     intensity, channel = points[:, 3], points[:, 4]
-    bad = ~np.isfinite(intensity) | (intensity < 0) | (intensity > 255)
+    bad = ~np.isfinite(intensity) | (intensity < 0) | (intensity > intensity_max)
     if bad.any():
         first = int(np.flatnonzero(bad)[0])
-        raise DataFormatError(f"{path}: {int(bad.sum())} intensities outside 0..255 (first at row {first}: "
-                              f"{float(intensity[first])}); expected STF intensity on 0..255")
+        scale = "0..255" if intensity_max == 255.0 else "0..1"
+        raise DataFormatError(f"{path}: {int(bad.sum())} intensities outside {scale} (first at row {first}: "
+                              f"{float(intensity[first])}); expected intensity on {scale} (declared intensity_max = "
+                              f"{intensity_max:g})")
     bad = ~np.isfinite(channel) | (channel < 0) | (channel > num_rings - 1) | (channel != np.round(channel))
     if bad.any():
         first = int(np.flatnonzero(bad)[0])
@@ -313,6 +324,7 @@ def load_stf_frame(
     lidar_folder: str = "lidar_hdl64_strongest",
     camera_folder: str | None = "cam_stereo_left_lut",
     crop_offset: tuple[int, int] | None = None,
+    intensity_max: float = 255.0,
 ) -> Frame:
     """Load one Seeing Through Fog frame as a `Frame` (``source="stf"``; ego := LiDAR frame).
 
@@ -323,9 +335,10 @@ def load_stf_frame(
         camera_folder: a rectified stereo-left image folder (``cam_stereo_left_lut``...), or None for no camera.
         crop_offset: (x0, y0) [px] of the stored image inside the calibrated 1920 x 1024 image; None = derive it
             from the image size (full size -> (0, 0); a size in `STF_KNOWN_CROP_OFFSETS`; otherwise an error).
+        intensity_max: declared intensity scale of the scans (255 for the dataset as shipped, 1.0 for a 0..1 copy).
 
     Returns:
-        Frame with ``LidarScan(points (N, 5) float32 [x, y, z, intensity 0..255, ring = channel], intensity_max=255,
+        Frame with ``LidarScan(points (N, 5) float32 [x, y, z, intensity 0..intensity_max, ring = channel],
         num_rings=64, identity poses, timestamp 0)`` and a `CameraView` ``cam_stereo_left`` (K for the stored
         image, its actual width/height, ``T_ego_cam`` = camera -> LiDAR).
 
@@ -338,11 +351,11 @@ def load_stf_frame(
                               f"(lidar_hdl64_strongest or lidar_hdl64_last)")
     bin_path = find_sensor_file(root, lidar_folder, sample_id, ".bin", "STF LiDAR scan")
     lidar = LidarScan(
-        points=read_stf_points(bin_path, HDL64_RINGS),
+        points=read_stf_points(bin_path, HDL64_RINGS, intensity_max),
         timestamp=0.0,
         T_ego_lidar=np.eye(4),
         T_global_ego=np.eye(4),
-        intensity_max=255.0,
+        intensity_max=float(intensity_max),
         num_rings=HDL64_RINGS,
         path=bin_path,
     )

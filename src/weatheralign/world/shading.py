@@ -213,24 +213,49 @@ def _encode(linear: float, noise: float, table: NDArray) -> int:
     return int(min(max(np.rint((1.055 * root - 0.055 + noise) * 255.0), 0.0), 255.0))
 
 
+@njit(nogil=True, cache=True, inline="always")
+def _ray_radiance(look: Look, origin: Vec3, dirs: NDArray, ranges: NDArray, normals: NDArray, material: NDArray,
+                  albedo: NDArray, reflectivity: NDArray, lit: NDArray, specular: NDArray, i: int) -> Vec3:
+    """Linear RGB of camera ray ``i``: the sky where its range is inf, else the textured and shaded surface."""
+    d = (float(dirs[i, 0]), float(dirs[i, 1]), float(dirs[i, 2]))
+    t = ranges[i]
+    if not np.isfinite(t):
+        return _sky_point(look, d)
+    p = (origin[0] + d[0] * t, origin[1] + d[1] * t, origin[2] + d[2] * t)
+    normal = (float(normals[i, 0]), float(normals[i, 1]), float(normals[i, 2]))
+    m, alb, _ = _texture_point(look, p, normal, int(material[i]),
+                               (float(albedo[i, 0]), float(albedo[i, 1]), float(albedo[i, 2])),
+                               float(reflectivity[i]))
+    return _shade_point(look, m, alb, normal, d, lit[i], t, float(specular[m]))
+
+
 @njit(nogil=True, cache=True)
 def _camera_kernel(look: Look, origin: Vec3, dirs: NDArray, ranges: NDArray, normals: NDArray, material: NDArray,
                    albedo: NDArray, reflectivity: NDArray, lit: NDArray, specular: NDArray, noise: NDArray,
                    noise_std: float, table: NDArray, out: NDArray) -> None:
     for i in range(len(dirs)):
-        d = (float(dirs[i, 0]), float(dirs[i, 1]), float(dirs[i, 2]))
-        t = ranges[i]
-        if not np.isfinite(t):
-            colour = _sky_point(look, d)
-        else:
-            p = (origin[0] + d[0] * t, origin[1] + d[1] * t, origin[2] + d[2] * t)
-            normal = (float(normals[i, 0]), float(normals[i, 1]), float(normals[i, 2]))
-            m, alb, _ = _texture_point(look, p, normal, int(material[i]),
-                                       (float(albedo[i, 0]), float(albedo[i, 1]), float(albedo[i, 2])),
-                                       float(reflectivity[i]))
-            colour = _shade_point(look, m, alb, normal, d, lit[i], t, float(specular[m]))
+        colour = _ray_radiance(look, origin, dirs, ranges, normals, material, albedo, reflectivity, lit, specular, i)
         for c in range(3):
             out[i, c] = _encode(colour[c], noise_std * noise[i, c] if len(noise) else 0.0, table)
+
+
+@njit(nogil=True, cache=True)
+def _radiance_kernel(look: Look, origin: Vec3, dirs: NDArray, ranges: NDArray, normals: NDArray, material: NDArray,
+                     albedo: NDArray, reflectivity: NDArray, lit: NDArray, specular: NDArray, out: NDArray) -> None:
+    for i in range(len(dirs)):
+        colour = _ray_radiance(look, origin, dirs, ranges, normals, material, albedo, reflectivity, lit, specular, i)
+        for c in range(3):
+            out[i, c] = colour[c]
+
+
+def camera_radiance(layout: SceneLayout, origin: NDArray, dirs: NDArray, ranges: NDArray, normals: NDArray,
+                    material: NDArray, albedo: NDArray, reflectivity: NDArray, lit: NDArray) -> NDArray[np.float64]:
+    """(N, 3) linear RGB of camera rays (arguments as `camera_pixels`): what `camera_pixels` encodes, before the
+    sRGB encoding and the sensor noise."""
+    out = np.empty((len(dirs), 3))
+    _radiance_kernel(scene_look(layout), _vec3(origin), dirs, ranges, normals, material, albedo, reflectivity, lit,
+                     SPECULAR, out)
+    return out
 
 
 def camera_pixels(layout: SceneLayout, origin: NDArray, dirs: NDArray, ranges: NDArray, normals: NDArray,

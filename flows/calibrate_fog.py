@@ -1,0 +1,158 @@
+"""`calibrate_fog` stage: ReDAM — the fog levels of the simulation tuned to a reference with real fog.
+
+``python -m flows.calibrate_fog`` opens the reference of the `reference` stage (``params.reference``: the embedded
+synthetic reference, or a Seeing Through Fog root) and, per fog level (``light``, ``dense``):
+
+1. LiDAR: fogs the reference's clear scans with every cell of the paper's (alpha, beta) grid (one mapped Prefect
+   task per cell, `weatheralign.calibrate.lidar.evaluate_cell`), refines around the best cell and bootstraps D_KS
+   over frames (`finish_level`); the detector floor is the simulate stage's (``simulate.noise_floor``);
+2. camera: fogs the reference's clear images at the tuned alpha with the simulation's camera fog (`fog_image`, one
+   neutral airlight per frame as in `simulate`) and compares the visibility estimated from image + depth with that
+   of the reference's foggy images (`camera_visibility_ratio`), plus KID on features of a pretrained CNN
+   (EfficientNet-Lite0 from the package registry, or ``calibrate_fog.inception_path``: a local TorchScript
+   Inception).
+
+Writes ``<paths.data>/calibrate_fog/fog_levels.json`` (``{level: {alpha, beta, mor, ks}}``: what the fog conditions
+of `simulate` read), ``reports/calibrate_fog/metrics.json`` (per level ``alpha, beta, mor, ks, ks_ci_low,
+ks_ci_high, camera_visibility_ratio, kid, kid_std, kid_backbone``, ...) and figures (ECDF with the reference's
+bootstrap band, KS over the grid, reference vs simulated images), also logged to MLflow. The synthetic reference's
+sealed truth is never read here.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from prefect import flow  # noqa: E402
+
+from flows.common import gather, parse_stage_args, task_runner  # noqa: E402
+from tasks.calibrate import evaluate_cell_task, reference_camera_task  # noqa: E402
+from tasks.tracking import StageTracker  # noqa: E402
+from weatheralign import atomic  # noqa: E402
+from weatheralign.calibrate.camera import camera_visibility_ratio  # noqa: E402
+from weatheralign.calibrate.figures import ks_heatmap, level_ecdf_figure  # noqa: E402
+from weatheralign.calibrate.histograms import IntensityHistograms  # noqa: E402
+from weatheralign.calibrate.kid import feature_extractor, kid_from_features  # noqa: E402
+from weatheralign.calibrate.lidar import (GridResult, LevelCalibration, fog_frames, finish_level,  # noqa: E402
+                                          grid_cells)
+from weatheralign.camera.fog import estimate_airlight, fog_image  # noqa: E402
+from weatheralign.config import Params  # noqa: E402
+from weatheralign.reference import ReferenceDataset, configured_reference  # noqa: E402
+from weatheralign.simulate import FOG_LEVELS_FILE  # noqa: E402
+
+FOG_LEVELS = ("light", "dense")
+
+
+def lidar_level(ds: ReferenceDataset, frames, level: str, params: Params) -> tuple[LevelCalibration,
+                                                                                 IntensityHistograms]:
+    """Grid (mapped tasks), refinement and bootstrap of one fog level; returns it and the level's histograms."""
+    cfg = params.calibrate_fog
+    reference = IntensityHistograms.from_scans((ds.load_scan(i) for i in ds.ids(level)), ds.intensity_max)
+    floor = params.simulate.noise_floor
+    futures = [evaluate_cell_task.submit(frames, reference, a, f, floor) for a, f in grid_cells()]
+    grid = GridResult.from_cells(gather(futures, f"calibrate_fog {level}: (alpha, beta) grid",
+                                        params.run.show_progress))
+    result = finish_level(frames, reference, grid, noise_floor=floor, fine_points=cfg.fine_points,
+                          max_nelder_mead=cfg.max_nelder_mead, num_bootstrap=cfg.num_bootstrap,
+                          confidence=cfg.confidence, seed=cfg.seed)
+    return result, reference
+
+
+def camera_sets(ds: ReferenceDataset, params: Params) -> dict[str, list[tuple[np.ndarray, np.ndarray]]]:
+    """Per level (clear, light, dense): (image, ray length) of up to ``calibrate_fog.camera_frames`` frames."""
+    limit = params.calibrate_fog.camera_frames
+    out: dict[str, list] = {}
+    for level in ("clear", *FOG_LEVELS):
+        ids = ds.ids(level)[:limit] if limit else ds.ids(level)
+        futures = [reference_camera_task.submit(ds, i) for i in ids]
+        out[level] = gather(futures, f"calibrate_fog: {level} camera frames", params.run.show_progress)
+    return out
+
+
+def simulated_fog_images(clear: list[tuple[np.ndarray, np.ndarray]], alpha: float) -> list[np.ndarray]:
+    """The clear reference images fogged at ``alpha`` by the simulation's camera fog (one airlight per frame)."""
+    return [fog_image(img, rng, alpha, estimate_airlight([img], [rng]), refine=True) for img, rng in clear]
+
+
+def camera_figure(ref: list[np.ndarray], sim: list[np.ndarray], level: str, alpha: float, path: Path) -> None:
+    """Two reference foggy images above two clear reference images fogged by the simulation at the tuned alpha."""
+    n = min(2, len(ref), len(sim))
+    fig, axes = plt.subplots(2, n, figsize=(6.5 * n, 7), squeeze=False)
+    for k in range(n):
+        axes[0, k].imshow(ref[k])
+        axes[0, k].set_title(f"reference {level} fog #{k}", fontsize=9)
+        axes[1, k].imshow(sim[k])
+        axes[1, k].set_title(f"simulated at tuned alpha = {alpha:.4f} /m (clear frame #{k})", fontsize=9)
+    for ax in axes.ravel():
+        ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+@flow(name="calibrate_fog", log_prints=True)
+def calibrate_fog_flow(params: Params) -> dict:
+    """ReDAM per fog level; returns the metrics written to reports/calibrate_fog/metrics.json."""
+    cfg = params.calibrate_fog
+    t0 = time.time()
+    with StageTracker(params, "calibrate_fog") as tracker:
+        tracker.log_params({"calibrate_fog": cfg.model_dump(mode="json"), "reference.source": params.reference.source,
+                            "simulate.noise_floor": params.simulate.noise_floor})
+        ds = configured_reference(params)
+        frames = fog_frames(ds.load_scan(i) for i in ds.ids("clear"))
+        extractor = feature_extractor(cfg.inception_path, device=cfg.device)
+        cams = camera_sets(ds, params)
+        clear_features = None
+        metrics: dict = {"reference_root": str(ds.root), "reference_source": params.reference.source,
+                         "kid_backbone": extractor.backbone}
+        levels: dict = {}
+        for level in FOG_LEVELS:
+            t_level = time.time()
+            result, reference = lidar_level(ds, frames, level, params)
+            ref_images = [img for img, _ in cams[level]]
+            sim_images = simulated_fog_images(cams["clear"], result.alpha)
+            visibility = camera_visibility_ratio(sim_images, [r for _, r in cams["clear"]], ref_images,
+                                                 [r for _, r in cams[level]])
+            kid = kid_from_features(extractor(sim_images), extractor(ref_images), backbone=extractor.backbone,
+                                    rng=cfg.seed)
+            if clear_features is None:
+                clear_features = extractor([img for img, _ in cams["clear"]])
+            kid_clear = kid_from_features(clear_features, extractor(ref_images), backbone=extractor.backbone,
+                                          rng=cfg.seed)
+            metrics[level] = {**result.metrics(), "beta_identified": result.beta_identified,
+                              **visibility.metrics(), "kid": kid.mean, "kid_std": kid.std,
+                              "kid_backbone": kid.backbone, "kid_clear_vs_reference": kid_clear.mean,
+                              "seconds": round(time.time() - t_level, 2)}
+            levels[level] = {"alpha": result.alpha, "beta": result.beta, "mor": result.mor, "ks": result.ks}
+            for name, fig in ((f"ecdf_{level}.png", level_ecdf_figure(result, reference, level=level)),
+                              (f"ks_grid_{level}.png", ks_heatmap(result.grid, level=level,
+                                                                   refined=(result.alpha, result.beta_factor)))):
+                fig.savefig(tracker.reports / name, dpi=110)
+                plt.close(fig)
+                tracker.log_artifact(tracker.reports / name, "figures")
+            camera_figure(ref_images, sim_images, level, result.alpha, tracker.reports / f"camera_{level}.png")
+            tracker.log_artifact(tracker.reports / f"camera_{level}.png", "figures")
+            print(f"calibrate_fog {level}: alpha* = {result.alpha:.5f} /m (MOR {result.mor:.0f} m), beta* = "
+                  f"{result.beta:.3g}, D_KS = {result.ks:.4f} [{result.ks_ci_low:.4f}, {result.ks_ci_high:.4f}], "
+                  f"camera visibility ratio {visibility.ratio:.3f}, KID ({kid.backbone}) {kid.mean:.4f}")
+        atomic.write_json(params.paths.data / FOG_LEVELS_FILE,
+                          {**levels, "reference_root": str(ds.root), "reference_source": params.reference.source},
+                          indent=2)
+        metrics["seconds"] = round(time.time() - t0, 2)
+        tracker.finish(metrics)
+    return metrics
+
+
+def main(argv: list[str] | None = None) -> dict:
+    params = parse_stage_args("calibrate_fog", argv)
+    return calibrate_fog_flow.with_options(task_runner=task_runner(params))(params)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,489 @@
+"""The embedded synthetic fog reference: a Seeing Through Fog-like dataset with hidden fog levels.
+
+What it is. ``frames_per_split`` frames in each of three levels (clear, light fog, dense fog), written in the STF
+layout (`weatheralign.reference.layout`) under ``<paths.data>/reference/synthetic``, from procedural streets of the
+synthetic world (`weatheralign.world.layout`) whose seeds derive from ``reference.seed`` with a tag of their own (so
+they are never the simulation world's scenes, whatever the seeds). Frame ``k`` of every level comes from scene ``k``,
+each level at its own time along the drive (3 s apart, slot order drawn per scene): the levels never share a frame,
+and their scene statistics match, as a reference recorded on the same roads in different weather.
+
+Hidden truth. The light and dense levels' extinction α is drawn uniformly in ``alpha_light`` / ``alpha_dense`` and
+the backscatter as ``β = 0.023 f / MOR`` (``f ~ U[beta_factor]``, ``MOR = ln 20 / α``), redrawn while α lies within
+3 % of a point of the calibration grid `ALPHA_GRID` or ``f`` within 0.02 of the paper's β factors (so the truth is
+never on a grid point). It is written only to ``<paths.data>/reference/sealed_truth.json`` as
+``{level: {alpha, beta}}`` (outside the reference root; per-frame airlights go to ``sealed_details.json``): the
+calibration never reads them, the tests and audits do.
+
+Sensors (one instant per frame: every beam and pixel at the frame time; STF has no per-point times):
+- LiDAR: an HDL-64-like sensor (64 lasers at the `weatheralign.data.rings` HDL-64E elevations, ``firings_per_ring``
+  azimuths, roof mount 1.95 m above the ground), ray-cast against the scene; a hit's clear intensity is the world's
+  ``255 ρ |cos θ| min(1, 10 m / R)`` on the textured reflectivity. Fog by the exact pulse integral of every beam
+  (`weatheralign.reference.lidar_exact`: bi-static overlap, summed soft + hard echoes, strongest peak, no-return
+  beams included), then the detector (noise floor, intensity noise, integer quantisation, range noise). The clear
+  level goes through the same chain with α = β = 0. Points: float32 N x 5 ``x, y, z, intensity 0..255, channel``
+  in the LiDAR frame, channel = 63 - ring (STF: channel 0 is the lowest laser).
+- Camera: a stereo-left-like pinhole with Seeing Through Fog's rectified intrinsics (f = 2355.7 px on 1920 x 1024)
+  scaled by ``image_scale``, 0.7 m ahead of and 0.7 m below the LiDAR, looking forward; the world's shading in linear
+  light, fog by per-pixel integration (`weatheralign.reference.camera_exact`) with the level's true α and an sRGB
+  grey airlight drawn per frame in ``[airlight_min, airlight_max]``, sensor noise, PNG. Its exact ray length per pixel
+  goes to ``range_cam_stereo_left/<id>.npy`` (float32, inf = sky). Calibration files in STF's form.
+
+Files are written atomically; a finished frame leaves ``<paths.data>/reference/.progress/<id>.json`` tagged with a
+hash of the parameters and of the code, so a rerun skips it (`render_or_resume`); `finalize` writes the split files,
+calibration, manifest and sealed truth and removes files of frames no longer in the reference.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+from PIL import Image
+from scipy.spatial.transform import Rotation
+
+from weatheralign import atomic
+from weatheralign.camera.fog import srgb_to_linear
+from weatheralign.config import ReferenceConfig
+from weatheralign.data.rings import HDL64E_ELEVATIONS_DEG
+from weatheralign.data.stf import CAMERA_CALIB_FILE, CAMERA_TF_FRAME, LIDAR_TF_FRAME, TF_TREE_FILE
+from weatheralign.geometry import camera_rotation_from_yaw, make_transform
+from weatheralign.medium.fog import LN20, PAPER_BETA_FACTORS
+from weatheralign.provenance import source_digest
+from weatheralign.reference.camera_exact import encode_with_noise, fog_radiance
+from weatheralign.reference.layout import CAMERA_FOLDER, LEVELS, LIDAR_FOLDER, RANGE_FOLDER, split_files_of
+from weatheralign.reference.lidar_exact import (FOG, TARGET, Detector, ExactSensor, exact_returns, fog_tables,
+                                                read_out, system_constants)
+from weatheralign.world.layout import generate_layout
+from weatheralign.world.raycast import WorldRaycaster
+from weatheralign.world.render import pixel_directions, sun_lit
+from weatheralign.world.rig import Camera
+from weatheralign.world.shading import camera_radiance, lidar_intensity, texture
+
+F64 = NDArray[np.float64]
+
+SYNTHETIC_DIR = "synthetic"
+PROGRESS_DIR = ".progress"
+SEALED_TRUTH_FILE = "sealed_truth.json"
+SEALED_DETAILS_FILE = "sealed_details.json"
+MANIFEST_FILE = "reference.json"
+
+ALPHA_GRID: tuple[float, ...] = (0.001, 0.005, 0.01, 0.02, 0.04, 0.06, 0.08, 0.1)
+"""The calibration's α grid [1/m]: the hidden truth keeps at least 3 % away from each point."""
+
+STF_FULL_SIZE = (1920, 1024)
+STF_FOCAL_PX = 2355.722801
+STF_PRINCIPAL_PX = (988.138054, 508.051838)
+T_EGO_LIDAR = make_transform(np.eye(3), np.array([1.42, 0.0, 1.95]))
+"""HDL-64 roof mount in the ego frame (x forward, y left, z up, origin on the ground)."""
+T_EGO_CAMERA = make_transform(camera_rotation_from_yaw(0.0), np.array([2.12, 0.087, 1.25]))
+"""Stereo-left camera (OpenCV optical axes) in the ego frame, looking forward."""
+
+EGO_SPEED_RANGE = (5.0, 12.0)
+FIRST_FRAME_S = 0.5
+FRAME_GAP_S = 3.0
+SCENE_DURATION_S = FIRST_FRAME_S + 2 * FRAME_GAP_S + 1.0
+FRAME_RATE_HZ = 10.0
+
+_SCENE_TAG, _TRUTH_TAG, _NOISE_TAG = 0x5EF5CE, 0x5EA1ED, 0x5E4503
+_CODE = ("reference", "world", "data", "geometry.py", "atomic.py", "camera/fog.py", "medium/fog.py")
+"""Library code the rendered files depend on (resume records carry its `source_digest`)."""
+
+
+def reference_dir(data: Path) -> Path:
+    """``<paths.data>/reference``: the stage's output folder."""
+    return Path(data) / "reference"
+
+
+def synthetic_root(data: Path) -> Path:
+    """The synthetic reference root (STF layout) under ``<paths.data>``."""
+    return reference_dir(data) / SYNTHETIC_DIR
+
+
+def sealed_truth_path(data: Path) -> Path:
+    """``<paths.data>/reference/sealed_truth.json`` (never read by the calibration)."""
+    return reference_dir(data) / SEALED_TRUTH_FILE
+
+
+# ------------------------------------------------------------------------------------------------ truth and frames
+
+
+@dataclass(frozen=True)
+class FogLevel:
+    """A fog level: extinction ``alpha`` [1/m], backscatter ``beta`` [1/(m sr)] (both 0: clear)."""
+
+    alpha: float
+    beta: float
+
+    @property
+    def mor(self) -> float:
+        """Visibility ``ln 20 / alpha`` [m] (inf for clear air)."""
+        return math.inf if self.alpha == 0.0 else LN20 / self.alpha
+
+
+CLEAR = FogLevel(0.0, 0.0)
+
+
+def _away_from(value: float, grid: tuple[float, ...], relative: float | None, absolute: float | None) -> bool:
+    for g in grid:
+        if relative is not None and abs(value / g - 1.0) < relative:
+            return False
+        if absolute is not None and abs(value - g) < absolute:
+            return False
+    return True
+
+
+def draw_truth(cfg: ReferenceConfig) -> dict[str, FogLevel]:
+    """The hidden fog levels ``{"clear": CLEAR, "light": ..., "dense": ...}`` drawn from ``cfg.seed`` (see the
+    module docstring); deterministic."""
+    rng = np.random.default_rng([cfg.seed, _TRUTH_TAG])
+    out = {"clear": CLEAR}
+    for level, (lo, hi) in (("light", cfg.alpha_light), ("dense", cfg.alpha_dense)):
+        for _ in range(1000):
+            alpha = float(rng.uniform(lo, hi))
+            if _away_from(alpha, ALPHA_GRID, 0.03, None):
+                break
+        for _ in range(1000):
+            factor = float(rng.uniform(*cfg.beta_factor))
+            if _away_from(factor, PAPER_BETA_FACTORS, None, 0.02):
+                break
+        out[level] = FogLevel(alpha, 0.023 * factor * alpha / LN20)
+    return out
+
+
+@dataclass(frozen=True)
+class FrameSpec:
+    """One reference frame (small, picklable): level, index ``k`` (= scene), time slot along the drive, the scene's
+    seed / placement / start time [s], and the frame's airlight (sRGB grey, used in fog)."""
+
+    level: str
+    index: int
+    slot: int
+    recording: str
+    scene_seed: int
+    origin: tuple[float, float]
+    heading: float
+    t_start: float
+    airlight: float
+
+    @property
+    def time(self) -> float:
+        """Capture time [s]."""
+        return self.t_start + FIRST_FRAME_S + self.slot * FRAME_GAP_S
+
+    @property
+    def frame_number(self) -> int:
+        """STF frame index: the capture time in 10 Hz frames since the recording started."""
+        return int(round((FIRST_FRAME_S + self.slot * FRAME_GAP_S) * FRAME_RATE_HZ))
+
+    @property
+    def sample_id(self) -> str:
+        """``<recording>_<frame:05d>``."""
+        return f"{self.recording}_{self.frame_number:05d}"
+
+
+def frame_specs(cfg: ReferenceConfig) -> list[FrameSpec]:
+    """Every frame of the reference, level by level (`LEVELS` order), index ascending. Frame ``k`` of any level
+    depends only on ``cfg.seed`` and ``k`` (not on ``frames_per_split``)."""
+    specs = []
+    for k in range(cfg.frames_per_split):
+        rng = np.random.default_rng([cfg.seed, _SCENE_TAG, k])
+        scene_seed = int(rng.integers(0, 2**31 - 1))
+        origin = (float(rng.uniform(-2000.0, 2000.0)), float(rng.uniform(-2000.0, 2000.0)))
+        heading = float(rng.uniform(-np.pi, np.pi))
+        slots = rng.permutation(len(LEVELS))
+        airlights = rng.uniform(cfg.camera.airlight_min, cfg.camera.airlight_max, len(LEVELS))
+        recording = f"synref-{cfg.seed}-{k:04d}"
+        for j, level in enumerate(LEVELS):
+            specs.append(FrameSpec(level, k, int(slots[j]), recording, scene_seed, origin, heading,
+                                   1000.0 + 3600.0 * k, float(airlights[j])))
+    order = {level: i for i, level in enumerate(LEVELS)}
+    return sorted(specs, key=lambda s: (order[s.level], s.index))
+
+
+# ------------------------------------------------------------------------------------------------ sensors
+
+
+def sensor_of(cfg: ReferenceConfig) -> tuple[ExactSensor, Detector]:
+    """The reference LiDAR (pulse, overlap, ranges) and its detector from the config."""
+    lc = cfg.lidar
+    sensor = ExactSensor(tau_h=lc.tau_h_s, r1=lc.overlap_r1_m, r2=lc.overlap_r2_m, fov_ratio=lc.overlap_fov_ratio,
+                         min_range=lc.min_range_m, max_range=lc.max_range_m)
+    return sensor, Detector(lc.intensity_noise_std, lc.intensity_noise_rel, lc.noise_floor, lc.range_noise_std_m)
+
+
+@dataclass(frozen=True)
+class FiringGrid:
+    """HDL-64-like beams in the LiDAR frame: ``directions`` (64 F, 3) unit, ``ring`` (64 F,) 0 = highest laser,
+    column-major (index = column * 64 + ring)."""
+
+    directions: F64
+    ring: NDArray[np.int16]
+
+
+def hdl64_grid(firings_per_ring: int) -> FiringGrid:
+    """64 lasers at the HDL-64E elevations x ``firings_per_ring`` azimuths over a full turn (clockwise from behind)."""
+    elev = np.deg2rad(HDL64E_ELEVATIONS_DEG)
+    rings = len(elev)
+    col = np.repeat(np.arange(firings_per_ring), rings)
+    ring = np.tile(np.arange(rings), firings_per_ring)
+    azimuth = np.pi - 2.0 * np.pi * (col + 0.5) / firings_per_ring
+    e = elev[ring]
+    d = np.stack([np.cos(e) * np.cos(azimuth), np.cos(e) * np.sin(azimuth), np.sin(e)], 1)
+    return FiringGrid(d, ring.astype(np.int16))
+
+
+def stereo_left_camera(image_scale: float) -> Camera:
+    """The stereo-left-like camera at ``image_scale`` of 1920 x 1024 (STF's rectified intrinsics, scaled)."""
+    width, height = (int(round(STF_FULL_SIZE[0] * image_scale)), int(round(STF_FULL_SIZE[1] * image_scale)))
+    sx, sy = width / STF_FULL_SIZE[0], height / STF_FULL_SIZE[1]
+    K = np.array([[STF_FOCAL_PX * sx, 0.0, STF_PRINCIPAL_PX[0] * sx],
+                  [0.0, STF_FOCAL_PX * sy, STF_PRINCIPAL_PX[1] * sy], [0.0, 0.0, 1.0]])
+    return Camera("cam_stereo_left", K, width, height, T_EGO_CAMERA, 0.0)
+
+
+# ------------------------------------------------------------------------------------------------ one frame
+
+
+@dataclass(frozen=True)
+class RenderedFrame:
+    """One rendered frame: ``points`` (N, 5) float32 (STF columns), ``image`` (H, W, 3) uint8 sRGB, ``range`` (H, W)
+    float32 ray length [m] (inf = sky), and ``stats`` (beams, returns, target / fog returns, mean intensity)."""
+
+    points: NDArray[np.float32]
+    image: NDArray[np.uint8]
+    range: NDArray[np.float32]
+    stats: dict
+
+
+def _noise_rng(cfg: ReferenceConfig, spec: FrameSpec, sensor: int) -> np.random.Generator:
+    return np.random.default_rng([cfg.seed, _NOISE_TAG, LEVELS.index(spec.level), spec.index, sensor])
+
+
+def render_frame(spec: FrameSpec, cfg: ReferenceConfig, fog: FogLevel, nthreads: int = 1) -> RenderedFrame:
+    """Render frame ``spec`` through ``fog`` (the level's true medium; `CLEAR` for the clear level)."""
+    layout = generate_layout(spec.recording, spec.scene_seed, spec.t_start, SCENE_DURATION_S, EGO_SPEED_RANGE,
+                             np.array(spec.origin), spec.heading)
+    caster = WorldRaycaster(layout, nthreads=nthreads)
+    T_global_ego = layout.T_global_ego(spec.time)
+
+    # LiDAR: clear hits, system constants, exact pulse integral, detector
+    grid = hdl64_grid(cfg.lidar.firings_per_ring)
+    T_global_lidar = T_global_ego @ T_EGO_LIDAR
+    R = T_global_lidar[:3, :3]
+    dirs = grid.directions @ R.T
+    origins = np.broadcast_to(T_global_lidar[:3, 3], dirs.shape).copy()
+    hits = caster.cast_at_time(origins, dirs, spec.time)
+    r_true = hits.range.copy()
+    hit = np.flatnonzero(np.isfinite(r_true))
+    i0 = np.zeros(len(r_true))
+    if len(hit):
+        pos = origins[hit] + dirs[hit] * r_true[hit, None]
+        surf = texture(layout, pos, hits.normal[hit], hits.material[hit], hits.albedo[hit], hits.reflectivity[hit])
+        cos_inc = np.einsum("ij,ij->i", hits.normal[hit].astype(np.float64), dirs[hit])
+        i0[hit] = lidar_intensity(surf.reflectivity, cos_inc, r_true[hit])
+    sensor, detector = sensor_of(cfg)
+    has_target = np.isfinite(r_true) & (i0 > 0.0)
+    r_echo = np.where(has_target & (r_true < sensor.listen_end), r_true, np.inf)
+    c = system_constants(np.where(has_target, r_true, np.inf), i0, grid.ring, sensor)
+    returns = exact_returns(r_echo, c, fog.alpha, fog.beta, sensor, tables=fog_tables(fog.alpha, sensor),
+                            grid_step=cfg.lidar.receiver_step_m)
+    out = read_out(returns, sensor, detector, _noise_rng(cfg, spec, 1))
+    xyz = grid.directions[out.index] * out.range[:, None]
+    channel = (len(HDL64E_ELEVATIONS_DEG) - 1) - grid.ring[out.index].astype(np.float64)
+    points = np.column_stack([xyz, out.intensity, channel]).astype(np.float32)
+
+    # camera: clear radiance, exact fog integral, noise
+    cam = stereo_left_camera(cfg.camera.image_scale)
+    T_global_cam = T_global_ego @ cam.T_ego_cam
+    pdirs = pixel_directions(cam, T_global_cam)
+    origin = T_global_cam[:3, 3]
+    chits = caster.cast_camera(cam.K, T_global_cam, cam.width, cam.height, spec.time, pdirs)
+    lit = sun_lit(caster, origin, pdirs, chits, spec.time, cfg.camera.shadows)
+    J = camera_radiance(layout, origin, pdirs, chits.range, chits.normal, chits.material, chits.albedo,
+                       chits.reflectivity, lit)
+    if fog.alpha > 0.0:
+        A = srgb_to_linear(np.full(3, spec.airlight))
+        J = fog_radiance(J, chits.range, fog.alpha, A, cfg.camera.sky_distance_m)
+    image = encode_with_noise(J.reshape(cam.height, cam.width, 3), cfg.camera.noise_std, _noise_rng(cfg, spec, 2))
+    range_map = chits.range.astype(np.float32).reshape(cam.height, cam.width)
+    stats = {"beams": int(len(r_true)), "returns": int(len(points)),
+             "target_returns": int((out.source == TARGET).sum()), "fog_returns": int((out.source == FOG).sum()),
+             "mean_intensity": float(points[:, 3].astype(np.float64).mean()) if len(points) else 0.0}
+    return RenderedFrame(points, image, range_map, stats)
+
+
+def frame_files(spec: FrameSpec) -> tuple[str, str, str]:
+    """Relative paths of the frame's scan, image and range map inside the reference root."""
+    sid = spec.sample_id
+    return f"{LIDAR_FOLDER}/{sid}.bin", f"{CAMERA_FOLDER}/{sid}.png", f"{RANGE_FOLDER}/{sid}.npy"
+
+
+def write_frame(root: Path, spec: FrameSpec, frame: RenderedFrame) -> None:
+    """The frame's scan (float32 little-endian N x 5), PNG image and range map (.npy), each written atomically."""
+    scan, image, rng = frame_files(spec)
+    atomic.write_bytes(root / scan, frame.points.astype("<f4").tobytes())
+    buf = io.BytesIO()
+    Image.fromarray(frame.image).save(buf, format="PNG", compress_level=6)
+    atomic.write_bytes(root / image, buf.getvalue())
+    atomic.save_npy(root / rng, frame.range)
+
+
+# ------------------------------------------------------------------------------------------------ resume
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """What rendering a frame produced (kept in the resume record): level, sample id and its `RenderedFrame.stats`."""
+
+    level: str
+    index: int
+    sample_id: str
+    stats: dict
+
+
+def config_hash(cfg: ReferenceConfig) -> str:
+    """Hash of everything that changes a rendered frame: the synthetic reference's parameters (not the frame count,
+    the split file names or the source switch) and the library code it runs."""
+    relevant = cfg.model_dump(mode="json", exclude={"source", "stf_root", "split_files", "frames_per_split",
+                                                    "intensity_max"})
+    text = json.dumps(relevant, sort_keys=True) + source_digest(*_CODE)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _progress_file(data: Path, spec: FrameSpec) -> Path:
+    return reference_dir(data) / PROGRESS_DIR / f"{spec.sample_id}.json"
+
+
+def load_finished(spec: FrameSpec, cfg: ReferenceConfig, data: Path, digest: str | None = None) -> FrameRecord | None:
+    """The record of ``spec`` from an earlier run with the same parameters and code, if all its files exist."""
+    marker = _progress_file(data, spec)
+    if not marker.is_file():
+        return None
+    try:
+        record = json.loads(marker.read_text())
+    except json.JSONDecodeError:
+        return None
+    if record.get("config") != (digest or config_hash(cfg)):
+        return None
+    root = synthetic_root(data)
+    if not all((root / rel).is_file() for rel in frame_files(spec)):
+        return None
+    return FrameRecord(**record["record"])
+
+
+def render_or_resume(spec: FrameSpec, cfg: ReferenceConfig, data: Path, nthreads: int = 1) -> tuple[FrameRecord, bool]:
+    """Render and write frame ``spec`` unless an identical earlier run finished it. Returns (record, rendered_now)."""
+    digest = config_hash(cfg)
+    done = load_finished(spec, cfg, data, digest)
+    if done is not None:
+        return done, False
+    fog = draw_truth(cfg)[spec.level]
+    frame = render_frame(spec, cfg, fog, nthreads=nthreads)
+    write_frame(synthetic_root(data), spec, frame)
+    record = FrameRecord(spec.level, spec.index, spec.sample_id, frame.stats)
+    atomic.write_json(_progress_file(data, spec), {"config": digest, "record": asdict(record)})
+    return record, True
+
+
+# ------------------------------------------------------------------------------------------------ the dataset
+
+
+def camera_calibration(cam: Camera) -> dict:
+    """``calib_cam_stereo_left.json`` content (ROS CameraInfo form, rectified: ``P = [K | 0]``)."""
+    K = cam.K
+    return {
+        "header": {"frame_id": CAMERA_TF_FRAME, "seq": 0, "stamp": {"secs": 0, "nsecs": 0}},
+        "width": cam.width, "height": cam.height, "distortion_model": "plumb_bob",
+        "D": [0.0, 0.0, 0.0, 0.0, 0.0],
+        "K": [float(v) for v in K.ravel()],
+        "R": [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+        "P": [float(K[0, 0]), 0.0, float(K[0, 2]), 0.0, 0.0, float(K[1, 1]), float(K[1, 2]), 0.0, 0.0, 0.0, 1.0, 0.0],
+        "binning_x": 0, "binning_y": 0,
+        "roi": {"x_offset": 0, "y_offset": 0, "width": 0, "height": 0, "do_rectify": False},
+    }
+
+
+def _tf_entry(parent: str, child: str, T: F64) -> dict:
+    x, y, z, w = (float(v) for v in Rotation.from_matrix(T[:3, :3]).as_quat())
+    tx, ty, tz = (float(v) for v in T[:3, 3])
+    return {"header": {"frame_id": parent, "seq": 0, "stamp": {"secs": 0, "nsecs": 0}}, "child_frame_id": child,
+            "transform": {"translation": {"x": tx, "y": ty, "z": tz}, "rotation": {"x": x, "y": y, "z": z, "w": w}}}
+
+
+def tf_tree() -> list[dict]:
+    """``calib_tf_tree_full.json`` content: ``body`` (the ego frame) -> HDL-64 and stereo-left optical frame."""
+    return [_tf_entry("base_link", "body", np.eye(4)),
+            _tf_entry("body", LIDAR_TF_FRAME, T_EGO_LIDAR),
+            _tf_entry("body", CAMERA_TF_FRAME, T_EGO_CAMERA)]
+
+
+def finalize(cfg: ReferenceConfig, data: Path, records: list[FrameRecord]) -> dict:
+    """Write the split files, calibration, manifest and the sealed truth; remove sensor files and resume records of
+    frames not in ``records``. Returns the public summary (frames per level and the files written).
+
+    Raises:
+        ValueError: a split file path is absolute or leaves the reference root, or two levels share a split file.
+    """
+    root = synthetic_root(data)
+    specs = {s.sample_id: s for s in frame_specs(cfg)}
+    by_level: dict[str, list[FrameRecord]] = {level: [] for level in LEVELS}
+    for rec in sorted(records, key=lambda r: (LEVELS.index(r.level), r.index)):
+        by_level[rec.level].append(rec)
+    split_files = split_files_of(cfg.split_files)
+    if len(set(split_files.values())) != len(split_files):
+        raise ValueError(f"reference.split_files: levels must have distinct files, got {split_files}")
+    for level, rel in split_files.items():
+        path = Path(rel)
+        if path.is_absolute() or ".." in path.parts:
+            raise ValueError(f"reference.split_files.{level} = {rel!r}: the synthetic reference writes its split "
+                             f"files inside its root; expected a relative path without '..'")
+        lines = [f"{specs[r.sample_id].recording},{specs[r.sample_id].frame_number:05d}" for r in by_level[level]]
+        atomic.write_bytes(root / path, ("\n".join(lines) + "\n").encode())
+    cam = stereo_left_camera(cfg.camera.image_scale)
+    atomic.write_json(root / CAMERA_CALIB_FILE, camera_calibration(cam), indent=2)
+    atomic.write_json(root / TF_TREE_FILE, tf_tree(), indent=2)
+    sensor, detector = sensor_of(cfg)
+    manifest = {
+        "layout": "seeing_through_fog", "generator": "weatheralign synthetic fog reference",
+        "config_hash": config_hash(cfg), "intensity_max": 255.0,
+        "lidar_folder": LIDAR_FOLDER, "camera_folder": CAMERA_FOLDER, "range_folder": RANGE_FOLDER,
+        "split_files": split_files, "frames": {level: len(by_level[level]) for level in LEVELS},
+        "lidar": {"model": "HDL-64-like", "rings": int(len(HDL64E_ELEVATIONS_DEG)),
+                  "firings_per_ring": cfg.lidar.firings_per_ring, "channel_order": "channel 0 = lowest laser",
+                  "min_range_m": sensor.min_range, "max_range_m": sensor.max_range, "intensity_quantum": 1.0,
+                  "tau_h_s": sensor.tau_h},
+        "camera": {"width": cam.width, "height": cam.height, "range_maps": "float32 ray length [m], inf = sky"},
+    }
+    atomic.write_json(root / MANIFEST_FILE, manifest, indent=2)
+    truth = draw_truth(cfg)
+    atomic.write_json(sealed_truth_path(data), {level: {"alpha": truth[level].alpha, "beta": truth[level].beta}
+                                                for level in ("light", "dense")}, indent=2)
+    details = {level: {"alpha": truth[level].alpha, "beta": truth[level].beta, "mor_m": truth[level].mor,
+                       "beta_times_mor": truth[level].beta * truth[level].mor,
+                       "airlight_srgb": {r.sample_id: specs[r.sample_id].airlight for r in by_level[level]}}
+               for level in ("light", "dense")}
+    details["detector"] = asdict(detector)
+    atomic.write_json(reference_dir(data) / SEALED_DETAILS_FILE, details, indent=2)
+    _remove_stale(data, {r.sample_id for r in records})
+    return {"root": str(root), "frames": {level: len(by_level[level]) for level in LEVELS}}
+
+
+def _remove_stale(data: Path, keep: set[str]) -> None:
+    root = synthetic_root(data)
+    for folder, suffix in ((LIDAR_FOLDER, ".bin"), (CAMERA_FOLDER, ".png"), (RANGE_FOLDER, ".npy")):
+        d = root / folder
+        if d.is_dir():
+            for path in d.iterdir():
+                if path.is_file() and (path.suffix != suffix or path.stem not in keep):
+                    path.unlink()
+    progress = reference_dir(data) / PROGRESS_DIR
+    if progress.is_dir():
+        for path in progress.iterdir():
+            if path.is_file() and path.stem not in keep:
+                path.unlink()
