@@ -108,7 +108,7 @@ def calibrate_fog_flow(params: Params) -> dict:
         frames = fog_frames(ds.load_scan(i) for i in ds.ids("clear"))
         extractor = feature_extractor(cfg.inception_path, device=cfg.device)
         cams = camera_sets(ds, params)
-        clear_features = None
+        clear_features = extractor([img for img, _ in cams["clear"]])
         metrics: dict = {"reference_root": str(ds.root), "reference_source": params.reference.source,
                          "kid_backbone": extractor.backbone}
         levels: dict = {}
@@ -119,12 +119,9 @@ def calibrate_fog_flow(params: Params) -> dict:
             sim_images = simulated_fog_images(cams["clear"], result.alpha)
             visibility = camera_visibility_ratio(sim_images, [r for _, r in cams["clear"]], ref_images,
                                                  [r for _, r in cams[level]])
-            kid = kid_from_features(extractor(sim_images), extractor(ref_images), backbone=extractor.backbone,
-                                    rng=cfg.seed)
-            if clear_features is None:
-                clear_features = extractor([img for img, _ in cams["clear"]])
-            kid_clear = kid_from_features(clear_features, extractor(ref_images), backbone=extractor.backbone,
-                                          rng=cfg.seed)
+            ref_features = extractor(ref_images)
+            kid = kid_from_features(extractor(sim_images), ref_features, backbone=extractor.backbone, rng=cfg.seed)
+            kid_clear = kid_from_features(clear_features, ref_features, backbone=extractor.backbone, rng=cfg.seed)
             metrics[level] = {**result.metrics(), "beta_identified": result.beta_identified,
                               **visibility.metrics(), "kid": kid.mean, "kid_std": kid.std,
                               "kid_backbone": kid.backbone, "kid_clear_vs_reference": kid_clear.mean,
