@@ -1,10 +1,11 @@
 """Camera weather benchmark: one full frame of 6 cameras at 1600x900 through the product path.
 
 Run from the repository root after the world stage (``dvc repro world``):
-``.venv/bin/python -m benchmarks.bench_camera [--runs 5] [--png-dir /tmp]``.
+``.venv/bin/python -m benchmarks.bench_camera [--runs 5] [--png-dir /tmp] [--world DATAROOT]``.
 
-Every camera goes through `weatheralign.simulate.simulate_camera`, exactly as the `simulate` stage runs it: decode
-the JPEG, load the exact range map, then
+Every camera goes through `weatheralign.simulate.observe.observe_camera`, exactly as the `simulate` stage runs it
+(through the world's camera models: the manifest's sensors, or the params' for a ``--world`` without one): decode
+the JPEG, load the exact range map (`weatheralign.camera.depth.camera_range_map`), then
 
 - snow / rain: the unresolved particles' extinction profile, the guided-filtered transmission, the fogged
   background, `materialize_for_camera` (nested field queries at the camera's own timestamp), `render_particles`
@@ -51,39 +52,68 @@ SPECS = (
 )
 
 
-def load_sample() -> tuple[Any, Any, Any, np.ndarray]:
-    """(frame, simulate config, particles config, scene airlight) of the world's first sample."""
+def load_sample(world_root: Path) -> tuple[Any, Any, np.ndarray, Any]:
+    """(frame, params, scene airlight, camera models by channel) of the world's first sample. The camera models are
+    the world manifest's (``data/manifests/world.json``) for the default world, else built from the default params
+    (`weatheralign.sensors.camera_models` with ``world.camera.exposure_s``)."""
     from weatheralign.config import params_from_dict
     from weatheralign.data.nuscenes import load_frame, open_nuscenes
-    from weatheralign.simulate import scene_airlight
+    from weatheralign.manifest import manifest_path, read_manifest
+    from weatheralign.sensors import camera_models
+    from weatheralign.simulate.plan import scene_airlight
 
-    if not (WORLD_ROOT / "v1.0-mini" / "sample_data.json").is_file():
-        raise SystemExit(f"{WORLD_ROOT}: no world dataset; run `dvc repro world` (or `make reproduce`) first")
-    nusc = open_nuscenes(WORLD_ROOT, "v1.0-mini")
-    frame = load_frame(nusc, nusc.sample[0]["token"])
+    if not (world_root / "v1.0-mini" / "sample_data.json").is_file():
+        raise SystemExit(f"{world_root}: no world dataset; run `dvc repro world` (or `make reproduce`) first")
+    nusc = open_nuscenes(world_root, "v1.0-mini")
+    token = nusc.sample[0]["token"]
+    frame = load_frame(nusc, token)
     params = params_from_dict({})
-    return frame, params.simulate, params.particles, scene_airlight(list(frame.cameras.values()))
+    manifest = manifest_path(REPO / "data", "world")
+    if world_root.resolve() == WORLD_ROOT.resolve() and manifest.is_file():
+        cameras = read_manifest(manifest).sensors.cameras
+    else:
+        cameras = camera_models(frame.cameras, params.world.camera.exposure_s)
+    return frame, params, scene_airlight(nusc, token), cameras
+
+
+def _media(name: str, params: Any, t_ref: float) -> Any:
+    """The `SceneMedia` of condition ``name`` (aligned) over a scene called "bench": the params' fog levels, or the
+    particle field of the params' ``particles`` section."""
+    from weatheralign.conditions import CONDITIONS
+    from weatheralign.medium.conditions import field_spec
+    from weatheralign.simulate.media import SceneMedia, params_fog_levels
+
+    condition = CONDITIONS[name]
+    if condition.fog is not None:
+        levels = params_fog_levels(params.simulate)
+        alpha, beta = levels.alpha[condition.fog.level], levels.beta[condition.fog.level]
+        return SceneMedia(condition, True, "bench", lidar_alpha=alpha, lidar_beta=beta, camera_alpha=alpha)
+    return SceneMedia(condition, True, "bench",
+                      field=field_spec(params.particles, condition.particles.kind, "bench", t_ref))
 
 
 def _worker(spec: dict) -> dict:
-    from weatheralign.medium.conditions import field_spec
-    from weatheralign.simulate import Weather, ego_velocity, simulate_camera, weather_for_scene
+    from weatheralign.camera.depth import camera_range_map
+    from weatheralign.simulate.observe import ObserveOptions, ego_velocity, observe_camera
 
-    frame, cfg, particles, airlight = load_sample()
+    frame, params, airlight, cameras = load_sample(Path(spec["world"]))
     rss_inputs = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     condition = spec["condition"]
-    if condition.startswith("fog_"):
-        weather = weather_for_scene(cfg, "bench", None, condition, True)
-    else:
-        weather = Weather(condition, True, field=field_spec(particles, condition, "bench", frame.timestamp))
-    vel = ego_velocity(frame.lidar)
+    media = _media(condition, params, frame.timestamp)
+    options = ObserveOptions(params.simulate.near_clip_m, params.simulate.refine_transmission)
+    vel = ego_velocity(frame)
     views = list(frame.cameras.values())
+
+    def one(view: Any) -> Any:
+        image = view.load_image()
+        return observe_camera(image, camera_range_map(view, frame.lidar, image), view, media,
+                              cameras[view.channel], airlight, vel, options)
 
     def run(threads: int) -> list:
         if threads <= 1:
-            return [simulate_camera(v, weather, cfg, airlight, vel, frame.lidar) for v in views]
+            return [one(v) for v in views]
         with ThreadPoolExecutor(threads) as pool:
-            return list(pool.map(lambda v: simulate_camera(v, weather, cfg, airlight, vel, frame.lidar), views))
+            return list(pool.map(one, views))
 
     out = run(2)  # warm-up
     threaded, serial = [], []
@@ -110,8 +140,8 @@ def _worker(spec: dict) -> dict:
             "seconds": threaded, "seconds_serial": serial,
             "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
             "rss_after_inputs_mib": rss_inputs, "ego_speed_m_s": float(np.linalg.norm(vel)),
-            "camera_alpha": weather.camera_alpha,
-            "source": f"{WORLD_ROOT} sample 0 (synthetic world, exact range maps)"}
+            "camera_alpha": media.camera_alpha,
+            "source": f"{spec['world']} sample 0 (synthetic world, exact range maps)"}
 
 
 def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
@@ -119,6 +149,7 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--runs", type=int, default=5, help="timed frames per workload (median)")
     parser.add_argument("--png-dir", type=str, default="/tmp", help="where to save CAM_FRONT previews ('' = none)")
     parser.add_argument("--out", type=Path, default=REPORT)
+    parser.add_argument("--world", type=Path, default=WORLD_ROOT, help="the synthetic world's dataroot")
     parser.add_argument("--worker", type=str, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker is not None:
@@ -126,7 +157,8 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
         return []
     entries = []
     for spec in SPECS:
-        m = run_worker("benchmarks.bench_camera", {**spec, "runs": args.runs, "png_dir": args.png_dir})
+        m = run_worker("benchmarks.bench_camera", {**spec, "runs": args.runs, "png_dir": args.png_dir,
+                                                   "world": str(args.world)})
         median = statistics.median(m["seconds"])
         ref = spec["reference_seconds"]
         entry = {"workload": spec["workload"], "num_points": m["num_points"], "seconds_median": median,
@@ -135,7 +167,7 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
                  "target_seconds": TARGET_SECONDS, "pass": median <= TARGET_SECONDS,
                  "seconds_min": min(m["seconds"]), "runs": len(m["seconds"]), "threads": 2,
                  "seconds_serial_median": statistics.median(m["seconds_serial"]),
-                 "path": "weatheralign.simulate.simulate_camera x 6 (JPEG decode, exact range map, guided-filtered "
+                 "path": "weatheralign.simulate.observe.observe_camera x 6 (JPEG decode, exact range map, guided-filtered "
                          "fog/unresolved transmission, particles + 5 ms streaks, sRGB encode)",
                  "condition": spec["condition"], "camera_alpha": m["camera_alpha"],
                  "per_camera_drawn": m["per_camera_drawn"], "ego_speed_m_s": m["ego_speed_m_s"],

@@ -16,6 +16,11 @@ Workloads:
 - growth with rate (snow 0.5/1/2/4 mm/h, rain 10/25/50/100 mm/h) and with points (the STF scan with 16/32/64 of its
   rings);
 - the ratio threshold: 3e-4 … 3e-2 for snow and rain (counts, mean intensity change of the kept points).
+
+The sensor (`_lidar`): the synthetic world's HDL-32E-like `LidarModel` (3 mrad divergence, τ_H = 10 ns, detector floor
+0.5 on 0..255, its 32 x 1085 firing grid) with each workload's maximum range and intensity model (the synthetic
+world's for its scan, Hahner's raw ``1/r²`` for STF); beams without return come from the stored firing columns of the
+synthetic scan and are reconstructed from the ring structure otherwise (STF, ring subsets).
 """
 
 from __future__ import annotations
@@ -47,6 +52,9 @@ SNOW_REFERENCE_120K = 88.0  # ... and 88 s on a 120k-point HDL-64 scan
 RAIN_REFERENCE_25MMH = 4.2  # LISA, 3.3-5.2 s per 35k-point scan at 25 mm/h
 SNOW_VELOCITY = 1.5
 RAIN_VELOCITY = 2.0
+DIVERGENCE_RAD = 3e-3
+PULSE_HALF_WIDTH_S = 10e-9
+NOISE_FLOOR = 0.5
 
 
 # ------------------------------------------------------------------------------------------------------ scans
@@ -124,20 +132,30 @@ def _field(spec: dict, t_ref: float):
                          velocity=fall_velocity(RAIN_VELOCITY), t_ref=t_ref, cell_size=1.0)
 
 
+def _lidar(spec: dict, columns_stored: bool):
+    """The workload's `LidarModel` (see the module docstring); ``columns_stored``: the scan comes with its per-point
+    firing columns (else beams without return are reconstructed)."""
+    from weatheralign.config import LidarConfig
+    from weatheralign.sensors import HAHNER_INTENSITY, SYNTHETIC_INTENSITY, lidar_model_from_params, with_overrides
+
+    model = {"synthetic": SYNTHETIC_INTENSITY, "hahner": HAHNER_INTENSITY}[spec["intensity_model"]]
+    return with_overrides(lidar_model_from_params(LidarConfig()), {
+        "max_range_m": float(spec["max_range"]), "divergence_rad": DIVERGENCE_RAD, "noise_floor": NOISE_FLOOR,
+        "pulse_half_width_s": PULSE_HALF_WIDTH_S, "intensity": model, "firing_columns_stored": columns_stored})
+
+
 def _worker(spec: dict) -> dict:
     """Run one workload in this process and return its measurements."""
-    from weatheralign.lidar.particles import (HAHNER_INTENSITY, RAIN_REFLECTIVITY, SNOW_REFLECTIVITY,
-                                              SYNTHETIC_INTENSITY, simulate_particles)
+    from weatheralign.lidar.particles import RAIN_REFLECTIVITY, SNOW_REFLECTIVITY, simulate_particles
 
     scan, columns = _load_scan(spec["scan"])
     if spec.get("rings"):
         scan = _ring_subset(scan, spec["rings"])
         columns = None
     fld = _field(spec, scan.timestamp)
-    model = {"synthetic": SYNTHETIC_INTENSITY, "hahner": HAHNER_INTENSITY}[spec["intensity_model"]]
-    kwargs = dict(reflectivity=SNOW_REFLECTIVITY if spec["medium"] == "snow" else RAIN_REFLECTIVITY,
-                  max_range=spec["max_range"], intensity_model=model, ratio_threshold=spec.get("ratio_threshold"),
-                  columns=columns if columns is not None else ("auto" if not spec.get("rings") else None))
+    kwargs = dict(lidar=_lidar(spec, columns is not None),
+                  reflectivity=SNOW_REFLECTIVITY if spec["medium"] == "snow" else RAIN_REFLECTIVITY,
+                  ratio_threshold=spec.get("ratio_threshold"), columns=columns if columns is not None else "auto")
     result = simulate_particles(scan, fld, **kwargs)  # warm-up: JIT (cached on disk), page faults
     seconds = []
     for _ in range(spec["runs"]):

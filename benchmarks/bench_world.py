@@ -34,7 +34,8 @@ from weatheralign.world.build import (SWEEP_PERIOD_US, SceneSpec, sensor_rng, an
 from weatheralign.world.dataset import sample_jobs
 from weatheralign.world.raycast import WorldRaycaster
 from weatheralign.world.render import CameraFrame, pixel_directions, render_lidar_sweep, sun_lit
-from weatheralign.world.rig import camera_time_offset, firing_pattern, make_cameras
+from weatheralign.sensors import lidar_model_from_params
+from weatheralign.world.rig import camera_time_offset, make_cameras
 from weatheralign.world.shading import camera_pixels
 
 REPO = Path(__file__).resolve().parents[1]
@@ -91,7 +92,7 @@ def breakdown(spec: SceneSpec, k: int, cfg: WorldConfig, dataroot: Path, nthread
     watch = Stopwatch()
     layout = watch("scene (layout, BVHs)", lambda: spec.layout(cfg))
     caster = watch("scene (layout, BVHs)", lambda: WorldRaycaster(layout, nthreads=nthreads))
-    pattern = firing_pattern(cfg.lidar)
+    pattern = lidar_model_from_params(cfg.lidar).firing_pattern()
     t_key = keyframe_time_us(spec, cfg, k)
     key_sweep = None
     for j in range(cfg.sweeps_per_sample, -1, -1):
@@ -178,7 +179,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "breakdown_total_seconds": sum(parts.values()),
         "breakdown_reproduces_render_sample": reproduced,
         "peak_rss_mib": peak_rss_mib(),
-        "workload": {"lidar_sweeps": cfg.sweeps_per_sample + 1, "lidar_beams_per_sweep": len(firing_pattern(
+        "workload": {"lidar_sweeps": cfg.sweeps_per_sample + 1, "lidar_beams_per_sweep": len(lidar_model_from_params(
             cfg.lidar).ring), "cameras": len(cameras), "image_width_height": [cameras[0].width, cameras[0].height]},
         "machine": machine(),
     }

@@ -5,7 +5,7 @@ synthetic reference, or a Seeing Through Fog root) and, per fog level (``light``
 
 1. LiDAR: fogs the reference's clear scans with every cell of the paper's (alpha, beta) grid (one mapped Prefect
    task per cell, `weatheralign.calibrate.lidar.evaluate_cell`), refines around the best cell and bootstraps D_KS
-   over frames (`finish_level`); the detector floor is the simulate stage's (``simulate.noise_floor``);
+   over frames (`finish_level`); the detector floor and pulse are the reference LiDAR's (`reference_lidar_model`);
 2. camera: fogs the reference's clear images at the tuned alpha with the simulation's camera fog (`fog_image`, one
    neutral airlight per frame as in `simulate`) and compares the visibility estimated from image + depth with that
    of the reference's foggy images (`camera_visibility_ratio`), plus KID on features of a pretrained CNN
@@ -29,6 +29,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+import torch  # noqa: E402
 from prefect import flow  # noqa: E402
 
 from flows.common import gather, parse_stage_args, task_runner  # noqa: E402
@@ -43,22 +44,24 @@ from weatheralign.calibrate.lidar import (GridResult, LevelCalibration, fog_fram
                                           grid_cells)
 from weatheralign.camera.fog import estimate_airlight, fog_image  # noqa: E402
 from weatheralign.config import Params  # noqa: E402
-from weatheralign.reference import ReferenceDataset, configured_reference  # noqa: E402
-from weatheralign.simulate import FOG_LEVELS_FILE  # noqa: E402
+from weatheralign.reference import ReferenceDataset, configured_reference, reference_lidar_model  # noqa: E402
+from weatheralign.sensors import LidarModel  # noqa: E402
+from weatheralign.manifest import FOG_LEVELS_FILE  # noqa: E402
 
 FOG_LEVELS = ("light", "dense")
 
 
-def lidar_level(ds: ReferenceDataset, frames, level: str, params: Params) -> tuple[LevelCalibration,
-                                                                                 IntensityHistograms]:
-    """Grid (mapped tasks), refinement and bootstrap of one fog level; returns it and the level's histograms."""
+def lidar_level(ds: ReferenceDataset, frames, level: str, params: Params,
+                sensor: LidarModel) -> tuple[LevelCalibration, IntensityHistograms]:
+    """Grid (mapped tasks), refinement and bootstrap of one fog level through the reference's LiDAR ``sensor``;
+    returns it and the level's histograms."""
     cfg = params.calibrate_fog
     reference = IntensityHistograms.from_scans((ds.load_scan(i) for i in ds.ids(level)), ds.intensity_max)
-    floor = params.simulate.noise_floor
-    futures = [evaluate_cell_task.submit(frames, reference, a, f, floor) for a, f in grid_cells()]
+    floor = sensor.noise_floor
+    futures = [evaluate_cell_task.submit(frames, reference, a, f, floor, sensor.pulse) for a, f in grid_cells()]
     grid = GridResult.from_cells(gather(futures, f"calibrate_fog {level}: (alpha, beta) grid",
                                         params.run.show_progress))
-    result = finish_level(frames, reference, grid, noise_floor=floor, fine_points=cfg.fine_points,
+    result = finish_level(frames, reference, grid, noise_floor=floor, sensor=sensor.pulse, fine_points=cfg.fine_points,
                           max_nelder_mead=cfg.max_nelder_mead, num_bootstrap=cfg.num_bootstrap,
                           confidence=cfg.confidence, seed=cfg.seed)
     return result, reference
@@ -102,9 +105,11 @@ def calibrate_fog_flow(params: Params) -> dict:
     cfg = params.calibrate_fog
     t0 = time.time()
     with StageTracker(params, "calibrate_fog") as tracker:
-        tracker.log_params({"calibrate_fog": cfg.model_dump(mode="json"), "reference.source": params.reference.source,
-                            "simulate.noise_floor": params.simulate.noise_floor})
+        torch.set_num_threads(params.run.torch_threads)
         ds = configured_reference(params)
+        sensor = reference_lidar_model(params, ds)
+        tracker.log_params({"calibrate_fog": cfg.model_dump(mode="json"), "reference.source": params.reference.source,
+                            "reference_lidar": sensor.to_dict()})
         frames = fog_frames(ds.load_scan(i) for i in ds.ids("clear"))
         extractor = feature_extractor(cfg.inception_path, device=cfg.device)
         cams = camera_sets(ds, params)
@@ -114,7 +119,7 @@ def calibrate_fog_flow(params: Params) -> dict:
         levels: dict = {}
         for level in FOG_LEVELS:
             t_level = time.time()
-            result, reference = lidar_level(ds, frames, level, params)
+            result, reference = lidar_level(ds, frames, level, params, sensor)
             ref_images = [img for img, _ in cams[level]]
             sim_images = simulated_fog_images(cams["clear"], result.alpha)
             visibility = camera_visibility_ratio(sim_images, [r for _, r in cams["clear"]], ref_images,

@@ -20,7 +20,7 @@ from flows.common import gather, parse_stage_args, task_runner
 from tasks.tracking import StageTracker
 from weatheralign import atomic
 from weatheralign.config import Params
-from weatheralign.data.errors import DataFormatError
+from weatheralign.manifest import manifest_path, read_manifest
 from weatheralign.data.rings import HDL32E_ELEVATIONS_DEG
 from weatheralign.geometry import invert, transform_from_quaternion
 from weatheralign.medium.conditions import PRECIPITATION, FieldSpec, field_spec
@@ -33,12 +33,10 @@ CAMERA_DEPTH_M = 60.0
 
 
 def scene_anchors(params: Params) -> list[tuple[str, float, np.ndarray]]:
-    """(scene name, first keyframe time [s], T_global_ego (4, 4) there) of every scene of the `world` output."""
-    metrics_file = params.paths.reports / "world" / "metrics.json"
-    if not metrics_file.is_file():
-        raise DataFormatError(f"{metrics_file}: missing; run the world stage first (python -m flows.world)")
-    world = json.loads(metrics_file.read_text())
-    tables = Path(world["dataroot"]) / world["version"]
+    """(scene name, first keyframe time [s], T_global_ego (4, 4) there) of every scene of the `world` output (named by
+    its manifest)."""
+    world = read_manifest(manifest_path(params.paths.data, "world"))
+    tables = Path(world.dataroot) / world.version
     load = lambda name: json.loads((tables / f"{name}.json").read_text())  # noqa: E731
     samples = {s["token"]: s for s in load("sample")}
     poses = {p["token"]: p for p in load("ego_pose")}

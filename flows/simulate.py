@@ -1,16 +1,18 @@
 """`simulate` stage: a weather copy of the clean dataset for one condition, aligned or unaligned.
 
-``python -m flows.simulate --set simulate.condition=snow --set simulate.aligned=true`` reads the `world` output
-(``reports/world/metrics.json`` names its dataroot) and, for snow/rain, ``<paths.data>/particles/fields.json``;
-for fog with ``simulate.fog_levels: calibrated`` (default), the calibrate_fog stage's tuned levels
-(``<paths.data>/calibrate_fog/fog_levels.json``); writes ``<paths.data>/simulate/<condition>-<aligned|unaligned>/``
-(a complete nuScenes dataroot, see `weatheralign.simulate`) and ``reports/simulate/<condition>-<aligned|unaligned>/metrics.json`` plus a side-by-side
-figure (clean vs weather: LiDAR BEV coloured by label, CAM_FRONT), also logged to an MLflow child run.
+``python -m flows.simulate --set simulate.condition=snow --set simulate.aligned=true`` reads the world's manifest
+(dataroot, sensors, content digest) and the condition's media (``<paths.data>/media/<condition>.json``, the media
+stage); plans the jobs (`weatheralign.simulate.plan`), maps one task per sample (`weatheralign.simulate.weather_copy.
+run_sample` around the pure core `weatheralign.simulate.observe`), completes the copy and tracks. Writes
+``<paths.data>/simulate/<condition>-<aligned|unaligned>/`` (a complete nuScenes dataroot) and
+``reports/simulate/<condition>-<aligned|unaligned>/metrics.json`` plus a side-by-side figure (clean vs weather: LiDAR
+BEV coloured by label, CAM_FRONT), also logged to an MLflow child run.
 """
 
 from __future__ import annotations
 
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -22,41 +24,20 @@ from prefect import flow
 from flows.common import gather, parse_stage_args, task_runner, threads_per_task
 from tasks.simulate import simulate_sample_task
 from tasks.tracking import StageTracker
-from weatheralign.config import Params, SimulateConfig
-from weatheralign.data.errors import DataFormatError
+from weatheralign.conditions import condition_named, variant_name
+from weatheralign.config import Params
 from weatheralign.data.nuscenes import load_frame, open_nuscenes
-from weatheralign.simulate import (FOG_LEVELS_FILE, condition_name, finalize_copy, fog_level, scene_airlight,
-                                   summarise, weather_for_scene, weather_relpath, with_fog_levels)
+from weatheralign.manifest import display_path, manifest_path, read_manifest
+from weatheralign.provenance import stage_fingerprint
+from weatheralign.simulate.media import ConditionMedia, media_path, read_media
+from weatheralign.simulate.observe import ObserveOptions
+from weatheralign.simulate.plan import plan_jobs
+from weatheralign.simulate.weather_copy import finalize_copy, summarise, weather_relpath
 from weatheralign.viz import bev_figure
 
 
-def input_dataroot(params: Params) -> tuple[Path, str]:
-    """(dataroot, version) of the `world` stage's output."""
-    metrics_file = params.paths.reports / "world" / "metrics.json"
-    if not metrics_file.is_file():
-        raise DataFormatError(f"{metrics_file}: missing; run the world stage first (python -m flows.world)")
-    world = json.loads(metrics_file.read_text())
-    return Path(world["dataroot"]), world["version"]
-
-
 def output_dataroot(params: Params) -> Path:
-    return params.paths.data / "simulate" / condition_name(params.simulate.condition, params.simulate.aligned)
-
-
-def load_fields(params: Params) -> dict | None:
-    if params.simulate.condition.startswith("fog_"):
-        return None
-    path = params.paths.data / "particles" / "fields.json"
-    if not path.is_file():
-        raise DataFormatError(f"{path}: missing; run the particles stage first (python -m flows.particles)")
-    return json.loads(path.read_text())
-
-
-def _rel(path: Path) -> str:
-    try:
-        return str(path.resolve().relative_to(Path.cwd().resolve()))
-    except ValueError:
-        return str(path.resolve())
+    return params.paths.data / "simulate" / variant_name(params.simulate.condition, params.simulate.aligned)
 
 
 def side_by_side(src_root: Path, out_root: Path, version: str, sample_token: str, title: str, path: Path) -> None:
@@ -90,53 +71,45 @@ def side_by_side(src_root: Path, out_root: Path, version: str, sample_token: str
     out.save(path)
 
 
-def fog_metrics(cfg: SimulateConfig) -> dict:
-    """For fog: the LiDAR's level (alpha [1/m], beta [1/(m sr)]) and where it came from; nothing otherwise."""
-    if not cfg.condition.startswith("fog_"):
+def fog_metrics(media: ConditionMedia, aligned: bool) -> dict:
+    """With fog: the LiDAR's level (alpha [1/m], beta [1/(m sr)]), where it came from, and the cameras' alpha (mean
+    over scenes when unaligned); nothing otherwise."""
+    if media.fog is None:
         return {}
-    alpha, beta = fog_level(cfg, cfg.condition)
-    return {"fog_alpha": alpha, "fog_beta": beta, "fog_levels": cfg.fog_levels}
+    cam = media.fog["alpha"] if aligned else float(np.mean(list(media.fog["camera_alpha_unaligned"].values())))
+    return {"fog_alpha": media.fog["alpha"], "fog_beta": media.fog["beta"], "fog_levels": media.fog["source"],
+            "camera_fog_alpha": cam}
 
 
 @flow(name="simulate", log_prints=True)
 def simulate_flow(params: Params) -> dict:
     """Write the weather copy of one condition; returns the metrics written to reports/simulate/<name>/."""
     cfg = params.simulate
-    if cfg.condition.startswith("fog_") and cfg.fog_levels == "calibrated":
-        cfg = with_fog_levels(cfg, params.paths.data / FOG_LEVELS_FILE)
-    name = condition_name(cfg.condition, cfg.aligned)
+    name = variant_name(cfg.condition, cfg.aligned)
     with StageTracker(params, f"simulate/{name}") as tracker:
         tracker.log_params({"simulate": cfg.model_dump(mode="json")})
-        src_root, version = input_dataroot(params)
-        out_root = output_dataroot(params)
-        fields = load_fields(params)
-        nusc = open_nuscenes(src_root, version)
-        jobs, airlights = [], {}
-        for scene in nusc.scene:
-            weather = weather_for_scene(cfg, scene["name"], fields)
-            first = load_frame(nusc, scene["first_sample_token"])
-            airlights[scene["token"]] = scene_airlight(list(first.cameras.values()))
-            token = scene["first_sample_token"]
-            while token:
-                jobs.append((token, weather, airlights[scene["token"]]))
-                token = nusc.get("sample", token)["next"]
-        if cfg.max_samples:
-            jobs = jobs[:cfg.max_samples]
+        world = read_manifest(manifest_path(params.paths.data, "world"))
+        media = read_media(media_path(params.paths.data, cfg.condition))
+        src_root, out_root = Path(world.dataroot), output_dataroot(params)
+        nusc = open_nuscenes(src_root, world.version)
+        jobs = plan_jobs(nusc, media, cfg.aligned, cfg.rain_appearance, cfg.max_samples)
+        options = ObserveOptions(cfg.near_clip_m, cfg.refine_transmission, threads_per_task(params))
+        run_digest = stage_fingerprint("simulate", params, world.content_digest, str(src_root.resolve()))
         t0 = time.time()
-        nthreads = threads_per_task(params)
-        futures = [simulate_sample_task.submit(nusc, src_root, out_root, tok, w, cfg, a,
-                                               params.world.camera.jpeg_quality, nthreads) for tok, w, a in jobs]
+        futures = [simulate_sample_task.submit(nusc, src_root, out_root, job, world.sensors, options, run_digest,
+                                               cfg.jpeg_quality, cfg.sweeps) for job in jobs]
         outcomes = gather(futures, f"simulate {name}: samples", params.run.show_progress)
         elapsed = time.time() - t0
-        finalize_copy(nusc, src_root, out_root, version)
+        finalize_copy(nusc, src_root, out_root, world.version)
         records = [r for r, _ in outcomes]
         done_now = sum(1 for _, now in outcomes if now)
-        metrics = {"dataroot": _rel(out_root), "source": _rel(src_root), "condition": cfg.condition,
-                   "aligned": cfg.aligned, **fog_metrics(cfg), **summarise(records), "samples_simulated_this_run": done_now,
+        metrics = {"dataroot": display_path(out_root), "source": display_path(src_root), "condition": cfg.condition,
+                   "aligned": cfg.aligned, **fog_metrics(media, cfg.aligned), **summarise(records),
+                   "samples_simulated_this_run": done_now,
                    "wall_seconds_per_sample_this_run": round(elapsed / done_now, 3) if done_now else None}
         if records:
             fig_path = tracker.reports / "side_by_side.png"
-            side_by_side(src_root, out_root, version, jobs[0][0], name, fig_path)
+            side_by_side(src_root, out_root, world.version, jobs[0].sample_token, name, fig_path)
             tracker.log_artifact(fig_path, "figures")
         tracker.finish(metrics)
     return metrics
@@ -144,6 +117,11 @@ def simulate_flow(params: Params) -> dict:
 
 def main(argv: list[str] | None = None) -> dict:
     params = parse_stage_args("simulate", argv)
+    try:
+        condition_named(params.simulate.condition)
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
     return simulate_flow.with_options(task_runner=task_runner(params))(params)
 
 

@@ -8,7 +8,6 @@ logged to an MLflow child run. A condition without a metrics file is an error na
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import matplotlib
@@ -22,8 +21,8 @@ from prefect import flow  # noqa: E402
 from flows.common import parse_stage_args  # noqa: E402
 from tasks.tracking import StageTracker  # noqa: E402
 from weatheralign.config import Params  # noqa: E402
-from weatheralign.data.errors import DataFormatError  # noqa: E402
-from weatheralign.simulate import CONDITIONS, condition_name  # noqa: E402
+from weatheralign.data.errors import read_json_file  # noqa: E402
+from weatheralign.conditions import ALIGNMENTS, CONDITIONS, variant_name  # noqa: E402
 
 SUMMARY_KEYS = ("dataroot", "points_unchanged", "points_attenuated", "points_scattered", "points_lost",
                 "points_clutter", "particles_rendered", "reprojection_mean_px", "reprojection_max_px",
@@ -32,8 +31,9 @@ SUMMARY_KEYS = ("dataroot", "points_unchanged", "points_attenuated", "points_sca
 
 
 def condition_names() -> list[str]:
-    """``fog_light-aligned``, ``fog_light-unaligned``, ... in the order of the dvc.yaml matrix."""
-    return [condition_name(c, a) for c in CONDITIONS for a in (True, False)]
+    """``fog_light-aligned``, ``fog_light-unaligned``, ... for every condition of `CONDITIONS` (the dvc.yaml
+    matrix's order)."""
+    return [variant_name(c, a == ALIGNMENTS[0]) for c in CONDITIONS for a in ALIGNMENTS]
 
 
 def collect(reports: Path, names: list[str]) -> dict[str, dict]:
@@ -41,12 +41,7 @@ def collect(reports: Path, names: list[str]) -> dict[str, dict]:
     out: dict[str, dict] = {}
     for name in names:
         path = reports / "simulate" / name / "metrics.json"
-        if not path.is_file():
-            raise DataFormatError(f"{path}: missing; run the stage simulate@{name} first (dvc repro simulate@{name})")
-        try:
-            metrics = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise DataFormatError(f"{path}: not valid JSON ({exc})") from exc
+        metrics = read_json_file(path, f"run the stage simulate@{name} first (dvc repro simulate@{name})")
         out[name] = {k: metrics.get(k) for k in SUMMARY_KEYS}
     return out
 

@@ -1,7 +1,10 @@
-"""`world` stage: the clean multi-sensor dataset in nuScenes format.
+"""`world` stage: the clean multi-sensor dataset in nuScenes format, handed on by its manifest.
 
 Default: render the synthetic world into ``<paths.data>/world``. With ``world.source: nuscenes`` the stage checks a
-real nuScenes(-mini) dataroot instead (loads every sample's frame once) and reports on it.
+real nuScenes(-mini) dataroot instead (loads every sample's frame once) and reports on it. Either way it writes
+``<paths.data>/manifests/world.json`` (`weatheralign.manifest`): the dataroot, version, sensor models (from params
+for the synthetic world; estimated from the scans, with ``world.sensor_overrides``, for real data) and content
+digest, which every later stage reads. The manifest is removed first and written last, so a failed run leaves none.
 """
 
 from __future__ import annotations
@@ -17,7 +20,9 @@ from flows.common import gather, parse_stage_args, task_runner, threads_per_task
 from tasks.tracking import StageTracker
 from tasks.world import render_sample_task
 from weatheralign.config import Params
-from weatheralign.data.nuscenes import load_frame, open_nuscenes
+from weatheralign.data.nuscenes import load_frame, load_lidar, open_nuscenes
+from weatheralign.manifest import DatasetManifest, dataset_digest, display_path, manifest_path, write_manifest
+from weatheralign.sensors import SensorRig, camera_models, estimate_lidar_model, lidar_model_from_params
 from weatheralign.viz import bev_figure, camera_mosaic
 from weatheralign.world.dataset import finalize, sample_jobs
 
@@ -75,22 +80,46 @@ def write_figures(dataroot: Path, params: Params, tracker: StageTracker) -> None
     tracker.log_artifact(bev, "figures")
 
 
+ESTIMATION_SCANS = 8
+"""Keyframe scans a real dataset's LiDAR model is estimated from (spread over the dataset)."""
+
+
+def dataset_sensors(params: Params, dataroot: Path) -> SensorRig:
+    """The dataset's `SensorRig`: the synthetic LiDAR from ``world.lidar``, or a real LiDAR estimated from
+    `ESTIMATION_SCANS` keyframe scans with ``world.sensor_overrides``; cameras as calibrated in the tables, with the
+    exposure ``world.camera.exposure_s``."""
+    cfg = params.world
+    nusc = open_nuscenes(dataroot, cfg.version)
+    first = load_frame(nusc, nusc.sample[0]["token"])
+    cameras = camera_models(first.cameras, cfg.camera.exposure_s)
+    if cfg.source == "synthetic":
+        return SensorRig(lidar_model_from_params(cfg.lidar), cameras)
+    step = max(1, len(nusc.sample) // ESTIMATION_SCANS)
+    scans = [load_lidar(nusc, s["data"]["LIDAR_TOP"]) for s in nusc.sample[::step][:ESTIMATION_SCANS]]
+    return SensorRig(estimate_lidar_model(scans, overrides=cfg.sensor_overrides.as_dict()), cameras)
+
+
 @flow(name="world", log_prints=True)
 def world_flow(params: Params) -> dict:
     """Build (or check) the clean dataset; returns the metrics written to reports/world/metrics.json."""
+    manifest_file = manifest_path(params.paths.data, "world")
+    manifest_file.unlink(missing_ok=True)
     with StageTracker(params, "world") as tracker:
         tracker.log_params({"world": params.world.model_dump(mode="json")})
         if params.world.source == "synthetic":
             dataroot, summary = _render_synthetic(params)
         else:
             dataroot, summary = _summarise_real(params)
-        try:
-            root_rel = str(dataroot.resolve().relative_to(Path.cwd().resolve()))
-        except ValueError:
-            root_rel = str(dataroot.resolve())
+        root_rel = display_path(dataroot)
         metrics = {"dataroot": root_rel, "version": params.world.version, "source": params.world.source, **summary}
         write_figures(dataroot, params, tracker)
+        nusc = open_nuscenes(dataroot, params.world.version)
+        manifest = DatasetManifest(root_rel, params.world.version, params.world.source,
+                                   dataset_sensors(params, dataroot), dataset_digest(dataroot, params.world.version),
+                                   tuple(s["name"] for s in nusc.scene))
+        tracker.log_params({"sensors": manifest.sensors.to_dict()})
         tracker.finish(metrics)
+        write_manifest(manifest_file, manifest)
     return metrics
 
 

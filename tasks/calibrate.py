@@ -8,16 +8,18 @@ from prefect.cache_policies import NO_CACHE
 
 from weatheralign.calibrate.histograms import IntensityHistograms
 from weatheralign.calibrate.lidar import CellResult, FogFrames, evaluate_cell
-from weatheralign.camera.depth import dense_depth
+from weatheralign.camera.depth import camera_range_map
 from weatheralign.data.stf import CAMERA_CHANNEL
+from weatheralign.lidar.pulse import PulseSensor
 from weatheralign.reference import ReferenceDataset
 
 
 @task(name="ks-grid-cell", cache_policy=NO_CACHE, retries=0)
 def evaluate_cell_task(frames: FogFrames, reference: IntensityHistograms, alpha: float, beta_factor: float,
-                       noise_floor: float | None) -> CellResult:
-    """D_KS of the clear reference scans fogged with one (alpha, beta_factor) cell against one fog level."""
-    return evaluate_cell(frames, reference, alpha, beta_factor, noise_floor=noise_floor)
+                       noise_floor: float | None, sensor: PulseSensor) -> CellResult:
+    """D_KS of the clear reference scans fogged with one (alpha, beta_factor) cell against one fog level, through
+    the reference LiDAR's pulse ``sensor`` and detector floor ``noise_floor`` (0..255)."""
+    return evaluate_cell(frames, reference, alpha, beta_factor, noise_floor=noise_floor, sensor=sensor)
 
 
 def reference_camera(ds: ReferenceDataset, sample_id: str) -> tuple[np.ndarray, np.ndarray]:
@@ -36,7 +38,7 @@ def reference_camera(ds: ReferenceDataset, sample_id: str) -> tuple[np.ndarray, 
         raise DataFormatError(f"reference {ds.root}: frame {sample_id} has no {CAMERA_CHANNEL} image "
                               f"(expected {ds.camera_folder}/{sample_id}.png)")
     image = view.load_image()
-    rng = view.load_range() if view.range_path is not None else dense_depth(frame.lidar, view, image).range
+    rng = camera_range_map(view, frame.lidar, image)
     return image, rng
 
 

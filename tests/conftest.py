@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from weatheralign.config import Params, params_from_dict
+from weatheralign.sensors import LidarModel
 from weatheralign.world.build import SampleResult
 from weatheralign.world.dataset import finalize, render_or_resume, sample_jobs
 
@@ -39,3 +40,21 @@ def tiny_world(tmp_path_factory: pytest.TempPathFactory) -> TinyWorld:
     results = [render_or_resume(spec, k, params.world, dataroot)[0] for spec, k in sample_jobs(params.world)]
     summary = finalize(params.world, dataroot, results)
     return TinyWorld(params, dataroot, results, summary)
+
+
+def make_lidar(**overrides: object) -> "LidarModel":
+    """An HDL-32E-like `LidarModel` for physics tests: 3 mrad divergence, τ_H = 10 ns, 120 m, noise floor 0.5 on
+    0..255, the synthetic world's intensity model and firing grid (1085 columns, per-point columns stored).
+    ``overrides``: any `LidarModel` field; ``pulse_half_width_s`` / ``pulse`` set the pulse; ``max_range_m`` moves the
+    pulse's maximum range too."""
+    from weatheralign.config import LidarConfig
+    from weatheralign.sensors import lidar_model_from_params, with_overrides
+
+    base = lidar_model_from_params(LidarConfig(max_range_m=120.0))
+    pulse = overrides.pop("pulse", None)
+    model = with_overrides(base, dict(overrides))
+    if pulse is not None:
+        from dataclasses import replace
+
+        model = replace(model, pulse=replace(pulse, max_range=model.max_range_m))
+    return model

@@ -44,10 +44,20 @@ from weatheralign.camera.fog import encode_srgb_u8, fog_image
 from weatheralign.data.frame import LidarScan
 from weatheralign.lidar.fog import simulate_fog
 from weatheralign.medium.fog import paper_beta_grid
+from weatheralign.sensors import LidarModel, PulseSensor
+
+from tests.conftest import make_lidar
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 STF_ID = "2019-09-11_19-13-44_00960"
 WORLD = Path(__file__).resolve().parents[1] / "data" / "world"
+SENSOR = PulseSensor()
+"""The pulse sensor of the calibration tests: the fog model's (τ_H = 20 ns, 120 m, saturating at 255)."""
+
+
+def _lidar(noise_floor: float) -> LidarModel:
+    """A `LidarModel` with the pulse ``SENSOR`` and the detector ``noise_floor`` (0..255), for `simulate_fog`."""
+    return make_lidar(pulse=SENSOR, noise_floor=noise_floor)
 
 
 # ------------------------------------------------------------------------------------------------ histograms
@@ -175,7 +185,7 @@ def _foggy_reference(scans: list[LidarScan], alpha: float, factor: float) -> Int
     """The 'real' fog: simulate_fog with range noise, a different seed per frame."""
     beta = beta_from_factor(alpha, factor)
     return IntensityHistograms.from_scans(
-        simulate_fog(s, alpha, beta, noise_floor=0.5, range_noise=0.5, rng=1000 + k).apply_to(s)
+        simulate_fog(s, alpha, beta, lidar=_lidar(0.5), range_noise=0.5, rng=1000 + k).apply_to(s)
         for k, s in enumerate(scans))
 
 
@@ -184,12 +194,12 @@ def test_simulated_histograms_equal_binned_simulate_fog_with_beam_origins():
     frames = fog_frames(scans)
     assert frames.num_frames == 3 and frames.num_points == 15_000
     for alpha, beta in [(0.02, 1e-4), (0.08, 1.2e-3), (0.005, 2e-5)]:
-        fast = simulated_histograms(frames, alpha, beta, noise_floor=0.5)
+        fast = simulated_histograms(frames, alpha, beta, noise_floor=0.5, sensor=SENSOR)
         full = IntensityHistograms.from_scans(
-            simulate_fog(s, alpha, beta, noise_floor=0.5, range_noise=1.0, rng=k).apply_to(s)
+            simulate_fog(s, alpha, beta, lidar=_lidar(0.5), range_noise=1.0, rng=k).apply_to(s)
             for k, s in enumerate(scans))
         assert fast == full  # the fog's randomness never changes an intensity
-    lost = simulated_histograms(frames, 0.1, 0.0, noise_floor=5.0)
+    lost = simulated_histograms(frames, 0.1, 0.0, noise_floor=5.0, sensor=SENSOR)
     assert lost.num_points < frames.num_points  # LOST returns leave the histogram
     assert beta_from_factor(0.04, 2.0) == pytest.approx(paper_beta_grid(0.04)[-1], rel=1e-12)
 
@@ -219,7 +229,7 @@ def clear_synthetic():
 def test_search_recovers_a_hidden_off_grid_medium(clear_synthetic, alpha, factor):
     reference = _foggy_reference([_synthetic_scan(500 + s) for s in range(16)], alpha, factor)
     t0 = time.perf_counter()
-    res = calibrate_level(clear_synthetic, reference, noise_floor=0.5, num_bootstrap=200)
+    res = calibrate_level(clear_synthetic, reference, noise_floor=0.5, sensor=SENSOR, num_bootstrap=200)
     elapsed = time.perf_counter() - t0
     i = int(np.searchsorted(PAPER_ALPHAS, alpha))  # grid neighbours PAPER_ALPHAS[i - 1] < alpha < PAPER_ALPHAS[i]
     assert PAPER_ALPHAS[i - 1] <= res.grid.best_alpha <= PAPER_ALPHAS[i]  # grid: within one grid step
@@ -255,19 +265,19 @@ def test_search_on_real_stf_scans():
 
     clear = fog_frames(variant(s) for s in range(8))
     reference = _foggy_reference([variant(100 + s) for s in range(8)], 0.03, 1.5)
-    res = calibrate_level(clear, reference, noise_floor=0.5, num_bootstrap=200)
+    res = calibrate_level(clear, reference, noise_floor=0.5, sensor=SENSOR, num_bootstrap=200)
     assert 0.02 <= res.grid.best_alpha <= 0.04
     assert res.alpha == pytest.approx(0.03, rel=0.1)
     assert res.ks <= 0.02
-    cell = evaluate_cell(clear, reference, 0.03, 1.5, noise_floor=0.5)
+    cell = evaluate_cell(clear, reference, 0.03, 1.5, noise_floor=0.5, sensor=SENSOR)
     assert cell.ks < res.grid.best_ks
 
 
 def test_one_cell_is_fast():
     frames = fog_frames([_synthetic_scan(s, 110_000) for s in range(4)])
-    simulated_histograms(frames, 0.04, 1e-4, noise_floor=0.5)  # numba compile / cache load
+    simulated_histograms(frames, 0.04, 1e-4, noise_floor=0.5, sensor=SENSOR)  # numba compile / cache load
     t0 = time.perf_counter()
-    simulated_histograms(frames, 0.04, 1e-4, noise_floor=0.5)
+    simulated_histograms(frames, 0.04, 1e-4, noise_floor=0.5, sensor=SENSOR)
     per_point = (time.perf_counter() - t0) / frames.num_points
     assert per_point * 30 * 110_000 < 1.0  # one grid cell on 30 STF-sized scans well under a second
     print(f"one cell: {per_point * 30 * 110_000:.3f} s for 30 x 110k points")
@@ -278,7 +288,8 @@ def test_figures(tmp_path, clear_synthetic):
 
     reference = _foggy_reference([_synthetic_scan(700 + s) for s in range(6)], 0.03, 1.4)
     frames = fog_frames([_synthetic_scan(s) for s in range(6)])
-    res = calibrate_level(frames, reference, noise_floor=0.5, num_bootstrap=50, max_nelder_mead=0, fine_points=3)
+    res = calibrate_level(frames, reference, noise_floor=0.5, sensor=SENSOR, num_bootstrap=50, max_nelder_mead=0,
+                          fine_points=3)
     fig = level_ecdf_figure(res, reference, level="dense", num_resamples=50)
     fig.savefig(tmp_path / "ecdf.png")
     heat = ks_heatmap(res.grid, level="dense", refined=(res.alpha, res.beta_factor))
@@ -449,13 +460,11 @@ def _kid_slow(x: np.ndarray, y: np.ndarray) -> float:
 
 
 def test_kid_estimator_against_double_loop_and_its_properties():
-    import torch
-
     from weatheralign.calibrate.kid import kid_from_features, mmd2_unbiased
 
     rng = np.random.default_rng(4)
     x, y = rng.normal(size=(7, 5)), rng.normal(0.3, 1.2, size=(9, 5))
-    assert mmd2_unbiased(torch.from_numpy(x), torch.from_numpy(y)) == pytest.approx(_kid_slow(x, y), rel=1e-12)
+    assert mmd2_unbiased(x, y) == pytest.approx(_kid_slow(x, y), rel=1e-12)
     # with subset size = n = m every subset is the whole set: the mean is the exact estimator
     one = kid_from_features(x, y[:7], backbone="test", num_subsets=3)
     assert one.mean == pytest.approx(_kid_slow(x, y[:7]), rel=1e-12) and one.std == pytest.approx(0.0, abs=1e-12)
@@ -502,15 +511,34 @@ def test_efficientnet_features_are_pretrained_deterministic_and_pooled(efficient
     print(f"efficientnet_lite0 features: {per_image * 1000:.0f} ms per 480x270 image")
 
 
+def test_efficientnet_preprocessing_is_pil_bilinear_and_tf_normalisation(efficientnet):
+    from PIL import Image
+
+    g = np.random.default_rng(2)
+    for shape in [(270, 480, 3), (375, 1242, 3), (100, 150, 3), (224, 224, 3)]:
+        img = g.integers(0, 256, shape, dtype=np.uint8)
+        x = efficientnet.preprocess([img, img[::-1]])
+        assert x.shape == (2, 3, 224, 224) and x.dtype.is_floating_point
+        # PIL's antialiased bilinear resize of the [0, 1] image (per channel, float), then (255 v - 127) / 128
+        ref = np.stack([np.asarray(Image.fromarray(img[..., c].astype(np.float32) / 255.0).resize(
+            (224, 224), Image.BILINEAR)) for c in range(3)])
+        np.testing.assert_allclose(x[0].numpy(), (255.0 * ref - 127.0) / 128.0, atol=255 / 128 * 3e-5, rtol=0)
+        assert not np.allclose(x[1].numpy(), x[0].numpy(), atol=0.1)  # each image its own tensor
+    assert float(efficientnet.preprocess([np.zeros((5, 7, 3), np.uint8)]).max()) == pytest.approx(-127 / 128)
+    assert float(efficientnet.preprocess([np.full((5, 7, 3), 255, np.uint8)]).min()) == pytest.approx(1.0)
+    with pytest.raises(ValueError, match="uint8 RGB"):
+        efficientnet.preprocess([np.zeros((5, 7), np.uint8)])
+
+
 def test_kid_of_images_named_after_backbone(efficientnet, streets):
-    from weatheralign.calibrate.kid import kernel_inception_distance
+    from weatheralign.calibrate.kid import kid_from_features
 
     imgs = [i for i, _ in streets]
     ranges = [r for _, r in streets]
-    light = [fog_image(i, r, 0.01, AIRLIGHT) for i, r in zip(imgs, ranges)]
-    dense = [fog_image(i, r, 0.08, AIRLIGHT) for i, r in zip(imgs, ranges)]
-    near = kernel_inception_distance(light[:4], light[4:], efficientnet, num_subsets=20)
-    far = kernel_inception_distance(light[:4], dense[4:], efficientnet, num_subsets=20)
+    light = efficientnet([fog_image(i, r, 0.01, AIRLIGHT) for i, r in zip(imgs, ranges)])
+    dense = efficientnet([fog_image(i, r, 0.08, AIRLIGHT) for i, r in zip(imgs, ranges)])
+    near = kid_from_features(light[:4], light[4:], backbone=efficientnet.backbone, num_subsets=20)
+    far = kid_from_features(light[:4], dense[4:], backbone=efficientnet.backbone, num_subsets=20)
     assert near.backbone == far.backbone == "efficientnet_lite0" and near.num_features == 1280
     assert far.mean > near.mean
 
@@ -519,7 +547,7 @@ def test_kid_of_images_named_after_backbone(efficientnet, streets):
 def test_torchscript_feature_option(tmp_path):
     import torch
 
-    from weatheralign.calibrate.kid import TorchScriptFeatures, feature_extractor, kernel_inception_distance
+    from weatheralign.calibrate.kid import TorchScriptFeatures, feature_extractor, kid_from_features
 
     class Dummy(torch.nn.Module):
         def forward(self, x: torch.Tensor, return_features: bool = False) -> torch.Tensor:
@@ -537,7 +565,7 @@ def test_torchscript_feature_option(tmp_path):
     bright = [g.integers(150, 256, (40, 60, 3), dtype=np.uint8) for _ in range(6)]
     feats = ext(dark)
     assert feats.shape == (6, 9)
-    res = kernel_inception_distance(dark, bright, ext, num_subsets=5)
+    res = kid_from_features(feats, ext(bright), backbone=ext.backbone, num_subsets=5)
     assert res.num_features == 9 and res.mean > 0 and res.backbone == ext.backbone
     with pytest.raises(FileNotFoundError):
         TorchScriptFeatures(tmp_path / "missing.pt")

@@ -3,8 +3,10 @@
 The tree holds the real HDL-64 scan and stereo-left image as the clear split, and light / dense splits made from them
 with known fog (`simulate_fog` on the scan, intensities rounded like a real sensor's; `fog_image` on the image with
 dense depth from the scan). The flow reads it through ``reference.source: stf`` and must recover each level's
-extinction within one step of the paper's grid, write ``fog_levels.json`` and the metrics. Skips without
-``../shared``.
+extinction within one step of the paper's grid, write ``fog_levels.json`` and the metrics. The fog is made and
+calibrated through the same LiDAR: the flow estimates the reference's sensor from the clear scans
+(`weatheralign.reference.reference_lidar_model`); the facts the fog was made with (detector floor 1.0, the fog model's
+τ_H = 20 ns pulse) are given to it as ``reference.sensor_overrides``. Skips without ``../shared``.
 """
 
 from __future__ import annotations
@@ -25,12 +27,15 @@ from weatheralign.camera.fog import estimate_airlight, fog_image
 from weatheralign.data.stf import load_stf_frame
 from weatheralign.lidar.fog import simulate_fog
 from weatheralign.medium.fog import mor_from_alpha
+from weatheralign.sensors import PulseSensor
 
-from .conftest import REPO
+from .conftest import REPO, make_lidar
 
 STF = REPO.parent / "shared" / "data" / "real" / "stf"
 STF_ID = "2019-09-11_19-13-44_00960"
 LEVELS = {"light": 0.012, "dense": 0.05}  # hidden extinctions [1/m], off the grid
+NOISE_FLOOR = 1.0  # detector floor of the fogged scans (0..255)
+PULSE = PulseSensor()  # the fog model's pulse: τ_H = 20 ns
 
 
 def _stf_tree(root: Path) -> Path:
@@ -50,7 +55,8 @@ def _stf_tree(root: Path) -> Path:
             scan, img = frame.lidar.points, image
             if level != "clear":
                 alpha = LEVELS[level]
-                fogged = simulate_fog(frame.lidar, alpha, 0.023 * 1.5 / mor_from_alpha(alpha), noise_floor=1.0,
+                lidar = make_lidar(pulse=PULSE, noise_floor=NOISE_FLOOR)
+                fogged = simulate_fog(frame.lidar, alpha, 0.023 * 1.5 / mor_from_alpha(alpha), lidar=lidar,
                                       rng=100 * k + len(level)).apply_to(frame.lidar).points.copy()
                 fogged[:, 3] = np.rint(fogged[:, 3])
                 scan = fogged[fogged[:, 3] >= 1.0]
@@ -74,7 +80,8 @@ def test_calibrate_fog_flow_on_an_stf_layout_tree(tmp_path: Path) -> None:
         [sys.executable, "-m", "flows.calibrate_fog", "--set", "reference.source=stf", "--set",
          f"reference.stf_root={root}", "--set", f"paths.data={data}", "--set", f"paths.reports={reports}",
          "--set", "tracking.enabled=false", "--set", "run.show_progress=false", "--set",
-         "calibrate_fog.num_bootstrap=100", "--set", "simulate.noise_floor=1.0"],
+         "calibrate_fog.num_bootstrap=100", "--set", f"reference.sensor_overrides.noise_floor={NOISE_FLOOR}",
+         "--set", f"reference.sensor_overrides.pulse_half_width_s={PULSE.tau_h}"],
         cwd=REPO, capture_output=True, text=True, timeout=600,
         env={**os.environ, "PYTHONPATH": str(REPO), "PREFECT_LOGGING_LEVEL": "WARNING"})
     assert run.returncode == 0, run.stderr[-3000:]

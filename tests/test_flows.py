@@ -63,6 +63,10 @@ def test_world_flow_thread_pool_and_dask_with_mlflow(tmp_path, prefect_server):
     assert (tmp_path / "reports" / "world" / "sample_cameras.jpg").stat().st_size > 20_000
     tables = sorted(p.name for p in (tmp_path / "data" / "world" / "v1.0-mini").glob("*.json"))
     assert len(tables) == 14  # 13 nuScenes tables + splits.json
+    manifest = json.loads((tmp_path / "data" / "manifests" / "world.json").read_text())
+    assert manifest["dataroot"] == "data/world" and manifest["scenes"] == ["scene-0061", "scene-0103"]
+    assert manifest["sensors"]["lidar"]["columns_per_ring"] == 1085 and len(manifest["sensors"]["cameras"]) == 6
+    assert "samples_rendered_this_run" not in json.dumps(manifest)  # no run-time counters in the handoff
 
     # the particles stage on the world just written
     run = _run_world(tmp_path, ["--set", "particles.validation_regions=2"], env, stage="particles")
@@ -112,6 +116,17 @@ def test_real_nuscenes_dataroot_is_checked_in_place(tiny_world):
     assert root == tiny_world.dataroot
     for key in ("num_scenes", "num_samples", "num_sweeps", "num_annotations", "class_counts"):
         assert summary[key] == tiny_world.summary[key]
+    # its sensors are estimated from the scans (no params describe a real LiDAR) and agree with the truth
+    from flows.world import dataset_sensors
+    from weatheralign.sensors import lidar_model_from_params
+
+    rig = dataset_sensors(params, root)
+    truth = lidar_model_from_params(tiny_world.params.world.lidar)
+    assert rig.lidar.origin == "estimated" and rig.lidar.num_rings == 32 and not rig.lidar.firing_columns_stored
+    assert abs(rig.lidar.columns_per_ring - truth.columns_per_ring) <= 11 and len(rig.cameras) == 6
+    over = dataset_sensors(params_from_dict({"world": {**params.world.model_dump(mode="json"),
+                                                       "sensor_overrides": {"divergence_rad": 0.002}}}), root)
+    assert over.lidar.divergence_rad == 0.002
     assert sorted(p.stat().st_mtime_ns for p in tiny_world.dataroot.rglob("*") if p.is_file()) == before
 
 

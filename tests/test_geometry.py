@@ -28,6 +28,24 @@ def test_invert_and_apply():
     T = make_transform(yaw_matrix(1.1), np.array([3.0, -2.0, 0.5]))
     p = np.random.default_rng(1).normal(size=(10, 3))
     assert np.allclose(apply(invert(T), apply(T, p)), p)
+    assert np.array_equal(apply(T, p), p @ T[:3, :3].T + T[:3, 3])  # the inline form it replaces, bit for bit
+
+
+def test_invert_is_the_closed_form_rigid_inverse():
+    rng = np.random.default_rng(7)
+    for _ in range(20):
+        q = rng.normal(size=4)
+        T = transform_from_quaternion(q / np.linalg.norm(q), rng.normal(scale=500.0, size=3))
+        Ti = invert(T)
+        R, t = T[:3, :3], T[:3, 3]
+        assert np.array_equal(Ti[:3, :3], R.T) and np.array_equal(Ti[:3, 3], -R.T @ t)
+        assert np.array_equal(Ti[3], [0.0, 0.0, 0.0, 1.0])
+        np.testing.assert_allclose(Ti @ T, np.eye(4), atol=1e-12)
+        np.testing.assert_allclose(T @ Ti, np.eye(4), atol=1e-12)
+        np.testing.assert_allclose(Ti, np.linalg.inv(T), rtol=0, atol=1e-12)
+    # not a general inverse: a scaled matrix is not inverted (callers use np.linalg.inv for non-rigid matrices)
+    S = np.diag([2.0, 2.0, 2.0, 1.0])
+    assert not np.allclose(invert(S) @ S, np.eye(4))
 
 
 @pytest.mark.parametrize("bad, match", [

@@ -20,27 +20,39 @@ from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 
 from weatheralign.data.frame import LidarScan
-from weatheralign.lidar import FogLabel, PulseSensor, c_a_p0_from_intensity, hard_target_power, overlap
+from weatheralign.lidar import FogLabel, c_a_p0_from_intensity, hard_target_power, overlap
+from weatheralign.lidar.beams import beam_origins
 from weatheralign.lidar.fog import (
     REFERENCE_CODE_BETA,
-    beam_origins_fast,
     fog_intensities,
     fog_point_arrays,
     simulate_fog,
     soft_target_response,
 )
 from weatheralign.medium.fog import default_beta, mor_from_alpha
-from weatheralign.lidar.pulse import SPEED_OF_LIGHT
+from weatheralign.sensors import SPEED_OF_LIGHT, LidarModel, PulseSensor
+
+from tests.conftest import make_lidar
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 STF_ID = "2019-09-11_19-13-44_00960"
 SENSOR = PulseSensor()
+"""The fog model's sensor (Hahner 2021): τ_H = 20 ns, ξ from 0.9 m to 1.0 m, Γ = 1e-6, 120 m, saturating at 255."""
 
 # physics.md: fog wins for R_0 >~ these ranges [m] (published code, whose β stays 9.21e-4 whatever α)
 PUBLISHED_CROSSOVER = {0.005: 138.0, 0.01: 101.0, 0.02: 70.0, 0.03: 55.0, 0.06: 36.0}
 
 
 # ---------------------------------------------------------------------------------------------------- references
+
+
+def _lidar(noise_floor: float = 0.0, sensor: PulseSensor = SENSOR) -> LidarModel:
+    """A `LidarModel` with the fog model's pulse ``sensor`` and detector ``noise_floor`` (0..255; 0 keeps every
+    return, like ``noise_floor=None`` of the array functions, since intensities are >= 0)."""
+    return make_lidar(pulse=sensor, max_range_m=sensor.max_range, noise_floor=noise_floor)
+
+
+FOG_LIDAR = _lidar()
 
 
 def _naive_response(r0: float, alpha: float, sensor: PulseSensor = SENSOR, dr: float = 0.005,
@@ -129,19 +141,19 @@ def _check_sane(scan: LidarScan, res, sensor: PulseSensor = SENSOR, origins: np.
 
 
 def test_overlap_and_hard_target_closed_form() -> None:
-    np.testing.assert_allclose(overlap([0.0, 0.9, 0.95, 1.0, 5.0]), [0.0, 0.0, 0.5, 1.0, 1.0])
+    np.testing.assert_allclose(overlap([0.0, 0.9, 0.95, 1.0, 5.0], SENSOR), [0.0, 0.0, 0.5, 1.0, 1.0])
     r0, L = 20.0, SENSOR.pulse_length
     assert L == pytest.approx(5.99584916)
     r = np.linspace(r0 - 1, r0 + L + 1, 20001)
-    p = hard_target_power(r, r0, alpha=0.03, beta_ratio=0.5)
+    p = hard_target_power(r, r0, SENSOR, alpha=0.03, beta_ratio=0.5)
     assert p[(r < r0) | (r > r0 + L)].max() == 0.0
     j = int(np.argmax(p))
     assert r[j] == pytest.approx(r0 + L / 2, abs=1e-3)
     assert p[j] == pytest.approx(SENSOR.beta_0 * 0.5 / r0**2 * math.exp(-0.06 * r0), rel=1e-9)
     # the recovered system constant turns the clear peak back into the measured intensity
     i0 = np.array([7.0, 200.0])
-    c_a_p0 = c_a_p0_from_intensity(i0, [5.0, 80.0])
-    peak = hard_target_power([5.0 + L / 2, 80.0 + L / 2], [5.0, 80.0], c_a_p0=c_a_p0)
+    c_a_p0 = c_a_p0_from_intensity(i0, [5.0, 80.0], SENSOR)
+    peak = hard_target_power([5.0 + L / 2, 80.0 + L / 2], [5.0, 80.0], SENSOR, c_a_p0=c_a_p0)
     np.testing.assert_allclose(peak, i0, rtol=1e-12)
     # half-power width: sin² is above 1/2 for exactly τ_H of the 2τ_H pulse
     above = r[p > p[j] / 2]
@@ -161,7 +173,7 @@ def test_pulse_sensor_validation() -> None:
 
 @pytest.mark.parametrize("alpha", [0.005, 0.023, 0.06, 0.137])  # 0.023, 0.137: on no published table
 def test_fast_response_matches_naive_integral(alpha: float) -> None:
-    resp = soft_target_response(alpha)
+    resp = soft_target_response(alpha, SENSOR)
     r0s = [0.5, 0.95, 1.5, 3.0, 4.2, 4.65, 6.0, 12.0, 50.0] + ([200.0] if alpha in (0.005, 0.137) else [])
     fast_i, fast_r = resp(np.array(r0s))
     for r0, fi, fr in zip(r0s, fast_i, fast_r):
@@ -172,7 +184,7 @@ def test_fast_response_matches_naive_integral(alpha: float) -> None:
     # the fused kernel used on point clouds evaluates the same I(R_0) as the table
     r0 = np.array(r0s)
     beta = 0.05 / r0.max() ** 2  # keeps i_soft below saturation
-    got = fog_intensities(r0, np.full(len(r0), 100.0, np.float32), alpha, beta)
+    got = fog_intensities(r0, np.full(len(r0), 100.0, np.float32), alpha, beta, sensor=SENSOR, noise_floor=None)
     soft = fast_i * 100.0 * r0**2 * beta / SENSOR.beta_0
     hard = np.exp(-2 * alpha * r0) * 100.0
     assert soft.max() < 255.0
@@ -184,14 +196,14 @@ def test_fast_response_matches_naive_integral(alpha: float) -> None:
 def test_response_is_continuous_in_alpha() -> None:
     """Any α works and nothing is snapped: I and R* move smoothly between (and beyond) the published alphas."""
     alphas = np.linspace(0.0, 0.3, 61)
-    peaks = np.array([soft_target_response(a).g_peak for a in alphas])
-    r_peaks = np.array([soft_target_response(a).r_peak for a in alphas])
+    peaks = np.array([soft_target_response(a, SENSOR).g_peak for a in alphas])
+    r_peaks = np.array([soft_target_response(a, SENSOR).r_peak for a in alphas])
     assert (np.diff(peaks) < 0).all() and (np.diff(r_peaks) < 0).all()
     assert np.abs(np.diff(peaks, 2)).max() < 1e-3 * peaks[0]
 
 
 def test_alpha_006_fog_peak_saturates_near_4_6_m() -> None:
-    resp = soft_target_response(0.06)
+    resp = soft_target_response(0.06, SENSOR)
     assert 4.55 <= resp.r_peak <= 4.7
     r0 = np.array([4.7, 5.0, 8.0, 36.0, 100.0, 200.0, 1000.0])
     value, r_fog = resp(r0)
@@ -211,7 +223,8 @@ def test_alpha_006_fog_peak_saturates_near_4_6_m() -> None:
 def test_published_crossover_ranges(alpha: float) -> None:
     """The published figures come from the published code, i.e. β = 9.21e-4 for every α (its trap)."""
     r0 = np.arange(0.5, 300.0, 0.01)
-    res = fog_intensities(r0, np.full(len(r0), 100.0, np.float32), alpha, REFERENCE_CODE_BETA)
+    res = fog_intensities(r0, np.full(len(r0), 100.0, np.float32), alpha, REFERENCE_CODE_BETA, sensor=SENSOR,
+                          noise_floor=None)
     cross = _crossover(alpha, REFERENCE_CODE_BETA, r0, res.labels)
     assert abs(cross - PUBLISHED_CROSSOVER[alpha]) <= 0.75, cross
     # independent of the fast table: the naive saturated response solves G* R² β / β_0 = exp(-2 α R)
@@ -219,7 +232,8 @@ def test_published_crossover_ranges(alpha: float) -> None:
     gap = lambda r: g_star * r * r * REFERENCE_CODE_BETA / SENSOR.beta_0 - math.exp(-2.0 * alpha * r)  # noqa: E731
     assert brentq(gap, 10.0, 400.0) == pytest.approx(cross, abs=0.05)
     # the crossover does not depend on the intensity (below saturation)
-    res_dim = fog_intensities(r0, np.full(len(r0), 3.0, np.float32), alpha, REFERENCE_CODE_BETA)
+    res_dim = fog_intensities(r0, np.full(len(r0), 3.0, np.float32), alpha, REFERENCE_CODE_BETA, sensor=SENSOR,
+                              noise_floor=None)
     assert _crossover(alpha, REFERENCE_CODE_BETA, r0, res_dim.labels) == cross
 
 
@@ -232,14 +246,16 @@ def test_beta_follows_the_caller() -> None:
     for alpha, want in expected.items():
         beta = default_beta(alpha)
         assert beta == pytest.approx(0.046 / mor_from_alpha(alpha))
-        cross = _crossover(alpha, beta, r0, fog_intensities(r0, i0, alpha, beta).labels)
+        labels = fog_intensities(r0, i0, alpha, beta, sensor=SENSOR, noise_floor=None).labels
+        cross = _crossover(alpha, beta, r0, labels)
         assert cross == pytest.approx(want, abs=0.3)
         if alpha < 0.06:
             assert cross > PUBLISHED_CROSSOVER[alpha] + 5
     scan = _scan(seed=3)
-    fog_counts = [simulate_fog(scan, 0.03, b).counts["SCATTERED"] for b in (0.5e-4, 2e-4, 8e-4, 3.2e-3)]
+    fog_counts = [simulate_fog(scan, 0.03, b, lidar=FOG_LIDAR).counts["SCATTERED"]
+                  for b in (0.5e-4, 2e-4, 8e-4, 3.2e-3)]
     assert fog_counts == sorted(fog_counts) and fog_counts[0] < fog_counts[-1]
-    lo, hi = (simulate_fog(scan, 0.03, b) for b in (1e-4, 2e-4))
+    lo, hi = (simulate_fog(scan, 0.03, b, lidar=FOG_LIDAR) for b in (1e-4, 2e-4))
     both = (lo.labels == FogLabel.SCATTERED) & (hi.labels == FogLabel.SCATTERED) & (hi.points[:, 3] < 255)
     np.testing.assert_allclose(hi.points[both, 3], 2 * lo.points[both, 3], rtol=1e-6)  # i_soft ∝ β
 
@@ -253,7 +269,7 @@ def test_alpha_zero_gives_the_input_back_exactly(moving: bool, intensity_max: fl
     scan = _scan(intensity_max=intensity_max, moving=moving)
     before = scan.points.copy()
     for alpha, beta in ((0.0, 0.0), (0.0, default_beta(0.0)), (1e-12, default_beta(1e-12))):
-        res = simulate_fog(scan, alpha, beta, noise_floor=10.0, range_noise=5.0, rng=0)
+        res = simulate_fog(scan, alpha, beta, lidar=_lidar(10.0), range_noise=5.0, rng=0)
         assert res.points.tobytes() == scan.points.tobytes()
         assert (res.labels == FogLabel.UNCHANGED).all()
         np.testing.assert_array_equal(res.source_index, np.arange(len(scan.points)))
@@ -262,7 +278,7 @@ def test_alpha_zero_gives_the_input_back_exactly(moving: bool, intensity_max: fl
 
 def test_labels_and_attenuation() -> None:
     scan = _scan(seed=1)
-    res = simulate_fog(scan, 0.06, default_beta(0.06))
+    res = simulate_fog(scan, 0.06, default_beta(0.06), lidar=FOG_LIDAR)
     _check_sane(scan, res)
     src = scan.points
     r0 = np.linalg.norm(src[:, :3].astype(np.float64), axis=1)
@@ -272,7 +288,7 @@ def test_labels_and_attenuation() -> None:
     assert (res.labels[zero] == FogLabel.UNCHANGED).all()
     fog = res.labels == FogLabel.SCATTERED
     assert fog.sum() > 0 and (r0[fog] > 30).all() and (r0[~fog & ~zero & (r0 > 40)].size == 0)
-    np.testing.assert_allclose(np.linalg.norm(res.points[fog, :3], axis=1), soft_target_response(0.06).r_peak,
+    np.testing.assert_allclose(np.linalg.norm(res.points[fog, :3], axis=1), soft_target_response(0.06, SENSOR).r_peak,
                                rtol=1e-5)
     assert (res.points[fog, 3] > np.exp(-0.12 * r0[fog]) * src[fog, 3]).all()
 
@@ -282,7 +298,7 @@ def test_intensity_scale_0_1_behaves_like_0_255() -> None:
     pts1 = scan255.points.copy()
     pts1[:, 3] /= np.float32(255.0)
     scan1 = replace(scan255, points=pts1, intensity_max=1.0)
-    for kwargs in ({}, {"noise_floor": 40.0}, {"range_noise": 2.0, "rng": 5}):
+    for kwargs in ({"lidar": FOG_LIDAR}, {"lidar": _lidar(40.0)}, {"lidar": FOG_LIDAR, "range_noise": 2.0, "rng": 5}):
         a = simulate_fog(scan255, 0.1, default_beta(0.1), **kwargs)
         b = simulate_fog(scan1, 0.1, default_beta(0.1), **kwargs)
         assert b.intensity_max == 1.0 and a.intensity_max == 255.0
@@ -292,36 +308,37 @@ def test_intensity_scale_0_1_behaves_like_0_255() -> None:
         assert a.counts["SCATTERED"] > 0
         assert b.points[:, 3].max() <= 1.0
     # the sensor saturation applies on the input's scale: 255 on 0..255, 1 on 0..1
-    sat = fog_intensities([150.0], [255.0], 0.3, 1.0).intensity[0], fog_intensities(
-        [150.0], [1.0], 0.3, 1.0, intensity_max=1.0).intensity[0]
+    sat = fog_intensities([150.0], [255.0], 0.3, 1.0, sensor=SENSOR, noise_floor=None).intensity[0], fog_intensities(
+        [150.0], [1.0], 0.3, 1.0, sensor=SENSOR, noise_floor=None, intensity_max=1.0).intensity[0]
     assert sat == (255.0, 1.0)
 
 
 def test_range_noise_is_bounded_and_seeded() -> None:
     scan = _scan(n=20000, seed=4, moving=True)
-    origins = beam_origins_fast(scan)
+    origins = beam_origins(scan, "scan")
     sensor = PulseSensor(max_range=60.0)
-    res = simulate_fog(scan, 0.1, default_beta(0.1), sensor=sensor, range_noise=1000.0, rng=np.random.default_rng(7))
+    lidar = _lidar(sensor=sensor)
+    res = simulate_fog(scan, 0.1, default_beta(0.1), lidar=lidar, range_noise=1000.0, rng=np.random.default_rng(7))
     _check_sane(scan, res, sensor, origins)
     fog = res.labels == FogLabel.SCATTERED
     r_out = np.linalg.norm(res.points[fog, :3].astype(np.float64) - origins[fog], axis=1)
     assert r_out.min() < 5.0 and r_out.max() > 40.0  # the jitter really spans the allowed interval
-    again = simulate_fog(scan, 0.1, default_beta(0.1), sensor=sensor, range_noise=1000.0, rng=7)
+    again = simulate_fog(scan, 0.1, default_beta(0.1), lidar=lidar, range_noise=1000.0, rng=7)
     assert again.points.tobytes() == res.points.tobytes()
-    other = simulate_fog(scan, 0.1, default_beta(0.1), sensor=sensor, range_noise=1000.0, rng=8)
+    other = simulate_fog(scan, 0.1, default_beta(0.1), lidar=lidar, range_noise=1000.0, rng=8)
     assert other.points.tobytes() != res.points.tobytes()
     with pytest.raises(ValueError, match="rng"):
-        simulate_fog(scan, 0.1, default_beta(0.1), range_noise=1.0)
+        simulate_fog(scan, 0.1, default_beta(0.1), lidar=lidar, range_noise=1.0)
     with pytest.raises(ValueError):
-        simulate_fog(scan, -0.1, 0.0)
+        simulate_fog(scan, -0.1, 0.0, lidar=lidar)
     with pytest.raises(ValueError):
-        simulate_fog(scan, 0.1, float("nan"))
+        simulate_fog(scan, 0.1, float("nan"), lidar=lidar)
 
 
 def test_noise_floor_drops_undetectable_returns() -> None:
     scan = _scan(n=20000, seed=5)
-    full = simulate_fog(scan, 0.06, default_beta(0.06))
-    floored = simulate_fog(scan, 0.06, default_beta(0.06), noise_floor=20.0)
+    full = simulate_fog(scan, 0.06, default_beta(0.06), lidar=FOG_LIDAR)
+    floored = simulate_fog(scan, 0.06, default_beta(0.06), lidar=_lidar(20.0))
     _check_sane(scan, floored)
     lost = floored.input_labels == FogLabel.LOST
     assert lost.sum() == floored.counts["LOST"] > 0
@@ -333,22 +350,52 @@ def test_noise_floor_drops_undetectable_returns() -> None:
     weak = floored.points[:, 3] < 20.0  # only kept below the floor when the clear return was at least as weak
     assert (floored.points[weak, 3] >= i0[kept][weak]).all()
     assert np.array_equal(floored.points, full.points[kept])
-    assert simulate_fog(scan, 0.06, default_beta(0.06), noise_floor=0.0).counts["LOST"] == 0
+    assert full.counts["LOST"] == 0  # a floor of 0 drops nothing ...
+    no_floor = fog_point_arrays(scan.points, None, 0.06, default_beta(0.06), sensor=SENSOR, noise_floor=None)
+    assert no_floor.points.tobytes() == full.points.tobytes()  # ... exactly like no floor at all
+
+
+def test_simulate_fog_takes_pulse_and_floor_from_the_explicit_lidar_model() -> None:
+    """No default sensor: the pulse (τ_H moves the fog peak) and the detector floor come from the `LidarModel`."""
+    scan = _scan(n=20000, seed=5)
+    with pytest.raises(TypeError, match="lidar"):
+        simulate_fog(scan, 0.06, default_beta(0.06))  # type: ignore[call-arg]
+    with pytest.raises(TypeError, match="sensor"):
+        soft_target_response(0.06)  # type: ignore[call-arg]
+    with pytest.raises(TypeError, match="sensor"):
+        fog_intensities([10.0], [100.0], 0.06, 1e-3, noise_floor=None)  # type: ignore[call-arg]
+    with pytest.raises(TypeError, match="noise_floor"):
+        fog_point_arrays(scan.points, None, 0.06, 1e-3, sensor=SENSOR)  # type: ignore[call-arg]
+    short = PulseSensor(tau_h=10e-9)
+    peaks = {}
+    for sensor in (SENSOR, short):
+        res = simulate_fog(scan, 0.06, default_beta(0.06), lidar=_lidar(sensor=sensor))
+        fog = res.labels == FogLabel.SCATTERED
+        peaks[sensor.tau_h] = soft_target_response(0.06, sensor).r_peak
+        assert fog.sum() > 0
+        np.testing.assert_allclose(np.linalg.norm(res.points[fog, :3], axis=1), peaks[sensor.tau_h], rtol=1e-5)
+        same = fog_point_arrays(scan.points, None, 0.06, default_beta(0.06), sensor=sensor, noise_floor=None)
+        assert same.points.tobytes() == res.points.tobytes()
+    assert abs(peaks[10e-9] - peaks[20e-9]) > 0.5  # the pulse really is the model's
+    floored = simulate_fog(scan, 0.06, default_beta(0.06), lidar=_lidar(20.0))
+    assert floored.counts["LOST"] > 0
+    same = fog_point_arrays(scan.points, None, 0.06, default_beta(0.06), sensor=SENSOR, noise_floor=20.0)
+    assert same.points.tobytes() == floored.points.tobytes()
 
 
 def test_beam_origins_and_moving_ego() -> None:
     scan = _scan(n=5000, seed=6, moving=True)
-    fast = beam_origins_fast(scan)
+    fast = beam_origins(scan, "scan")
     np.testing.assert_allclose(fast, scan.beam_origins(), atol=1e-7)
     assert np.ptp(fast[:, 0]) > 0.4  # the sensor moved ~0.6 m during the sweep
-    assert beam_origins_fast(_scan(n=10)) is None
-    res = simulate_fog(scan, 0.08, default_beta(0.08))
+    assert beam_origins(_scan(n=10), "scan") is None
+    res = simulate_fog(scan, 0.08, default_beta(0.08), lidar=FOG_LIDAR)
     _check_sane(scan, res, origins=fast)
     fog = res.labels == FogLabel.SCATTERED
     r_fog = np.linalg.norm(res.points[fog, :3].astype(np.float64) - fast[fog], axis=1)
-    np.testing.assert_allclose(r_fog, soft_target_response(0.08).r_peak, rtol=1e-5)
+    np.testing.assert_allclose(r_fog, soft_target_response(0.08, SENSOR).r_peak, rtol=1e-5)
     # the array-level function with explicit origins is what simulate_fog runs
-    arr = fog_point_arrays(scan.points, fast, 0.08, default_beta(0.08))
+    arr = fog_point_arrays(scan.points, fast, 0.08, default_beta(0.08), sensor=SENSOR, noise_floor=None)
     assert arr.points.tobytes() == res.points.tobytes()
     fogged = res.apply_to(scan)
     assert isinstance(fogged, LidarScan) and fogged.points is res.points
@@ -360,16 +407,16 @@ def test_array_level_many_points_many_betas() -> None:
     rng = np.random.default_rng(9)
     r0 = rng.uniform(0.5, 120.0, 1_000_000)
     i0 = rng.uniform(0.0, 255.0, 1_000_000).astype(np.float32)
-    resp = soft_target_response(0.04)
+    resp = soft_target_response(0.04, SENSOR)
     fractions = []
     for k in (1.0, 1.4, 2.0):
         beta = 0.023 * k / mor_from_alpha(0.04)
-        res = fog_intensities(r0, i0, 0.04, beta, response=resp)
+        res = fog_intensities(r0, i0, 0.04, beta, sensor=SENSOR, noise_floor=None, response=resp)
         assert res.intensity.shape == r0.shape and (res.intensity <= 255.0).all()
         fractions.append(float((res.labels == FogLabel.SCATTERED).mean()))
     assert fractions == sorted(fractions) and fractions[0] > 0
     with pytest.raises(ValueError, match="alpha"):
-        fog_intensities(r0[:5], i0[:5], 0.05, 1e-3, response=resp)
+        fog_intensities(r0[:5], i0[:5], 0.05, 1e-3, sensor=SENSOR, noise_floor=None, response=resp)
 
 
 # ------------------------------------------------------------------------------------------------------ real scans
@@ -403,16 +450,16 @@ def test_real_scans_give_sane_output(which: str, request: pytest.FixtureRequest)
     before = scan.points.copy()
     scattered = []
     for alpha in (0.005, 0.03, 0.06, 0.1):
-        res = simulate_fog(scan, alpha, default_beta(alpha))
+        res = simulate_fog(scan, alpha, default_beta(alpha), lidar=FOG_LIDAR)
         _check_sane(scan, res)
         scattered.append(res.counts["SCATTERED"])
-        noisy = simulate_fog(scan, alpha, default_beta(alpha), noise_floor=5.0, range_noise=3.0,
+        noisy = simulate_fog(scan, alpha, default_beta(alpha), lidar=_lidar(5.0), range_noise=3.0,
                              rng=round(alpha * 1000))
         _check_sane(scan, noisy)
     assert scattered == sorted(scattered) and 0 < scattered[-1] < 0.2 * len(scan.points)
     assert scan.points.tobytes() == before.tobytes()
     # fog echoes sit in front of the sensor's near field, never at the original far range
-    res = simulate_fog(scan, 0.06, default_beta(0.06))
+    res = simulate_fog(scan, 0.06, default_beta(0.06), lidar=FOG_LIDAR)
     fog = res.labels == FogLabel.SCATTERED
     np.testing.assert_allclose(np.linalg.norm(res.points[fog, :3], axis=1), 4.64, atol=0.01)
     # the same scan on the other intensity scale gives the same result
@@ -420,8 +467,8 @@ def test_real_scans_give_sane_output(which: str, request: pytest.FixtureRequest)
     pts = scan.points.copy()
     pts[:, 3] *= factor
     other = replace(scan, points=pts, intensity_max=1.0 if which == "stf" else 255.0)
-    res_other = simulate_fog(other, 0.06, default_beta(0.06), noise_floor=5.0)
-    res_same = simulate_fog(scan, 0.06, default_beta(0.06), noise_floor=5.0)
+    res_other = simulate_fog(other, 0.06, default_beta(0.06), lidar=_lidar(5.0))
+    res_same = simulate_fog(scan, 0.06, default_beta(0.06), lidar=_lidar(5.0))
     np.testing.assert_array_equal(res_other.input_labels, res_same.input_labels)
     np.testing.assert_allclose(res_other.points[:, 3], res_same.points[:, 3] * factor, rtol=1e-5, atol=1e-6)
-    assert simulate_fog(scan, 0.0, 0.0).points.tobytes() == scan.points.tobytes()
+    assert simulate_fog(scan, 0.0, 0.0, lidar=FOG_LIDAR).points.tobytes() == scan.points.tobytes()

@@ -24,14 +24,11 @@ import pytest
 from weatheralign.data.frame import LidarScan
 from weatheralign.data.nuscenes import load_lidar, open_nuscenes
 from weatheralign.lidar.beams import Beams, beams_from_scan, reconstruct_no_return_beams, synthetic_columns
+from weatheralign.lidar.fog import FogLabel
+from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel
 from weatheralign.lidar.particles import (
-    CALIBRATED_INTENSITY,
-    HAHNER_INTENSITY,
     RAIN_REFLECTIVITY,
     SNOW_REFLECTIVITY,
-    SNOW_SENSOR,
-    SYNTHETIC_INTENSITY,
-    IntensityModel,
     ParticleLabel,
     auto_ratio_threshold,
     simulate_particle_list,
@@ -46,7 +43,17 @@ from weatheralign.medium import (
     SnowSizeDistribution,
     fall_velocity,
 )
+from weatheralign.sensors import (
+    CALIBRATED_INTENSITY,
+    HAHNER_INTENSITY,
+    SYNTHETIC_INTENSITY,
+    IntensityModel,
+    LidarModel,
+    PulseSensor,
+)
 from weatheralign.world.shading import lidar_intensity
+
+from tests.conftest import make_lidar
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 STF_ID = "2019-09-11_19-13-44_00960"
@@ -54,6 +61,12 @@ N_SUB = 50000
 SHARE_RESOLUTION = 5e-4  # absolute share error of the naive's sub-ray count for a small disk (~ its boundary samples)
 KEEP = 0.2
 FLOOR = 0.5
+LIDAR = make_lidar(noise_floor=FLOOR)
+"""The snow model's sensor: 3 mrad, τ_H = 10 ns, 120 m, noise floor 0.5, the synthetic world's intensity model and
+firing grid (the values the particle API used to default to; `Beams` inputs carry their own divergence and range)."""
+SENSOR = LIDAR.pulse
+LIDAR_100M = make_lidar(max_range_m=100.0)
+"""The same sensor with the synthetic world's 100 m maximum range (the length of beams without return)."""
 
 
 # ------------------------------------------------------------------------------------------------------ helpers
@@ -99,8 +112,9 @@ def _basis(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return e1, np.cross(d, e1)
 
 
-def _naive(beams: Beams, particles: Particles, velocity, *, reflectivity=SNOW_REFLECTIVITY, sensor=SNOW_SENSOR,
-           model: IntensityModel = SYNTHETIC_INTENSITY, extinction=0.0, floor=FLOOR, keep=KEEP) -> dict:
+def _naive(beams: Beams, particles: Particles, velocity, *, reflectivity=SNOW_REFLECTIVITY,
+           sensor: PulseSensor = SENSOR, model: IntensityModel = SYNTHETIC_INTENSITY, extinction=0.0, floor=FLOOR,
+           keep=KEEP) -> dict:
     """Brute force per beam (see the module docstring): shares per particle id, measured range, intensity, label,
     and the margin flags that make a beam's decision borderline."""
     q = _sunflower(N_SUB)
@@ -153,9 +167,10 @@ def _naive(beams: Beams, particles: Particles, velocity, *, reflectivity=SNOW_RE
             wave += target
         k = int(np.argmax(wave))
         p_star, r_star = wave[k], grid[k] - 0.5 * length_pulse
-        label, rng, inten, pid, border = None, np.nan, 0.0, -1, False
+        label, rng, inten, pid, border = ParticleLabel.NO_ECHO, np.nan, 0.0, -1, False
         if p_star <= 0:
-            label = (ParticleLabel.ATTENUATED if remaining > 0 else ParticleLabel.LOST) if ret else None
+            if ret:
+                label = ParticleLabel.ATTENUATED if remaining > 0 else ParticleLabel.LOST
         elif ret and abs(r_star - L) <= keep:
             inten = min(p_star * L * L * float(model.gain(L)), 255.0)
             label = ParticleLabel.LOST if inten < floor and inten < i0 else ParticleLabel.ATTENUATED
@@ -174,7 +189,7 @@ def _naive(beams: Beams, particles: Particles, velocity, *, reflectivity=SNOW_RE
                     label = ParticleLabel.LOST if inten < floor and inten < i0 else ParticleLabel.ATTENUATED
                     rng, pid = L, -1
                 else:
-                    label, rng, pid = None, np.nan, -1
+                    label, rng, pid = ParticleLabel.NO_ECHO, np.nan, -1
             else:
                 border |= inten < floor * 1.05
                 label = ParticleLabel.SCATTERED
@@ -197,7 +212,7 @@ def _fast_beam_view(res, beams: Beams) -> dict:
     shares = [{} for _ in range(len(beams))]
     for b, p, r in zip(res.hits.beam, res.hits.particle_id, res.hits.ratio):
         shares[int(b)][int(p)] = float(r)
-    return {"label": [None if x == 255 else ParticleLabel(int(x)) for x in res.beam_label], "range": res.beam_range,
+    return {"label": [ParticleLabel(int(x)) for x in res.beam_label], "range": res.beam_range,
             "intensity": res.beam_intensity, "pid": res.beam_particle, "shares": shares}
 
 
@@ -251,7 +266,7 @@ def test_one_particle_inside_the_beam_occludes_its_area_share_and_returns_at_its
     off = offset * (w - diameter / 2)  # stays inside the beam
     beams = _beams([0, 0, 0], [1, 0, 0], 30.0, 20.0, divergence=divergence)
     parts = _particles([s_p, off, 0.0], diameter, ids=[7])
-    res = simulate_particle_list(beams, parts, (0, 0, 0), noise_floor=FLOOR)
+    res = simulate_particle_list(beams, parts, (0, 0, 0), lidar=LIDAR, reflectivity=SNOW_REFLECTIVITY)
     assert len(res.hits) == 1
     assert res.hits.ratio[0] == pytest.approx(ratio, rel=1e-9)
     assert res.hits.range[0] == pytest.approx(s_p, abs=1e-9)
@@ -267,7 +282,7 @@ def test_small_particle_only_occludes_the_target():
     beams = _beams([0, 0, 0], [0, 1, 0], 30.0, 20.0)
     w = 10.0 * math.tan(1.5e-3)
     parts = _particles([0.0, 10.0, 0.0], 2 * 0.1 * w)  # covers 1 %: its echo is weaker than the target's
-    res = simulate_particle_list(beams, parts, (0, 0, 0))
+    res = simulate_particle_list(beams, parts, (0, 0, 0), lidar=LIDAR, reflectivity=SNOW_REFLECTIVITY)
     assert res.hits.ratio[0] == pytest.approx(0.01, rel=1e-9)
     assert res.input_labels[0] == ParticleLabel.ATTENUATED
     # the target keeps 99 % of the beam; pulses 20 m apart do not overlap: exactly 0.99 i0
@@ -280,7 +295,7 @@ def test_partial_overlap_matches_the_lens_area():
     w = 10.0 * math.tan(1.5e-3)
     a, c = 0.5 * w, 1.0 * w  # radius w/2 centred on the beam edge
     parts = _particles([c, 0.0, 10.0], 2 * a)
-    res = simulate_particle_list(beams, parts, (0, 0, 0))
+    res = simulate_particle_list(beams, parts, (0, 0, 0), lidar=LIDAR, reflectivity=SNOW_REFLECTIVITY)
     # circle–circle intersection of radii 1 and 0.5 at distance 1, over π
     r1, r2, dist = 1.0, 0.5, 1.0
     lens = (r1 ** 2 * math.acos((dist ** 2 + r1 ** 2 - r2 ** 2) / (2 * dist * r1))
@@ -293,7 +308,7 @@ def test_nearest_particle_shadows_the_ones_behind():
     beams = _beams([0, 0, 0], [1, 0, 0], 40.0, 20.0)
     w5 = 5.0 * math.tan(1.5e-3)
     parts = _particles([[5.0, 0, 0], [8.0, 0, 0]], [4 * w5, 1e-2], ids=[1, 2])  # the first covers everything
-    res = simulate_particle_list(beams, parts, (0, 0, 0))
+    res = simulate_particle_list(beams, parts, (0, 0, 0), lidar=LIDAR, reflectivity=SNOW_REFLECTIVITY)
     assert dict(zip(res.hits.particle_id, res.hits.ratio)) == {1: 1.0, 2: 0.0}
     assert res.input_labels[0] == ParticleLabel.SCATTERED and res.particle_id[0] == 1
 
@@ -302,7 +317,7 @@ def test_particle_behind_the_target_changes_nothing():
     beams = _beams([0, 0, 0], [1, 0, 0], 30.0, 20.0)
     parts = _particles([[30.5, 0, 0], [45.0, 0, 0]], [0.02, 0.02])
     pts = np.array([[30.0, 0, 0, 20.0, 0.0]], dtype=np.float32)
-    res = simulate_particle_list(beams, parts, (0, 0, 0))
+    res = simulate_particle_list(beams, parts, (0, 0, 0), lidar=LIDAR, reflectivity=SNOW_REFLECTIVITY)
     assert len(res.hits) == 0
     assert res.points.tobytes() == pts.tobytes()
     assert res.input_labels.tolist() == [ParticleLabel.UNCHANGED]
@@ -310,7 +325,8 @@ def test_particle_behind_the_target_changes_nothing():
 
 def test_bulk_extinction_is_two_way_on_the_target():
     beams = _beams([0, 0, 0], [[1, 0, 0], [0, 1, 0]], [10.0, 40.0], 50.0)
-    res = simulate_particle_list(beams, _particles(np.zeros((0, 3)), np.zeros(0)), (0, 0, 0), extinction=0.01)
+    res = simulate_particle_list(beams, _particles(np.zeros((0, 3)), np.zeros(0)), (0, 0, 0), lidar=LIDAR,
+                                 reflectivity=SNOW_REFLECTIVITY, extinction=0.01)
     np.testing.assert_allclose(res.points[:, 3], 50.0 * np.exp(-2 * 0.01 * np.array([10.0, 40.0])), rtol=1e-6)
     assert res.input_labels.tolist() == [ParticleLabel.ATTENUATED] * 2
 
@@ -319,12 +335,13 @@ def test_empty_field_and_zero_density_give_the_input_back_exactly(tiny_scan):
     scan = tiny_scan
     empty = ParticleField(1, ExponentialSizeDistribution(0.0, 500.0, 0.0, 0.02))
     for fld in (None, empty):
-        res = simulate_particles(scan, fld, max_range=100.0)
+        res = simulate_particles(scan, fld, lidar=LIDAR_100M, reflectivity=SNOW_REFLECTIVITY)
         assert res.points.tobytes() == scan.points.tobytes()
         assert res.labels.tolist() == [ParticleLabel.UNCHANGED] * len(scan.points)
         assert res.counts["UNCHANGED"] == len(scan.points) and res.counts["CLUTTER"] == 0
         assert np.array_equal(res.source_index, np.arange(len(scan.points)))
-    none = simulate_particle_list(scan, _particles(np.zeros((0, 3)), np.zeros(0)), (0, 0, 0), max_range=100.0)
+    none = simulate_particle_list(scan, _particles(np.zeros((0, 3)), np.zeros(0)), (0, 0, 0), lidar=LIDAR_100M,
+                                  reflectivity=SNOW_REFLECTIVITY)
     assert none.points.tobytes() == scan.points.tobytes()
 
 
@@ -353,16 +370,17 @@ def _random_scene(seed: int, n_beams: int = 160):
 def test_fast_kernel_agrees_with_brute_force_on_random_scenes(seed):
     beams, fld = _random_scene(seed)
     # the field path (shells, reachable cells, time slices), everything resolved
-    res = simulate_particles(beams, fld, ratio_threshold=0.0, noise_floor=FLOOR, attenuation=False)
+    res = simulate_particles(beams, fld, lidar=LIDAR, reflectivity=SNOW_REFLECTIVITY, ratio_threshold=0.0,
+                             attenuation=False)
     fast = _fast_beam_view(res, beams)
     everything = fld.materialize([-15, -15, -1], [15.5, 15, 3], res.stats["t_ref"], min_diameter=0.0)
     naive = _naive(beams, everything, fld.velocity)
     _compare(fast, naive)
     # the explicit-list path on the same particles
-    res2 = simulate_particle_list(beams, everything, fld.velocity, noise_floor=FLOOR)
+    res2 = simulate_particle_list(beams, everything, fld.velocity, lidar=LIDAR, reflectivity=SNOW_REFLECTIVITY)
     _compare(_fast_beam_view(res2, beams), naive)
     # enough happened to make the comparison meaningful
-    labels = [x for x in naive["label"] if x is not None]
+    labels = [x for x in naive["label"] if x != ParticleLabel.NO_ECHO]
     assert sum(x == ParticleLabel.SCATTERED for x in naive["label"]) >= 5
     assert sum(x == ParticleLabel.ATTENUATED for x in labels) >= 20
     assert sum(len(s) for s in naive["shares"]) >= 50
@@ -371,8 +389,10 @@ def test_fast_kernel_agrees_with_brute_force_on_random_scenes(seed):
 
 def test_thresholded_field_keeps_exactly_the_particles_above_each_shell_threshold():
     beams, fld = _random_scene(5)
-    res = simulate_particles(beams, fld, ratio_threshold=0.03, attenuation=False)
-    full = simulate_particles(beams, fld, ratio_threshold=0.0, attenuation=False)
+    res = simulate_particles(beams, fld, lidar=LIDAR, reflectivity=SNOW_REFLECTIVITY, ratio_threshold=0.03,
+                             attenuation=False)
+    full = simulate_particles(beams, fld, lidar=LIDAR, reflectivity=SNOW_REFLECTIVITY, ratio_threshold=0.0,
+                              attenuation=False)
     shells = res.stats["shells"]
     edges = np.array([s["s0"] for s in shells] + [shells[-1]["s1"]])
     thr = np.array([s["min_diameter"] for s in shells])
@@ -406,7 +426,8 @@ def test_a_field_particle_is_hit_where_it_is_at_the_beams_firing_time():
     # two beams aimed at where the particle is at t1; one fires at t1, the other at t0
     d = (p1 - origin) / np.linalg.norm(p1 - origin)
     beams = _beams([origin, origin], [d, d], 20.0, 30.0, times=[t1, t0], divergence=1e-3, max_range=20.0)
-    res = simulate_particles(beams, fld, ratio_threshold=0.0, attenuation=False)
+    res = simulate_particles(beams, fld, lidar=LIDAR, reflectivity=SNOW_REFLECTIVITY, ratio_threshold=0.0,
+                             attenuation=False)
     hit_ids = {int(b): set() for b in range(2)}
     for b, p in zip(res.hits.beam, res.hits.particle_id):
         hit_ids[int(b)].add(int(p))
@@ -423,19 +444,28 @@ def test_clutter_on_a_beam_without_return():
     beams = _beams([0, 0, 0], [[1, 0, 0], [0, 1, 0]], 0.0, 0.0, has_return=[False, False], max_range=50.0)
     w = 6.0 * math.tan(1.5e-3)
     parts = _particles([[6.0, 0.0, 0.0]], [2 * w], ids=[42])  # fills the first beam at 6 m
-    res = simulate_particle_list(beams, parts, (0, 0, 0), intensity_max=255.0)
+    res = simulate_particle_list(beams, parts, (0, 0, 0), lidar=LIDAR, reflectivity=SNOW_REFLECTIVITY,
+                                 intensity_max=255.0)
     assert res.counts["CLUTTER"] == 1 and len(res.points) == 1
     assert res.source_index.tolist() == [-1] and res.particle_id.tolist() == [42]
     assert res.labels.tolist() == [ParticleLabel.SCATTERED]
     np.testing.assert_allclose(res.points[0, :3], [6.0, 0.0, 0.0], atol=1e-5)
     assert res.points[0, 3] == pytest.approx(255 * SNOW_REFLECTIVITY, rel=1e-6)  # full coverage, g(6 m) = 1
     assert res.points[0, 4] == beams.ring[0]
+    assert res.beam_label.tolist() == [ParticleLabel.SCATTERED, ParticleLabel.NO_ECHO]  # the second stays empty
+
+
+def test_one_label_enum_for_fog_snow_and_rain():
+    assert ParticleLabel is WeatherLabel and FogLabel is WeatherLabel
+    assert [(x.name, int(x)) for x in WeatherLabel] == [("UNCHANGED", 0), ("ATTENUATED", 1), ("SCATTERED", 2),
+                                                        ("LOST", 3), ("NO_ECHO", 4)]
+    assert WeatherLabel.NO_ECHO not in POINT_LABELS and len(POINT_LABELS) == 4
 
 
 def test_rain_scatters_less_than_snow():
     beams, fld = _random_scene(7, n_beams=300)
-    snow = simulate_particles(beams, fld, reflectivity=SNOW_REFLECTIVITY, ratio_threshold=0.0)
-    rain = simulate_particles(beams, fld, reflectivity=RAIN_REFLECTIVITY, ratio_threshold=0.0)
+    snow = simulate_particles(beams, fld, lidar=LIDAR, reflectivity=SNOW_REFLECTIVITY, ratio_threshold=0.0)
+    rain = simulate_particles(beams, fld, lidar=LIDAR, reflectivity=RAIN_REFLECTIVITY, ratio_threshold=0.0)
     scattered = [r.counts["SCATTERED"] + r.counts["CLUTTER"] for r in (snow, rain)]
     assert scattered[0] > 2 * scattered[1] > 0
     # the occlusion is the same geometry; only the echoes differ
@@ -444,11 +474,69 @@ def test_rain_scatters_less_than_snow():
 
 def test_determinism_same_seed_same_bytes_other_seed_differs(tiny_scan):
     f = ParticleField(5, SnowSizeDistribution(2.0, 1.5), velocity=fall_velocity(1.5), t_ref=tiny_scan.timestamp)
-    a = simulate_particles(tiny_scan, f, max_range=100.0, ratio_threshold=3e-3)
-    b = simulate_particles(tiny_scan, replace(f), max_range=100.0, ratio_threshold=3e-3)
-    c = simulate_particles(tiny_scan, replace(f, seed=6), max_range=100.0, ratio_threshold=3e-3)
+    a = simulate_particles(tiny_scan, f, lidar=LIDAR_100M, reflectivity=SNOW_REFLECTIVITY, ratio_threshold=3e-3)
+    b = simulate_particles(tiny_scan, replace(f), lidar=LIDAR_100M, reflectivity=SNOW_REFLECTIVITY,
+                           ratio_threshold=3e-3)
+    c = simulate_particles(tiny_scan, replace(f, seed=6), lidar=LIDAR_100M, reflectivity=SNOW_REFLECTIVITY,
+                           ratio_threshold=3e-3)
     assert a.points.tobytes() == b.points.tobytes() and a.particle_id.tobytes() == b.particle_id.tobytes()
     assert a.points.tobytes() != c.points.tobytes()
+
+
+# ------------------------------------------------------------------------------------------ the sensor, explicit
+
+
+def test_no_default_sensor_a_missing_lidar_is_a_type_error():
+    beams, fld = _random_scene(0, n_beams=10)
+    parts = _particles([[6.0, 0.0, 0.0]], [0.01])
+    scan = LidarScan(points=np.array([[10.0, 0.0, 0.0, 20.0, 0.0]], np.float32), timestamp=0.0,
+                     T_ego_lidar=np.eye(4), T_global_ego=np.eye(4))
+    with pytest.raises(TypeError, match="lidar"):
+        simulate_particles(beams, fld, reflectivity=SNOW_REFLECTIVITY)  # type: ignore[call-arg]
+    with pytest.raises(TypeError, match="lidar"):
+        simulate_particles(scan, fld, reflectivity=SNOW_REFLECTIVITY)  # type: ignore[call-arg]
+    with pytest.raises(TypeError, match="lidar"):
+        simulate_particle_list(beams, parts, (0, 0, 0), reflectivity=SNOW_REFLECTIVITY)  # type: ignore[call-arg]
+    with pytest.raises(TypeError, match="lidar"):
+        beams_from_scan(scan)  # type: ignore[call-arg]
+    # nor a default particle reflectivity
+    with pytest.raises(TypeError, match="reflectivity"):
+        simulate_particles(beams, fld, lidar=LIDAR)  # type: ignore[call-arg]
+    with pytest.raises(TypeError, match="reflectivity"):
+        simulate_particle_list(beams, parts, (0, 0, 0), lidar=LIDAR)  # type: ignore[call-arg]
+
+
+def test_the_explicit_sensor_is_honoured(tiny_scan):
+    """Every sensor fact comes from the `LidarModel` passed in: maximum range (the length of beams without return),
+    divergence, firing grid, pulse saturation, intensity model and noise floor."""
+    scan = tiny_scan
+    near = beams_from_scan(scan, lidar=make_lidar(max_range_m=100.0))
+    far = beams_from_scan(scan, lidar=make_lidar(max_range_m=150.0, divergence_rad=1e-3))
+    none_n, none_f = ~near.has_return, ~far.has_return
+    assert none_n.sum() > 1000 and np.array_equal(near.has_return, far.has_return)
+    assert (near.lengths[none_n] == 100.0).all() and (far.lengths[none_f] == 150.0).all()  # longer beams
+    np.testing.assert_array_equal(near.lengths[~none_n], far.lengths[~none_f])  # returns keep their range
+    assert (near.max_range, far.max_range) == (100.0, 150.0)
+    assert (near.divergence, far.divergence) == (3e-3, 1e-3)
+    # the firing grid is the sensor's (used where it stores per-point columns); otherwise ring gaps are reconstructed
+    assert len(near) == 32 * 1085
+    assert len(beams_from_scan(scan, lidar=make_lidar(columns_per_ring=2 * 1085))) == 32 * 2 * 1085
+    rebuilt = beams_from_scan(scan, lidar=make_lidar(firing_columns_stored=False))
+    assert len(rebuilt) == len(scan.points) + len(reconstruct_no_return_beams(scan))
+    # pulse, intensity model and floor: a flake filling a beam without return at 6 m
+    beams = _beams([0, 0, 0], [1, 0, 0], 0.0, 0.0, has_return=[False], max_range=50.0)
+    parts = _particles([[6.0, 0.0, 0.0]], [2 * 6.0 * math.tan(1.5e-3)], ids=[42])
+
+    def clutter(lidar: LidarModel):
+        return simulate_particle_list(beams, parts, (0, 0, 0), lidar=lidar, reflectivity=SNOW_REFLECTIVITY)
+
+    assert clutter(LIDAR).points[0, 3] == pytest.approx(255 * SNOW_REFLECTIVITY, rel=1e-6)  # g(6 m) = 1
+    saturated = clutter(make_lidar(pulse=PulseSensor(tau_h=10e-9, saturation=100.0)))
+    assert saturated.points[0, 3] == pytest.approx(100.0)
+    hahner = clutter(make_lidar(intensity=HAHNER_INTENSITY))
+    assert hahner.points[0, 3] == pytest.approx(255 * SNOW_REFLECTIVITY / 36.0, rel=1e-6)  # raw 1/r² at 6 m
+    floored = clutter(make_lidar(intensity=HAHNER_INTENSITY, noise_floor=10.0))  # 5.7 < 10: not detected
+    assert floored.counts["CLUTTER"] == 0 and floored.beam_label.tolist() == [ParticleLabel.NO_ECHO]
 
 
 # ---------------------------------------------------------------------------------------------- scans
@@ -495,7 +583,7 @@ def test_synthetic_world_scan_beams_and_weather(tiny_scan):
     scan = tiny_scan
     cols = synthetic_columns(scan)
     assert cols is not None and len(cols) == len(scan.points)
-    beams = beams_from_scan(scan, max_range=100.0, divergence=3e-3)
+    beams = beams_from_scan(scan, lidar=LIDAR_100M)
     assert len(beams) == 32 * 1085  # every cell of the firing grid, returns and no-returns
     rc = set(zip(scan.points[:, 4].astype(int).tolist(), cols.tolist()))
     assert len(rc) == len(scan.points)
@@ -505,8 +593,8 @@ def test_synthetic_world_scan_beams_and_weather(tiny_scan):
     snow = ParticleField(2, SnowSizeDistribution(2.0, 1.5), velocity=fall_velocity(1.5), t_ref=scan.timestamp)
     rain = ParticleField(2, RainSizeDistribution(50.0), velocity=fall_velocity(2.0), t_ref=scan.timestamp,
                          cell_size=1.0)
-    res_s = simulate_particles(scan, snow, max_range=100.0)
-    res_r = simulate_particles(scan, rain, max_range=100.0, reflectivity=RAIN_REFLECTIVITY)
+    res_s = simulate_particles(scan, snow, lidar=LIDAR_100M, reflectivity=SNOW_REFLECTIVITY)
+    res_r = simulate_particles(scan, rain, lidar=LIDAR_100M, reflectivity=RAIN_REFLECTIVITY)
     for res in (res_s, res_r):
         _check_sane(res, scan, beams)
         assert res.counts["ATTENUATED"] > 0.5 * len(scan.points)
@@ -565,20 +653,23 @@ def test_real_stf_and_kitti_scans_sane_in_either_intensity_scale(scale):
             pts = scan.points.copy()
             pts[:, 3] *= np.float32(scale / scan.intensity_max)
             scan = replace(scan, points=pts, intensity_max=scale)
-        beams = beams_from_scan(scan, max_range=120.0, divergence=3e-3)
+        # 120 m, 3 mrad, τ_H = 10 ns, floor 0.5, the scan's intensity model; no stored firing columns (real data):
+        # the beams without return are reconstructed from the ring structure
+        lidar = make_lidar(intensity=model, firing_columns_stored=False)
+        beams = beams_from_scan(scan, lidar=lidar)
         assert len(beams) > len(scan.points)  # the sky and the dark gaps hold beams without return
         snow = ParticleField(4, SnowSizeDistribution(2.0, 1.5), velocity=fall_velocity(1.5), t_ref=0.0)
         rain = ParticleField(4, RainSizeDistribution(50.0), velocity=fall_velocity(2.0), t_ref=0.0, cell_size=1.0)
         for fld, refl in ((snow, SNOW_REFLECTIVITY), (rain, RAIN_REFLECTIVITY)):
-            res = simulate_particles(scan, fld, max_range=120.0, reflectivity=refl, intensity_model=model)
+            res = simulate_particles(scan, fld, lidar=lidar, reflectivity=refl)
             _check_sane(res, scan, beams)
             assert res.counts["ATTENUATED"] + res.counts["UNCHANGED"] > 0.8 * len(scan.points), name
         # either scale gives the same geometry and labels
         if scale == 1.0:
             other = replace(scan, points=np.column_stack([scan.points[:, :3], scan.points[:, 3] * 255.0,
                                                           scan.points[:, 4]]).astype(np.float32), intensity_max=255.0)
-            a = simulate_particles(scan, snow, max_range=120.0, intensity_model=model)
-            b = simulate_particles(other, snow, max_range=120.0, intensity_model=model)
+            a = simulate_particles(scan, snow, lidar=lidar, reflectivity=SNOW_REFLECTIVITY)
+            b = simulate_particles(other, snow, lidar=lidar, reflectivity=SNOW_REFLECTIVITY)
             same = lambda x: np.where(x == ParticleLabel.UNCHANGED, ParticleLabel.ATTENUATED, x)  # noqa: E731
             np.testing.assert_array_equal(same(a.input_labels), same(b.input_labels))
             np.testing.assert_allclose(a.points[:, 3] * 255.0, b.points[:, 3], rtol=1e-5, atol=1e-4)

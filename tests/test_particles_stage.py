@@ -10,6 +10,7 @@ import pytest
 from weatheralign.config import params_from_dict
 from weatheralign.medium.conditions import FieldSpec, field_seed, field_spec
 from weatheralign.medium.distributions import SnowSizeDistribution
+from weatheralign.medium.field import ParticleField, Particles
 from weatheralign.medium.validation import camera_air_volume, check_region, lidar_air_volume
 
 
@@ -48,20 +49,50 @@ def test_params_drive_the_spec(cfg):
     assert spec.field().spectrum.moment(1) > light.spectrum.moment(1)
 
 
-def test_region_check_accepts_the_field_and_rejects_a_wrong_distribution(cfg):
+class _Mislabelled:
+    """A field that claims ``claimed``'s statistics (density, size spectrum, expected counts) but materialises the
+    particles of ``source``, every diameter scaled by ``diameter_scale``: a wrong field `check_region` must catch."""
+
+    def __init__(self, claimed: ParticleField, source: ParticleField, diameter_scale: float = 1.0) -> None:
+        self.claimed, self.source, self.diameter_scale = claimed, source, diameter_scale
+
+    @property
+    def spectrum(self):
+        return self.claimed.spectrum
+
+    def number_density(self, min_diameter: float = 0.0) -> float:
+        return self.claimed.number_density(min_diameter)
+
+    def expected_count(self, bounds_min, bounds_max, min_diameter: float = 0.0) -> float:
+        return self.claimed.expected_count(bounds_min, bounds_max, min_diameter)
+
+    def materialize(self, bounds_min, bounds_max, t, **kwargs) -> Particles:
+        p = self.source.materialize(bounds_min, bounds_max, t, **kwargs)
+        return dataclasses.replace(p, diameters=p.diameters * self.diameter_scale)
+
+
+@pytest.mark.parametrize("wrong, count_ok, sizes_ok", [
+    (None, True, True),  # the field itself
+    ("snowfall 8 mm/h", False, False),  # another rate: density and spectrum both wrong
+    ("diameters x 1.03", True, False),  # right count, sizes 3 % too large
+])
+def test_region_check_accepts_the_field_and_rejects_a_wrong_distribution(cfg, wrong, count_ok, sizes_ok):
     field = field_spec(cfg, "snow", "scene-0061", 0.0).field()
-    ok = check_region(field, np.array([500.0, 500.0, 5.0]), 0.0, 200_000)
-    assert abs(ok.z_score) < 4 and ok.chi2_pvalue > 1e-3 and ok.realised > 50_000
-    # a field of heavier snow checked against the lighter one's expectation: density and sizes both fail
-    heavy = dataclasses.replace(field, distribution=SnowSizeDistribution(8.0, 1.5))
-    bad = check_region(heavy, np.array([500.0, 500.0, 5.0]), 0.0, 200_000)
-    lam = heavy.spectrum.lam
-    assert lam != field.spectrum.lam
-    wrong = check_region(dataclasses.replace(field, distribution=heavy.distribution), np.array([0.0, 0.0, 5.0]), 0.0,
-                         200_000)
-    assert abs(wrong.z_score) < 4  # consistent with itself
-    z_vs_light = (bad.realised - ok.expected * (bad.side / ok.side) ** 3) / np.sqrt(ok.expected)
-    assert abs(z_vs_light) > 10
+    if wrong is None:
+        region = field
+    elif wrong.startswith("snowfall"):
+        heavy = dataclasses.replace(field, distribution=SnowSizeDistribution(8.0, field.distribution.terminal_velocity))
+        assert heavy.spectrum.lam != field.spectrum.lam
+        region = _Mislabelled(field, heavy)
+    else:
+        region = _Mislabelled(field, field, diameter_scale=1.03)
+    check = check_region(region, np.array([500.0, 500.0, 5.0]), 0.0, 200_000)
+    assert check.realised > 20_000 and check.expected == pytest.approx(field.expected_count(
+        check.centre - check.side / 2, check.centre + check.side / 2))
+    assert (abs(check.z_score) < 4) == count_ok, check.z_score
+    assert (check.chi2_pvalue > 1e-3) == sizes_ok, check.chi2_pvalue
+    if not sizes_ok:
+        assert check.chi2_pvalue < 1e-6
 
 
 def test_sensor_volumes_match_closed_forms():

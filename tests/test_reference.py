@@ -33,6 +33,7 @@ from weatheralign.reference.lidar_exact import (FOG, TARGET, Detector, ExactSens
 from weatheralign.reference.synthetic import (ALPHA_GRID, MANIFEST_FILE, camera_calibration, draw_truth, finalize,
                                               frame_specs, render_frame, render_or_resume, sealed_truth_path,
                                               stereo_left_camera, synthetic_root, tf_tree)
+from weatheralign.sensors import PulseSensor
 
 from .conftest import REPO
 
@@ -41,6 +42,10 @@ STF_ID = "2019-09-11_19-13-44_00960"
 SPLITS = {"clear": "splits/clear.txt", "light": "splits/light_fog.txt", "dense": "splits/dense_fog.txt"}
 SENSOR = ExactSensor()
 L = SENSOR.pulse_length
+FAST_SENSOR = PulseSensor(tau_h=SENSOR.tau_h, r1=SENSOR.r1, r2=SENSOR.r2, gamma=SENSOR.gamma,
+                          max_range=SENSOR.max_range, saturation=SENSOR.saturation)
+"""The fast fog simulator's pulse sensor with the reference LiDAR's pulse, overlap ends, Γ and limits (τ_H = 20 ns:
+the fog model's `PulseSensor()`)."""
 
 
 # ------------------------------------------------------------------------------------------------ small STF trees
@@ -271,12 +276,14 @@ def test_fog_effects_are_monotonic_and_match_the_fast_model():
             reported = ret.r_peak[ret.source == FOG] - L / 2
             assert np.all(reported < 3.0) and np.median(reported) > 1.0  # fog echoes near the sensor
             # same sensor as the fast simulator: its fog peak and where fog wins agree with ours
-            fast = soft_target_response(alpha)
+            assert FAST_SENSOR == PulseSensor()  # the fog model's sensor, as before
+            fast = soft_target_response(alpha, FAST_SENSOR)
             assert ret.r_peak[~np.isfinite(r0)][0] == pytest.approx(fast.r_peak, abs=0.02)
             exact_tables = fog_tables(alpha)
             assert exact_tables.g_peak == pytest.approx(fast.g_peak, rel=0.01)
             hard_r = r0[np.isfinite(r0)]
-            fast_fog = fog_intensities(hard_r, i0[np.isfinite(r0)], alpha, 0.046 * alpha / LN20).labels == 2
+            fast_fog = fog_intensities(hard_r, i0[np.isfinite(r0)], alpha, 0.046 * alpha / LN20,
+                                       sensor=FAST_SENSOR, noise_floor=None).labels == 2
             agree = np.mean(fast_fog == (ret.source[np.isfinite(r0)] == FOG))
             assert agree > 0.99
     assert means[0] > means[1] > means[2] > means[3]

@@ -1,5 +1,6 @@
-"""The `simulate` stage: the weather copy of a dataroot, the LiDAR identities, determinism, resume, and the
-re-projection check (aligned snow sub-pixel, unaligned clearly worse) on the tiny full-resolution world."""
+"""The `simulate` stage: the weather copy of a dataroot, the LiDAR identities, determinism, resume, the
+re-projection check (aligned snow sub-pixel, unaligned clearly worse) on the tiny full-resolution world, and the
+mixed condition fog_snow as a composition of its media."""
 
 from __future__ import annotations
 
@@ -14,17 +15,25 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from weatheralign.conditions import CONDITIONS
 from weatheralign.config import params_from_dict
 from weatheralign.data.errors import DataFormatError
 from weatheralign.data.nuscenes import extras_relpath, load_frame, open_nuscenes
+from weatheralign.lidar import simulate_fog
+from weatheralign.manifest import DatasetManifest, dataset_digest, manifest_path, write_manifest
 from weatheralign.medium.conditions import field_spec
-from weatheralign.simulate import (Weather, config_hash, finalize_copy, fog_level, load_finished, scene_airlight,
-                                   simulate_frame, simulate_lidar, simulate_or_resume, summarise, sweep_records,
-                                   weather_for_scene, weather_relpath, with_fog_levels)
+from weatheralign.sensors import SensorRig, camera_models, lidar_model_from_params
+from weatheralign.simulate.media import (ConditionMedia, SceneMedia, calibrated_fog_levels, params_fog_levels,
+                                         resolve_media)
+from weatheralign.simulate.observe import ObserveOptions, observe, observe_lidar
+from weatheralign.simulate.plan import SampleJob, plan_jobs, scene_airlight
+from weatheralign.simulate.weather_copy import finalize_copy, run_sample, summarise, sweep_records, weather_relpath
 
 from .conftest import REPO
 
 CFG = params_from_dict({}).simulate
+OPTIONS = ObserveOptions(threads=2)
+RUN = "test-run"
 
 
 def _snapshot(root: Path) -> dict[str, tuple[int, str]]:
@@ -37,33 +46,51 @@ def _files(root: Path, skip: tuple[str, ...]) -> set[str]:
             and not str(p.relative_to(root)).startswith(skip)}
 
 
+def _media(condition: str, scenes: list[str], fields: dict | None, cfg=CFG) -> ConditionMedia:
+    return resolve_media(CONDITIONS[condition], cfg, scenes, params_fog_levels(cfg), fields)
+
+
+def _inputs(frame):
+    images = {ch: v.load_image() for ch, v in frame.cameras.items()}
+    return images, {ch: v.load_range() for ch, v in frame.cameras.items()}
+
+
 @pytest.fixture(scope="module")
 def world(tiny_world):
     nusc = open_nuscenes(tiny_world.dataroot, tiny_world.params.world.version)
     fields = {c: [field_spec(tiny_world.params.particles, c, s["name"],
-                             nusc.get("sample", s["first_sample_token"])["timestamp"] * 1e-6).to_dict()
+                             nusc.get("sample", s["first_sample_token"])["timestamp"] * 1e-6)
                   for s in nusc.scene] for c in ("snow", "rain")}
     scene = nusc.scene[0]
     frame = load_frame(nusc, scene["first_sample_token"])
-    airlight = scene_airlight(list(frame.cameras.values()))
-    return tiny_world, nusc, fields, frame, airlight
+    airlight = tuple(scene_airlight(nusc, frame.token))
+    sensors = SensorRig(lidar_model_from_params(tiny_world.params.world.lidar),
+                        camera_models(frame.cameras, tiny_world.params.world.camera.exposure_s))
+    scenes = [s["name"] for s in nusc.scene]
+    return tiny_world, nusc, fields, frame, airlight, sensors, scenes
+
+
+def _job(world, condition: str, aligned: bool, cfg=CFG) -> SampleJob:
+    tw, nusc, fields, frame, airlight, sensors, scenes = world
+    media = _media(condition, scenes, fields, cfg).for_scene(scenes[0], aligned)
+    return SampleJob(frame.token, media, airlight)
 
 
 @pytest.fixture(scope="module")
 def snow_copy(world, tmp_path_factory):
     """Snow, aligned: the first sample simulated, the rest copied; the input's snapshot taken before."""
-    tw, nusc, fields, frame, airlight = world
+    tw, nusc, fields, frame, airlight, sensors, _ = world
     before = _snapshot(tw.dataroot)
     out = tmp_path_factory.mktemp("sim") / "snow-aligned"
-    weather = weather_for_scene(CFG, nusc.scene[0]["name"], fields, "snow", True)
-    record, now = simulate_or_resume(nusc, tw.dataroot, out, frame.token, weather, CFG, airlight, nthreads=2)
+    job = _job(world, "snow", True)
+    record, now = run_sample(nusc, tw.dataroot, out, job, sensors, OPTIONS, RUN)
     assert now
     finalize_copy(nusc, tw.dataroot, out, tw.params.world.version)
-    return out, before, record, weather
+    return out, before, record, job
 
 
 def test_weather_copy_loads_with_identical_tables_and_file_set(world, snow_copy):
-    tw, nusc, _, frame, _ = world
+    tw, nusc, _, frame, *_ = world
     out, _, record, _ = snow_copy
     version = tw.params.world.version
     for table in sorted((tw.dataroot / version).iterdir()):
@@ -94,27 +121,29 @@ def test_input_is_unchanged(world, snow_copy):
 
 
 def test_no_medium_gives_the_lidar_input_back(world):
-    _, nusc, fields, frame, _ = world
+    tw, nusc, fields, frame, _, sensors, scenes = world
     scan = frame.lidar
-    fog = simulate_lidar(scan, Weather("fog_light", True, 0.0, 0.0, 0.0), CFG)
+    snow = CONDITIONS["snow"]
+    fog = observe_lidar(scan, SceneMedia(CONDITIONS["fog_light"], True, scenes[0]), sensors.lidar)
     np.testing.assert_array_equal(fog.scan.points, scan.points)
     assert fog.counts["UNCHANGED"] == len(scan.points) and np.all(fog.labels == 0)
-    spec = weather_for_scene(CFG, nusc.scene[0]["name"], fields, "snow", True).field
-    snow = simulate_lidar(scan, Weather("snow", True, field=replace(spec, rate_mm_h=0.0)), CFG)
-    np.testing.assert_array_equal(snow.scan.points, scan.points)
-    assert np.all(snow.particle_id == -1) and snow.counts["UNCHANGED"] == len(scan.points)
+    spec = replace(fields["snow"][0], rate_mm_h=0.0)
+    none = observe_lidar(scan, SceneMedia(snow, True, scenes[0], field=spec), sensors.lidar)
+    np.testing.assert_array_equal(none.scan.points, scan.points)
+    assert np.all(none.particle_id == -1) and none.counts["UNCHANGED"] == len(scan.points)
     # and a real fog level does change it (the identities above are not vacuous)
-    dense = simulate_lidar(scan, weather_for_scene(CFG, nusc.scene[0]["name"], None, "fog_dense", True), CFG)
+    dense = observe_lidar(scan, _media("fog_dense", scenes, None).for_scene(scenes[0], True), sensors.lidar)
     assert dense.counts["UNCHANGED"] < 0.1 * len(scan.points)
 
 
 def test_reprojection_aligned_subpixel_unaligned_clearly_worse(world, snow_copy):
-    _, nusc, fields, frame, airlight = world
+    tw, nusc, fields, frame, airlight, sensors, scenes = world
     aligned = np.asarray(snow_copy[2]["reprojection_px"])
     assert aligned.size >= 10
     assert aligned.mean() < 0.1 and aligned.max() < 0.5, (aligned.mean(), aligned.max())
-    unaligned = simulate_frame(frame, weather_for_scene(CFG, nusc.scene[0]["name"], fields, "snow", False), CFG,
-                               airlight, nthreads=2).reprojection_px
+    images, ranges = _inputs(frame)
+    unaligned = observe(frame, images, ranges, _job(world, "snow", False).media, sensors, np.asarray(airlight),
+                        OPTIONS).reprojection_px
     assert unaligned.size >= 10
     assert unaligned.mean() > max(1.0, 20 * aligned.mean()), unaligned.mean()
     stats = summarise([snow_copy[2]])
@@ -122,10 +151,10 @@ def test_reprojection_aligned_subpixel_unaligned_clearly_worse(world, snow_copy)
 
 
 def test_same_params_same_bytes(world, snow_copy, tmp_path):
-    tw, nusc, _, frame, airlight = world
-    out, _, _, weather = snow_copy
+    tw, nusc, _, frame, airlight, sensors, _ = world
+    out, _, _, job = snow_copy
     again = tmp_path / "again"
-    simulate_or_resume(nusc, tw.dataroot, again, frame.token, weather, CFG, airlight, nthreads=1)
+    run_sample(nusc, tw.dataroot, again, job, sensors, ObserveOptions(threads=1), RUN)
     written = _files(again, (".progress",))
     assert len(written) == 9  # LiDAR + its extras + labels + 6 cameras
     for rel in written:
@@ -133,86 +162,124 @@ def test_same_params_same_bytes(world, snow_copy, tmp_path):
 
 
 def test_resume_skips_finished_samples(world, snow_copy):
-    tw, nusc, _, frame, airlight = world
-    out, _, record, weather = snow_copy
+    tw, nusc, _, frame, airlight, sensors, _ = world
+    out, _, record, job = snow_copy
     stamps = {rel: (out / rel).stat().st_mtime_ns for rel in _files(out, ())}
-    again, now = simulate_or_resume(nusc, tw.dataroot, out, frame.token, weather, CFG, airlight)
+    again, now = run_sample(nusc, tw.dataroot, out, job, sensors, OPTIONS, RUN)
     assert not now and again == record
     assert {rel: (out / rel).stat().st_mtime_ns for rel in _files(out, ())} == stamps
-    # a different config is not a finished sample
-    other = CFG.model_copy(update={"exposure_s": 0.004})
-    assert load_finished(nusc, frame.token, out, config_hash(other, weather, tw.dataroot, 92)) is None
+    # another sensor (a different exposure), another run fingerprint: not a finished sample
+    other = SensorRig(sensors.lidar, {k: replace(v, exposure_s=0.004) for k, v in sensors.cameras.items()})
+    assert run_sample(nusc, tw.dataroot, out / "x", job, other, OPTIONS, RUN)[1]
+    assert run_sample(nusc, tw.dataroot, out / "y", job, sensors, OPTIONS, "another-run")[1]
 
 
 def test_fog_levels_and_unaligned_camera_alpha():
-    aligned = weather_for_scene(CFG, "scene-0061", None, "fog_dense", True)
+    scenes = [f"scene-{i:04d}" for i in range(50)]
+    dense = _media("fog_dense", scenes, None)
+    aligned = dense.for_scene(scenes[0], True)
     assert aligned.lidar_alpha == aligned.camera_alpha == 0.04
     assert aligned.lidar_beta == pytest.approx(0.046 * 0.04 / np.log(20.0))
-    cams = [weather_for_scene(CFG, f"scene-{i:04d}", None, "fog_light", False).camera_alpha for i in range(50)]
+    light = _media("fog_light", scenes, None)
+    cams = [light.for_scene(s, False).camera_alpha for s in scenes]
     assert all(0.01 <= a <= 0.04 for a in cams) and np.std(cams) > 0.005
-    assert weather_for_scene(CFG, "scene-0001", None, "fog_light", False).lidar_alpha == 0.01
+    assert light.for_scene(scenes[1], False).lidar_alpha == 0.01
+    # media round-trip through their JSON form
+    assert ConditionMedia.from_dict(json.loads(json.dumps(dense.to_dict()))) == dense
+
+
+def test_plan_walks_every_sample_with_its_scene_media(world):
+    tw, nusc, fields, frame, airlight, sensors, scenes = world
+    jobs = plan_jobs(nusc, _media("fog_snow", scenes, fields), aligned=False)
+    assert [j.sample_token for j in jobs] == [s["token"] for s in sorted(nusc.sample, key=lambda s: (
+        [sc["token"] for sc in nusc.scene].index(s["scene_token"]), s["timestamp"]))]
+    for job in jobs:
+        scene = nusc.get("scene", nusc.get("sample", job.sample_token)["scene_token"])
+        assert job.media.scene == scene["name"] and not job.media.aligned
+        assert job.media.field.scene == scene["name"]
+    assert jobs[0].airlight == airlight
+    assert len(plan_jobs(nusc, _media("snow", scenes, fields), True, max_samples=3)) == 3
+
+
+def test_every_condition_resolves_to_its_media(world):
+    tw, nusc, fields, frame, airlight, sensors, scenes = world
+    for name, condition in CONDITIONS.items():
+        media = _media(name, scenes, fields).for_scene(scenes[0], True)
+        assert (media.lidar_alpha > 0) == (condition.fog is not None), name
+        assert (media.field is not None) == (condition.particles is not None), name
+    with pytest.raises(DataFormatError, match="needs snow fields"):
+        _media("fog_snow", scenes, None)
 
 
 @pytest.mark.flow
 def test_flow_writes_copy_and_metrics(world, tmp_path):
-    """The Prefect flow end to end on one fog sample (tables, metrics keys, figure)."""
-    tw, nusc, fields, _, _ = world
-    reports = tmp_path / "reports"
-    (reports / "world").mkdir(parents=True)
-    (reports / "world" / "metrics.json").write_text(json.dumps({"dataroot": str(tw.dataroot),
-                                                               "version": tw.params.world.version}))
+    """The media and simulate flows end to end on one fog sample (tables, metrics keys, figure)."""
+    tw, nusc, fields, frame, _, sensors, scenes = world
+    data, reports = tmp_path / "data", tmp_path / "reports"
+    version = tw.params.world.version
+    write_manifest(manifest_path(data, "world"), DatasetManifest(str(tw.dataroot), version, "synthetic", sensors,
+                                                                 dataset_digest(tw.dataroot, version), tuple(scenes)))
+    (data / "particles").mkdir(parents=True)
+    (data / "particles" / "fields.json").write_text(json.dumps({k: [f.to_dict() for f in v] for k, v in fields.items()}))
     params = tmp_path / "params.yaml"
-    params.write_text(json.dumps({"paths": {"data": str(tmp_path / "data"), "reports": str(reports)},
+    params.write_text(json.dumps({"paths": {"data": str(data), "reports": str(reports)},
                                   "tracking": {"enabled": False}, "run": {"show_progress": False},
                                   "world": tw.params.world.model_dump(mode="json")}))
-    levels = tmp_path / "data" / "calibrate_fog" / "fog_levels.json"
+    levels = data / "calibrate_fog" / "fog_levels.json"
     levels.parent.mkdir(parents=True)
     levels.write_text(json.dumps({"light": {"alpha": 0.012, "beta": 0.0001}, "dense": {"alpha": 0.05, "beta": 0.0007}}))
+    env = {**os.environ, "PYTHONPATH": str(REPO), "PREFECT_LOGGING_LEVEL": "WARNING"}
+    run = subprocess.run([sys.executable, "-m", "flows.media", "--params", str(params)], cwd=REPO,
+                         capture_output=True, text=True, timeout=600, env=env)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert sorted(p.stem for p in (data / "media").glob("*.json")) == sorted(CONDITIONS)
     run = subprocess.run([sys.executable, "-m", "flows.simulate", "--params", str(params), "--set",
                           "simulate.condition=fog_dense", "--set", "simulate.aligned=unaligned", "--set",
-                          "simulate.max_samples=1"], cwd=REPO, capture_output=True, text=True, timeout=600,
-                         env={**os.environ, "PYTHONPATH": str(REPO), "PREFECT_LOGGING_LEVEL": "WARNING"})
+                          "simulate.max_samples=1"], cwd=REPO, capture_output=True, text=True, timeout=600, env=env)
     assert run.returncode == 0, run.stderr[-3000:]
-    out = tmp_path / "data" / "simulate" / "fog_dense-unaligned"
+    out = data / "simulate" / "fog_dense-unaligned"
     metrics = json.loads((reports / "simulate" / "fog_dense-unaligned" / "metrics.json").read_text())
     assert metrics["samples_simulated_this_run"] == 1 and metrics["condition"] == "fog_dense"
     assert (metrics["fog_alpha"], metrics["fog_beta"], metrics["fog_levels"]) == (0.05, 0.0007, "calibrated")
+    assert 0.012 <= metrics["camera_fog_alpha"] <= 0.05
     for key in ("dataroot", "points_unchanged", "points_attenuated", "points_scattered", "points_lost",
                 "particles_rendered", "reprojection_mean_px", "reprojection_max_px", "reprojection_pairs",
                 "seconds_per_sample"):
         assert key in metrics
     assert metrics["points_lost"] + metrics["points_scattered"] > 0 and metrics["reprojection_pairs"] == 0
     assert (reports / "simulate" / "fog_dense-unaligned" / "side_by_side.png").is_file()
-    assert len(open_nuscenes(out, tw.params.world.version).sample) == len(nusc.sample)
+    assert len(open_nuscenes(out, version).sample) == len(nusc.sample)
+    bad = subprocess.run([sys.executable, "-m", "flows.simulate", "--params", str(params), "--set",
+                          "simulate.condition=hail"], cwd=REPO, capture_output=True, text=True, timeout=600, env=env)
+    assert bad.returncode == 2 and "simulate.condition = 'hail' is invalid" in bad.stderr
 
 
 def test_fog_levels_from_the_calibration_file(tmp_path):
     path = tmp_path / "fog_levels.json"
     path.write_text(json.dumps({"light": {"alpha": 0.008, "beta": 0.0002}, "dense": {"alpha": 0.03, "beta": 0.001},
                                 "note": "extra keys are ignored"}))
-    tuned = with_fog_levels(CFG, path)
-    assert fog_level(tuned, "fog_light") == (0.008, 0.0002) and fog_level(tuned, "fog_dense") == (0.03, 0.001)
-    assert weather_for_scene(tuned, "scene-0001", None, "fog_dense", True).camera_alpha == 0.03
-    assert tuned.exposure_s == CFG.exposure_s and CFG.fog_alpha_light == 0.01  # the rest unchanged, input intact
+    tuned = calibrated_fog_levels(path)
+    assert (tuned.alpha, tuned.beta) == ({"light": 0.008, "dense": 0.03}, {"light": 0.0002, "dense": 0.001})
+    media = resolve_media(CONDITIONS["fog_dense"], CFG, ["scene-0001"], tuned, None)
+    assert media.for_scene("scene-0001", True).camera_alpha == 0.03
     with pytest.raises(DataFormatError, match="run the calibrate_fog stage"):
-        with_fog_levels(CFG, tmp_path / "absent.json")
+        calibrated_fog_levels(tmp_path / "absent.json")
     for bad, match in (({"light": {"alpha": 0.01}, "dense": {"alpha": 0.04, "beta": 0.001}}, "light.beta"),
                        ({"light": {"alpha": 0.05, "beta": 0.0}, "dense": {"alpha": 0.04, "beta": 0.0}}, "exceeds"),
                        ({"light": {"alpha": -0.01, "beta": 0.0}, "dense": {"alpha": 0.04, "beta": 0.0}}, "alpha > 0"),
                        ({"light": {"alpha": "x", "beta": 0.0}, "dense": {"alpha": 0.04, "beta": 0.0}}, "light.alpha")):
         path.write_text(json.dumps(bad))
         with pytest.raises(DataFormatError, match=match):
-            with_fog_levels(CFG, path)
+            calibrated_fog_levels(path)
     path.write_text("{not json")
     with pytest.raises(DataFormatError, match="not valid JSON"):
-        with_fog_levels(CFG, path)
+        calibrated_fog_levels(path)
 
 
 def test_sweeps_through_the_same_medium_when_asked(world, tmp_path):
-    tw, nusc, _, frame, airlight = world
-    cfg = CFG.model_copy(update={"sweeps": True})
-    weather = weather_for_scene(cfg, nusc.scene[0]["name"], None, "fog_dense", True)
-    record, now = simulate_or_resume(nusc, tw.dataroot, tmp_path, frame.token, weather, cfg, airlight)
+    tw, nusc, _, frame, airlight, sensors, _ = world
+    job = _job(world, "fog_dense", True)
+    record, now = run_sample(nusc, tw.dataroot, tmp_path, job, sensors, OPTIONS, RUN, sweeps=True)
     sweeps = sweep_records(nusc, frame.token)
     assert now and len(sweeps) == tw.params.world.sweeps_per_sample
     for sd in sweeps:
@@ -222,7 +289,49 @@ def test_sweeps_through_the_same_medium_when_asked(world, tmp_path):
         assert len(np.load(tmp_path / weather_relpath(sd["filename"]))) == len(new)
         assert len(np.load(tmp_path / extras_relpath(sd["filename"]))) == len(new)
     assert record["sweep_counts"]["LOST"] + record["sweep_counts"]["SCATTERED"] > 0
-    assert simulate_or_resume(nusc, tw.dataroot, tmp_path, frame.token, weather, cfg, airlight)[1] is False
+    assert run_sample(nusc, tw.dataroot, tmp_path, job, sensors, OPTIONS, RUN, sweeps=True)[1] is False
+
+
+# ------------------------------------------------------------------------------------------------ mixed weather
+def test_fog_snow_lidar_is_the_composition_of_its_media(world):
+    """fog_snow's LiDAR: fog's attenuation and backscatter plus the flakes' echoes in one response. With the field
+    emptied it is exactly fog (same labels and points as simulate_fog); with the fog removed, exactly snow; with
+    both, flakes still scatter (with ids) and fog echoes appear (without ids), and fewer flakes are seen than in snow
+    alone (the fog attenuates their echoes)."""
+    tw, nusc, fields, frame, _, sensors, scenes = world
+    scan = frame.lidar
+    mixed = _media("fog_snow", scenes, fields).for_scene(scenes[0], True)
+    snow = _media("snow", scenes, fields).for_scene(scenes[0], True)
+    no_field = replace(mixed, field=replace(mixed.field, rate_mm_h=0.0))
+    a = observe_lidar(scan, no_field, sensors.lidar)
+    fog = simulate_fog(scan, mixed.lidar_alpha, mixed.lidar_beta, lidar=sensors.lidar)
+    assert np.array_equal(a.labels, fog.labels) and np.array_equal(a.scan.points, fog.points)
+    no_fog = replace(mixed, lidar_alpha=0.0, lidar_beta=0.0, camera_alpha=0.0)
+    b, c = observe_lidar(scan, no_fog, sensors.lidar), observe_lidar(scan, snow, sensors.lidar)
+    assert np.array_equal(b.scan.points, c.scan.points) and np.array_equal(b.particle_id, c.particle_id)
+    both = observe_lidar(scan, replace(mixed, lidar_alpha=0.04, lidar_beta=0.046 * 0.04 / np.log(20.0)),
+                         sensors.lidar)
+    scattered = both.labels == 2
+    assert (scattered & (both.particle_id >= 0)).sum() > 50 and (scattered & (both.particle_id < 0)).sum() > 50
+    assert (scattered & (both.particle_id >= 0)).sum() < (c.labels == 2).sum()
+
+
+def test_fog_snow_cameras_see_fog_and_prefogged_flakes(world):
+    tw, nusc, fields, frame, airlight, sensors, scenes = world
+    images, ranges = _inputs(frame)
+    mixed = _media("fog_snow", scenes, fields).for_scene(scenes[0], True)
+    fw = observe(frame, images, ranges, mixed, sensors, np.asarray(airlight), OPTIONS)
+    fog_only = observe(frame, images, ranges, replace(mixed, field=replace(mixed.field, rate_mm_h=0.0)), sensors,
+                       np.asarray(airlight), OPTIONS)
+    ch = "CAM_FRONT"
+    far = ranges[ch] > 60.0
+    # the far scene is washed towards the airlight in both; the flakes add detail on top of the fog
+    for out in (fw, fog_only):
+        contrast = np.std(out.cameras[ch].image[far].astype(float))
+        assert contrast < np.std(images[ch][far].astype(float))
+    assert fw.cameras[ch].drawn > 100 and fog_only.cameras[ch].drawn == 0
+    assert not np.array_equal(fw.cameras[ch].image, fog_only.cameras[ch].image)
+    assert fw.reprojection_px.size >= 10 and fw.reprojection_px.max() < 0.5
 
 
 # ------------------------------------------------------------------------------------------------ real frames
@@ -242,18 +351,28 @@ def _real_frame(name: str):
 
 @pytest.mark.parametrize("name", ["stf", "kitti"])
 def test_reprojection_on_real_frames(name: str) -> None:
-    """A real scan + camera (dense depth from the scan, no exact range map): the LiDAR's scattering snowflakes land
-    on their rasterised centroids in the camera; with an independent camera field they do not."""
+    """A real scan + camera (dense depth from the scan, no exact range map, the LiDAR model estimated from the scan):
+    the LiDAR's scattering snowflakes land on their rasterised centroids in the camera; with an independent camera
+    field they do not."""
+    from weatheralign.camera.depth import camera_range_map
+    from weatheralign.camera.fog import estimate_airlight
+    from weatheralign.sensors import estimate_lidar_model
+
     frame = _real_frame(name)
     particles = params_from_dict({}).particles
     spec = field_spec(particles, "snow", f"real-{name}", frame.lidar.timestamp)
-    airlight = scene_airlight(list(frame.cameras.values()))
-    aligned = simulate_frame(frame, Weather("snow", True, field=spec), CFG, airlight, nthreads=2)
+    sensors = SensorRig(estimate_lidar_model([frame.lidar], rotation_hz=10.0), camera_models(frame.cameras, 0.005))
+    images = {ch: v.load_image() for ch, v in frame.cameras.items()}
+    ranges = {ch: camera_range_map(v, frame.lidar, images[ch]) for ch, v in frame.cameras.items()}
+    airlight = estimate_airlight(list(images.values()), list(ranges.values()))
+    media = SceneMedia(CONDITIONS["snow"], True, f"real-{name}", field=spec)
+    aligned = observe(frame, images, ranges, media, sensors, airlight, OPTIONS)
     err = aligned.reprojection_px
     assert aligned.lidar.counts["SCATTERED"] > 100 and err.size >= 10, (aligned.lidar.counts, err.size)
     assert err.mean() < 0.1 and err.max() < 0.5, (err.mean(), err.max())
     cam = next(iter(aligned.cameras.values()))
-    assert cam.drawn > 100 and cam.image.shape == (frame.cameras[next(iter(frame.cameras))].height,
-                                                   frame.cameras[next(iter(frame.cameras))].width, 3)
-    unaligned = simulate_frame(frame, Weather("snow", False, field=spec), CFG, airlight, nthreads=2).reprojection_px
+    view = next(iter(frame.cameras.values()))
+    assert cam.drawn > 100 and cam.image.shape == (view.height, view.width, 3)
+    unaligned = observe(frame, images, ranges, replace(media, aligned=False), sensors, airlight,
+                        OPTIONS).reprojection_px
     assert unaligned.size >= 10 and unaligned.mean() > max(1.0, 20 * err.mean()), unaligned.mean()

@@ -46,7 +46,9 @@ class TrackingConfig(_Section):
 
 
 class LidarConfig(_Section):
-    """The synthetic LIDAR_TOP, modelled on a Velodyne HDL-32E."""
+    """The synthetic LIDAR_TOP, modelled on a Velodyne HDL-32E; `weatheralign.sensors.lidar_model_from_params` turns
+    it into the `LidarModel` written into the world's manifest (``min_detectable_intensity`` is its noise floor on
+    0..255, ``pulse_half_width_s`` its pulse τ_H, ``beam_divergence_rad`` its full divergence)."""
 
     frequency_hz: Annotated[float, Field(gt=1.0, le=50.0)] = 20.0
     firings_per_ring: Annotated[int, Field(ge=90, le=4000)] = 1085
@@ -56,6 +58,7 @@ class LidarConfig(_Section):
     intensity_noise_std: Annotated[float, Field(ge=0.0, le=20.0)] = 1.5
     min_detectable_intensity: Annotated[float, Field(ge=0.0, le=50.0)] = 0.5
     beam_divergence_rad: Annotated[float, Field(gt=0.0, le=0.02)] = 0.003
+    pulse_half_width_s: Annotated[float, Field(gt=1e-9, le=1e-7)] = 1e-8
 
 
 class CameraConfig(_Section):
@@ -65,6 +68,22 @@ class CameraConfig(_Section):
     jpeg_quality: Annotated[int, Field(ge=50, le=100)] = 92
     noise_std: Annotated[float, Field(ge=0.0, le=0.1)] = 0.012
     shadows: bool = True
+    exposure_s: Annotated[float, Field(ge=0.0, le=0.1)] = 0.005
+
+
+class SensorOverrides(_Section):
+    """Facts of a real dataset's LiDAR that a point cloud cannot tell (or that the estimate gets wrong): each key
+    that is set replaces the value `weatheralign.sensors.estimate_lidar_model` finds; null keeps the estimate."""
+
+    divergence_rad: Annotated[float, Field(gt=0.0, le=0.02)] | None = None
+    noise_floor: Annotated[float, Field(ge=0.0, le=50.0)] | None = None
+    pulse_half_width_s: Annotated[float, Field(gt=1e-9, le=1e-7)] | None = None
+    rotation_hz: Annotated[float, Field(gt=1.0, le=50.0)] | None = None
+    max_range_m: Annotated[float, Field(gt=10.0, le=300.0)] | None = None
+    columns_per_ring: Annotated[int, Field(ge=90, le=10_000)] | None = None
+
+    def as_dict(self) -> dict:
+        return {k: v for k, v in self.model_dump().items() if v is not None}
 
 
 class WorldConfig(_Section):
@@ -82,9 +101,13 @@ class WorldConfig(_Section):
     ego_speed_max: Annotated[float, Field(ge=5.0, le=12.0)] = 12.0
     lidar: LidarConfig = LidarConfig()
     camera: CameraConfig = CameraConfig()
+    sensor_overrides: SensorOverrides = SensorOverrides()
 
     @model_validator(mode="after")
     def _check(self) -> "WorldConfig":
+        if self.source == "synthetic" and self.sensor_overrides.as_dict():
+            raise ValueError(f"sensor_overrides {sorted(self.sensor_overrides.as_dict())} apply to real data only; "
+                             f"the synthetic world's sensor is world.lidar / world.camera")
         if self.ego_speed_min > self.ego_speed_max:
             raise ValueError(
                 f"ego_speed_min ({self.ego_speed_min}) must not exceed ego_speed_max ({self.ego_speed_max})"
@@ -127,16 +150,18 @@ class ParticlesConfig(_Section):
 
 
 class SimulateConfig(_Section):
-    """The `simulate` stage: one weather condition (aligned or unaligned) applied to a copy of the clean dataset.
+    """The `simulate` stage: one weather condition (a key of `weatheralign.conditions.CONDITIONS`), aligned or
+    unaligned, applied to a copy of the clean dataset.
 
     Fog levels: with ``fog_levels: calibrated`` (default) the ``calibrate_fog`` stage's tuned (alpha, beta) per level
     (``<paths.data>/calibrate_fog/fog_levels.json``) replace ``fog_alpha_*`` / ``fog_beta_*``; with ``params`` these
     keys are used as given: the literature values (``alpha`` [1/m], ``beta = fog_beta_mor / MOR``;
-    ``fog_beta_light`` / ``fog_beta_dense``, None: from ``fog_beta_mor``). Unaligned fog: the cameras' alpha is drawn uniformly in ``[fog_alpha_light, fog_alpha_dense]``, once per
-    scene (seed ``fog_seed``), independently of the LiDAR's level.
+    ``fog_beta_light`` / ``fog_beta_dense``, None: from ``fog_beta_mor``). Unaligned fog: the cameras' alpha is drawn
+    uniformly in ``[fog_alpha_light, fog_alpha_dense]`` (the levels in use), once per scene (seed ``fog_seed``).
+    The sensors (noise floor, divergence, exposure, ...) are the dataset's (its manifest), not simulate params.
     """
 
-    condition: Literal["fog_light", "fog_dense", "snow", "rain"] = "snow"
+    condition: Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$")] = "snow"
     aligned: bool = True
     fog_levels: Literal["calibrated", "params"] = "calibrated"
     fog_alpha_light: Annotated[float, Field(gt=0.0, le=0.5)] = 0.01
@@ -145,9 +170,8 @@ class SimulateConfig(_Section):
     fog_beta_light: Annotated[float, Field(ge=0.0, le=1.0)] | None = None
     fog_beta_dense: Annotated[float, Field(ge=0.0, le=1.0)] | None = None
     fog_seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 7
-    noise_floor: Annotated[float, Field(ge=0.0, le=50.0)] = 0.5
     rain_appearance: Literal["rain", "rain_opaque_drops"] = "rain"
-    exposure_s: Annotated[float, Field(ge=0.0, le=0.1)] = 0.005
+    jpeg_quality: Annotated[int, Field(ge=50, le=100)] = 92
     near_clip_m: Annotated[float, Field(gt=0.0, le=5.0)] = 0.5
     refine_transmission: bool = True
     max_samples: Annotated[int, Field(ge=0)] = 0
@@ -179,7 +203,7 @@ class ReferenceLidarConfig(_Section):
     """The synthetic reference's HDL-64-like LiDAR and its exact pulse model (`weatheralign.reference.lidar_exact`).
 
     The pulse (``tau_h_s``) and the overlap end points (``overlap_r1_m``, ``overlap_r2_m``) are those of the fast fog
-    simulator's sensor (`weatheralign.lidar.pulse.DEFAULT_SENSOR`); the overlap between them is the exact bi-static
+    simulator's sensor (`weatheralign.sensors.PulseSensor` of the reference LiDAR model); the overlap between them is the exact bi-static
     disc overlap with receiver/beam radius ratio ``overlap_fov_ratio``. Intensity noise: Gaussian of std
     ``sqrt(intensity_noise_std² + (intensity_noise_rel · P)²)`` at peak ``P``; ``noise_floor`` and
     ``intensity_noise_std`` are on the 0..255 scale; ``receiver_step_m`` is the receiver-axis grid of the peak search.
@@ -248,6 +272,7 @@ class ReferenceConfig(_Section):
     beta_factor: tuple[float, float] = (1.0, 2.0)
     lidar: ReferenceLidarConfig = ReferenceLidarConfig()
     camera: ReferenceCameraConfig = ReferenceCameraConfig()
+    sensor_overrides: SensorOverrides = SensorOverrides()
 
     @field_validator("intensity_max", mode="before")
     @classmethod
@@ -269,6 +294,9 @@ class ReferenceConfig(_Section):
                              "cam_stereo_left_lut/ and the split files)")
         if self.source == "synthetic" and self.intensity_max != 255.0:
             raise ValueError("the synthetic reference is written on the 0..255 scale: intensity_max must be 255")
+        if self.source == "synthetic" and self.sensor_overrides.as_dict():
+            raise ValueError(f"sensor_overrides {sorted(self.sensor_overrides.as_dict())} apply to a real reference "
+                             f"only; the synthetic reference's sensor is reference.lidar")
         return self
 
 

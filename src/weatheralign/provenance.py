@@ -55,3 +55,66 @@ def file_stamps(root: Path, relpaths: Iterable[str]) -> str:
         st = path.stat() if path.is_file() else None
         h.update(f"{rel}\0{st.st_size if st else 'missing'}\0{st.st_mtime_ns if st else ''}\0".encode())
     return h.hexdigest()[:16]
+
+
+REPO_ROOT = PACKAGE_ROOT.parents[1]
+"""The repository root when the package runs from its source tree (``src/weatheralign`` -> the root)."""
+CODE_DIRS = ("src/", "flows/", "tasks/")
+
+
+def stage_code(stage: str, dvc_file: Path | None = None) -> list[str]:
+    """The code dependencies ``stage`` declares in ``dvc.yaml`` (entries under ``src/``, ``flows/``, ``tasks/``),
+    relative to the repository root: the one declaration of what code a stage runs.
+
+    Raises:
+        FileNotFoundError: no dvc.yaml; KeyError: no such stage.
+    """
+    import yaml
+
+    path = Path(dvc_file) if dvc_file is not None else REPO_ROOT / "dvc.yaml"
+    stages = yaml.safe_load(path.read_text())["stages"]
+    if stage not in stages:
+        raise KeyError(f"{path}: no stage {stage!r} (has {sorted(stages)})")
+    deps = stages[stage].get("deps", [])
+    return [d for d in deps if isinstance(d, str) and d.startswith(CODE_DIRS)]
+
+
+def stage_params(stage: str, dvc_file: Path | None = None) -> list[str]:
+    """The params keys ``stage`` declares in ``dvc.yaml`` (section names or dotted keys)."""
+    import yaml
+
+    path = Path(dvc_file) if dvc_file is not None else REPO_ROOT / "dvc.yaml"
+    stage_def = yaml.safe_load(path.read_text())["stages"][stage]
+    out = []
+    for p in stage_def.get("params", []):
+        out.extend(p if isinstance(p, str) else [k for v in p.values() for k in v])
+    return [p if isinstance(p, str) else str(p) for p in out]
+
+
+def stage_code_digest(stage: str) -> str:
+    """`source_digest` of the code ``stage`` declares in dvc.yaml (`stage_code`); outside a source tree (no dvc.yaml
+    beside the package) the whole package's code."""
+    if (REPO_ROOT / "dvc.yaml").is_file():
+        return source_digest(*stage_code(stage), root=REPO_ROOT)
+    return source_digest()  # pragma: no cover - installed without the repository
+
+
+def stage_fingerprint(stage: str, params: object, *extra: str) -> str:
+    """16 hex digits over the code (`stage_code`) and the params values (`stage_params`) ``stage`` declares in
+    dvc.yaml, plus ``extra`` strings (e.g. an input dataset's content digest): what a resume record must match.
+
+    Outside a source tree (no dvc.yaml beside the package) the whole package's code is hashed instead.
+    """
+    import json
+
+    code = stage_code_digest(stage)
+    keys = stage_params(stage) if (REPO_ROOT / "dvc.yaml").is_file() else []
+    tree = params.model_dump(mode="json") if hasattr(params, "model_dump") else {}
+    values = {}
+    for key in keys:
+        node = tree
+        for part in key.split("."):
+            node = node.get(part) if isinstance(node, dict) else None
+        values[key] = node
+    blob = json.dumps({"code": code, "params": values, "extra": list(extra)}, sort_keys=True, default=str)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]

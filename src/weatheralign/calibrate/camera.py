@@ -137,16 +137,6 @@ def _check_inputs(image: NDArray, range_map: NDArray, sky_mask: NDArray | None) 
     return img, rng, sky
 
 
-def sky_airlight(image: NDArray, range_map: NDArray, sky_mask: NDArray | None = None,
-                 min_pixels: int = SKY_MIN_PIXELS) -> F64 | None:
-    """(3,) sRGB-encoded median colour (taken in linear light) of the sky pixels, or None with fewer than
-    ``min_pixels``. Sky: ``range_map == inf`` or ``sky_mask``."""
-    img, _, sky = _check_inputs(image, range_map, sky_mask)
-    if int(sky.sum()) < min_pixels:
-        return None
-    return linear_to_srgb(np.median(decode_srgb_u8(img[sky]).astype(np.float64), axis=0))
-
-
 def _dark_channel_airlight(lin: NDArray) -> F64:
     """(3,) linear median colour of the brightest 0.1 % of the dark channel."""
     dc = cv2.erode(lin.min(axis=2).astype(np.float32), np.ones((DARK_CHANNEL_WINDOW,) * 2, np.uint8),

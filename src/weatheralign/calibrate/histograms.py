@@ -17,7 +17,7 @@ number of points), accumulated frame by frame. The ECDF of the pooled points is 
 statistic of the binned samples, computed in integers and rounded once: for integer intensities it equals
 ``scipy.stats.ks_2samp(a, b, method="exact").statistic`` bit for bit (scipy's asymptotic mode, used above 10 000
 points, returns a float difference of ECDFs that can differ by an ulp). No p-value is reported: with millions of
-points any p-value is ~0 (shared/docs/evaluation.md); D itself is reported with a **frame bootstrap**
+points any p-value is ~0, however small the difference; D itself is reported with a **frame bootstrap**
 (`bootstrap_ks`): whole frames are resampled with replacement on both sides (points within a frame are correlated,
 so resampling points would understate the uncertainty), the statistic is recomputed per resample, and the
 percentile interval is returned. Note that the bootstrap distribution of a sup-distance is biased upwards

@@ -8,13 +8,13 @@ Simulation. The per-point intensity outcome of `weatheralign.lidar.fog.simulate_
 range from its **beam origin** and its clear intensity (hard attenuation ``exp(-2 α R_0) i_0`` vs the fog echo), on
 the scan's intensity scale, the pulse sensor and the detector **noise floor** (LOST returns are removed from the
 cloud, so they leave the histogram). `fog_frames` therefore reduces the clear scans once to ``(R_0, i_0)`` per point
-(origins from `beam_origins_fast`, as `simulate_fog` does) and `simulated_histograms` runs the public
+(origins from `weatheralign.lidar.beams.beam_origins`, as `simulate_fog` does) and `simulated_histograms` runs the public
 `fog_intensities` on them, casts to float32 (the point-cloud dtype) and bins: the histograms are identical to binning
-``simulate_fog(scan, α, β, noise_floor=...).points[:, 3]`` (tested). The only randomness of the fog model is the
-optional range jitter of fog echoes, which moves points along their rays and never changes an intensity: the
-objective is a deterministic function of ``(α, β)`` - common random numbers hold trivially, and no seed enters the
-search. The noise floor must be the one the simulate stage uses (``simulate.noise_floor``), hence a required
-argument.
+``simulate_fog(scan, α, β, lidar=...).points[:, 3]`` with the same pulse and floor (tested). The only randomness of
+the fog model is the optional range jitter of fog echoes, which moves points along their rays and never changes an
+intensity: the objective is a deterministic function of ``(α, β)`` - common random numbers hold trivially, and no
+seed enters the search. The noise floor and pulse must be the reference LiDAR's
+(`weatheralign.reference.reference_lidar_model`), hence required arguments.
 
 Search (`calibrate_level`):
 1. the paper's grid (`PAPER_ALPHAS` x `PAPER_BETA_FACTORS`, ``β = 0.023·factor/MOR``, ``MOR = ln 20 / α``), one
@@ -60,8 +60,9 @@ from weatheralign.calibrate.histograms import (
     ks_statistic,
 )
 from weatheralign.data.frame import LidarScan
-from weatheralign.lidar.fog import FogLabel, beam_origins_fast, fog_intensities, soft_target_response
-from weatheralign.lidar.pulse import DEFAULT_SENSOR, PulseSensor
+from weatheralign.lidar.beams import beam_origins
+from weatheralign.lidar.fog import FogLabel, fog_intensities, soft_target_response
+from weatheralign.sensors import PulseSensor
 from weatheralign.medium.fog import LN20, PAPER_BETA_FACTORS, mor_from_alpha
 
 F64 = NDArray[np.float64]
@@ -80,11 +81,6 @@ BETA_SENSITIVITY_MIN = 1e-3
 def beta_from_factor(alpha: float, factor: float) -> float:
     """Backscatter [1/(m sr)] ``0.023 · factor / MOR`` with ``MOR = ln 20 / alpha`` (as `paper_beta_grid`)."""
     return BETA_MOR_UNIT * float(factor) * float(alpha) / LN20
-
-
-def factor_from_beta(alpha: float, beta: float) -> float:
-    """Inverse of `beta_from_factor`: ``beta · MOR / 0.023``."""
-    return float(beta) * LN20 / (BETA_MOR_UNIT * float(alpha))
 
 
 # ----------------------------------------------------------------------------------------------- clear frames
@@ -149,7 +145,7 @@ def point_ranges(points: NDArray[np.float32], origins: NDArray | None) -> F64:
 def fog_frames(scans: Iterable[LidarScan]) -> FogFrames:
     """Reduce clear scans (a sequence or any iterable, consumed once) to `FogFrames`.
 
-    Each point's range is taken from its own beam origin (`beam_origins_fast`: a moving ego's sensor moves during
+    Each point's range is taken from its own beam origin (`weatheralign.lidar.beams.beam_origins`: a moving ego's sensor moves during
     the sweep; None -> the frame origin), exactly as `simulate_fog` computes it.
 
     Raises:
@@ -164,7 +160,7 @@ def fog_frames(scans: Iterable[LidarScan]) -> FogFrames:
         elif float(scan.intensity_max) != scale:
             raise ValueError(f"fog_frames: scan {k} has intensity_max = {scan.intensity_max}, the first {scale}; "
                              f"expected one scale")
-        r0s.append(point_ranges(scan.points, beam_origins_fast(scan)))
+        r0s.append(point_ranges(scan.points, beam_origins(scan, "scan")))
         i0s.append(np.ascontiguousarray(scan.points[:, 3], dtype=np.float32))
     if scale is None:
         raise ValueError("fog_frames: no scans; expected at least one clear LidarScan")
@@ -215,18 +211,18 @@ def simulated_histograms(
     beta: float,
     *,
     noise_floor: float | None,
-    sensor: PulseSensor = DEFAULT_SENSOR,
+    sensor: PulseSensor,
 ) -> IntensityHistograms:
     """Per-frame intensity histograms of the clear ``frames`` fogged with ``(alpha, beta)``.
 
-    Equal to binning ``simulate_fog(scan, alpha, beta, noise_floor=noise_floor, sensor=sensor).points[:, 3]`` of
+    Equal to binning ``simulate_fog(scan, alpha, beta, lidar=<pulse sensor, floor noise_floor>).points[:, 3]`` of
     every scan (any range noise / seed). ~0.1 s for 3.3 M points; releases the GIL (numba), so cells run in
     parallel threads.
 
     Args:
         frames: clear scans (`fog_frames`).
         alpha: extinction [1/m] (>= 0); beta: backscatter [1/(m sr)] (>= 0).
-        noise_floor: detector floor on the 0..255 scale (the simulate stage's ``noise_floor``), or None.
+        noise_floor: detector floor on the 0..255 scale (the reference LiDAR's), or None.
         sensor: the pulse sensor of the simulation.
     """
     res = fog_intensities(frames.r0, frames.i0, alpha, beta, intensity_max=frames.intensity_max, sensor=sensor,
@@ -254,7 +250,7 @@ def evaluate_cell(
     beta_factor: float,
     *,
     noise_floor: float | None,
-    sensor: PulseSensor = DEFAULT_SENSOR,
+    sensor: PulseSensor,
 ) -> CellResult:
     """D_KS between ``frames`` fogged with ``(alpha, beta_from_factor(alpha, beta_factor))`` and ``reference``
     (one fog level's real scans). The unit of work the flow maps over the grid."""
@@ -357,7 +353,7 @@ def grid_search(
     noise_floor: float | None,
     alphas: Sequence[float] = PAPER_ALPHAS,
     beta_factors: Sequence[float] = PAPER_BETA_FACTORS,
-    sensor: PulseSensor = DEFAULT_SENSOR,
+    sensor: PulseSensor,
 ) -> GridResult:
     """Every grid cell in turn (the flow maps `evaluate_cell` instead and calls `GridResult.from_cells`)."""
     cells = [evaluate_cell(frames, reference, a, f, noise_floor=noise_floor, sensor=sensor)
@@ -400,7 +396,7 @@ def refine(
     grid: GridResult,
     *,
     noise_floor: float | None,
-    sensor: PulseSensor = DEFAULT_SENSOR,
+    sensor: PulseSensor,
     fine_points: int | tuple[int, int] = (7, 11),
     max_nelder_mead: int = 60,
 ) -> Refinement:
@@ -521,7 +517,7 @@ def finish_level(
     grid: GridResult,
     *,
     noise_floor: float | None,
-    sensor: PulseSensor = DEFAULT_SENSOR,
+    sensor: PulseSensor,
     fine_points: int | tuple[int, int] = (7, 11),
     max_nelder_mead: int = 60,
     num_bootstrap: int = 1000,
@@ -553,7 +549,7 @@ def calibrate_level(
     noise_floor: float | None,
     alphas: Sequence[float] = PAPER_ALPHAS,
     beta_factors: Sequence[float] = PAPER_BETA_FACTORS,
-    sensor: PulseSensor = DEFAULT_SENSOR,
+    sensor: PulseSensor,
     fine_points: int | tuple[int, int] = (7, 11),
     max_nelder_mead: int = 60,
     num_bootstrap: int = 1000,

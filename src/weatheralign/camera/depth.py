@@ -1,4 +1,4 @@
-"""Dense camera depth from sparse LiDAR for real data (physics.md section 2; the synthetic world has exact depth).
+"""Dense camera depth from sparse LiDAR for real data (docs/physics.md 2.4; the synthetic world has exact depth).
 
 The result is the per-pixel **ray length** [m] (distance from the camera centre, as `CameraView.load_range` gives for
 the synthetic world and as Koschmieder's law needs), ``inf`` for sky. Stages (`dense_depth`):
@@ -63,6 +63,7 @@ from scipy.ndimage import median_filter
 from scipy.spatial import Delaunay, QhullError
 
 from weatheralign.data.frame import CameraView, LidarScan
+from weatheralign.geometry import invert
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -158,7 +159,7 @@ def camera_points(scan: LidarScan, camera: CameraView) -> CameraPoints:
     A point ``p`` of the scan lies at ``T_global_lidar(t_scan) p`` in the world (the scan's compensation); the
     camera sees it at ``inv(T_global_cam(t_cam))`` of that. Firing times come from ``scan.point_times()``.
     """
-    T_cam_lidar = np.linalg.inv(camera.T_global_cam) @ scan.T_global_lidar
+    T_cam_lidar = invert(camera.T_global_cam) @ scan.T_global_lidar
     xyz = scan.points[:, :3].astype(np.float64) @ T_cam_lidar[:3, :3].T + T_cam_lidar[:3, 3]
     dt = scan.point_times() - camera.timestamp
     return CameraPoints(xyz=xyz, dt=dt, R_lidar_cam=T_cam_lidar[:3, :3].T.copy(),
@@ -791,7 +792,7 @@ def dense_depth(
             raise ValueError(f"lidar points: expected (N, 3), got {xyz.shape}")
         if T_ego_lidar is None or lidar_top_elevation_deg is None:
             raise ValueError("dense_depth with a point array needs T_ego_lidar and lidar_top_elevation_deg")
-        T_cam_lidar = np.linalg.inv(camera.T_ego_cam) @ np.asarray(T_ego_lidar, dtype=np.float64)
+        T_cam_lidar = invert(camera.T_ego_cam) @ np.asarray(T_ego_lidar, dtype=np.float64)
         pts = CameraPoints(xyz=xyz[:, :3] @ T_cam_lidar[:3, :3].T + T_cam_lidar[:3, 3], dt=np.zeros(len(xyz)),
                            R_lidar_cam=T_cam_lidar[:3, :3].T.copy(),
                            up_cam=camera.T_ego_cam[:3, :3].T @ np.array([0.0, 0.0, 1.0]))
@@ -799,3 +800,12 @@ def dense_depth(
     img = camera.load_image() if image is None else image
     return complete_depth(pts, camera.K, camera.width, camera.height, img, top, params)
 
+
+
+def camera_range_map(view: CameraView, lidar: LidarScan, image: NDArray | None = None) -> F32:
+    """(H, W) float32 ray length [m] of ``view`` (inf = sky): the exact map where the dataset stores one (the
+    synthetic world, the synthetic reference), else `dense_depth` from ``lidar`` (aggregate sweeps first for
+    nuScenes). The one place that makes this choice: simulate, calibrate and the reference checks call it."""
+    if view.range_path is not None:
+        return view.load_range()
+    return dense_depth(lidar, view, image).range

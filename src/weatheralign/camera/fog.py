@@ -1,4 +1,4 @@
-"""Camera fog of the shared medium: Koschmieder's law on linear radiance (physics.md section 2).
+"""Camera fog of the shared medium: Koschmieder's law on linear radiance (``docs/physics.md`` section 2.3).
 
 A clear pixel of linear radiance ``J`` seen through homogeneous fog along a ray of length ``l`` [m] becomes
 ``I = J t + A (1 - t)`` with the one-way transmittance ``t = exp(-alpha l)``. ``alpha`` is the medium's extinction
@@ -35,7 +35,7 @@ F32 = NDArray[np.float32]
 U8 = NDArray[np.uint8]
 
 NEUTRAL_AIRLIGHT = 0.8
-"""Fallback airlight (sRGB-encoded grey in [0, 1]) for scenes without visible sky (physics.md: 0.75-0.85)."""
+"""Fallback airlight (sRGB-encoded grey in [0, 1]) for scenes without visible sky (docs/physics.md 2.3: 0.75-0.85)."""
 
 SKY_MIN_PIXELS = 100
 """Fewest sky pixels (pooled over the cameras) for a sky-based airlight; fewer fall back to the neutral grey."""
@@ -375,6 +375,19 @@ def fog_image(
         J = srgb_to_linear(_as_srgb_float(img)).astype(np.float32)
     if refine:
         t = refine_transmission(t, img if not linear_input else encode_srgb_u8(J), GUIDED_RADIUS, GUIDED_EPS)
+    return encode_srgb_u8(composite(J, t, A_lin))
+
+
+def composite(linear: F32, t: F32, airlight_linear: NDArray) -> F32:
+    """Koschmieder compositing in linear light: ``J t + A (1 - t)``.
+
+    Args:
+        linear: (H, W, 3) float32 linear radiance of the clear scene.
+        t: (H, W) float32 transmittance in [0, 1] (fog, unresolved particles, or their product).
+        airlight_linear: (3,) linear airlight.
+
+    Returns:
+        (H, W, 3) float32 linear radiance seen through the medium. The one compositing rule of every camera medium.
+    """
     t3 = t[..., None]
-    fogged = J * t3 + A_lin * (np.float32(1.0) - t3)
-    return encode_srgb_u8(fogged)
+    return linear * t3 + np.asarray(airlight_linear).astype(np.float32) * (np.float32(1.0) - t3)

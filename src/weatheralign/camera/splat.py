@@ -3,7 +3,7 @@
 Every particle of the medium's `ParticleField` that the camera can resolve is one 3-D Gaussian at the particle's
 world position at the camera's own timestamp (taken as the middle of the exposure), projected with the EWA
 approximation ``Σ2D = J W Σ Wᵀ Jᵀ + 0.3 I`` and composited front to back in ray-length order against the scene's
-per-pixel ray length (physics.md section 4). On top of Weather-edit's recipe:
+per-pixel ray length (``docs/physics.md`` section 4). On top of Weather-edit's recipe:
 
 - exposure streaks: during the exposure ``T_e`` a particle moves ``s = (v_field - v_camera) T_e`` relative to the
   camera (translation only; the camera's rotation during 5 ms is neglected); its 3-D covariance gains the covariance
@@ -55,6 +55,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from weatheralign.geometry import invert
 from weatheralign.medium.distributions import ExponentialSizeDistribution
 from weatheralign.medium.field import DEFAULT_MAX_PARTICLES, ParticleField, Particles
 
@@ -154,6 +155,9 @@ RAIN_OPAQUE_DROPS = ParticleAppearance(name="rain_opaque_drops", sigma_per_diame
 field of view and replaces the background over its disc (Garg & Nayar 2004), i.e. an opaque disc of diameter D,
 whose integrated alpha ``π D²/4`` a ``σ = D/2`` Gaussian reaches at opacity 0.5. Streaks are ~2.5x more visible than
 with `RAIN`; same ids, same variation stream."""
+
+APPEARANCES: dict[str, ParticleAppearance] = {a.name: a for a in (SNOW, RAIN, RAIN_OPAQUE_DROPS)}
+"""The named particle appearances (a condition names its camera appearance; `APPEARANCES[name]` draws it)."""
 
 
 @njit(nogil=True, cache=True, inline="always")
@@ -393,7 +397,7 @@ def materialize_for_camera(field: ParticleField, K: NDArray, width: int, height:
     f = focal_px(K)
     spec = field.spectrum
     r_end = min(float(max_range), max_splat_range(spec.d_max, f, appearance))
-    T_cam_global = np.linalg.inv(T_global_cam)
+    T_cam_global = invert(T_global_cam)
     pos_parts, dia_parts, id_parts = [], [], []
     r0 = float(near_clip)
     while r0 < r_end:

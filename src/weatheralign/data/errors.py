@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import json
+
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -37,6 +40,22 @@ def require_file(path: Path, what: str) -> Path:
     if not Path(path).is_file():
         raise DataFormatError(f"{what}: missing sensor file {path}")
     return Path(path)
+
+
+def read_json_file(path: Path, missing_hint: str) -> Any:
+    """The parsed JSON of ``path``.
+
+    Raises:
+        DataFormatError: the file is missing (the message ends with ``missing_hint``, e.g. which stage writes it) or
+            is not valid JSON.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DataFormatError(f"{path}: missing; {missing_hint}")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise DataFormatError(f"{path}: not valid JSON ({exc})") from None
 
 
 def read_float32_records(path: Path, columns: int, what: str = "point cloud") -> NDArray[np.float32]:

@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 from PIL import Image
 
 from weatheralign.data.errors import DataFormatError, require_file
-from weatheralign.geometry import interpolate_poses
+from weatheralign.geometry import apply, interpolate_poses, invert
 
 F64 = NDArray[np.float64]
 
@@ -90,8 +90,7 @@ class LidarScan:
         times = self.point_times()
         T_global_lidar_t = self.global_poses_at(times) @ self.T_ego_lidar
         origins_global = T_global_lidar_t[:, :3, 3]
-        T_lidar_global = np.linalg.inv(self.T_global_lidar)
-        return origins_global @ T_lidar_global[:3, :3].T + T_lidar_global[:3, 3]
+        return apply(invert(self.T_global_lidar), origins_global)
 
 
 @dataclass(frozen=True)

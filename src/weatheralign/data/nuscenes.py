@@ -18,7 +18,7 @@ from pyquaternion import Quaternion
 
 from weatheralign.data.errors import DataFormatError, read_float32_records, resolve_inside
 from weatheralign.data.frame import Box, CameraView, Frame, LidarScan
-from weatheralign.geometry import NonRigidTransformError, check_rigid, transform_from_quaternion
+from weatheralign.geometry import NonRigidTransformError, apply, check_rigid, invert, transform_from_quaternion
 
 CAMERA_CHANNELS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT")
 SWEEP_START_AZIMUTH = np.pi / 2  # ego +y (left)
@@ -106,7 +106,7 @@ def load_lidar(nusc: NuScenes, sample_data_token: str, nsweeps: int = 1) -> Lida
     sd = nusc.get("sample_data", sample_data_token)
     points, offsets, T_ego_lidar, T_global_ego = _read_scan(nusc, sd)
     t_ref = sd["timestamp"] * 1e-6
-    T_lidar_global = np.linalg.inv(T_global_ego @ T_ego_lidar)
+    T_lidar_global = invert(T_global_ego @ T_ego_lidar)
     all_pts, all_off, all_idx = [points], [offsets], [np.zeros(len(points), np.int16)]
     pose_times, poses = [t_ref], [T_global_ego]
     cur = sd
@@ -121,7 +121,7 @@ def load_lidar(nusc: NuScenes, sample_data_token: str, nsweeps: int = 1) -> Lida
         p_k, off_k, T_el_k, T_ge_k = _read_scan(nusc, cur)
         poses.insert(0, T_ge_k)
         T = T_lidar_global @ T_ge_k @ T_el_k
-        xyz = p_k[:, :3].astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+        xyz = apply(T, p_k[:, :3])
         p_k = np.column_stack([xyz, p_k[:, 3:]]).astype(np.float32)
         all_pts.append(p_k)
         all_off.append((off_k + np.float32(cur["timestamp"] * 1e-6 - t_ref)).astype(np.float32))

@@ -1,20 +1,21 @@
-"""LiDAR observation of the weather medium: the shared pulse model, fog (`simulate_fog`) and snow / rain
-(`simulate_particles`), each one call on a `LidarScan`."""
+"""LiDAR observation of the weather medium: the shared pulse model, fog (`simulate_fog`) and snow / rain (alone or
+inside fog: `simulate_particles`), each one call on a `LidarScan` with the sensor's `weatheralign.sensors.LidarModel`
+(its description, `PulseSensor` and `IntensityModel` included, lives in `weatheralign.sensors`)."""
 
-from weatheralign.lidar.beams import Beams, beams_from_scan
+from weatheralign.lidar.beams import Beams, beam_origins, beams_from_scan
 from weatheralign.lidar.fog import (
     REFERENCE_CODE_BETA,
     FogLabel,
     FogResult,
     SoftTargetResponse,
-    beam_origins_fast,
     fog_intensities,
     fog_point_arrays,
     simulate_fog,
     soft_target_response,
 )
+from weatheralign.lidar.labels import WeatherLabel
 from weatheralign.lidar.particles import ParticleLabel, ParticleResult, simulate_particles
-from weatheralign.lidar.pulse import PulseSensor, c_a_p0_from_intensity, hard_target_power, overlap
+from weatheralign.lidar.pulse import c_a_p0_from_intensity, hard_target_power, overlap
 
 __all__ = [
     "Beams",
@@ -25,9 +26,9 @@ __all__ = [
     "REFERENCE_CODE_BETA",
     "FogLabel",
     "FogResult",
-    "PulseSensor",
     "SoftTargetResponse",
-    "beam_origins_fast",
+    "WeatherLabel",
+    "beam_origins",
     "c_a_p0_from_intensity",
     "fog_intensities",
     "fog_point_arrays",

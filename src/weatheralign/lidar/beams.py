@@ -9,8 +9,9 @@ during a 50 ms sweep and the particles fall, so both are evaluated per beam):
   compensated to the scan timestamp, so a point's global position is ``T_global_lidar @ p``) to the point;
 - beams without a return come, in order of preference, from
   1. explicit `NoReturnBeams` (e.g. kept by a renderer),
-  2. the synthetic world's firing grid: the (ring, column) cells of `world.rig.firing_pattern` that have no point
-     (the per-point ``column`` is stored in the world's extras; see `synthetic_columns`); each such beam fires at its
+  2. the sensor's firing grid (`weatheralign.sensors.LidarModel.firing_pattern`, for datasets that store per-point
+     firing columns, the synthetic world's extras; see `synthetic_columns`): the (ring, column) cells that have no
+     point; each such beam fires at its
      grid time from the sensor position at that time, along the grid direction,
   3. a reconstruction from the ring/azimuth structure of a real scan (nuScenes, Seeing Through Fog, KITTI):
      per ring, azimuth gaps wider than ``gap_factor`` x the median azimuth step are filled with beams at that step,
@@ -32,8 +33,14 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from typing import TYPE_CHECKING
+
 from weatheralign.data.frame import LidarScan
 from weatheralign.data.nuscenes import derived_time_offsets, extras_relpath
+from weatheralign.geometry import invert
+
+if TYPE_CHECKING:
+    from weatheralign.sensors import FiringPattern, LidarModel
 
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
@@ -175,9 +182,26 @@ def scan_times(scan: LidarScan) -> F64:
     return scan.timestamp + derived_time_offsets(scan.points, scan.T_ego_lidar).astype(np.float64)
 
 
-def _scan_origins(scan: LidarScan, times: F64) -> F64:
-    """(N, 3) global origins of the scan's points' beams."""
-    if scan.poses is None or scan.pose_times is None or scan.time_offsets is None:
+def beam_origins(scan: LidarScan, frame: str = "global") -> F64 | None:
+    """(N, 3) position [m] of the sensor at each point's firing time: the origin of the point's beam.
+
+    ``frame="global"``: in the global frame (every scan; a static sensor gives ``T_global_lidar``'s position);
+    ``frame="scan"``: in the scan's own frame, or None where every beam starts at the frame origin (no per-point
+    times or no ego poses). Poses come from `sensor_poses_at` (exact at knots, linear in between); the exact
+    per-point definition is `LidarScan.beam_origins` (slow, the tests' oracle). The one fast beam-origin function
+    of fog, snow/rain and the calibration.
+    """
+    moving = scan.poses is not None and scan.pose_times is not None and scan.time_offsets is not None
+    if frame == "scan":
+        if not moving or len(scan.points) == 0:
+            return None
+        origins = sensor_poses_at(scan, scan.point_times())[0]
+        T = invert(scan.T_global_lidar)
+        return origins @ T[:3, :3].T + T[:3, 3]
+    if frame != "global":
+        raise ValueError(f"beam_origins: frame = {frame!r}; expected 'global' or 'scan'")
+    times = scan_times(scan)
+    if not moving:
         return np.broadcast_to(scan.T_global_lidar[:3, 3], (len(times), 3)).copy()
     return sensor_poses_at(scan, times)[0]
 
@@ -207,18 +231,13 @@ def synthetic_columns(scan: LidarScan) -> NDArray[np.int16] | None:
     return np.asarray(records["column"], dtype=np.int16)
 
 
-def grid_no_return_beams(scan: LidarScan, columns: NDArray, pattern: object | None = None) -> NoReturnBeams:
-    """The cells of a firing grid that produced no point: ``pattern`` is a `world.rig.FiringPattern` (default: the
-    synthetic HDL-32E of the default `LidarConfig`), ``columns`` (N,) the firing column of each point.
+def grid_no_return_beams(scan: LidarScan, columns: NDArray, pattern: "FiringPattern") -> NoReturnBeams:
+    """The cells of a firing grid that produced no point: ``pattern`` is the sensor's grid
+    (`weatheralign.sensors.LidarModel.firing_pattern`), ``columns`` (N,) the firing column of each point.
 
     Raises:
-        ValueError: columns/rings outside the grid.
+        ValueError: columns/rings outside the grid (the scan was not recorded with this sensor's grid).
     """
-    if pattern is None:
-        from weatheralign.config import LidarConfig
-        from weatheralign.world.rig import firing_pattern
-
-        pattern = firing_pattern(LidarConfig())
     columns = np.asarray(columns).astype(np.int64)
     if columns.shape != (len(scan.points),):
         raise ValueError(f"columns: expected shape ({len(scan.points)},), got {columns.shape}")
@@ -228,7 +247,8 @@ def grid_no_return_beams(scan: LidarScan, columns: NDArray, pattern: object | No
     point_rings = scan.points[:, 4].astype(np.int64)
     if len(columns) and (columns.min() < 0 or columns.max() >= n_cols or point_rings.min() < 0
                          or point_rings.max() >= n_rings):
-        raise ValueError(f"columns/rings outside the firing grid ({n_rings} rings x {n_cols} columns)")
+        raise ValueError(f"{scan.path or 'scan'}: columns/rings outside the sensor's firing grid ({n_rings} rings x "
+                         f"{n_cols} columns): the dataset's LiDAR model does not describe this scan")
     occupied = np.zeros(n_rings * n_cols, dtype=bool)
     occupied[columns * n_rings + point_rings] = True
     cell = np.asarray(pattern.column, dtype=np.int64) * n_rings + rings
@@ -280,10 +300,9 @@ def reconstruct_no_return_beams(scan: LidarScan, *, gap_factor: float = DEFAULT_
     idx = np.flatnonzero(keep)
     if len(idx) < min_ring_points:
         return _empty_no_return()
-    times = scan_times(scan)[idx]
     p = pts[idx, :3].astype(np.float64)
-    T_lg = np.linalg.inv(scan.T_global_lidar)
-    o = _scan_origins(scan, times) @ T_lg[:3, :3].T + T_lg[:3, 3]
+    T_lg = invert(scan.T_global_lidar)
+    o = beam_origins(scan)[idx] @ T_lg[:3, :3].T + T_lg[:3, 3]
     v = p - o
     r = np.linalg.norm(v, axis=1)
     ok = r > 1e-6
@@ -344,21 +363,20 @@ def reconstruct_no_return_beams(scan: LidarScan, *, gap_factor: float = DEFAULT_
 # ------------------------------------------------------------------------------------------------ beams
 
 
-def beams_from_scan(scan: LidarScan, *, max_range: float, divergence: float,
-                    no_return_directions: NoReturnBeams | None = None, columns: NDArray | str | None = "auto",
-                    pattern: object | None = None, reconstruct: bool = True,
+def beams_from_scan(scan: LidarScan, *, lidar: "LidarModel", no_return_directions: NoReturnBeams | None = None,
+                    columns: NDArray | str | None = "auto", reconstruct: bool = True,
                     gap_factor: float = DEFAULT_GAP_FACTOR) -> Beams:
     """All beams of a scan in the global frame: its points first (``point_index`` = row), then the beams without
     return.
 
     Args:
         scan: any `LidarScan` (synthetic world, nuScenes, Seeing Through Fog, KITTI).
-        max_range: the sensor's maximum range [m]: the length of beams without return.
-        divergence: full beam divergence [rad] (~3e-3 for the HDL-32E / HDL-64E).
+        lidar: the sensor (`weatheralign.sensors.LidarModel`): its maximum range is the length of beams without
+            return, its divergence the beams', its firing grid the source of beams without return where the
+            dataset stores per-point firing columns (``lidar.firing_columns_stored``).
         no_return_directions: explicit beams without return; if given, nothing is derived.
-        columns: the synthetic world's per-point firing columns (N,), None, or ``"auto"`` (read them with
-            `synthetic_columns` when the scan comes from a synthetic-world dataroot).
-        pattern: the firing grid of ``columns`` (a `world.rig.FiringPattern`; default: the default `LidarConfig`).
+        columns: per-point firing columns (N,), None, or ``"auto"`` (read them with `synthetic_columns` when the
+            sensor stores them).
         reconstruct: without explicit beams or columns, reconstruct the beams without return from the ring/azimuth
             grid (`reconstruct_no_return_beams`); False adds none.
         gap_factor: see `reconstruct_no_return_beams`.
@@ -366,13 +384,12 @@ def beams_from_scan(scan: LidarScan, *, max_range: float, divergence: float,
     Returns:
         `Beams`: points with a degenerate direction (at the sensor origin) get direction +x and length 0.
     """
-    if not (math.isfinite(max_range) and max_range > 0.0):
-        raise ValueError(f"beams_from_scan: max_range = {max_range!r}; expected a finite range > 0 m")
+    max_range = float(lidar.max_range_m)
     pts = scan.points
     n = len(pts)
     T_gl = scan.T_global_lidar
     times = scan_times(scan)
-    origins = _scan_origins(scan, times)
+    origins = beam_origins(scan)
     p_global = pts[:, :3].astype(np.float64) @ T_gl[:3, :3].T + T_gl[:3, 3]
     v = p_global - origins
     lengths = np.linalg.norm(v, axis=1)
@@ -383,11 +400,14 @@ def beams_from_scan(scan: LidarScan, *, max_range: float, divergence: float,
     lengths = np.where(good, lengths, 0.0)
 
     if no_return_directions is None:
-        cols = synthetic_columns(scan) if isinstance(columns, str) and columns == "auto" else columns
-        if isinstance(cols, str):
+        if isinstance(columns, str) and columns == "auto":
+            cols = synthetic_columns(scan) if lidar.firing_columns_stored else None
+        elif isinstance(columns, str):
             raise ValueError(f"beams_from_scan: columns = {columns!r}; expected an array, None or 'auto'")
+        else:
+            cols = columns
         if cols is not None:
-            no_return_directions = grid_no_return_beams(scan, np.asarray(cols), pattern)
+            no_return_directions = grid_no_return_beams(scan, np.asarray(cols), lidar.firing_pattern())
         elif reconstruct:
             no_return_directions = reconstruct_no_return_beams(scan, gap_factor=gap_factor)
         else:
@@ -402,11 +422,11 @@ def beams_from_scan(scan: LidarScan, *, max_range: float, divergence: float,
         origins=np.concatenate([origins, nr_origins]),
         directions=np.concatenate([directions, nr_dirs]),
         times=np.concatenate([times, nr_times]),
-        lengths=np.concatenate([lengths, np.full(k, float(max_range))]),
+        lengths=np.concatenate([lengths, np.full(k, max_range)]),
         has_return=np.concatenate([np.ones(n, dtype=bool), np.zeros(k, dtype=bool)]),
         intensity0=np.concatenate([scan.intensity_255().astype(np.float64), np.zeros(k)]),
         ring=np.concatenate([pts[:, 4], np.asarray(nr.ring, dtype=np.float32)]),
         point_index=np.concatenate([np.arange(n, dtype=np.int64), np.full(k, -1, dtype=np.int64)]),
-        divergence=float(divergence),
-        max_range=float(max_range),
+        divergence=float(lidar.divergence_rad),
+        max_range=max_range,
     )

@@ -1,6 +1,6 @@
 """LiDAR fog (Hahner et al., ICCV 2021) for any extinction α, vectorised.
 
-Model (``shared/docs/physics.md`` section 2). A homogeneous fog of extinction α [1/m] and backscatter β [1/(m sr)]
+Model (``docs/physics.md`` section 2.2). A homogeneous fog of extinction α [1/m] and backscatter β [1/(m sr)]
 attenuates every hard-target return two-way, ``i_hard = exp(-2 α R_0) i_0``, and returns a soft-target echo of its own:
 
     P_soft(R) / (C_A P_0 β) = ∫_0^{2τ_H} sin²(π t / 2τ_H) · exp(-2α r) ξ(r) / r² · U(R_0 - r) dt,   r = R - c t / 2.
@@ -36,15 +36,20 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field, replace
-from enum import IntEnum
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from weatheralign.data.frame import LidarScan
-from weatheralign.lidar.pulse import DEFAULT_SENSOR, SPEED_OF_LIGHT, PulseSensor, overlap
+from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel
+from weatheralign.lidar.beams import beam_origins
+from weatheralign.lidar.pulse import SPEED_OF_LIGHT, PulseSensor, overlap
 from weatheralign.medium.fog import DEFAULT_BETA_MOR, LN20
+
+if TYPE_CHECKING:
+    from weatheralign.sensors import LidarModel
 
 F64 = NDArray[np.float64]
 
@@ -56,13 +61,11 @@ TABLE_STEP_M = 0.005
 """Target grid step [m] of the per-α response table."""
 
 
-class FogLabel(IntEnum):
-    """What fog did to a point."""
-
-    UNCHANGED = 0  # bit-identical to the input (α = 0, or zero intensity)
-    ATTENUATED = 1  # same position, intensity exp(-2 α R_0) i_0
-    SCATTERED = 2  # replaced by the fog return at R_fog on its ray
-    LOST = 3  # the weather pushed the return below the detector noise floor: dropped
+FogLabel = WeatherLabel
+"""What fog did to a point: the shared `WeatherLabel` (one enum for fog, snow and rain). UNCHANGED: bit-identical to
+the input (α = 0, or zero intensity); ATTENUATED: same position, intensity ``exp(-2 α R_0) i_0``; SCATTERED: replaced
+by the fog return at ``R_fog`` on its ray; LOST: the weather pushed the return below the detector noise floor
+(dropped). NO_ECHO (beams without return) does not occur in the fog model."""
 
 
 def _check_medium(alpha: float, beta: float) -> None:
@@ -104,7 +107,7 @@ class SoftTargetResponse:
 
 
 def soft_target_response(
-    alpha: float, sensor: PulseSensor = DEFAULT_SENSOR, *, step: float = TABLE_STEP_M
+    alpha: float, sensor: PulseSensor, *, step: float = TABLE_STEP_M
 ) -> SoftTargetResponse:
     """Tabulate the fog response of extinction ``alpha`` [1/m] (about 0.3 ms with the default 5 mm ``step``).
 
@@ -162,8 +165,8 @@ def fog_intensities(
     beta: float,
     *,
     intensity_max: float = 255.0,
-    sensor: PulseSensor = DEFAULT_SENSOR,
-    noise_floor: float | None = None,
+    sensor: PulseSensor,
+    noise_floor: float | None,
     response: SoftTargetResponse | None = None,
 ) -> FogIntensities:
     """Hard attenuation vs fog echo for points at ranges ``r0`` (N,) [m] with clear intensities ``i0`` (N,).
@@ -344,8 +347,8 @@ def fog_point_arrays(
     beta: float,
     *,
     intensity_max: float = 255.0,
-    sensor: PulseSensor = DEFAULT_SENSOR,
-    noise_floor: float | None = None,
+    sensor: PulseSensor,
+    noise_floor: float | None,
     range_noise: float | None = None,
     rng: np.random.Generator | int | None = None,
     response: SoftTargetResponse | None = None,
@@ -389,7 +392,7 @@ def fog_point_arrays(
     _points_kernel(np.ascontiguousarray(points), origins, *params, out, labels, r0, r_fog)
     if gen is not None:
         _jitter_fog_ranges(points, origins, out, labels, r0, r_fog, range_noise, sensor, gen)
-    counts = np.bincount(labels, minlength=len(FogLabel))
+    counts = np.bincount(labels, minlength=len(POINT_LABELS))
     if counts[FogLabel.LOST]:
         keep = np.flatnonzero(labels != FogLabel.LOST)
         out, kept_labels = out[keep], labels[keep]
@@ -403,7 +406,7 @@ def fog_point_arrays(
         alpha=float(alpha),
         beta=float(beta),
         intensity_max=float(intensity_max),
-        counts={label.name: int(counts[label]) for label in FogLabel},
+        counts={label.name: int(counts[label]) for label in POINT_LABELS},
     )
 
 
@@ -431,33 +434,12 @@ def _jitter_fog_ranges(
     out[hit, :3] = origin + ray * (r_new / r0[hit])[:, None]
 
 
-def beam_origins_fast(scan: LidarScan, num_knots: int = 64) -> F64 | None:
-    """(N, 3) beam origins [m] like `LidarScan.beam_origins`, or None where every beam starts at the frame origin.
-
-    The exact origins are evaluated at ``num_knots`` firing times spread over the sweep plus every pose time inside
-    it, and interpolated linearly in time in between (the origin path is smooth between pose times; the error is
-    well below a micrometre for a 50 ms sweep), which is ~25x faster than interpolating one pose per point.
-    """
-    if scan.time_offsets is None or scan.poses is None or scan.pose_times is None or len(scan.points) == 0:
-        return None
-    times = scan.point_times()
-    t_lo, t_hi = float(times.min()), float(times.max())
-    pose_times = np.asarray(scan.pose_times, dtype=np.float64)
-    knots = np.unique(np.concatenate([np.linspace(t_lo, t_hi, max(num_knots, 2)),
-                                      pose_times[(pose_times > t_lo) & (pose_times < t_hi)]]))
-    T_global_lidar_t = scan.global_poses_at(knots) @ scan.T_ego_lidar
-    T_lidar_global = np.linalg.inv(scan.T_global_lidar)
-    at_knots = T_global_lidar_t[:, :3, 3] @ T_lidar_global[:3, :3].T + T_lidar_global[:3, 3]
-    return np.stack([np.interp(times, knots, at_knots[:, k]) for k in range(3)], axis=1)
-
-
 def simulate_fog(
     scan: LidarScan,
     alpha: float,
     beta: float,
     *,
-    sensor: PulseSensor = DEFAULT_SENSOR,
-    noise_floor: float | None = None,
+    lidar: "LidarModel",
     range_noise: float | None = None,
     rng: np.random.Generator | int | None = None,
 ) -> FogResult:
@@ -467,13 +449,12 @@ def simulate_fog(
         scan: the clear scan (any intensity scale; the result keeps it).
         alpha: extinction [1/m] (``MOR = ln 20 / α``); 0 returns the input unchanged when ``beta`` is 0 too.
         beta: backscatter [1/(m sr)], e.g. `default_beta` (0.046 / MOR).
-        sensor: pulse parameters.
-        noise_floor: detector noise floor on the 0..255 scale, or None to keep every return.
+        lidar: the sensor (`weatheralign.sensors.LidarModel`): its pulse and its detector noise floor (0..255).
         range_noise: optional uniform half-width [m] of the fog-echo range jitter (bounded; needs ``rng``).
         rng: seed or numpy Generator for the range jitter.
 
     Returns:
         `FogResult` (use ``result.apply_to(scan)`` for a `LidarScan`).
     """
-    return fog_point_arrays(scan.points, beam_origins_fast(scan), alpha, beta, intensity_max=scan.intensity_max,
-                            sensor=sensor, noise_floor=noise_floor, range_noise=range_noise, rng=rng)
+    return fog_point_arrays(scan.points, beam_origins(scan, "scan"), alpha, beta, intensity_max=scan.intensity_max,
+                            sensor=lidar.pulse, noise_floor=lidar.noise_floor, range_noise=range_noise, rng=rng)

@@ -2,7 +2,7 @@
 
 Received power ``P_R(R) = C_A ∫_0^{2R/c} P_T(t) H(R - ct/2) dt`` with the pulse ``P_T(t) = P_0 sin²(π t / (2 τ_H))`` on
 ``0 <= t <= 2 τ_H`` and the channel ``H_C(r) = ξ(r) / r² · exp(-2 α r)``. ``R = c t / 2`` is the range coordinate of the
-receiver's time axis (time since the start of the emitted pulse). See ``shared/docs/physics.md`` section 1.
+receiver's time axis (time since the start of the emitted pulse). See ``docs/physics.md`` section 1.
 
 Unit convention: the closed-form hard-target response below is the published one (Hahner et al.): a target of
 reflectivity ``β_0`` at ``R_0`` gives ``C_A P_0 β_0 ξ(R_0) / R_0² sin²(π (R - R_0) / (c τ_H))``, i.e. without the
@@ -13,67 +13,15 @@ intensity units consistently.
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
-
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from weatheralign.sensors import SPEED_OF_LIGHT, PulseSensor  # noqa: F401  (the sensor description lives there)
+
 F64 = NDArray[np.float64]
 
-SPEED_OF_LIGHT = 299_792_458.0
-"""c [m/s]."""
 
-
-@dataclass(frozen=True)
-class PulseSensor:
-    """Pulse and optics parameters of a pulsed LiDAR.
-
-    Attributes:
-        tau_h: half-power pulse width τ_H [s]; 20 ns in the fog model, 10 ns (HDL-64 datasheet) in the snow model.
-        r1: range [m] where the receiver's field of view starts to overlap the beam (overlap ξ = 0 up to here).
-        r2: range [m] from which the overlap is complete (ξ = 1); ξ rises linearly in between.
-        gamma: hard-target reflectivity Γ of the reference target; ``beta_0 = Γ / π`` [1/sr].
-        max_range: largest range the sensor reports [m].
-        saturation: largest intensity the sensor reports, on the 0..255 scale.
-    """
-
-    tau_h: float = 20e-9
-    r1: float = 0.9
-    r2: float = 1.0
-    gamma: float = 1e-6
-    max_range: float = 120.0
-    saturation: float = 255.0
-
-    def __post_init__(self) -> None:
-        checks = {
-            "tau_h": (self.tau_h, 0.0 < self.tau_h < 1e-6, "0 < tau_h < 1e-6 s"),
-            "r1": (self.r1, 0.0 < self.r1, "r1 > 0 m"),
-            "r2": (self.r2, self.r1 < self.r2, f"r2 > r1 = {self.r1} m"),
-            "gamma": (self.gamma, 0.0 < self.gamma, "gamma > 0"),
-            "max_range": (self.max_range, self.r2 < self.max_range, f"max_range > r2 = {self.r2} m"),
-            "saturation": (self.saturation, 0.0 < self.saturation <= 255.0, "0 < saturation <= 255"),
-        }
-        for name, (value, ok, allowed) in checks.items():
-            if not (math.isfinite(value) and ok):
-                raise ValueError(f"PulseSensor.{name} = {value!r}; expected {allowed}")
-
-    @property
-    def beta_0(self) -> float:
-        """Differential reflectivity ``Γ / π`` [1/sr] of the reference hard target."""
-        return self.gamma / math.pi
-
-    @property
-    def pulse_length(self) -> float:
-        """``c τ_H`` [m]: a hard target at ``R_0`` responds on ``R_0 <= R <= R_0 + c τ_H``, peaking at the middle."""
-        return SPEED_OF_LIGHT * self.tau_h
-
-
-DEFAULT_SENSOR = PulseSensor()
-"""The fog model's sensor (τ_H = 20 ns, ξ from 0.9 m to 1.0 m, Γ = 1e-6, 120 m, saturating at 255)."""
-
-
-def overlap(r: ArrayLike, sensor: PulseSensor = DEFAULT_SENSOR) -> F64:
+def overlap(r: ArrayLike, sensor: PulseSensor) -> F64:
     """Overlap ξ(r) (same shape as ``r``): 0 for ``r <= r1``, 1 for ``r >= r2``, linear in between. ``r`` in m."""
     r = np.asarray(r, dtype=np.float64)
     return np.clip((r - sensor.r1) / (sensor.r2 - sensor.r1), 0.0, 1.0)
@@ -82,7 +30,7 @@ def overlap(r: ArrayLike, sensor: PulseSensor = DEFAULT_SENSOR) -> F64:
 def hard_target_power(
     r: ArrayLike,
     r0: ArrayLike,
-    sensor: PulseSensor = DEFAULT_SENSOR,
+    sensor: PulseSensor,
     *,
     beta_ratio: ArrayLike = 1.0,
     alpha: float = 0.0,
@@ -115,7 +63,7 @@ def hard_target_power(
     return np.where(inside, np.asarray(c_a_p0) * peak * shape, 0.0)
 
 
-def c_a_p0_from_intensity(i0: ArrayLike, r0: ArrayLike, sensor: PulseSensor = DEFAULT_SENSOR) -> F64:
+def c_a_p0_from_intensity(i0: ArrayLike, r0: ArrayLike, sensor: PulseSensor) -> F64:
     """``C_A P_0 = i_0 R_0² / β_0`` (broadcast): the system constant that makes the clear hard-target peak equal the
     measured intensity ``i0`` (0..255 scale) at range ``r0`` [m] (ξ = 1 assumed, as in the published model)."""
     r0 = np.asarray(r0, dtype=np.float64)

@@ -1,4 +1,4 @@
-"""Particle size distributions of snow and rain, and their bulk optics (physics.md section 3).
+"""Particle size distributions of snow and rain, and their bulk optics (``docs/physics.md`` 3.1-3.2).
 
 Both media use a truncated exponential number spectrum ``N(D) = n0 exp(-lam D)`` for ``d_min <= D <= d_max``
 [particles per m³ per m of diameter], held by `ExponentialSizeDistribution`. The physical parameterisations build one:
@@ -34,6 +34,12 @@ from scipy.special import gamma as gamma_fn
 from scipy.special import gammaincc
 
 F64 = NDArray[np.float64]
+
+SNOW_REFLECTIVITY = 0.9
+"""Snowflake reflectivity at the LiDAR wavelength (Hahner et al. 2022: 90 %)."""
+
+RAIN_REFLECTIVITY = 0.02
+"""Raindrop reflectance: water's normal-incidence Fresnel reflectance ((n - 1) / (n + 1))² with n = 1.33."""
 
 Q_EXT_GEOMETRIC = 2.0
 """Extinction efficiency of particles much larger than the wavelength (geometric-optics limit)."""

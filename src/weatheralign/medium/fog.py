@@ -1,4 +1,4 @@
-"""Fog: a homogeneous medium with extinction ``alpha`` and backscatter ``beta`` (physics.md section 2).
+"""Fog: a homogeneous medium with extinction ``alpha`` and backscatter ``beta`` (``docs/physics.md`` section 2.1).
 
 Visibility (meteorological optical range, the distance at which the contrast of a black target falls to 5 %) is
 ``MOR = ln(20) / alpha`` (≈ 2.996 / alpha). The paper writes ``MOR = 3 / alpha`` when it states its beta grid; this

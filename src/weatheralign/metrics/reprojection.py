@@ -23,6 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from weatheralign.geometry import apply, invert
 from weatheralign.medium.field import ParticleField
 
 F64 = NDArray[np.float64]
@@ -77,8 +78,7 @@ def lidar_particles(particle_id: NDArray, times: NDArray, labels: NDArray, scatt
 
 
 def _project(K: F64, T_global_cam: F64, p_global: F64) -> tuple[F64, F64, F64]:
-    T = np.linalg.inv(T_global_cam)
-    pc = p_global @ T[:3, :3].T + T[:3, 3]
+    pc = apply(invert(T_global_cam), p_global)
     z = pc[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         u = (K[0, 0] * pc[:, 0] + K[0, 1] * pc[:, 1]) / z + K[0, 2]

@@ -12,6 +12,8 @@
 from __future__ import annotations
 
 from pathlib import Path
+
+import numpy as np
 from typing import TYPE_CHECKING
 
 from weatheralign.data.errors import DataFormatError
@@ -20,9 +22,10 @@ from weatheralign.reference.layout import (LEVELS, ReferenceDataset, ReferenceSp
 
 if TYPE_CHECKING:
     from weatheralign.config import Params
+    from weatheralign.sensors import LidarModel
 
 __all__ = ["LEVELS", "ReferenceDataset", "ReferenceSplit", "SplitSummary", "check_reference", "configured_reference",
-           "open_reference", "reference_root", "split_files_of"]
+           "open_reference", "reference_lidar_model", "reference_root", "split_files_of"]
 
 
 def reference_root(params: "Params") -> Path:
@@ -49,3 +52,28 @@ def configured_reference(params: "Params") -> ReferenceDataset:
         raise DataFormatError(f"reference root {root} does not exist: render the synthetic reference first "
                               f"(python -m flows.reference)")
     return open_reference(root, split_files_of(cfg.split_files), cfg.intensity_max)
+
+
+def reference_lidar_model(params: "Params", reference: ReferenceDataset) -> "LidarModel":
+    """The reference's LiDAR as a `weatheralign.sensors.LidarModel`: the synthetic reference's HDL-64-like sensor
+    from ``reference.lidar`` (its pulse, overlap, range limits and detector floor), or for a real root the model
+    estimated from the clear split's scans with ``reference.sensor_overrides`` applied.
+
+    The calibration fast-simulates fog on the reference's clear scans through this sensor, so the detector floor and
+    pulse are the reference sensor's, not the world's.
+    """
+    from weatheralign.data.rings import HDL64E_ELEVATIONS_DEG
+    from weatheralign.sensors import SYNTHETIC_INTENSITY, LidarModel, PulseSensor, estimate_lidar_model
+
+    cfg = params.reference
+    if cfg.source == "synthetic":
+        lc = cfg.lidar
+        return LidarModel(
+            elevations_deg=tuple(float(e) for e in HDL64E_ELEVATIONS_DEG), columns_per_ring=lc.firings_per_ring,
+            rotation_hz=10.0, clockwise=True, start_azimuth_rad=float(np.pi), laser_step_s=0.0, divergence_rad=3e-3,
+            max_range_m=lc.max_range_m, min_range_m=lc.min_range_m, noise_floor=lc.noise_floor, intensity_max=255.0,
+            intensity=SYNTHETIC_INTENSITY,
+            pulse=PulseSensor(tau_h=lc.tau_h_s, r1=lc.overlap_r1_m, r2=lc.overlap_r2_m, max_range=lc.max_range_m),
+            origin="params")
+    scans = [reference.load_frame(sample_id).lidar for sample_id in reference.ids("clear")[:8]]
+    return estimate_lidar_model(scans, rotation_hz=10.0, overrides=cfg.sensor_overrides.as_dict())

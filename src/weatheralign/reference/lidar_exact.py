@@ -1,7 +1,7 @@
 """The synthetic reference's LiDAR in fog: the full pulse integral of every beam, evaluated exactly.
 
 This is the reference's own process, independent of the fast simulator (`weatheralign.lidar.fog`), for the same
-physical sensor (``shared/docs/physics.md`` sections 1-2, Rasshofer et al. 2011). A beam with system constant ``C``
+physical sensor (``docs/physics.md`` sections 1 and 2.5, Rasshofer et al. 2011). A beam with system constant ``C``
 (``C_A P_0``) that hits a hard target at ``R_0`` through homogeneous fog (extinction α, backscatter β) receives
 
     P(R) = C [ β (2/c) ∫_0^{c τ_H} k(s) h(R - s) U(R_0 - R + s) ds  +  β_0 ξ(R_0) e^{-2α R_0} / R_0² · k(R - R_0) ]

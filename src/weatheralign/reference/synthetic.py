@@ -54,7 +54,7 @@ from weatheralign.data.rings import HDL64E_ELEVATIONS_DEG
 from weatheralign.data.stf import CAMERA_CALIB_FILE, CAMERA_TF_FRAME, LIDAR_TF_FRAME, TF_TREE_FILE
 from weatheralign.geometry import camera_rotation_from_yaw, make_transform
 from weatheralign.medium.fog import LN20, PAPER_BETA_FACTORS
-from weatheralign.provenance import source_digest
+from weatheralign.provenance import stage_code_digest
 from weatheralign.reference.camera_exact import encode_with_noise, fog_radiance
 from weatheralign.reference.layout import CAMERA_FOLDER, LEVELS, LIDAR_FOLDER, RANGE_FOLDER, split_files_of
 from weatheralign.reference.lidar_exact import (FOG, TARGET, Detector, ExactSensor, exact_returns, fog_tables,
@@ -91,8 +91,6 @@ SCENE_DURATION_S = FIRST_FRAME_S + 2 * FRAME_GAP_S + 1.0
 FRAME_RATE_HZ = 10.0
 
 _SCENE_TAG, _TRUTH_TAG, _NOISE_TAG = 0x5EF5CE, 0x5EA1ED, 0x5E4503
-_CODE = ("reference", "world", "data", "geometry.py", "atomic.py", "camera/fog.py", "medium/fog.py")
-"""Library code the rendered files depend on (resume records carry its `source_digest`)."""
 
 
 def reference_dir(data: Path) -> Path:
@@ -352,7 +350,7 @@ def config_hash(cfg: ReferenceConfig) -> str:
     the split file names or the source switch) and the library code it runs."""
     relevant = cfg.model_dump(mode="json", exclude={"source", "stf_root", "split_files", "frames_per_split",
                                                     "intensity_max"})
-    text = json.dumps(relevant, sort_keys=True) + source_digest(*_CODE)
+    text = json.dumps(relevant, sort_keys=True) + stage_code_digest("reference")
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 

@@ -22,7 +22,8 @@ from weatheralign.geometry import apply, invert, project, quaternion_wxyz
 from weatheralign.world.layout import Actor, SceneLayout, generate_layout
 from weatheralign.world.raycast import WorldRaycaster, cast_rays, scene_of_mesh
 from weatheralign.world.render import CameraFrame, LidarSweep, render_camera, render_lidar_sweep
-from weatheralign.world.rig import Camera, camera_time_offset, firing_pattern, make_cameras
+from weatheralign.sensors import lidar_model_from_params
+from weatheralign.world.rig import Camera, camera_time_offset, make_cameras
 
 SWEEP_PERIOD_US = 50_000
 KEYFRAME_PERIOD_US = 500_000
@@ -220,7 +221,7 @@ def render_sample(spec: SceneSpec, sample_index: int, cfg: WorldConfig, dataroot
     cameras and the annotations; write the files under ``dataroot``; return the records."""
     layout = spec.layout(cfg)
     caster = WorldRaycaster(layout, nthreads=nthreads)
-    pattern = firing_pattern(cfg.lidar)
+    pattern = lidar_model_from_params(cfg.lidar).firing_pattern()
     t_key = keyframe_time_us(spec, cfg, sample_index)
     lidar_records: list[SensorRecord] = []
     key_sweep: LidarSweep | None = None

@@ -17,20 +17,19 @@ from pathlib import Path
 from weatheralign import atomic
 from weatheralign.config import WorldConfig
 from weatheralign.data.nuscenes import extras_relpath
-from weatheralign.provenance import source_digest
+from weatheralign.provenance import stage_code_digest
 from weatheralign.world.build import SampleResult, SceneSpec, render_sample, scene_specs
 from weatheralign.world.rig import T_EGO_LIDAR, make_cameras
 from weatheralign.world.tables import (RoadFootprint, SensorCalibration, build_tables, write_dataset_tables)
 
 PROGRESS_DIR = ".progress"
 SENSOR_DIRS = ("samples", "sweeps", "extras")
-WORLD_CODE = ("world", "data", "geometry.py", "atomic.py", "provenance.py")
-"""The library code the rendered files depend on (resume records are tagged with its `source_digest`)."""
 
 
 def config_hash(cfg: WorldConfig) -> str:
-    """Hash of everything that changes the rendered files: the world config and the library's code."""
-    return hashlib.sha256((cfg.model_dump_json() + source_digest(*WORLD_CODE)).encode()).hexdigest()[:16]
+    """Hash of everything that changes the rendered files: the world config and the code the `world` stage declares
+    in dvc.yaml (`stage_code_digest`, the one declaration of what it runs)."""
+    return hashlib.sha256((cfg.model_dump_json() + stage_code_digest("world")).encode()).hexdigest()[:16]
 
 
 def sample_jobs(cfg: WorldConfig) -> list[tuple[SceneSpec, int]]:

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from weatheralign.geometry import make_transform, yaw_matrix
+from weatheralign.geometry import invert, make_transform, yaw_matrix
 from weatheralign.world import objects
 from weatheralign.world.materials import Material as M
 from weatheralign.world.meshes import RGB, Mesh, box, concat
@@ -112,11 +112,8 @@ class SceneLayout:
 
     @property
     def T_scene_global(self) -> F64:
-        R = self.T_global_scene[:3, :3]
-        out = np.eye(4)
-        out[:3, :3] = R.T
-        out[:3, 3] = -R.T @ self.T_global_scene[:3, 3]
-        return out
+        """(4, 4) global -> scene, the rigid inverse of ``T_global_scene``."""
+        return invert(self.T_global_scene)
 
 
 @dataclass

@@ -9,10 +9,11 @@ from numba import njit
 from numpy.typing import NDArray
 
 from weatheralign.config import CameraConfig, LidarConfig
-from weatheralign.geometry import invert
+from weatheralign.geometry import apply, invert
 from weatheralign.world.layout import SceneLayout
 from weatheralign.world.raycast import Hits, WorldRaycaster
-from weatheralign.world.rig import T_EGO_LIDAR, Camera, FiringPattern
+from weatheralign.sensors import FiringPattern
+from weatheralign.world.rig import T_EGO_LIDAR, Camera
 from weatheralign.world.shading import camera_pixels, lidar_intensity, texture
 
 SHADOW_EPS = 0.02  # m, shadow ray start offset along the normal
@@ -48,7 +49,7 @@ def ego_positions(layout: SceneLayout, times: NDArray) -> NDArray[np.float64]:
     T = layout.T_global_scene
     x = layout.ego_speed * (np.asarray(times) - layout.t_start)
     local = np.stack([x, np.full_like(x, layout.ego_lane_y), np.zeros_like(x)], 1)
-    return local @ T[:3, :3].T + T[:3, 3]
+    return apply(T, local)
 
 
 def render_lidar_sweep(caster: WorldRaycaster, pattern: FiringPattern, cfg: LidarConfig, timestamp: float,
@@ -81,7 +82,7 @@ def render_lidar_sweep(caster: WorldRaycaster, pattern: FiringPattern, cfg: Lida
 
     p_global = origins[idx] + dirs[idx] * measured[idx, None]
     T_lidar_global = invert(layout.T_global_ego(timestamp) @ T_EGO_LIDAR)
-    p_lidar = p_global @ T_lidar_global[:3, :3].T + T_lidar_global[:3, 3]
+    p_lidar = apply(T_lidar_global, p_global)
     points = np.column_stack([p_lidar, intensity, pattern.ring[idx]]).astype(np.float32)
     return LidarSweep(timestamp, points, pattern.time_offsets[idx].astype(np.float32), pattern.column[idx],
                       hits.instance[idx], surf_mat)

@@ -15,7 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from weatheralign import atomic
-from weatheralign.geometry import quaternion_wxyz, yaw_matrix
+from weatheralign.geometry import apply, quaternion_wxyz, yaw_matrix
 from weatheralign.world.build import SampleResult, SceneSpec, token
 
 CATEGORY_DESCRIPTIONS = {
@@ -162,7 +162,7 @@ def drivable_mask(roads: Sequence[RoadFootprint]) -> NDArray[np.uint8]:
     mask = np.zeros((size, size), np.uint8)
 
     def fill(T: NDArray, x0: float, x1: float, y0: float, y1: float) -> None:
-        corners = np.array([[x0, y0, 0, 1], [x1, y0, 0, 1], [x1, y1, 0, 1], [x0, y1, 0, 1]]) @ T.T
+        corners = apply(T, np.array([[x0, y0, 0.0], [x1, y0, 0.0], [x1, y1, 0.0], [x0, y1, 0.0]]))
         px = np.stack([corners[:, 0] / MAP_RESOLUTION_M, size - corners[:, 1] / MAP_RESOLUTION_M], 1)
         cv2.fillPoly(mask, [np.round(px).astype(np.int32)], 255)
 

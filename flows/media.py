@@ -1,0 +1,51 @@
+"""`media` stage: every condition's media resolved once, one file per condition.
+
+``python -m flows.media`` reads the world's manifest (its scenes), the calibrate_fog stage's tuned fog levels
+(``simulate.fog_levels: calibrated``; ``params`` uses the literature levels) and the particles stage's fields, and
+writes ``<paths.data>/media/<condition>.json`` for every condition of `weatheralign.conditions.CONDITIONS`
+(`weatheralign.simulate.media.resolve_media`): the fog's (α, β) and the cameras' unaligned α per scene, and/or the
+particle field of every scene. ``simulate@<condition>-*`` depends on its condition's file alone, so a new fog
+calibration reruns the fog conditions and nothing else (the other files are rewritten with the same bytes).
+"""
+
+from __future__ import annotations
+
+from prefect import flow
+
+from flows.common import parse_stage_args
+from tasks.tracking import StageTracker
+from weatheralign import atomic
+from weatheralign.conditions import CONDITIONS
+from weatheralign.config import Params
+from weatheralign.manifest import FIELDS_FILE, manifest_path, read_manifest
+from weatheralign.simulate.media import configured_fog_levels, load_fields, media_path, resolve_media
+
+
+@flow(name="media", log_prints=True)
+def media_flow(params: Params) -> dict:
+    """Write every condition's media file; returns the metrics (per condition: fog level, α, β, fields)."""
+    cfg = params.simulate
+    with StageTracker(params, "media") as tracker:
+        world = read_manifest(manifest_path(params.paths.data, "world"))
+        scenes = list(world.scenes)
+        needs = {m for c in CONDITIONS.values() for m in c.media}
+        fog_levels = configured_fog_levels(cfg, params.paths.data) if "fog_levels" in needs else None
+        fields = load_fields(params.paths.data / FIELDS_FILE) if "fields" in needs else None
+        metrics: dict = {"fog_levels": None if fog_levels is None else fog_levels.source, "conditions": {}}
+        for name, condition in CONDITIONS.items():
+            media = resolve_media(condition, cfg, scenes, fog_levels, fields)
+            atomic.write_json(media_path(params.paths.data, name), media.to_dict(), indent=1)
+            metrics["conditions"][name] = {
+                "fog_alpha": None if media.fog is None else media.fog["alpha"],
+                "fog_beta": None if media.fog is None else media.fog["beta"],
+                "fields": 0 if media.fields is None else len(media.fields)}
+        tracker.finish(metrics)
+    return metrics
+
+
+def main(argv: list[str] | None = None) -> dict:
+    return media_flow(parse_stage_args("media", argv))
+
+
+if __name__ == "__main__":
+    main()

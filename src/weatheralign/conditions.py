@@ -1,0 +1,125 @@
+"""Weather conditions as data: one typed `Condition` per named condition, kept in the plain dict `CONDITIONS`.
+
+A condition says which media exist (a fog medium at a tuned level, a particle field of a kind, or both), how each
+sensor sees them (the LiDAR reflectivity of the particles, the cameras' particle appearance) and what "unaligned"
+means for it. Everything that enumerates conditions — the DVC matrix (a test keeps ``dvc.yaml`` equal to this dict),
+the flows, the simulate core, the reports — reads this dict; nothing dispatches on condition-name strings.
+
+Composition. Media combine without a code path per sensor: the LiDAR sees every medium in one pulse response
+(fog extinction added to the particles' bulk extinction, particle echoes, then the fog's backscatter competing with
+the strongest echo, `weatheralign.simulate.observe.observe_lidar`); the cameras see one transmission (the fog's
+Koschmieder term times the unresolved particles') and the resolvable particles pre-fogged by the same fog.
+
+Unaligned. Each medium defines its own independent twin: a fog's cameras see an extinction drawn uniformly between
+the light and dense levels once per scene (`FogPart.camera_alpha`), a particle field's cameras see the field's twin
+of identical statistics and another seed (`weatheralign.medium.conditions.FieldSpec.field`). The LiDAR always sees
+the condition's own media; a mixed condition's unaligned variant twins every medium.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, replace
+from typing import Literal
+
+from weatheralign.medium.distributions import RAIN_REFLECTIVITY, SNOW_REFLECTIVITY
+
+FogLevel = Literal["light", "dense"]
+PrecipitationKind = Literal["snow", "rain"]
+ALIGNMENTS: tuple[str, ...] = ("aligned", "unaligned")
+
+
+@dataclass(frozen=True)
+class FogPart:
+    """A homogeneous fog at one of the tuned levels (its (α, β) come from the calibrate_fog stage or params).
+
+    Unaligned: the cameras' extinction is drawn uniformly in ``[α_light, α_dense]``, once per scene
+    (`camera_alpha`), independently of the LiDAR's level.
+    """
+
+    level: FogLevel
+
+    @staticmethod
+    def camera_alpha(aligned: bool, lidar_alpha: float, alpha_light: float, alpha_dense: float, seed: int,
+                     condition: str, scene: str) -> float:
+        """The cameras' extinction [1/m]: ``lidar_alpha`` when aligned, else ``U[alpha_light, alpha_dense]`` from a
+        hash of (``seed``, ``condition``, ``scene``)."""
+        if aligned:
+            return lidar_alpha
+        digest = hashlib.sha256(f"{seed}/{condition}/{scene}/camera".encode()).digest()
+        u = int.from_bytes(digest[:8], "little") / 2.0**64
+        return alpha_light + u * (alpha_dense - alpha_light)
+
+
+@dataclass(frozen=True)
+class ParticlePart:
+    """A falling-particle field of one kind (its physical parameters: ``particles.<kind>`` in params).
+
+    Attributes:
+        kind: ``snow`` or ``rain``.
+        lidar_reflectivity: the particles' reflectivity at the LiDAR wavelength.
+        camera_appearance: how the cameras draw them: a name of `weatheralign.camera.splat.APPEARANCES`
+            (``snow``, ``rain``, ``rain_opaque_drops``).
+
+    Unaligned: the cameras observe the field's independent twin (same statistics, another seed).
+    """
+
+    kind: PrecipitationKind
+    lidar_reflectivity: float
+    camera_appearance: str
+
+
+@dataclass(frozen=True)
+class Condition:
+    """One named weather condition: its media (``fog``, ``particles``, or both) and a one-line description."""
+
+    name: str
+    description: str
+    fog: FogPart | None = None
+    particles: ParticlePart | None = None
+
+    def __post_init__(self) -> None:
+        if self.fog is None and self.particles is None:
+            raise ValueError(f"condition {self.name!r} has no medium")
+
+    @property
+    def media(self) -> tuple[str, ...]:
+        """The inputs this condition uses: ``fog_levels`` and/or ``fields``."""
+        return tuple(m for m, part in (("fog_levels", self.fog), ("fields", self.particles)) if part is not None)
+
+    def with_rain_appearance(self, appearance: str) -> "Condition":
+        """The condition with rain drawn as ``appearance`` (``rain``: Weather-edit's opacity 0.2;
+        ``rain_opaque_drops``: opaque drops), unchanged for any other particle kind."""
+        if self.particles is None or self.particles.kind != "rain":
+            return self
+        if appearance not in ("rain", "rain_opaque_drops"):
+            raise ValueError(f"simulate.rain_appearance = {appearance!r}; expected 'rain' or 'rain_opaque_drops'")
+        return replace(self, particles=replace(self.particles, camera_appearance=appearance))
+
+
+SNOW_PART = ParticlePart("snow", SNOW_REFLECTIVITY, "snow")
+RAIN_PART = ParticlePart("rain", RAIN_REFLECTIVITY, "rain")
+
+CONDITIONS: dict[str, Condition] = {
+    "fog_light": Condition("fog_light", "light fog (the tuned light level)", fog=FogPart("light")),
+    "fog_dense": Condition("fog_dense", "dense fog (the tuned dense level)", fog=FogPart("dense")),
+    "snow": Condition("snow", "snowfall (particles.snow)", particles=SNOW_PART),
+    "rain": Condition("rain", "rain (particles.rain)", particles=RAIN_PART),
+    "fog_snow": Condition("fog_snow", "light fog and snowfall together", fog=FogPart("light"), particles=SNOW_PART),
+}
+"""Every named condition; the `simulate` DVC matrix runs each, aligned and unaligned."""
+
+
+def condition_named(name: str) -> Condition:
+    """``CONDITIONS[name]``, or a ValueError naming the params key and the known conditions."""
+    if name not in CONDITIONS:
+        raise ValueError(f"simulate.condition = {name!r} is invalid: expected one of {list(CONDITIONS)}")
+    return CONDITIONS[name]
+
+
+def variant_name(condition: str, aligned: bool) -> str:
+    """``<condition>-aligned`` or ``<condition>-unaligned``: the name of a simulate stage and its weather copy."""
+    return f"{condition}-{ALIGNMENTS[0] if aligned else ALIGNMENTS[1]}"
+
+
+__all__ = ["ALIGNMENTS", "CONDITIONS", "Condition", "FogPart", "ParticlePart", "condition_named", "variant_name"]

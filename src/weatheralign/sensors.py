@@ -1,0 +1,431 @@
+"""Sensors as data: the LiDAR and camera models that travel with a dataset.
+
+Every physics function that depends on a sensor fact (beam divergence, firing grid, maximum range, pulse, noise
+floor, intensity calibration, exposure) takes a `LidarModel` or `CameraModel` explicitly; nothing falls back to a
+default sensor. Where the models come from:
+
+- the synthetic world: built from ``world.lidar`` / ``world.camera`` params (`lidar_model_from_params`,
+  `camera_exposure_from_params`) and written into the dataset's manifest (`weatheralign.manifest`);
+- real scans (nuScenes HDL-32E, Seeing Through Fog HDL-64, KITTI): estimated from the scans' ring / azimuth
+  statistics (`estimate_lidar_model`: ring count, per-ring elevation, columns per ring, rotation direction), with the
+  facts a point cloud cannot tell (divergence, pulse, intensity model) from the nearest known sensor and overridable
+  in params (``world.sensor_overrides``).
+
+Serialisation is plain JSON (`LidarModel.to_dict` / `from_dict`); the manifest's content digest covers it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from weatheralign.data.frame import LidarScan
+from weatheralign.data.nuscenes import SWEEP_START_AZIMUTH
+from weatheralign.data.rings import HDL32E_ELEVATIONS_DEG
+
+F64 = NDArray[np.float64]
+
+SPEED_OF_LIGHT = 299_792_458.0
+"""c [m/s]."""
+
+
+@dataclass(frozen=True)
+class PulseSensor:
+    """Pulse and optics parameters of a pulsed LiDAR.
+
+    Attributes:
+        tau_h: half-power pulse width τ_H [s] (the Velodyne HDL units: 10 ns, HDL-64 datasheet; Hahner's fog model
+            used 20 ns).
+        r1: range [m] where the receiver's field of view starts to overlap the beam (overlap ξ = 0 up to here).
+        r2: range [m] from which the overlap is complete (ξ = 1); ξ rises linearly in between.
+        gamma: hard-target reflectivity Γ of the reference target; ``beta_0 = Γ / π`` [1/sr].
+        max_range: largest range the sensor reports [m].
+        saturation: largest intensity the sensor reports, on the 0..255 scale.
+    """
+
+    tau_h: float = 20e-9
+    r1: float = 0.9
+    r2: float = 1.0
+    gamma: float = 1e-6
+    max_range: float = 120.0
+    saturation: float = 255.0
+
+    def __post_init__(self) -> None:
+        checks = {
+            "tau_h": (self.tau_h, 0.0 < self.tau_h < 1e-6, "0 < tau_h < 1e-6 s"),
+            "r1": (self.r1, 0.0 < self.r1, "r1 > 0 m"),
+            "r2": (self.r2, self.r1 < self.r2, f"r2 > r1 = {self.r1} m"),
+            "gamma": (self.gamma, 0.0 < self.gamma, "gamma > 0"),
+            "max_range": (self.max_range, self.r2 < self.max_range, f"max_range > r2 = {self.r2} m"),
+            "saturation": (self.saturation, 0.0 < self.saturation <= 255.0, "0 < saturation <= 255"),
+        }
+        for name, (value, ok, allowed) in checks.items():
+            if not (math.isfinite(value) and ok):
+                raise ValueError(f"PulseSensor.{name} = {value!r}; expected {allowed}")
+
+    @property
+    def beta_0(self) -> float:
+        """Differential reflectivity ``Γ / π`` [1/sr] of the reference hard target."""
+        return self.gamma / math.pi
+
+    @property
+    def pulse_length(self) -> float:
+        """``c τ_H`` [m]: a hard target at ``R_0`` responds on ``R_0 <= R <= R_0 + c τ_H``, peaking at the middle."""
+        return SPEED_OF_LIGHT * self.tau_h
+
+
+@dataclass(frozen=True)
+class IntensityModel:
+    """How the sensor reports intensity: ``i = scale · ρ · cos θ · g(R)`` for a Lambertian target of reflectivity ρ
+    covering the beam, with ``g(R) = min(1, (r_ref / R)^falloff)`` (see `weatheralign.lidar.particles`).
+
+    Attributes:
+        scale: intensity (0..255) of ρ = 1 at normal incidence where ``g = 1``.
+        r_ref: range [m] up to which the sensor compensates the raw ``1/R²`` fall-off fully.
+        falloff: exponent of the residual fall-off beyond ``r_ref`` (2 = raw power, 0 = calibrated reflectance).
+    """
+
+    scale: float = 255.0
+    r_ref: float = 10.0
+    falloff: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("scale", "r_ref"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0.0):
+                raise ValueError(f"IntensityModel.{name} = {v!r}; expected a finite value > 0")
+        if not (math.isfinite(self.falloff) and 0.0 <= self.falloff <= 4.0):
+            raise ValueError(f"IntensityModel.falloff = {self.falloff!r}; expected 0 <= falloff <= 4")
+
+    def gain(self, r: NDArray | float) -> F64:
+        """``g(R)`` (any shape) for ranges ``r`` [m] (vectorised; the particle kernels' `_gain` is the same formula)."""
+        r = np.maximum(np.asarray(r, dtype=np.float64), 1e-9)
+        return np.minimum(1.0, (self.r_ref / r) ** self.falloff)
+
+    def intensity(self, reflectivity: NDArray | float, r: NDArray | float, ratio: NDArray | float = 1.0) -> F64:
+        """Reported intensity (0..255, unclipped) of a disk of ``reflectivity`` covering ``ratio`` of the beam at range
+        ``r`` [m], in clear air."""
+        return self.scale * np.asarray(reflectivity) * np.asarray(ratio) * self.gain(r)
+
+
+SYNTHETIC_INTENSITY = IntensityModel(255.0, 10.0, 1.0)
+"""The synthetic world's HDL-32E: ``255 ρ cos θ min(1, 10 m / R)`` (`world.shading.lidar_intensity`)."""
+
+HAHNER_INTENSITY = IntensityModel(255.0, 1.0, 2.0)
+"""Hahner's published snow code: a particle reports ``255 ρ ratio / r²`` (raw power, calibrated at 1 m)."""
+
+CALIBRATED_INTENSITY = IntensityModel(255.0, 1.0, 0.0)
+"""A sensor reporting calibrated reflectance (KITTI's 0..1 reflectance): ``i = 255 ρ cos θ`` at any range."""
+
+HDL_DIVERGENCE_RAD = 3e-3
+"""Full beam divergence of the Velodyne HDL-32E / HDL-64E [rad] (datasheet order of magnitude)."""
+
+HDL_PULSE_HALF_WIDTH_S = 10e-9
+"""Half-power pulse width τ_H of the Velodyne HDL units [s] (HDL-64 datasheet, as in Hahner et al. 2022)."""
+
+HDL32E_LASER_STEP_S = 1.152e-6
+"""Delay between consecutive lasers of one HDL-32E firing column [s] (datasheet timing)."""
+
+
+@dataclass(frozen=True)
+class FiringPattern:
+    """All beams of one sweep of a spinning LiDAR, in its own frame.
+
+    Attributes:
+        directions: (R*C, 3) unit beam directions; index = column * R + ring.
+        ring: (R*C,) int16 ring index; column: (R*C,) int16 firing column 0..C-1.
+        time_offsets: (R*C,) firing time relative to the sweep end [s], in [-period, 0).
+        elevations_deg: (R,) elevation of each ring [deg].
+        period: rotation period [s].
+    """
+
+    directions: F64
+    ring: NDArray[np.int16]
+    column: NDArray[np.int16]
+    time_offsets: F64
+    elevations_deg: F64
+    period: float
+
+
+@dataclass(frozen=True)
+class LidarModel:
+    """A spinning pulsed LiDAR.
+
+    Attributes:
+        elevations_deg: per ring index, the laser's elevation [deg] (the scan's ring convention).
+        columns_per_ring: firings per ring and turn.
+        rotation_hz: turns per second.
+        clockwise: rotation seen from above (nuScenes: clockwise from the ego's left).
+        start_azimuth_rad: azimuth where a sweep starts [rad, sensor frame].
+        laser_step_s: delay between consecutive rings of one firing column [s].
+        divergence_rad: full beam divergence [rad].
+        max_range_m, min_range_m: reported range limits [m] (beams without return are ``max_range_m`` long).
+        noise_floor: detector floor on the 0..255 scale: echoes below it are not reported.
+        intensity_max: the intensity scale the scans are stored on (255 or 1).
+        intensity: how the sensor turns received power into reported intensity (`IntensityModel`).
+        pulse: pulse width, overlap and saturation (`PulseSensor`; its ``max_range`` is ``max_range_m``).
+        firing_columns_stored: per-point firing columns are stored beside the scans (the synthetic world's extras),
+            so beams without return come from the exact firing grid instead of a reconstruction.
+        origin: ``params`` (declared) or ``estimated`` (from scans).
+    """
+
+    elevations_deg: tuple[float, ...]
+    columns_per_ring: int
+    rotation_hz: float
+    clockwise: bool
+    start_azimuth_rad: float
+    laser_step_s: float
+    divergence_rad: float
+    max_range_m: float
+    min_range_m: float
+    noise_floor: float
+    intensity_max: float
+    intensity: IntensityModel
+    pulse: PulseSensor
+    firing_columns_stored: bool = False
+    origin: str = "params"
+
+    def __post_init__(self) -> None:
+        checks = {
+            "elevations_deg": len(self.elevations_deg) >= 1
+            and all(math.isfinite(e) and -90.0 < e < 90.0 for e in self.elevations_deg),
+            "columns_per_ring": 1 <= self.columns_per_ring <= 100_000,
+            "rotation_hz": math.isfinite(self.rotation_hz) and 0.0 < self.rotation_hz <= 100.0,
+            "divergence_rad": math.isfinite(self.divergence_rad) and 0.0 <= self.divergence_rad < 0.5,
+            "max_range_m": math.isfinite(self.max_range_m) and self.max_range_m > self.min_range_m >= 0.0,
+            "noise_floor": math.isfinite(self.noise_floor) and 0.0 <= self.noise_floor <= 255.0,
+            "intensity_max": self.intensity_max in (1.0, 255.0),
+            "laser_step_s": math.isfinite(self.laser_step_s) and 0.0 <= self.laser_step_s,
+        }
+        for name, ok in checks.items():
+            if not ok:
+                raise ValueError(f"LidarModel.{name} = {getattr(self, name)!r} is invalid")
+        if self.pulse.max_range != self.max_range_m:
+            raise ValueError(f"LidarModel: pulse.max_range {self.pulse.max_range} != max_range_m {self.max_range_m}")
+
+    @property
+    def num_rings(self) -> int:
+        return len(self.elevations_deg)
+
+    @property
+    def period(self) -> float:
+        """Rotation period [s]."""
+        return 1.0 / self.rotation_hz
+
+    def firing_pattern(self) -> FiringPattern:
+        """Every (ring, column) beam of one sweep: column c fires at azimuth ``start ∓ 2π (c + 1/2) / C`` (``-`` for
+        clockwise) and time ``(c / C - 1) · period + ring · laser_step_s`` relative to the sweep's end."""
+        elev = np.deg2rad(np.asarray(self.elevations_deg, dtype=np.float64))
+        rings, columns = len(elev), self.columns_per_ring
+        col = np.repeat(np.arange(columns), rings)
+        ring = np.tile(np.arange(rings), columns)
+        sign = -1.0 if self.clockwise else 1.0
+        azimuth = self.start_azimuth_rad + sign * 2 * np.pi * (col + 0.5) / columns
+        e = elev[ring]
+        d = np.stack([np.cos(e) * np.cos(azimuth), np.cos(e) * np.sin(azimuth), np.sin(e)], 1)
+        t = (col / columns - 1.0) * self.period + ring * self.laser_step_s
+        return FiringPattern(d, ring.astype(np.int16), col.astype(np.int16), t,
+                             np.asarray(self.elevations_deg, dtype=np.float64), self.period)
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["elevations_deg"] = [float(e) for e in self.elevations_deg]
+        return d
+
+    @staticmethod
+    def from_dict(d: dict[str, Any], where: str = "lidar model") -> "LidarModel":
+        """Inverse of `to_dict`; raises ValueError naming ``where`` and the field on malformed input."""
+        try:
+            return LidarModel(**{**d, "elevations_deg": tuple(float(e) for e in d["elevations_deg"]),
+                                 "intensity": IntensityModel(**d["intensity"]), "pulse": PulseSensor(**d["pulse"])})
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"{where}: not a valid LiDAR model ({exc})") from None
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """A global-shutter camera: intrinsics ``K`` (3, 3) [px], ``width`` x ``height`` [px], ``exposure_s`` [s]."""
+
+    channel: str
+    K: tuple[tuple[float, float, float], ...]
+    width: int
+    height: int
+    exposure_s: float
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.exposure_s) and 0.0 <= self.exposure_s <= 0.1):
+            raise ValueError(f"CameraModel.exposure_s = {self.exposure_s!r}; expected 0..0.1 s")
+        if self.width < 1 or self.height < 1:
+            raise ValueError(f"CameraModel {self.channel}: size {self.width}x{self.height} is invalid")
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"channel": self.channel, "K": [list(r) for r in self.K], "width": self.width, "height": self.height,
+                "exposure_s": self.exposure_s}
+
+    @staticmethod
+    def from_dict(d: dict[str, Any], where: str = "camera model") -> "CameraModel":
+        try:
+            return CameraModel(d["channel"], tuple(tuple(float(v) for v in r) for r in d["K"]), int(d["width"]),
+                               int(d["height"]), float(d["exposure_s"]))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"{where}: not a valid camera model ({exc})") from None
+
+
+@dataclass(frozen=True)
+class SensorRig:
+    """The sensors of one dataset: its LiDAR and its cameras by channel."""
+
+    lidar: LidarModel
+    cameras: dict[str, CameraModel]
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"lidar": self.lidar.to_dict(), "cameras": {k: v.to_dict() for k, v in sorted(self.cameras.items())}}
+
+    @staticmethod
+    def from_dict(d: dict[str, Any], where: str = "sensors") -> "SensorRig":
+        if not isinstance(d, dict) or "lidar" not in d or not isinstance(d.get("cameras"), dict):
+            raise ValueError(f"{where}: expected {{'lidar': {{...}}, 'cameras': {{channel: {{...}}}}}}")
+        return SensorRig(LidarModel.from_dict(d["lidar"], f"{where}.lidar"),
+                         {k: CameraModel.from_dict(v, f"{where}.cameras.{k}") for k, v in d["cameras"].items()})
+
+
+# ------------------------------------------------------------------------------------------------ from params
+
+
+def lidar_model_from_params(cfg: Any) -> LidarModel:
+    """The synthetic world's HDL-32E-like LIDAR_TOP from ``world.lidar`` params (a `config.LidarConfig`)."""
+    return LidarModel(
+        elevations_deg=tuple(float(e) for e in HDL32E_ELEVATIONS_DEG), columns_per_ring=cfg.firings_per_ring,
+        rotation_hz=cfg.frequency_hz, clockwise=True, start_azimuth_rad=float(SWEEP_START_AZIMUTH),
+        laser_step_s=HDL32E_LASER_STEP_S, divergence_rad=cfg.beam_divergence_rad, max_range_m=cfg.max_range_m,
+        min_range_m=cfg.min_range_m, noise_floor=cfg.min_detectable_intensity, intensity_max=255.0,
+        intensity=SYNTHETIC_INTENSITY,
+        pulse=PulseSensor(tau_h=cfg.pulse_half_width_s, max_range=cfg.max_range_m),
+        firing_columns_stored=True, origin="params")
+
+
+# ------------------------------------------------------------------------------------------------ estimated
+
+
+def _known_sensor(num_rings: int) -> tuple[float, float]:
+    """(divergence [rad], pulse half width [s]) of the nearest known sensor by ring count (Velodyne HDL family)."""
+    return HDL_DIVERGENCE_RAD, HDL_PULSE_HALF_WIDTH_S
+
+
+def estimate_lidar_model(scans: list[LidarScan], *, rotation_hz: float | None = None,
+                         overrides: dict[str, Any] | None = None, min_ring_points: int = 16) -> LidarModel:
+    """A `LidarModel` from real scans of one sensor (single sweeps, as stored).
+
+    Estimated: the ring count (the scans' declared ``num_rings``, or the largest ring index + 1), each ring's
+    elevation (median elevation of its points seen from the sensor, points beyond 2 m; rings without points
+    interpolated, or extrapolated, linearly in the ring index), the columns
+    per ring (2π / median azimuth step between neighbouring points of a ring), the rotation direction (sign of the
+    correlation between firing time and azimuth where per-point times exist; clockwise otherwise, the nuScenes
+    convention), the rotation rate (from consecutive scan timestamps when ``rotation_hz`` is None and the scans are
+    consecutive sweeps; else 10 Hz for 64 rings, 20 Hz otherwise), the maximum range (the 99.9th percentile range
+    rounded up to 10 m, at least 80 m), the noise floor (the smallest reported intensity on 0..255) and the
+    intensity scale. Not visible in a point cloud and taken from the Velodyne HDL family: divergence (3 mrad), pulse
+    (τ_H = 10 ns) and a calibrated-reflectance intensity model for 0..1 data, ``min(1, (10 m / R))`` on 0..255.
+    ``overrides``: any `LidarModel` field (plus ``pulse_half_width_s``) replacing the estimate.
+
+    Raises:
+        ValueError: no scans, no points, or an override naming no field.
+    """
+    if not scans or not any(len(s.points) for s in scans):
+        raise ValueError("estimate_lidar_model: no LiDAR points to estimate a sensor from")
+    rings_all, el_all, az_all, r_all, t_all, inten = [], [], [], [], [], []
+    for scan in scans:
+        p = scan.points[:, :3].astype(np.float64)
+        r = np.linalg.norm(p, axis=1)
+        ok = r > 2.0
+        rings_all.append(scan.points[ok, 4].astype(np.int64))
+        el_all.append(np.degrees(np.arcsin(np.clip(p[ok, 2] / r[ok], -1.0, 1.0))))
+        az_all.append(np.arctan2(p[ok, 1], p[ok, 0]))
+        r_all.append(r[ok])
+        t_all.append(None if scan.time_offsets is None else scan.time_offsets[ok].astype(np.float64))
+        inten.append(scan.intensity_255())
+    num_rings = max(max(int(s.num_rings) for s in scans), int(max(int(r.max()) for r in rings_all if len(r))) + 1)
+    ring = np.concatenate(rings_all)
+    el = np.concatenate(el_all)
+    known = {k: float(np.median(el[ring == k])) for k in range(num_rings) if np.count_nonzero(ring == k) >= min_ring_points}
+    if len(known) < 2:
+        raise ValueError(f"estimate_lidar_model: only {len(known)} ring(s) with >= {min_ring_points} points; cannot "
+                         f"estimate the elevations")
+    ks = np.array(sorted(known), dtype=np.float64)
+    es = np.array([known[int(k)] for k in ks])
+    elevations = []
+    for k in range(num_rings):  # rings without points (e.g. outside a cropped scan): linear in the ring index
+        if k in known:
+            elevations.append(known[k])
+            continue
+        lo, hi = (0, 1) if k < ks[0] else ((-2, -1) if k > ks[-1] else (None, None))
+        if lo is None:
+            elevations.append(float(np.interp(k, ks, es)))
+        else:
+            slope = (es[hi] - es[lo]) / (ks[hi] - ks[lo])
+            elevations.append(float(es[lo] + slope * (k - ks[lo])))
+    steps, corr = [], []
+    for scan_ring, az, t in zip(rings_all, az_all, t_all):
+        for k in np.unique(scan_ring):
+            a = np.sort(az[scan_ring == k])
+            if len(a) < min_ring_points:
+                continue
+            d = np.diff(a)
+            steps.append(d[d > 1e-6])
+            if t is not None:
+                sel = scan_ring == k
+                tk, ak = t[sel], np.unwrap(az[sel][np.argsort(t[sel])])
+                if len(tk) > 2 and np.ptp(tk) > 0:
+                    corr.append(float(np.sign(ak[-1] - ak[0])))
+    step = float(np.median(np.concatenate(steps))) if steps else 2 * np.pi / 1085
+    clockwise = bool(np.sum(corr) <= 0) if corr else True
+    if rotation_hz is None:
+        stamps = np.sort([s.timestamp for s in scans])
+        dt = np.diff(stamps)
+        rotation_hz = float(1.0 / np.median(dt)) if len(dt) and 0.02 <= np.median(dt) <= 0.2 else (
+            10.0 if num_rings == 64 else 20.0)
+    max_range = max(80.0, float(math.ceil(np.percentile(np.concatenate(r_all), 99.9) / 10.0) * 10.0))
+    imax = float(scans[0].intensity_max)
+    divergence, tau = _known_sensor(num_rings)
+    fields: dict[str, Any] = {
+        "elevations_deg": tuple(elevations), "columns_per_ring": int(round(2 * np.pi / step)),
+        "rotation_hz": rotation_hz, "clockwise": clockwise, "start_azimuth_rad": float(SWEEP_START_AZIMUTH),
+        "laser_step_s": 0.0, "divergence_rad": divergence, "max_range_m": max_range, "min_range_m": 1.0,
+        "noise_floor": float(np.min(np.concatenate(inten))), "intensity_max": imax,
+        "intensity": CALIBRATED_INTENSITY if imax == 1.0 else SYNTHETIC_INTENSITY,
+        "firing_columns_stored": False, "origin": "estimated",
+    }
+    overrides = {k: v for k, v in (overrides or {}).items() if v is not None}
+    tau = overrides.pop("pulse_half_width_s", tau)
+    unknown = set(overrides) - set(fields)
+    if unknown:
+        raise ValueError(f"estimate_lidar_model: unknown override(s) {sorted(unknown)}; expected fields of "
+                         f"LidarModel or pulse_half_width_s")
+    fields.update(overrides)
+    return LidarModel(**fields, pulse=PulseSensor(tau_h=tau, max_range=float(fields["max_range_m"])))
+
+
+def with_overrides(model: LidarModel, overrides: dict[str, Any]) -> LidarModel:
+    """``model`` with the non-None ``overrides`` applied (``pulse_half_width_s`` sets the pulse's τ_H)."""
+    overrides = {k: v for k, v in overrides.items() if v is not None}
+    pulse = model.pulse
+    if "pulse_half_width_s" in overrides:
+        pulse = replace(pulse, tau_h=overrides.pop("pulse_half_width_s"))
+    if "max_range_m" in overrides:
+        pulse = replace(pulse, max_range=overrides["max_range_m"])
+    return replace(model, **overrides, pulse=pulse)
+
+
+def camera_models(views: dict[str, Any], exposure_s: float) -> dict[str, CameraModel]:
+    """`CameraModel` per channel from a frame's `CameraView`s (intrinsics and size as stored) and the exposure."""
+    return {ch: CameraModel(ch, tuple(tuple(float(v) for v in row) for row in np.asarray(view.K)), int(view.width),
+                            int(view.height), float(exposure_s)) for ch, view in sorted(views.items())}
+
+
+__all__ = ["CALIBRATED_INTENSITY", "HAHNER_INTENSITY", "SPEED_OF_LIGHT", "SYNTHETIC_INTENSITY", "CameraModel",
+           "FiringPattern", "IntensityModel", "LidarModel", "PulseSensor", "SensorRig", "camera_models",
+           "estimate_lidar_model", "lidar_model_from_params", "with_overrides"]

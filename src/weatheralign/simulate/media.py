@@ -1,0 +1,210 @@
+"""The media of a condition, resolved once per dataset: tuned fog levels and per-scene particle fields.
+
+`resolve_media` (the `media` stage) turns a `weatheralign.conditions.Condition` into `ConditionMedia`: the fog's
+(α, β) at its level (from the calibrate_fog stage's ``fog_levels.json`` or the literature values in params), the
+cameras' unaligned fog extinction per scene, and the particle field of every scene (from the particles stage's
+``fields.json``). It is written to ``<paths.data>/media/<condition>.json``, the only weather input of
+``simulate@<condition>-*``, so a simulate stage depends on exactly the inputs its condition uses.
+`ConditionMedia.for_scene` gives the `SceneMedia` that the observation core consumes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from weatheralign.conditions import CONDITIONS, Condition, FogPart
+from weatheralign.config import SimulateConfig
+from weatheralign.data.errors import DataFormatError, read_json_file
+from weatheralign.manifest import FOG_LEVELS_FILE
+from weatheralign.medium.conditions import FieldSpec
+from weatheralign.medium.fog import mor_from_alpha
+
+
+
+@dataclass(frozen=True)
+class FogLevels:
+    """(α [1/m], β [1/(m sr)]) of the light and dense levels and where they came from."""
+
+    alpha: dict[str, float]
+    beta: dict[str, float]
+    source: str
+
+
+def params_fog_levels(cfg: SimulateConfig) -> FogLevels:
+    """The literature levels of params: ``beta = fog_beta_mor / MOR`` unless ``fog_beta_<level>`` is set."""
+    alpha = {"light": cfg.fog_alpha_light, "dense": cfg.fog_alpha_dense}
+    explicit = {"light": cfg.fog_beta_light, "dense": cfg.fog_beta_dense}
+    beta = {k: cfg.fog_beta_mor / mor_from_alpha(a) if explicit[k] is None else explicit[k] for k, a in alpha.items()}
+    return FogLevels(alpha, beta, "params")
+
+
+def calibrated_fog_levels(path: Path) -> FogLevels:
+    """The tuned levels in ``path`` (`FOG_LEVELS_FILE`).
+
+    Raises:
+        DataFormatError: missing or unreadable file, a missing level or key, a non-positive alpha, a negative beta,
+            or a light level denser than the dense one.
+    """
+    path = Path(path)
+    levels = read_json_file(path, "run the calibrate_fog stage first (dvc repro calibrate_fog) or set "
+                                  "simulate.fog_levels=params to use the literature levels")
+    alpha, beta = {}, {}
+    for level in ("light", "dense"):
+        entry = levels.get(level) if isinstance(levels, dict) else None
+        for key, out in (("alpha", alpha), ("beta", beta)):
+            v = entry.get(key) if isinstance(entry, dict) else None
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+                raise DataFormatError(f"{path}: {level}.{key} = {v!r}; expected a finite number")
+            out[level] = float(v)
+        if alpha[level] <= 0.0 or beta[level] < 0.0:
+            raise DataFormatError(f"{path}: {level} must have alpha > 0 and beta >= 0, got {alpha[level]}, "
+                                  f"{beta[level]}")
+    if alpha["light"] > alpha["dense"]:
+        raise DataFormatError(f"{path}: light.alpha {alpha['light']} exceeds dense.alpha {alpha['dense']}")
+    return FogLevels(alpha, beta, "calibrated")
+
+
+def configured_fog_levels(cfg: SimulateConfig, data: Path) -> FogLevels:
+    """The fog levels ``simulate.fog_levels`` selects (``calibrated``: `FOG_LEVELS_FILE` under ``data``)."""
+    return calibrated_fog_levels(Path(data) / FOG_LEVELS_FILE) if cfg.fog_levels == "calibrated" else \
+        params_fog_levels(cfg)
+
+
+def load_fields(path: Path) -> dict[str, list[FieldSpec]]:
+    """``{kind: [FieldSpec, ...]}`` from the particles stage's file.
+
+    Raises:
+        DataFormatError: missing or malformed file.
+    """
+    raw = read_json_file(path, "run the particles stage first (python -m flows.particles)")
+    try:
+        return {kind: [FieldSpec.from_dict(d) for d in specs] for kind, specs in raw.items()}
+    except (TypeError, KeyError, AttributeError) as exc:
+        raise DataFormatError(f"{path}: expected {{kind: [field spec, ...]}} ({exc})") from None
+
+
+# ------------------------------------------------------------------------------------------------ resolved media
+
+
+@dataclass(frozen=True)
+class SceneMedia:
+    """A condition over one scene, as each sensor sees it.
+
+    Attributes:
+        condition: the `Condition`; aligned: whether the cameras see the LiDAR's media; scene: scene name.
+        lidar_alpha, lidar_beta: the LiDAR's fog [1/m], [1/(m sr)] (0 without fog).
+        camera_alpha: the cameras' fog extinction [1/m] (aligned: ``lidar_alpha``; 0 without fog).
+        field: the scene's `FieldSpec` (the LiDAR's field; the cameras see ``field.field(aligned)``), or None.
+    """
+
+    condition: Condition
+    aligned: bool
+    scene: str
+    lidar_alpha: float = 0.0
+    lidar_beta: float = 0.0
+    camera_alpha: float = 0.0
+    field: FieldSpec | None = None
+
+    @property
+    def has_particles(self) -> bool:
+        """A particle field of positive rate exists."""
+        return self.field is not None and self.field.rate_mm_h > 0.0
+
+
+@dataclass(frozen=True)
+class ConditionMedia:
+    """The resolved media of one condition over every scene of a dataset (JSON: `to_dict` / `from_dict`).
+
+    Attributes:
+        condition: the condition's name (a key of `CONDITIONS`).
+        fog: ``{"level", "alpha", "beta", "source", "camera_alpha_unaligned": {scene: α}}`` or None.
+        fields: ``{scene: FieldSpec}`` or None.
+    """
+
+    condition: str
+    fog: dict[str, Any] | None
+    fields: dict[str, FieldSpec] | None
+
+    def for_scene(self, scene: str, aligned: bool, rain_appearance: str = "rain") -> SceneMedia:
+        """`SceneMedia` of ``scene``.
+
+        Raises:
+            DataFormatError: the media hold no field or fog extinction for ``scene``.
+        """
+        condition = CONDITIONS[self.condition].with_rain_appearance(rain_appearance)
+        kw: dict[str, Any] = {}
+        if self.fog is not None:
+            unaligned = self.fog["camera_alpha_unaligned"]
+            if scene not in unaligned:
+                raise DataFormatError(f"media of {self.condition}: no fog for scene {scene!r}; rerun the media stage")
+            kw.update(lidar_alpha=self.fog["alpha"], lidar_beta=self.fog["beta"],
+                      camera_alpha=self.fog["alpha"] if aligned else unaligned[scene])
+        if self.fields is not None:
+            if scene not in self.fields:
+                raise DataFormatError(f"media of {self.condition}: no particle field for scene {scene!r} (has "
+                                      f"{sorted(self.fields)}); rerun the particles and media stages")
+            kw["field"] = self.fields[scene]
+        return SceneMedia(condition, aligned, scene, **kw)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"condition": self.condition, "fog": self.fog,
+                "fields": None if self.fields is None else {k: v.to_dict() for k, v in sorted(self.fields.items())}}
+
+    @staticmethod
+    def from_dict(d: dict[str, Any], where: str = "media") -> "ConditionMedia":
+        try:
+            if d["condition"] not in CONDITIONS:
+                raise ValueError(f"unknown condition {d['condition']!r}")
+            fields = None if d["fields"] is None else {k: FieldSpec.from_dict(v) for k, v in d["fields"].items()}
+            return ConditionMedia(d["condition"], d["fog"], fields)
+        except (KeyError, TypeError, ValueError) as exc:
+            raise DataFormatError(f"{where}: not a valid media file ({exc})") from None
+
+
+def resolve_media(condition: Condition, cfg: SimulateConfig, scenes: list[str], fog_levels: FogLevels | None,
+                  fields: dict[str, list[FieldSpec]] | None) -> ConditionMedia:
+    """The media of ``condition`` over ``scenes`` (``fog_levels`` needed with fog, ``fields`` with particles).
+
+    Raises:
+        DataFormatError: a needed input is missing or lacks a scene.
+    """
+    fog = None
+    if condition.fog is not None:
+        if fog_levels is None:
+            raise DataFormatError(f"condition {condition.name} needs fog levels")
+        level = condition.fog.level
+        alpha = fog_levels.alpha[level]
+        fog = {"level": level, "alpha": alpha, "beta": fog_levels.beta[level], "source": fog_levels.source,
+               "camera_alpha_unaligned": {
+                   s: FogPart.camera_alpha(False, alpha, fog_levels.alpha["light"], fog_levels.alpha["dense"],
+                                           cfg.fog_seed, condition.name, s) for s in scenes}}
+    per_scene = None
+    if condition.particles is not None:
+        kind = condition.particles.kind
+        if not fields or kind not in fields:
+            raise DataFormatError(f"condition {condition.name} needs {kind} fields (run the particles stage)")
+        by_scene = {spec.scene: spec for spec in fields[kind]}
+        missing = [s for s in scenes if s not in by_scene]
+        if missing:
+            raise DataFormatError(f"the particles stage's {kind} fields lack scenes {missing}; rerun it")
+        per_scene = {s: by_scene[s] for s in scenes}
+    return ConditionMedia(condition.name, fog, per_scene)
+
+
+def media_path(data: Path, condition: str) -> Path:
+    """``<data>/media/<condition>.json``."""
+    return Path(data) / "media" / f"{condition}.json"
+
+
+def read_media(path: Path) -> ConditionMedia:
+    """The media file written by the media stage.
+
+    Raises:
+        DataFormatError: missing or malformed.
+    """
+    raw = read_json_file(path, "run the media stage first (python -m flows.media)")
+    return ConditionMedia.from_dict(raw, str(path))

@@ -1,0 +1,199 @@
+"""The pure observation core: one frame through one condition's media, as every sensor sees it. No file I/O.
+
+`observe(frame, images, ranges, media, sensors, options)` returns `FrameWeather`: the weather LiDAR scan with per-point
+labels, particle ids and source rows; each camera's weather image and the particles it drew; the re-projection
+errors of the particles the LiDAR saw. The caller (`weatheralign.simulate.weather_copy`) loads the inputs (decoded
+images, ray-length maps from `weatheralign.camera.depth.camera_range_map`) and writes the outputs.
+
+How media compose (see `weatheralign.conditions`):
+
+- LiDAR (`observe_lidar`): fog alone through `weatheralign.lidar.simulate_fog`; a particle field (with or without
+  fog) through `weatheralign.lidar.simulate_particles`, which adds the fog's extinction to every echo and lets the
+  fog's backscatter compete with the strongest echo of each beam. The sensor is the dataset's `LidarModel`.
+- Cameras (`observe_camera`), each at its own timestamp and ego pose: one transmission per pixel, the fog's
+  ``exp(-α ℓ)`` times the unresolved particles' ``exp(-τ_u(ℓ))``, guided-filtered, composited with the scene's
+  airlight in linear light (`weatheralign.camera.fog.composite`); then the field's resolvable particles splatted
+  with exposure streaks (`weatheralign.camera.splat`), pre-fogged by the same fog. Unaligned cameras see the
+  media's twins (`SceneMedia.camera_alpha`, ``field.field(aligned=False)``).
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from weatheralign.camera.fog import composite, decode_srgb_u8, encode_srgb_u8, refine_transmission, srgb_to_linear
+from weatheralign.camera.fog import transmission as fog_transmission
+from weatheralign.camera.splat import (APPEARANCES, focal_px, materialize_for_camera, render_particles,
+                                       unresolved_extinction_profile)
+from weatheralign.data.frame import CameraView, Frame, LidarScan
+from weatheralign.geometry import invert
+from weatheralign.lidar import simulate_fog, simulate_particles
+from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel
+from weatheralign.medium.fog import FogMedium
+from weatheralign.metrics.reprojection import CameraParticles, lidar_particles, reprojection_check
+from weatheralign.sensors import CameraModel, LidarModel, SensorRig
+from weatheralign.simulate.media import SceneMedia
+
+COUNT_KEYS: tuple[str, ...] = (*(label.name for label in POINT_LABELS), "CLUTTER")
+"""Keys of `LidarWeather.counts`: input points per label, plus clutter points added on beams without return."""
+
+
+@dataclass(frozen=True)
+class ObserveOptions:
+    """Rendering choices that are neither sensor nor medium: ``near_clip_m`` (no particle nearer to a camera [m]),
+    ``refine_transmission`` (guided-filter the camera transmission), ``threads`` (cameras in parallel)."""
+
+    near_clip_m: float = 0.5
+    refine_transmission: bool = True
+    threads: int = 1
+
+
+@dataclass(frozen=True, eq=False)
+class LidarWeather:
+    """A weather scan: ``scan`` (new points), per output point ``labels`` (`WeatherLabel`), ``particle_id`` (-1: none),
+    ``source_index`` (input row, -1: clutter), ``times`` (firing time [s]); ``counts`` per `COUNT_KEYS`."""
+
+    scan: LidarScan
+    labels: NDArray[np.uint8]
+    particle_id: NDArray[np.int64]
+    source_index: NDArray[np.int64]
+    times: NDArray[np.float64]
+    counts: dict[str, int]
+
+
+@dataclass(frozen=True, eq=False)
+class CameraWeather:
+    """A weather image (``image`` uint8 sRGB, or None = the input unchanged), the particles it drew
+    (`CameraParticles` for the re-projection check, None without particles) and ``drawn`` (their number)."""
+
+    image: NDArray[np.uint8] | None
+    particles: CameraParticles | None
+    drawn: int
+
+
+@dataclass(frozen=True, eq=False)
+class FrameWeather:
+    """Everything the weather did to one frame: the LiDAR, each camera, the re-projection errors [px] and their
+    cameras."""
+
+    lidar: LidarWeather
+    cameras: dict[str, CameraWeather]
+    reprojection_px: NDArray[np.float64]
+    reprojection_channels: list[str] = field(default_factory=list)
+
+    @property
+    def particles_rendered(self) -> int:
+        return sum(c.drawn for c in self.cameras.values())
+
+
+# ------------------------------------------------------------------------------------------------ LiDAR
+
+
+def observe_lidar(scan: LidarScan, media: SceneMedia, lidar: LidarModel) -> LidarWeather:
+    """``scan`` through the media the LiDAR sees (its fog level and/or the LiDAR's field ``field.field()``)."""
+    fog = FogMedium(media.lidar_alpha, media.lidar_beta) if media.lidar_alpha > 0.0 else None
+    if media.field is None:
+        res = simulate_fog(scan, media.lidar_alpha, media.lidar_beta, lidar=lidar)
+        times = scan.point_times()[res.source_index]
+        counts = {k: int(res.counts.get(k, 0)) for k in COUNT_KEYS}
+        return LidarWeather(res.apply_to(scan), res.labels.astype(np.uint8), np.full(len(res.labels), -1, np.int64),
+                            res.source_index.astype(np.int64), times, counts)
+    fld = media.field.field() if media.has_particles else None
+    res = simulate_particles(scan, fld, lidar=lidar, reflectivity=media.condition.particles.lidar_reflectivity,
+                             fog=fog)
+    counts = {k: int(res.counts.get(k, 0)) for k in COUNT_KEYS}
+    return LidarWeather(res.apply_to(scan), res.labels.astype(np.uint8), res.particle_id.astype(np.int64),
+                        res.source_index.astype(np.int64), res.times.astype(np.float64), counts)
+
+
+# ------------------------------------------------------------------------------------------------ cameras
+
+
+def ego_velocity(frame: Frame) -> NDArray[np.float64]:
+    """(3,) ego velocity [m/s] in the global frame from the scan's ego poses (finite difference), 0 if unknown."""
+    scan = frame.lidar
+    if scan.poses is None or scan.pose_times is None or len(scan.pose_times) < 2:
+        return np.zeros(3)
+    dt = float(scan.pose_times[-1] - scan.pose_times[0])
+    if dt <= 0.0:
+        return np.zeros(3)
+    return (scan.poses[-1][:3, 3] - scan.poses[0][:3, 3]) / dt
+
+
+def observe_camera(image: NDArray[np.uint8], range_map: NDArray[np.float32], view: CameraView, media: SceneMedia,
+                   camera: CameraModel, airlight: NDArray, ego_vel: NDArray, options: ObserveOptions) -> CameraWeather:
+    """One camera through the media it sees (see the module docstring).
+
+    Args:
+        image: (H, W, 3) uint8 sRGB clear image; range_map: (H, W) float32 ray length [m], inf = sky.
+        view: the camera's geometry at its timestamp (K, size, pose); camera: its model (exposure).
+        airlight: (3,) sRGB airlight of the scene; ego_vel: (3,) ego velocity [m/s] (streaks).
+    """
+    alpha = media.camera_alpha
+    fld = media.field.field(aligned=media.aligned) if media.has_particles else None
+    if alpha <= 0.0 and fld is None:
+        return CameraWeather(None, None, 0)
+    near = options.near_clip_m
+    look = APPEARANCES[media.condition.particles.camera_appearance] if fld is not None else None
+    t = fog_transmission(range_map, alpha) if alpha > 0.0 else None
+    profile = None
+    if fld is not None:
+        profile = unresolved_extinction_profile(fld, focal_px(view.K), look, near_clip=near)
+        t_particles = profile.transmission(range_map)
+        t = t_particles if t is None else t * t_particles
+    if options.refine_transmission:
+        t = refine_transmission(t, image)
+    a_lin = srgb_to_linear(np.asarray(airlight, dtype=np.float64))
+    background = composite(decode_srgb_u8(image), t, a_lin)
+    if fld is None:
+        return CameraWeather(encode_srgb_u8(background), None, 0)
+    T_global_cam = view.T_global_cam
+    v_rel = fld.velocity_array - np.asarray(ego_vel, dtype=np.float64)
+    parts = materialize_for_camera(fld, view.K, view.width, view.height, T_global_cam, view.timestamp, look,
+                                   near_clip=near, streak_m=float(np.linalg.norm(v_rel)) * camera.exposure_s)
+    res = render_particles(background.astype(np.float32), range_map, view.K, invert(T_global_cam), parts.positions,
+                           parts.diameters, parts.ids, fld.velocity_array, ego_vel, exposure_s=camera.exposure_s,
+                           appearance=look, fog_alpha=alpha, airlight=a_lin, unresolved=profile, near_clip=near)
+    cp = CameraParticles(view.channel, view.K, T_global_cam, view.timestamp, view.width, view.height, parts.ids,
+                         res.centroids, res.drawn & res.unoccluded & res.in_frame, range_map, profile.r_end)
+    return CameraWeather(encode_srgb_u8(res.image), cp, int(res.drawn.sum()))
+
+
+# ------------------------------------------------------------------------------------------------ one frame
+
+
+def observe(frame: Frame, images: dict[str, NDArray[np.uint8]], ranges: dict[str, NDArray[np.float32]],
+            media: SceneMedia, sensors: SensorRig, airlight: NDArray,
+            options: ObserveOptions = ObserveOptions()) -> FrameWeather:
+    """``frame`` through ``media``: its LiDAR scan and the cameras in ``images`` (decoded clear images, with their
+    ray-length maps in ``ranges``), each through the media it sees; with particles, also the re-projection errors
+    [px] of the particles the LiDAR saw in every camera. Pure: reads and writes no file."""
+    missing = sorted(set(images) - set(sensors.cameras))
+    if missing:
+        raise ValueError(f"observe: no camera model for {missing} (the dataset's sensors have "
+                         f"{sorted(sensors.cameras)})")
+    vel = ego_velocity(frame)
+
+    def one_camera(channel: str) -> CameraWeather:
+        return observe_camera(images[channel], ranges[channel], frame.cameras[channel], media,
+                              sensors.cameras[channel], airlight, vel, options)
+
+    with ThreadPoolExecutor(max_workers=max(1, options.threads)) as pool:
+        lidar_future = pool.submit(observe_lidar, frame.lidar, media, sensors.lidar)
+        cams = dict(zip(images, pool.map(one_camera, images)))
+        lidar = lidar_future.result()
+    errors, channels = np.zeros(0), []
+    if media.has_particles:
+        ids, times = lidar_particles(lidar.particle_id, lidar.times, lidar.labels, WeatherLabel.SCATTERED)
+        rendered = [c.particles for c in cams.values() if c.particles is not None]
+        check = reprojection_check(media.field.field(), ids, times, rendered, media.aligned, options.near_clip_m)
+        errors, channels = check.error_px, check.channel
+    return FrameWeather(lidar, cams, errors, channels)
+
+
+__all__ = ["COUNT_KEYS", "CameraWeather", "FrameWeather", "LidarWeather", "ObserveOptions", "ego_velocity", "observe",
+           "observe_camera", "observe_lidar"]

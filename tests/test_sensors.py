@@ -1,0 +1,131 @@
+"""Sensors as data: the LiDAR model's firing grid, its estimation from real scans, serialisation, and no-return
+beams on worlds with other firing grids (900 / 1800 firings per ring)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from weatheralign.data.nuscenes import load_frame, open_nuscenes
+from weatheralign.lidar.beams import beams_from_scan, grid_no_return_beams
+from weatheralign.manifest import DatasetManifest, dataset_digest, read_manifest, write_manifest
+from weatheralign.sensors import (CameraModel, LidarModel, SensorRig, camera_models, estimate_lidar_model,
+                                  lidar_model_from_params)
+from weatheralign.world.dataset import finalize, render_or_resume, sample_jobs
+
+from .conftest import SHARED_REAL, tiny_params
+
+
+def test_firing_pattern_covers_the_grid_once_in_time_order(tiny_world):
+    model = lidar_model_from_params(tiny_world.params.world.lidar)
+    pattern = model.firing_pattern()
+    n = model.num_rings * model.columns_per_ring
+    assert len(pattern.ring) == n and len(np.unique(pattern.column.astype(int) * 32 + pattern.ring)) == n
+    assert np.all((pattern.time_offsets >= -model.period) & (pattern.time_offsets < 0.0))
+    az = np.arctan2(pattern.directions[pattern.ring == 0, 1], pattern.directions[pattern.ring == 0, 0])
+    step = np.angle(np.exp(1j * np.diff(az)))
+    assert np.allclose(step, -2 * np.pi / model.columns_per_ring)  # clockwise
+    ccw = replace(model, clockwise=False).firing_pattern()
+    az2 = np.arctan2(ccw.directions[ccw.ring == 0, 1], ccw.directions[ccw.ring == 0, 0])
+    assert np.allclose(np.angle(np.exp(1j * np.diff(az2))), 2 * np.pi / model.columns_per_ring)
+
+
+def test_model_and_manifest_round_trip(tiny_world, tmp_path):
+    nusc = open_nuscenes(tiny_world.dataroot, tiny_world.params.world.version)
+    frame = load_frame(nusc, nusc.sample[0]["token"])
+    rig = SensorRig(lidar_model_from_params(tiny_world.params.world.lidar), camera_models(frame.cameras, 0.005))
+    assert SensorRig.from_dict(json.loads(json.dumps(rig.to_dict()))) == rig
+    digest = dataset_digest(tiny_world.dataroot, tiny_world.params.world.version)
+    manifest = DatasetManifest(str(tiny_world.dataroot), "v1.0-mini", "synthetic", rig, digest, ("a", "b"))
+    path = tmp_path / "m.json"
+    write_manifest(path, manifest)
+    first = path.read_bytes()
+    assert read_manifest(path) == manifest
+    write_manifest(path, read_manifest(path))
+    assert path.read_bytes() == first  # same manifest, same bytes
+    broken = json.loads(first)
+    del broken["sensors"]["lidar"]["pulse"]
+    path.write_text(json.dumps(broken))
+    with pytest.raises(Exception, match="m.json.*lidar"):
+        read_manifest(path)
+    with pytest.raises(ValueError, match="exposure_s"):
+        CameraModel("CAM_FRONT", ((1.0, 0, 0), (0, 1.0, 0), (0, 0, 1.0)), 10, 10, -1.0)
+
+
+def test_dataset_digest_follows_content(tiny_world, tmp_path):
+    import shutil
+
+    root = tmp_path / "copy"
+    shutil.copytree(tiny_world.dataroot, root)
+    version = tiny_world.params.world.version
+    d0 = dataset_digest(root, version)
+    assert d0 == dataset_digest(tiny_world.dataroot, version)  # location-independent
+    scan = next((root / "samples" / "LIDAR_TOP").iterdir())
+    scan.write_bytes(scan.read_bytes()[:-20])  # one point fewer
+    assert dataset_digest(root, version) != d0
+
+
+def test_estimated_model_recovers_the_synthetic_sensor(tiny_world):
+    """Estimated from the world's scans alone (as for real data), the model matches the declared one."""
+    nusc = open_nuscenes(tiny_world.dataroot, tiny_world.params.world.version)
+    scans = [load_frame(nusc, s["token"]).lidar for s in nusc.sample]
+    truth = lidar_model_from_params(tiny_world.params.world.lidar)
+    est = estimate_lidar_model(scans, rotation_hz=None)
+    assert est.num_rings == 32 and est.clockwise and est.origin == "estimated"
+    assert abs(est.columns_per_ring - truth.columns_per_ring) <= 0.01 * truth.columns_per_ring
+    assert np.max(np.abs(np.subtract(est.elevations_deg, truth.elevations_deg))) < 0.1
+    assert est.rotation_hz == 20.0 and est.noise_floor >= 0.0
+    over = estimate_lidar_model(scans, overrides={"divergence_rad": 2e-3, "pulse_half_width_s": 5e-9})
+    assert over.divergence_rad == 2e-3 and over.pulse.tau_h == 5e-9
+    with pytest.raises(ValueError, match="unknown override"):
+        estimate_lidar_model(scans, overrides={"beam_width": 1.0})
+
+
+@pytest.mark.parametrize("name,rings", [("stf", 64), ("kitti", 64)])
+def test_estimated_model_of_real_scans(name: str, rings: int) -> None:
+    from weatheralign.data.kitti import load_kitti_frame
+    from weatheralign.data.stf import load_stf_frame
+
+    root = SHARED_REAL / name
+    if not root.exists():
+        pytest.skip(f"real sample not available: {root}")
+    frame = (load_stf_frame(root, "2019-09-11_19-13-44_00960") if name == "stf" else
+             load_kitti_frame(root / "000008.bin", root / "000008.png", root / "calib.json"))
+    model = estimate_lidar_model([frame.lidar], rotation_hz=10.0)
+    assert model.num_rings == rings
+    assert 1000 <= model.columns_per_ring <= 5000  # HDL-64E: ~2000-4500 firings per turn
+    assert model.intensity_max == frame.lidar.intensity_max
+    assert model.elevations_deg[0] > model.elevations_deg[-1] or name == "stf"  # STF's channel 0 is the lowest
+
+
+@pytest.mark.parametrize("firings", [900, 1800])
+def test_other_firing_grids_get_their_own_no_return_beams(firings: int, tmp_path) -> None:
+    """A world rendered with 900 or 1800 firings per ring: every cell of its own grid is a beam (a point or a
+    no-return beam), none twice; the default grid would have failed (1800) or been silently wrong (900)."""
+    params = tiny_params(tmp_path, num_train_scenes=1, num_val_scenes=1, samples_per_scene=2, sweeps_per_sample=0,
+                         camera={"image_scale": 0.1}, lidar={"firings_per_ring": firings})
+    dataroot = tmp_path / "world"
+    results = [render_or_resume(spec, k, params.world, dataroot)[0] for spec, k in sample_jobs(params.world)]
+    finalize(params.world, dataroot, results)
+    nusc = open_nuscenes(dataroot, params.world.version)
+    scan = load_frame(nusc, nusc.sample[0]["token"]).lidar
+    model = lidar_model_from_params(params.world.lidar)
+    beams = beams_from_scan(scan, lidar=model)
+    assert len(beams) == 32 * firings and beams.num_returns == len(scan.points)
+    default = lidar_model_from_params(params.world.lidar.model_copy(update={"firings_per_ring": 1085}))
+    from weatheralign.lidar.beams import synthetic_columns
+    if firings > 1085:
+        with pytest.raises(ValueError, match="firing grid"):
+            grid_no_return_beams(scan, synthetic_columns(scan), default.firing_pattern())
+    else:  # the wrong grid silently gives wrong beams: far more "missing" cells than the true grid
+        wrong = grid_no_return_beams(scan, synthetic_columns(scan), default.firing_pattern())
+        assert len(wrong) != 32 * firings - len(scan.points)
+    from weatheralign.lidar import simulate_particles
+    from weatheralign.medium.conditions import field_spec
+
+    spec = field_spec(params.particles, "snow", nusc.scene[0]["name"], scan.timestamp)
+    res = simulate_particles(scan, spec.field(), lidar=model, reflectivity=0.9)
+    assert res.counts["CLUTTER"] > 0 and res.counts["SCATTERED"] > 0

@@ -1,0 +1,159 @@
+"""Stage contracts: dvc.yaml's matrix equals the conditions dict, every stage declares the code its flow imports,
+each simulate stage depends only on its condition's media, and a no-op rerun leaves downstream stages up to date."""
+
+from __future__ import annotations
+
+import ast
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from weatheralign.conditions import ALIGNMENTS, CONDITIONS
+from weatheralign.provenance import stage_code
+
+REPO = Path(__file__).resolve().parents[1]
+DVC = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
+PROJECT_PACKAGES = ("weatheralign", "flows", "tasks")
+
+
+def _module_file(module: str) -> Path | None:
+    parts = module.split(".")
+    base = REPO / "src" if parts[0] == "weatheralign" else REPO
+    path = base.joinpath(*parts)
+    if (path / "__init__.py").is_file():
+        return path / "__init__.py"
+    if path.with_suffix(".py").is_file():
+        return path.with_suffix(".py")
+    return None
+
+
+def _imports(path: Path) -> set[str]:
+    """Project modules imported anywhere in ``path`` (module level or inside functions), with their parents."""
+    tree = ast.parse(path.read_text())
+    package = ".".join(path.relative_to(REPO / "src" if "src" in path.parts else REPO).with_suffix("").parts[:-1])
+    out: set[str] = set()
+    for node in ast.walk(tree):
+        names = []
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                base = ".".join(package.split(".")[: len(package.split(".")) - node.level + 1] + ([base] if base else []))
+            names = [base] + [f"{base}.{a.name}" for a in node.names]
+        for name in names:
+            if name.split(".")[0] in PROJECT_PACKAGES:
+                parts = name.split(".")
+                out.update(".".join(parts[:k]) for k in range(1, len(parts) + 1))
+    return out
+
+
+def import_closure(module: str) -> set[Path]:
+    """Every project source file that importing ``module`` can execute."""
+    seen: set[Path] = set()
+    todo = [module]
+    while todo:
+        path = _module_file(todo.pop())
+        if path is None or path in seen:
+            continue
+        seen.add(path)
+        todo.extend(_imports(path))
+    return seen
+
+
+def _covered(path: Path, deps: list[str]) -> bool:
+    rel = path.relative_to(REPO).as_posix()
+    return any(rel == d or rel.startswith(d.rstrip("/") + "/") for d in deps)
+
+
+@pytest.mark.parametrize("stage", sorted(DVC))
+def test_stage_declares_the_code_its_flow_imports(stage: str) -> None:
+    cmd = DVC[stage]["cmd"]
+    module = re.search(r"python -m ([\w.]+)", cmd).group(1)
+    deps = stage_code(stage)
+    top_inits = {REPO / "src/weatheralign/__init__.py", REPO / "flows/__init__.py", REPO / "tasks/__init__.py"}
+    missing = sorted(p.relative_to(REPO).as_posix() for p in import_closure(module) - top_inits
+                     if not _covered(p, deps))
+    assert not missing, f"dvc.yaml stage {stage!r} runs code it does not declare as deps: {missing}"
+
+
+def test_import_closure_sees_lazy_imports() -> None:
+    """The closure follows imports inside functions (a check that could not fail otherwise is worthless)."""
+    files = {p.relative_to(REPO).as_posix() for p in import_closure("flows.world")}
+    assert "src/weatheralign/world/dataset.py" in files and "src/weatheralign/sensors.py" in files
+    assert not any(f.startswith("src/weatheralign/calibrate/") for f in files)
+
+
+def test_simulate_matrix_equals_the_conditions_dict() -> None:
+    matrix = DVC["simulate"]["matrix"]
+    assert list(matrix["condition"]) == list(CONDITIONS)
+    assert tuple(matrix["alignment"]) == ALIGNMENTS
+
+
+def test_summary_and_media_enumerate_every_condition() -> None:
+    summary_deps = [d for d in DVC["simulate_summary"]["deps"] if "metrics.json" in d]
+    expected = [f"${{paths.reports}}/simulate/{c}-{a}/metrics.json" for c in CONDITIONS for a in ALIGNMENTS]
+    assert summary_deps == expected
+    media_outs = [next(iter(o)) if isinstance(o, dict) else o for o in DVC["media"]["outs"]]
+    assert media_outs == [f"${{paths.data}}/media/{c}.json" for c in CONDITIONS]
+
+
+def test_simulate_depends_only_on_its_condition_media() -> None:
+    data_deps = [d for d in DVC["simulate"]["deps"] if d.startswith("${paths.data}")]
+    assert sorted(data_deps) == ["${paths.data}/manifests/world.json", "${paths.data}/media/${item.condition}.json"]
+    assert not any("metrics.json" in d for s in DVC.values() for d in s.get("deps", []) if "simulate_summary" not in d
+                   and not d.startswith("${paths.reports}/simulate/")), "a stage hands data on through metrics"
+
+
+def _dvc(repo: Path, *args: str) -> subprocess.CompletedProcess:
+    env = {**os.environ, "PATH": f"{Path(sys.executable).parent}:{os.environ.get('PATH', '')}",
+           "PYTHONPATH": f"{repo / 'src'}:{repo}", "PREFECT_LOGGING_LEVEL": "WARNING",
+           "MLFLOW_TRACKING_URI": f"sqlite:///{repo / 'mlflow.db'}"}
+    return subprocess.run([str(Path(sys.executable).parent / "dvc"), *args], cwd=repo, capture_output=True,
+                          text=True, timeout=900, env=env)
+
+
+@pytest.mark.flow
+def test_noop_rerun_leaves_downstream_up_to_date(tmp_path: Path) -> None:
+    """A forced rerun of `world` that renders nothing rewrites an identical manifest: `dvc status` stays clean for
+    the stages after it (they read the manifest, not the world's run-time metrics). A changed world does not."""
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    for name in ("src", "flows", "tasks"):
+        shutil.copytree(REPO / name, repo / name, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
+    shutil.copy(REPO / "dvc.yaml", repo / "dvc.yaml")
+    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    params["tracking"]["enabled"] = False
+    params["run"]["show_progress"] = False
+    params["world"].update({"num_train_scenes": 1, "num_val_scenes": 1, "samples_per_scene": 2,
+                            "sweeps_per_sample": 0})
+    params["world"]["camera"]["image_scale"] = 0.1
+    (repo / "params.yaml").write_text(yaml.safe_dump(params))
+    for cmd in (["git", "init", "-q"], ["git", "config", "user.email", "t@t"], ["git", "config", "user.name", "t"]):
+        subprocess.run(cmd, cwd=repo, check=True)
+    assert _dvc(repo, "init", "-q").returncode == 0
+    run = _dvc(repo, "repro", "particles")
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-3000:]
+    manifest = (repo / "data" / "manifests" / "world.json").read_bytes()
+    run = _dvc(repo, "repro", "-f", "-s", "world")  # the no-op rerun: every sample resumes
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert (repo / "data" / "manifests" / "world.json").read_bytes() == manifest
+    status = _dvc(repo, "status", "particles")
+    assert status.returncode == 0 and "changed" not in status.stdout, status.stdout
+    # the check can fail: a different world changes the manifest and particles is out of date
+    params["world"]["seed"] = 7
+    (repo / "params.yaml").write_text(yaml.safe_dump(params))
+    assert _dvc(repo, "repro", "-s", "world").returncode == 0
+    status = _dvc(repo, "status", "particles")
+    assert "manifests/world.json" in status.stdout and "modified" in status.stdout, status.stdout
+    # a failed world run leaves no handoff behind: the next stage cannot run on the previous dataset
+    params["world"].update({"source": "nuscenes", "nuscenes_dataroot": str(tmp_path / "absent")})
+    (repo / "params.yaml").write_text(yaml.safe_dump(params))
+    assert _dvc(repo, "repro", "-s", "world").returncode != 0
+    assert not (repo / "data" / "manifests" / "world.json").exists()
