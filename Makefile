@@ -35,8 +35,10 @@ $(STAMP): pyproject.toml Makefile
 	$(PY) -c "import torch, open3d, nuscenes, prefect, mlflow; print('[setup] torch', torch.__version__, '| open3d', open3d.__version__, '| prefect', prefect.__version__, '| mlflow', mlflow.__version__)"
 	@touch $(STAMP)
 
+# one Prefect API server for every stage of the run (flows.api_server): it dies with the run however it ends
 reproduce: setup
-	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" WEATHERALIGN_PIPELINE_ID=repro-$$(date +%Y%m%d-%H%M%S) dvc repro
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" WEATHERALIGN_PIPELINE_ID=repro-$$(date +%Y%m%d-%H%M%S) \
+	  $(PY) -m flows.api_server dvc repro
 
 test: setup
 	$(PY) -m pytest -q $(PYTEST_ARGS)

@@ -32,7 +32,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 from prefect import flow  # noqa: E402
 
-from flows.common import gather, parse_stage_args, task_runner  # noqa: E402
+from flows.common import gather, parse_stage_args, run_stage  # noqa: E402
 from tasks.calibrate import evaluate_cell_task, reference_camera_task  # noqa: E402
 from tasks.tracking import StageTracker  # noqa: E402
 from weatheralign import atomic  # noqa: E402
@@ -153,7 +153,7 @@ def calibrate_fog_flow(params: Params) -> dict:
 
 def main(argv: list[str] | None = None) -> dict:
     params = parse_stage_args("calibrate_fog", argv)
-    return calibrate_fog_flow.with_options(task_runner=task_runner(params))(params)
+    return run_stage(calibrate_fog_flow, params)
 
 
 if __name__ == "__main__":

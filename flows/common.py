@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import logging
 import os
 import sys
 from collections.abc import Callable, Iterable, Sequence
@@ -13,6 +15,7 @@ from prefect.task_runners import TaskRunner, ThreadPoolTaskRunner
 from tqdm import tqdm
 
 from weatheralign.config import ConfigError, Params, load_params
+from weatheralign.data.errors import DataFormatError
 
 
 def parse_stage_args(stage: str, argv: Sequence[str] | None = None) -> Params:
@@ -25,6 +28,59 @@ def parse_stage_args(stage: str, argv: Sequence[str] | None = None) -> Params:
     try:
         return load_params(args.params, args.overrides)
     except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+EXPECTED_ERRORS = (DataFormatError, ConfigError)
+"""Errors about the user's data or params: one clear line, no traceback (unless ``WEATHERALIGN_VERBOSE=1``)."""
+
+
+class _NoTracebackForExpectedErrors(logging.Filter):
+    """On the console, Prefect's records of an expected error (`EXPECTED_ERRORS`) are dropped: the stage prints the
+    error itself, first and once. The run's log in the Prefect API keeps them, traceback included."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        exc = record.exc_info[1] if record.exc_info else None
+        if isinstance(exc, EXPECTED_ERRORS):
+            return False
+        message = record.getMessage()
+        return not any(f"{cls.__name__}(" in message or f"{cls.__name__}:" in message for cls in EXPECTED_ERRORS)
+
+
+def _quiet_console() -> None:
+    from prefect.logging.configuration import setup_logging
+
+    setup_logging()  # Prefect configures its handlers lazily: do it now so that the console handler exists
+    for handler in logging.getLogger().handlers + logging.getLogger("prefect").handlers:
+        if isinstance(handler, logging.StreamHandler) and not any(
+                isinstance(f, _NoTracebackForExpectedErrors) for f in handler.filters):
+            handler.addFilter(_NoTracebackForExpectedErrors())
+
+
+def run_stage(flow: Any, params: Params, runner: bool = True) -> Any:
+    """Run a stage's flow: SIGTERM / SIGHUP end it cleanly, and its Prefect API is ``PREFECT_API_URL`` or a server
+    of its own that cannot outlive it (`flows.api_server`); ``runner``: with the stage's task runner (`task_runner`).
+
+    A `DataFormatError` or `ConfigError` ends the stage with ``error: <message>`` on stderr and exit code 2, without
+    Prefect's traceback on the console (set ``WEATHERALIGN_VERBOSE=1`` to see it; the Prefect UI has it anyway).
+    """
+    from prefect.settings import PREFECT_API_URL, temporary_settings
+
+    from flows.api_server import install_signal_handlers, prefect_api
+
+    verbose = os.environ.get("WEATHERALIGN_VERBOSE") == "1"
+    install_signal_handlers()
+    if not verbose:
+        _quiet_console()
+    try:
+        with prefect_api() as url:
+            settings = temporary_settings(updates={PREFECT_API_URL: url}) if url else contextlib.nullcontext()
+            with settings:
+                return (flow.with_options(task_runner=task_runner(params)) if runner else flow)(params)
+    except EXPECTED_ERRORS as err:
+        if verbose:
+            raise
         print(f"error: {err}", file=sys.stderr)
         raise SystemExit(2) from None
 

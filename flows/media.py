@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from prefect import flow
 
-from flows.common import parse_stage_args
+from flows.common import parse_stage_args, run_stage
 from tasks.tracking import StageTracker
 from weatheralign import atomic
 from weatheralign.conditions import CONDITIONS
@@ -44,7 +44,7 @@ def media_flow(params: Params) -> dict:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    return media_flow(parse_stage_args("media", argv))
+    return run_stage(media_flow, parse_stage_args("media", argv), runner=False)
 
 
 if __name__ == "__main__":

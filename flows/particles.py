@@ -16,7 +16,7 @@ import numpy as np
 from prefect import flow, task
 from prefect.cache_policies import NO_CACHE
 
-from flows.common import gather, parse_stage_args, task_runner
+from flows.common import gather, parse_stage_args, run_stage
 from tasks.tracking import StageTracker
 from weatheralign import atomic
 from weatheralign.config import Params
@@ -143,7 +143,7 @@ def particles_flow(params: Params) -> dict:
 
 def main(argv: list[str] | None = None) -> dict:
     params = parse_stage_args("particles", argv)
-    return particles_flow.with_options(task_runner=task_runner(params))(params)
+    return run_stage(particles_flow, params)
 
 
 if __name__ == "__main__":

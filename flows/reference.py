@@ -23,7 +23,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from prefect import flow  # noqa: E402
 
-from flows.common import gather, parse_stage_args, task_runner, threads_per_task  # noqa: E402
+from flows.common import gather, parse_stage_args, run_stage, threads_per_task  # noqa: E402
 from tasks.reference import render_reference_frame_task  # noqa: E402
 from tasks.tracking import StageTracker  # noqa: E402
 from weatheralign.config import Params  # noqa: E402
@@ -108,7 +108,7 @@ def reference_flow(params: Params) -> dict:
 
 def main(argv: list[str] | None = None) -> dict:
     params = parse_stage_args("reference", argv)
-    return reference_flow.with_options(task_runner=task_runner(params))(params)
+    return run_stage(reference_flow, params)
 
 
 if __name__ == "__main__":

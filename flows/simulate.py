@@ -21,7 +21,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 from prefect import flow
 
-from flows.common import gather, parse_stage_args, task_runner, threads_per_task
+from flows.common import gather, parse_stage_args, run_stage, threads_per_task
 from tasks.simulate import simulate_sample_task
 from tasks.tracking import StageTracker
 from weatheralign.conditions import condition_named, variant_name
@@ -94,7 +94,7 @@ def simulate_flow(params: Params) -> dict:
         nusc = open_nuscenes(src_root, world.version)
         jobs = plan_jobs(nusc, media, cfg.aligned, cfg.rain_appearance, cfg.max_samples)
         options = ObserveOptions(cfg.near_clip_m, cfg.refine_transmission, threads_per_task(params))
-        run_digest = stage_fingerprint("simulate", params, world.content_digest, str(src_root.resolve()))
+        run_digest = stage_fingerprint("simulate", params, world.content_digest)
         t0 = time.time()
         futures = [simulate_sample_task.submit(nusc, src_root, out_root, job, world.sensors, options, run_digest,
                                                cfg.jpeg_quality, cfg.sweeps) for job in jobs]
@@ -122,7 +122,7 @@ def main(argv: list[str] | None = None) -> dict:
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)
         raise SystemExit(2) from None
-    return simulate_flow.with_options(task_runner=task_runner(params))(params)
+    return run_stage(simulate_flow, params)
 
 
 if __name__ == "__main__":

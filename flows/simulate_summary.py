@@ -18,7 +18,7 @@ import numpy as np  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from prefect import flow  # noqa: E402
 
-from flows.common import parse_stage_args  # noqa: E402
+from flows.common import parse_stage_args, run_stage  # noqa: E402
 from tasks.tracking import StageTracker  # noqa: E402
 from weatheralign.config import Params  # noqa: E402
 from weatheralign.data.errors import read_json_file  # noqa: E402
@@ -94,7 +94,7 @@ def simulate_summary_flow(params: Params) -> dict:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    return simulate_summary_flow(parse_stage_args("simulate_summary", argv))
+    return run_stage(simulate_summary_flow, parse_stage_args("simulate_summary", argv), runner=False)
 
 
 if __name__ == "__main__":

@@ -16,15 +16,16 @@ import matplotlib.pyplot as plt
 from PIL import Image
 from prefect import flow
 
-from flows.common import gather, parse_stage_args, task_runner, threads_per_task
+from flows.common import gather, parse_stage_args, run_stage, threads_per_task
 from tasks.tracking import StageTracker
 from tasks.world import render_sample_task
 from weatheralign.config import Params
+from weatheralign.data.check import check_dataset
 from weatheralign.data.nuscenes import load_frame, load_lidar, open_nuscenes
 from weatheralign.manifest import DatasetManifest, dataset_digest, display_path, manifest_path, write_manifest
 from weatheralign.sensors import SensorRig, camera_models, estimate_lidar_model, lidar_model_from_params
 from weatheralign.viz import bev_figure, camera_mosaic
-from weatheralign.world.dataset import finalize, sample_jobs
+from weatheralign.world.dataset import claim_dataroot, finalize, sample_jobs
 
 
 def synthetic_dataroot(params: Params) -> Path:
@@ -34,6 +35,7 @@ def synthetic_dataroot(params: Params) -> Path:
 def _render_synthetic(params: Params) -> tuple[Path, dict]:
     cfg = params.world
     dataroot = synthetic_dataroot(params)
+    claim_dataroot(dataroot, cfg.version)  # before anything is written or removed
     jobs = sample_jobs(cfg)
     t0 = time.time()
     nthreads = threads_per_task(params)
@@ -52,8 +54,8 @@ def _summarise_real(params: Params) -> tuple[Path, dict]:
     assert cfg.nuscenes_dataroot is not None
     nusc = open_nuscenes(cfg.nuscenes_dataroot, cfg.version)
     t0 = time.time()
-    for sample in nusc.sample:
-        load_frame(nusc, sample["token"])
+    check = check_dataset(nusc, Path(cfg.nuscenes_dataroot), params.run.max_workers)
+    check.raise_if_bad(Path(cfg.nuscenes_dataroot))  # every bad file at once, before any later stage writes
     counts: dict[str, int] = {}
     for ann in nusc.sample_annotation:
         name = nusc.get("category", nusc.get("instance", ann["instance_token"])["category_token"])["name"]
@@ -62,6 +64,7 @@ def _summarise_real(params: Params) -> tuple[Path, dict]:
         "num_scenes": len(nusc.scene), "num_samples": len(nusc.sample),
         "num_sweeps": sum(1 for sd in nusc.sample_data if sd["channel"] == "LIDAR_TOP" and not sd["is_key_frame"]),
         "num_annotations": len(nusc.sample_annotation), "class_counts": dict(sorted(counts.items())),
+        "lidar_files_checked": check.lidar_files, "images_checked": check.images,
         "samples_rendered_this_run": 0, "seconds_per_sample": round((time.time() - t0) / max(1, len(nusc.sample)), 3),
     }
 
@@ -125,7 +128,7 @@ def world_flow(params: Params) -> dict:
 
 def main(argv: list[str] | None = None) -> dict:
     params = parse_stage_args("world", argv)
-    return world_flow.with_options(task_runner=task_runner(params))(params)
+    return run_stage(world_flow, params)
 
 
 if __name__ == "__main__":

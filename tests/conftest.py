@@ -58,3 +58,18 @@ def make_lidar(**overrides: object) -> "LidarModel":
 
         model = replace(model, pulse=replace(pulse, max_range=model.max_range_m))
     return model
+
+
+def write_params_file(path: Path, updates: dict) -> Path:
+    """The repository's params.yaml with ``updates`` merged in (nested dicts merge key by key), written to ``path``:
+    a complete params file (the loader refuses files missing a section)."""
+    import yaml
+
+    def merge(base: dict, new: dict) -> dict:
+        for k, v in new.items():
+            base[k] = merge(dict(base.get(k) or {}), v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
+        return base
+
+    tree = merge(yaml.safe_load((REPO / "params.yaml").read_text()), updates)
+    path.write_text(yaml.safe_dump(tree))
+    return path

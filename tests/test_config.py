@@ -2,9 +2,20 @@ from pathlib import Path
 
 import pytest
 
-from weatheralign.config import ConfigError, apply_override, load_params, params_from_dict
+from weatheralign.config import SECTIONS, ConfigError, apply_override, load_params, params_from_dict
 
 from .conftest import REPO
+
+
+def _params_file(tmp_path: Path, old: str = "", new: str = "", name: str = "p.yaml") -> Path:
+    """The repository's params.yaml (every section present, as `load_params` requires) with one text edit."""
+    text = (REPO / "params.yaml").read_text()
+    if old:
+        assert text.count(old) == 1, old
+        text = text.replace(old, new)
+    f = tmp_path / name
+    f.write_text(text)
+    return f
 
 
 def test_repository_params_load_with_defaults():
@@ -15,12 +26,10 @@ def test_repository_params_load_with_defaults():
 
 
 def test_out_of_range_value_names_key_and_range(tmp_path):
-    f = tmp_path / "p.yaml"
-    f.write_text("world:\n  ego_speed_max: 30\n")
+    f = _params_file(tmp_path, "  ego_speed_max: 12.0\n", "  ego_speed_max: 30\n")
     with pytest.raises(ConfigError) as err:
         load_params(f)
-    msg = str(err.value)
-    assert "world.ego_speed_max" in msg and "30" in msg and "less than or equal to 12" in msg
+    assert str(err.value) == f"{f}: world.ego_speed_max = 30 is invalid: Input should be less than or equal to 12"
 
 
 def test_unknown_key_is_refused():
@@ -34,8 +43,7 @@ def test_cross_field_check():
 
 
 def test_set_overrides_parse_yaml_values(tmp_path):
-    f = tmp_path / "p.yaml"
-    f.write_text("world:\n  seed: 1\n")
+    f = _params_file(tmp_path, "  seed: 2026\n", "  seed: 1\n")
     p = load_params(f, ["world.seed=7", "world.camera.shadows=false", "run.dask_address=tcp://127.0.0.1:8786"])
     assert p.world.seed == 7 and p.world.camera.shadows is False
     assert p.run.dask_address == "tcp://127.0.0.1:8786"
@@ -103,3 +111,148 @@ def test_every_params_key_is_read_by_some_code() -> None:
     unread = [".".join(k) for k in leaves(tree)
               if ".".join(k) not in dynamic and not re.search(r"\." + re.escape(k[-1]) + r"\b", code)]
     assert not unread, f"params keys no code reads: {unread}"
+
+
+# --- strict loading: wrong params fail at once, naming the file (or the --set), the key and the expected form ---
+
+
+def test_repository_params_has_every_section_and_loads():
+    import yaml
+
+    tree = yaml.safe_load((REPO / "params.yaml").read_text())
+    assert set(SECTIONS) <= set(tree), f"params.yaml lacks {sorted(set(SECTIONS) - set(tree))}"
+    p = load_params(REPO / "params.yaml")
+    assert p.run.dask_address is None and p.tracking.mlflow_uri is None and p.calibrate_fog.device == "cpu"
+    assert p.particles.snow.wind_m_s == (0.0, 0.0)
+
+
+def test_empty_file_or_missing_section_is_refused(tmp_path):
+    for text in ("", "# only a comment\n"):
+        empty = tmp_path / "empty.yaml"
+        empty.write_text(text)
+        with pytest.raises(ConfigError, match=rf"^{empty}: the params file is empty; it must hold the sections "
+                                              r"paths, run, tracking, world, particles, simulate, reference, "
+                                              r"calibrate_fog"):
+            load_params(empty)
+    partial = tmp_path / "partial.yaml"
+    partial.write_text("world:\n  seed: 1\n")
+    with pytest.raises(ConfigError) as err:
+        load_params(partial)
+    msg = str(err.value)
+    assert msg.startswith(f"{partial}: missing sections paths, run, tracking, particles, simulate, reference, "
+                          f"calibrate_fog: a params file must hold every section")
+    # one section short: named alone; --set cannot stand in for it (overrides are for keys)
+    f = _params_file(tmp_path, "calibrate_fog:", "calibrate_fog_old:")
+    for overrides in ([], ["calibrate_fog.device=cpu"]):
+        with pytest.raises(ConfigError, match=rf"^{f}: missing section calibrate_fog: .*--set overrides keys, it "
+                                              r"cannot replace a missing section"):
+            load_params(f, overrides)
+    # only the file loader is strict: params built from partial dicts still take defaults
+    assert params_from_dict({"world": {"seed": 1}}).calibrate_fog.device == "cpu"
+    assert params_from_dict({}).world.seed == 2026
+
+
+def test_duplicate_key_is_refused_with_path_and_line(tmp_path):
+    f = _params_file(tmp_path, "  seed: 2026\n", "  seed: 2026\n  num_train_scenes: 8\n  seed: 7\n")
+    line = next(i for i, t in enumerate(f.read_text().splitlines(), 1) if t == "  seed: 7")
+    with pytest.raises(ConfigError) as err:
+        load_params(f)
+    assert str(err.value).startswith(f"{f}: duplicate key world.seed at line {line} (first given at line {line - 2}")
+    nested = _params_file(tmp_path, "    rate_mm_h: 2.0 ", "    rate_mm_h: 9.0\n    rate_mm_h: 2.0 ")
+    with pytest.raises(ConfigError, match=rf"^{nested}: duplicate key particles\.snow\.rate_mm_h at line \d+"):
+        load_params(nested)
+    top = tmp_path / "top.yaml"
+    top.write_text((REPO / "params.yaml").read_text() + "\nrun:\n  max_workers: 4\n")
+    with pytest.raises(ConfigError, match=rf"^{top}: duplicate key run at line \d+"):
+        load_params(top)
+    with pytest.raises(ConfigError, match=r"--set 'world.seed=\{a: 1, a: 2\}': the value is not valid YAML: "
+                                          r"duplicate key a"):
+        apply_override({}, "world.seed={a: 1, a: 2}")
+
+
+def test_nan_infinite_and_absurd_values_are_refused(tmp_path):
+    base = _params_file(tmp_path)
+    for raw, expected in ((".nan", "nan is invalid: Input should be a finite number"),
+                          ("1e30", "'1e30' is invalid: Input should be less than or equal to 50"),
+                          ("-51.0", "-51.0 is invalid: Input should be greater than or equal to -50")):
+        for section in ("snow", "rain"):
+            override = f"particles.{section}.wind_m_s=[{raw},0]"
+            with pytest.raises(ConfigError) as err:
+                load_params(base, [override])
+            assert str(err.value) == f"--set {override}: particles.{section}.wind_m_s[0] = {expected}"
+    assert load_params(base, ["particles.rain.wind_m_s=[-50,12.5]"]).particles.rain.wind_m_s == (-50.0, 12.5)
+    # in the file: blamed on the file; every float of every section must be finite, tuples and optionals included
+    f = _params_file(tmp_path, "  ego_speed_max: 12.0\n", "  ego_speed_max: .inf\n")
+    with pytest.raises(ConfigError, match=rf"^{f}: world.ego_speed_max = inf is invalid: Input should be a finite "
+                                          r"number"):
+        load_params(f)
+    for tree, key in (({"reference": {"alpha_light": [float("nan"), 0.01]}}, r"reference.alpha_light\[0\] = nan"),
+                      ({"simulate": {"fog_beta_light": float("nan")}}, r"simulate.fog_beta_light = nan"),
+                      ({"world": {"camera": {"exposure_s": "nan"}}}, r"world.camera.exposure_s = 'nan'")):
+        with pytest.raises(ConfigError, match=rf"{key} is invalid: Input should be a finite number"):
+            params_from_dict(tree)
+    with pytest.raises(ConfigError, match=r"simulate.max_samples = 100000000 is invalid: Input should be less than "
+                                          r"or equal to 10000000"):
+        params_from_dict({"simulate": {"max_samples": 10**8}})
+
+
+@pytest.mark.parametrize("key, good, bad, form", [
+    ("run.dask_address", ["tcp://10.0.0.5:8786", "tls://scheduler.internal:8786", "tcp://[::1]:1", "tcp://h:65535"],
+     ["10.0.0.5:8786", "tcp://h:0", "tcp://h:65536", "tcp://:8786", "inproc://x", "tcp://h", ""],
+     "expected a Dask scheduler address tcp://host:port or tls://host:port with port 1..65535"),
+    ("tracking.mlflow_uri", ["sqlite:///tmp/m.db", "file:/tmp/mlruns", "http://h:5000", "https://mlflow.example",
+                             "postgresql://u@h/db", "postgresql+psycopg2://u@h/db", "mysql://u@h/db", "databricks",
+                             "databricks://profile"],
+     ["mlruns", "/tmp/mlruns", "sqlite:/x.db", "ftp://h", "http://", "databricksx", ""],
+     "expected an MLflow tracking URI: sqlite:///<path>, file:<path>, http(s)://<host>[:port], postgresql://..., "
+     "mysql://..., databricks[://<profile>]"),
+    ("calibrate_fog.device", ["cpu", "cuda", "cuda:0", "cuda:12", "mps"],
+     ["gpu", "CUDA", "cuda:", "cuda:x", "cuda0", "tpu", ""],
+     "expected a torch device: cpu, cuda, cuda:N (N = GPU index) or mps"),
+])
+def test_addresses_uris_and_devices_are_checked_by_form(tmp_path, key, good, bad, form):
+    section, name = key.split(".")
+    for value in good:
+        assert getattr(getattr(load_params(_params_file(tmp_path), [f"{key}={value}"]), section), name) == value
+    for value in bad:
+        with pytest.raises(ConfigError) as err:
+            params_from_dict({section: {name: value}})
+        assert str(err.value).startswith(f"params: {key} = {value!r} is invalid: {form}"), str(err.value)
+    # in the file: the file and the key are named
+    f = _params_file(tmp_path, f"{name}: {'null' if name != 'device' else 'cpu'}", f"{name}: {bad[0]}")
+    with pytest.raises(ConfigError) as err:
+        load_params(f)
+    assert str(err.value).startswith(f"{f}: {key} = {bad[0]!r} is invalid: {form}"), str(err.value)
+
+
+def test_errors_from_set_overrides_name_the_set(tmp_path):
+    f = _params_file(tmp_path)
+    cases = {
+        "simulate.exposure=3": "--set simulate.exposure=3: simulate.exposure = 3 is invalid: unknown key",
+        "world.ego_speed_max=30": "--set world.ego_speed_max=30: world.ego_speed_max = 30 is invalid: Input should be "
+                                  "less than or equal to 12",
+        "run.dask_address=foo:8786": "--set run.dask_address=foo:8786: run.dask_address = 'foo:8786' is invalid: "
+                                     "expected a Dask scheduler address",
+        "world={seed: -1}": "--set world={seed: -1}: world.seed = -1 is invalid: Input should be greater than or equal "
+                            "to 0",
+    }
+    for override, expected in cases.items():
+        with pytest.raises(ConfigError) as err:
+            load_params(f, [override])
+        assert str(err.value).startswith(expected), str(err.value)
+        assert str(f) not in str(err.value)
+    # the file's own bad value stays the file's, next to a harmless --set
+    bad = _params_file(tmp_path, "  ego_speed_max: 12.0\n", "  ego_speed_max: 30\n", name="bad.yaml")
+    with pytest.raises(ConfigError, match=rf"^{bad}: world.ego_speed_max = 30 is invalid"):
+        load_params(bad, ["world.seed=3"])
+    # a later --set of the whole section replaces an earlier --set of one of its keys
+    with pytest.raises(ConfigError, match=r"^--set world=\{seed: -1\}: world.seed = -1"):
+        load_params(f, ["world.seed=5", "world={seed: -1}"])
+    # a check over a whole section names the --set keys involved
+    with pytest.raises(ConfigError) as err:
+        load_params(f, ["world.ego_speed_min=11", "world.ego_speed_max=6"])
+    assert str(err.value) == (f"{f}: world is invalid: ego_speed_min (11.0) must not exceed ego_speed_max (6.0) "
+                              f"(with --set world.ego_speed_min=11, --set world.ego_speed_max=6)")
+    # a value that is not YAML is blamed on its --set, not a traceback
+    with pytest.raises(ConfigError, match=r"^--set 'world.seed=\[1': the value is not valid YAML"):
+        load_params(f, ["world.seed=[1"])

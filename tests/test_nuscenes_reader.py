@@ -55,6 +55,7 @@ def test_missing_table_is_named(tiny_world, tmp_path):
     ("absolute", "is absolute"),
     ("truncated", "not a multiple of the record size 20"),
     ("nan", "NaN/inf coordinates"),
+    ("empty", r"empty scan \(0 points\)"),
 ])
 def test_bad_lidar_files(tiny_world, tmp_path, case, match):
     version = tiny_world.params.world.version
@@ -64,9 +65,12 @@ def test_bad_lidar_files(tiny_world, tmp_path, case, match):
     bad_dir = root / "bad"
     bad_dir.mkdir()
     target = {"missing": "samples/LIDAR_TOP/nope.pcd.bin", "escape": "../../etc/passwd",
-              "absolute": "/etc/passwd", "truncated": "bad/trunc.pcd.bin", "nan": "bad/nan.pcd.bin"}[case]
+              "absolute": "/etc/passwd", "truncated": "bad/trunc.pcd.bin", "nan": "bad/nan.pcd.bin",
+              "empty": "bad/empty.pcd.bin"}[case]
     if case == "truncated":
         good[:-2].tofile(bad_dir / "trunc.pcd.bin")
+    if case == "empty":
+        (bad_dir / "empty.pcd.bin").write_bytes(b"")
     if case == "nan":
         pts = good.reshape(-1, 5).copy()
         pts[7, 1] = np.nan
@@ -76,7 +80,7 @@ def test_bad_lidar_files(tiny_world, tmp_path, case, match):
     nusc = open_nuscenes(root, version)
     with pytest.raises(DataFormatError, match=match) as err:
         load_frame(nusc, sample_token)
-    if case in ("truncated", "nan"):
+    if case in ("truncated", "nan", "empty"):
         assert target.split("/")[-1] in str(err.value)
     if case == "nan":
         assert "row 7" in str(err.value)

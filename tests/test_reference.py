@@ -159,7 +159,7 @@ def test_small_tree_reads_and_unit_scale_works(tmp_path):
     # the same 0..1 data declared as 0..255 is the published code's trap: refused for the whole split
     ds_wrong = open_reference(unit, SPLITS, 255.0)
     with pytest.raises(DataFormatError,
-                       match=r"split 'clear'.*all 1200 intensities lie in 0\.\.1.*intensity_max: 1\.0"):
+                       match=r"rec-a_00001\.bin: every intensity of the 600 points is <= 1\.0.*declare intensity_max = 1\.0"):
         check_reference(ds_wrong, images=False)
 
 
@@ -196,7 +196,7 @@ def test_small_tree_errors_name_file_and_form(tmp_path):
     with pytest.raises(DataFormatError, match=r"intensities outside 0\.\.255.*declared intensity_max = 255"):
         ds.load_scan("rec-a_00002")
     np.zeros((0, 5), "<f4").tofile(scan)
-    with pytest.raises(DataFormatError, match=r"rec-a_00002\.bin: empty scan in split 'clear'"):
+    with pytest.raises(DataFormatError, match=r"rec-a_00002\.bin: empty scan \(0 points\)"):
         check_reference(ds)
 
 

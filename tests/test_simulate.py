@@ -29,7 +29,7 @@ from weatheralign.simulate.observe import ObserveOptions, observe, observe_lidar
 from weatheralign.simulate.plan import SampleJob, plan_jobs, scene_airlight
 from weatheralign.simulate.weather_copy import finalize_copy, run_sample, summarise, sweep_records, weather_relpath
 
-from .conftest import REPO
+from .conftest import REPO, write_params_file
 
 CFG = params_from_dict({}).simulate
 OPTIONS = ObserveOptions(threads=2)
@@ -168,6 +168,19 @@ def test_resume_skips_finished_samples(world, snow_copy):
     again, now = run_sample(nusc, tw.dataroot, out, job, sensors, OPTIONS, RUN)
     assert not now and again == record
     assert {rel: (out / rel).stat().st_mtime_ns for rel in _files(out, ())} == stamps
+    assert not (out / ".progress").exists()  # records live beside the copy: the copy holds only data
+    # a truncated output is not a finished one: the sample is redone, to the same bytes
+    jpeg = next(out / rel for rel in _files(out, ()) if rel.endswith(".jpg") and "CAM_FRONT" in rel
+                and (out / rel).read_bytes() != (tw.dataroot / rel).read_bytes())
+    good = jpeg.read_bytes()
+    jpeg.write_bytes(good[:1000])
+    again, now = run_sample(nusc, tw.dataroot, out, job, sensors, OPTIONS, RUN)
+    assert now and jpeg.read_bytes() == good
+    # leftover temporaries of a killed run are removed when the copy is completed
+    leftover = out / "samples" / "CAM_FRONT" / ".x.jpg.abc123.tmp"
+    leftover.write_bytes(b"x")
+    finalize_copy(nusc, tw.dataroot, out, tw.params.world.version)
+    assert not leftover.exists()
     # another sensor (a different exposure), another run fingerprint: not a finished sample
     other = SensorRig(sensors.lidar, {k: replace(v, exposure_s=0.004) for k, v in sensors.cameras.items()})
     assert run_sample(nusc, tw.dataroot, out / "x", job, other, OPTIONS, RUN)[1]
@@ -221,10 +234,9 @@ def test_flow_writes_copy_and_metrics(world, tmp_path):
                                                                  dataset_digest(tw.dataroot, version), tuple(scenes)))
     (data / "particles").mkdir(parents=True)
     (data / "particles" / "fields.json").write_text(json.dumps({k: [f.to_dict() for f in v] for k, v in fields.items()}))
-    params = tmp_path / "params.yaml"
-    params.write_text(json.dumps({"paths": {"data": str(data), "reports": str(reports)},
-                                  "tracking": {"enabled": False}, "run": {"show_progress": False},
-                                  "world": tw.params.world.model_dump(mode="json")}))
+    params = write_params_file(tmp_path / "params.yaml", {
+        "paths": {"data": str(data), "reports": str(reports)}, "tracking": {"enabled": False},
+        "run": {"show_progress": False}, "world": tw.params.world.model_dump(mode="json")})
     levels = data / "calibrate_fog" / "fog_levels.json"
     levels.parent.mkdir(parents=True)
     levels.write_text(json.dumps({"light": {"alpha": 0.012, "beta": 0.0001}, "dense": {"alpha": 0.05, "beta": 0.0007}}))

@@ -242,6 +242,28 @@ def test_tables_are_deterministic(tiny_world, tmp_path):
     assert original == digests[0]
 
 
+def test_world_refuses_a_folder_it_did_not_write(tiny_world, tmp_path):
+    """A real dataset (or anything else) at the world's output path: the stage refuses before writing or removing a
+    single file; its own folder (the marker, its own file names) is accepted."""
+    from weatheralign.data.errors import DataFormatError
+    from weatheralign.world.dataset import OWNER_FILE, claim_dataroot
+
+    version = tiny_world.params.world.version
+    root = tmp_path / "nuscenes"
+    shutil.copytree(tiny_world.dataroot, root)
+    claim_dataroot(root, version)  # only the stage's own files: adopted (an existing world from an earlier release)
+    assert (root / OWNER_FILE).is_file()
+    real = root / "samples" / "CAM_FRONT" / "n008-2018-08-01-15-16-36-0400__CAM_FRONT__1533151603512404.jpg"
+    real.write_bytes(b"a real nuScenes image")
+    before = {p: p.read_bytes() for p in root.rglob("*") if p.is_file()}
+    with pytest.raises(DataFormatError, match="n008-2018-08-01.*refusing"):
+        claim_dataroot(root, version)
+    assert {p: p.read_bytes() for p in root.rglob("*") if p.is_file()} == before
+    empty = tmp_path / "new"
+    claim_dataroot(empty, version)
+    assert [p.name for p in empty.iterdir()] == [OWNER_FILE]
+
+
 def test_resume_skips_finished_samples_and_cleans_stale_files(tmp_path):
     params = tiny_params(tmp_path, num_train_scenes=1, num_val_scenes=1, samples_per_scene=2, sweeps_per_sample=0,
                          camera={"image_scale": 0.1})
@@ -253,12 +275,21 @@ def test_resume_skips_finished_samples_and_cleans_stale_files(tmp_path):
     second = [render_or_resume(s, k, params.world, root) for s, k in jobs]
     assert [now for _, now in second] == [False, False, False, True]
     assert all(p.stat().st_mtime_ns == t for p, t in stamp.items())
-    stale = root / "samples" / "CAM_FRONT" / "stale.jpg"
+    # resume verifies what it keeps: a truncated output re-renders its job (and only that one)
+    victim = root / second[1][0].cameras[0].filename
+    good = victim.read_bytes()
+    victim.write_bytes(good[: len(good) // 2])
+    again = [render_or_resume(s, k, params.world, root) for s, k in jobs]
+    assert [now for _, now in again] == [False, True, False, False] and victim.read_bytes() == good
+    stale = root / "samples" / "CAM_FRONT" / "wa-2026-synthetic-log009__CAM_FRONT__1.jpg"  # ours, of another config
     stale.write_bytes(b"x")
-    tmp_leftover = root / "samples" / "LIDAR_TOP" / ".x.pcd.bin.123.tmp"
+    tmp_leftover = root / "samples" / "LIDAR_TOP" / ".wa-2026-synthetic-log000__LIDAR_TOP__1.pcd.bin.123.tmp"
     tmp_leftover.write_bytes(b"x")
+    foreign = root / "samples" / "CAM_FRONT" / "n008-2018-08-01__CAM_FRONT__1533151603512404.jpg"
+    foreign.write_bytes(b"a user's image")
     finalize(params.world, root, [r for r, _ in second])
     assert not stale.exists() and not tmp_leftover.exists() and not (root / ".progress").exists()
+    assert foreign.read_bytes() == b"a user's image"  # not the stage's: never removed
     # a config change invalidates the finished records
     changed = tiny_params(tmp_path, num_train_scenes=1, num_val_scenes=1, samples_per_scene=2, sweeps_per_sample=0,
                           camera={"image_scale": 0.1}, seed=5).world

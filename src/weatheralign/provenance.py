@@ -118,3 +118,24 @@ def stage_fingerprint(stage: str, params: object, *extra: str) -> str:
         values[key] = node
     blob = json.dumps({"code": code, "params": values, "extra": list(extra)}, sort_keys=True, default=str)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+def file_digests(root: Path, relpaths: Iterable[str]) -> dict[str, list]:
+    """``{relpath: [size, sha256 hex]}`` of files under ``root``: what a resume record stores at write time."""
+    out = {}
+    for rel in sorted(relpaths):
+        data = (Path(root) / rel).read_bytes()
+        out[rel] = [len(data), hashlib.sha256(data).hexdigest()]
+    return out
+
+
+def files_intact(root: Path, digests: dict[str, list]) -> bool:
+    """Whether every file of ``digests`` (`file_digests`) is present under ``root`` with its size and digest: a
+    truncated or replaced output is not a finished one."""
+    for rel, (size, sha) in digests.items():
+        path = Path(root) / rel
+        if not path.is_file() or path.stat().st_size != size:
+            return False
+        if hashlib.sha256(path.read_bytes()).hexdigest() != sha:
+            return False
+    return True

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-
 import os
 from pathlib import Path
 from typing import Any
@@ -61,6 +60,9 @@ def read_json_file(path: Path, missing_hint: str) -> Any:
 def read_float32_records(path: Path, columns: int, what: str = "point cloud") -> NDArray[np.float32]:
     """Read a raw little-endian float32 file of ``columns`` values per record -> (N, columns).
 
+    Only the byte count and the coordinates are checked here; a reader then runs `validate_scan` with the file's
+    declared intensity scale and ring count (empty scans, intensities, rings).
+
     Raises:
         DataFormatError: missing file, byte count not a multiple of ``4 * columns``, or NaN/inf coordinates.
     """
@@ -77,12 +79,95 @@ def read_float32_records(path: Path, columns: int, what: str = "point cloud") ->
     return data
 
 
-def check_finite_xyz(points: NDArray, source: Path | str) -> None:
-    """Raise if any x, y, z (first three columns) is NaN or inf, naming the first bad row."""
-    bad = ~np.isfinite(points[:, :3]).all(axis=1)
+def check_finite_xyz(points: NDArray, source: Path | str, fields: tuple[str, ...] = ("x", "y", "z")) -> None:
+    """Raise if any x, y, z (first three columns) is NaN or inf, naming the first bad row and its field."""
+    finite = np.isfinite(points[:, :3])
+    bad = ~finite.all(axis=1)
+    if bad.any():
+        first = int(np.flatnonzero(bad)[0])
+        col = int(np.flatnonzero(~finite[first])[0])
+        raise DataFormatError(
+            f"{source}: {int(bad.sum())} points with NaN/inf coordinates (first at row {first}, field "
+            f"{fields[col]!r}: {points[first, :3].tolist()}); expected finite x, y, z in metres"
+        )
+
+
+SCALE_CHECK_MIN_POINTS = 100
+"""A 0..255 scan of more than this many points whose every intensity is <= 1.0 is a 0..1 scan on the wrong scale."""
+
+_SCALE_NAMES = {255.0: "0..255", 1.0: "0..1"}
+
+
+def _plural(name: str) -> str:
+    return name[:-1] + "ies" if name.endswith("y") else name + "s"
+
+
+def validate_scan(
+    points: NDArray,
+    source: Path | str,
+    *,
+    intensity_max: float,
+    num_rings: int | None = None,
+    fields: tuple[str, ...] = ("x", "y", "z", "intensity", "ring"),
+) -> None:
+    """Check a scan as read from ``source``; the one validation every LiDAR reader (nuScenes, STF, KITTI) runs.
+
+    Args:
+        points: (N, C) records as stored: ``x, y, z`` [m], the intensity in column 4 and, with ``num_rings``, the
+            ring in column 5.
+        source: the file, named in every error.
+        intensity_max: the declared intensity scale, 255.0 (``0..255``) or 1.0 (``0..1``, e.g. KITTI reflectance).
+        num_rings: the sensor's ring count; rings must be integers ``0..num_rings-1``. None: the file has no ring
+            column to check (KITTI, rings derived from elevation).
+        fields: the column names used in the messages (e.g. ``reflectance`` for KITTI, ``channel`` for STF).
+
+    Raises:
+        DataFormatError: naming ``source``, the field (column), the first bad row and its value and the expected form,
+            for an empty scan, NaN/inf coordinates, NaN/inf intensities or intensities outside ``0..intensity_max``,
+            a 0..255 scan of more than `SCALE_CHECK_MIN_POINTS` points whose every intensity is <= 1.0 (a 0..1 scan
+            declared 0..255), and rings that are not integers ``0..num_rings-1``.
+    """
+    if intensity_max not in _SCALE_NAMES:
+        raise DataFormatError(f"{source}: declared intensity scale {intensity_max!r}; expected 255.0 or 1.0")
+    scale = _SCALE_NAMES[intensity_max]
+    n_cols = 5 if num_rings is not None else 4
+    if points.ndim != 2 or points.shape[1] < n_cols:
+        raise DataFormatError(f"{source}: points have shape {points.shape}; expected (N, {n_cols}) records "
+                              f"({', '.join(fields[:n_cols])})")
+    if len(points) == 0:
+        raise DataFormatError(f"{source}: empty scan (0 points); expected at least one point "
+                              f"({', '.join(fields[:n_cols])} per record)")
+    check_finite_xyz(points, source, fields[:3])
+    name = fields[3]
+    value = points[:, 3]
+    finite = np.isfinite(value)
+    if not finite.all():
+        first = int(np.flatnonzero(~finite)[0])
+        raise DataFormatError(
+            f"{source}: {int((~finite).sum())} NaN/inf {_plural(name)} (field {name!r}, column 4; first at row "
+            f"{first}: {float(value[first])}); expected a finite {name} on {scale} (declared intensity_max = "
+            f"{intensity_max:g})")
+    bad = (value < 0) | (value > intensity_max)
     if bad.any():
         first = int(np.flatnonzero(bad)[0])
         raise DataFormatError(
-            f"{source}: {int(bad.sum())} points with NaN/inf coordinates (first at row {first}: "
-            f"{points[first, :3].tolist()}); expected finite x, y, z in metres"
-        )
+            f"{source}: {int(bad.sum())} {_plural(name)} outside {scale} (field {name!r}, column 4; first at row "
+            f"{first}: {float(value[first])}); expected {name} on {scale} (declared intensity_max = "
+            f"{intensity_max:g})")
+    if intensity_max == 255.0 and len(points) > SCALE_CHECK_MIN_POINTS:
+        top = float(value.max())
+        if top <= 1.0:
+            row = int(np.argmax(value))
+            raise DataFormatError(
+                f"{source}: every {name} of the {len(points)} points is <= 1.0 (field {name!r}, column 4; largest "
+                f"at row {row}: {top}): a 0..1 scan declared 0..255; expected {name} on 0..255 (rescale it, or "
+                f"declare intensity_max = 1.0)")
+    if num_rings is not None:
+        name = fields[4]
+        ring = points[:, 4]
+        bad = ~np.isfinite(ring) | (ring < 0) | (ring > num_rings - 1) | (ring != np.round(ring))
+        if bad.any():
+            first = int(np.flatnonzero(bad)[0])
+            raise DataFormatError(
+                f"{source}: {int(bad.sum())} invalid {_plural(name)} (field {name!r}, column 5; first at row {first}: "
+                f"{float(ring[first])}); expected integers 0..{num_rings - 1} in column 5")

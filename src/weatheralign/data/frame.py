@@ -18,6 +18,43 @@ from weatheralign.geometry import apply, interpolate_poses, invert
 
 F64 = NDArray[np.float64]
 
+_IMAGE_ERRORS = (OSError, SyntaxError, ValueError, Image.DecompressionBombError)
+"""What Pillow raises for a truncated, corrupt or unidentifiable image (``UnidentifiedImageError`` is an OSError)."""
+
+
+def _image_error(path: Path, what: str, exc: BaseException) -> DataFormatError:
+    return DataFormatError(f"{path}: {what} is truncated or not a valid JPEG/PNG image ({type(exc).__name__}: {exc})")
+
+
+def read_image_size(path: Path, what: str) -> tuple[int, int]:
+    """(width, height) [px] of an image file, decoded in full so that a truncated or corrupt file fails here.
+
+    Raises:
+        DataFormatError: a missing file, or one that is truncated or not a valid JPEG/PNG (naming the file).
+    """
+    path = require_file(Path(path), what)
+    try:
+        with Image.open(path) as im:
+            im.load()
+            return int(im.width), int(im.height)
+    except _IMAGE_ERRORS as exc:
+        raise _image_error(path, what, exc) from None
+
+
+def read_rgb_image(path: Path, what: str) -> NDArray[np.uint8]:
+    """(H, W, 3) uint8 RGB of an image file, decoded in full.
+
+    Raises:
+        DataFormatError: a missing file, or one that is truncated or not a valid JPEG/PNG (naming the file).
+    """
+    path = require_file(Path(path), what)
+    try:
+        with Image.open(path) as im:
+            im.load()  # decode everything now: Pillow reports truncation only when the pixels are read
+            return np.asarray(im.convert("RGB"))
+    except _IMAGE_ERRORS as exc:
+        raise _image_error(path, what, exc) from None
+
 
 @dataclass(frozen=True)
 class LidarScan:
@@ -123,10 +160,12 @@ class CameraView:
         return self.T_global_ego @ self.T_ego_cam
 
     def load_image(self) -> NDArray[np.uint8]:
-        """(H, W, 3) uint8 RGB."""
-        require_file(self.image_path, f"{self.channel} image")
-        with Image.open(self.image_path) as im:
-            rgb = np.asarray(im.convert("RGB"))
+        """(H, W, 3) uint8 RGB.
+
+        Raises:
+            DataFormatError: missing, truncated or undecodable file, or a size other than the calibration's.
+        """
+        rgb = read_rgb_image(self.image_path, f"{self.channel} image")
         if rgb.shape[:2] != (self.height, self.width):
             raise DataFormatError(
                 f"{self.image_path}: image is {rgb.shape[1]}x{rgb.shape[0]}, calibration says {self.width}x{self.height}"
@@ -137,7 +176,12 @@ class CameraView:
         """(H, W) float32 ray length per pixel [m], inf where the ray hits nothing (sky)."""
         if self.range_path is None:
             raise DataFormatError(f"{self.channel}: this dataset has no exact per-pixel range (real data)")
-        rng = np.load(require_file(self.range_path, f"{self.channel} range map")).astype(np.float32)
+        path = require_file(self.range_path, f"{self.channel} range map")
+        try:
+            rng = np.load(path).astype(np.float32)
+        except (OSError, ValueError, EOFError) as exc:
+            raise DataFormatError(f"{path}: {self.channel} range map is truncated or not a valid .npy array "
+                                  f"({type(exc).__name__}: {exc}); expected (H, W) float ray lengths [m]") from None
         if rng.shape != (self.height, self.width):
             raise DataFormatError(f"{self.range_path}: range map shape {rng.shape} != image {self.height}x{self.width}")
         return rng

@@ -19,10 +19,8 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
-from PIL import Image
-
-from weatheralign.data.errors import DataFormatError, read_float32_records, require_file
-from weatheralign.data.frame import CameraView, Frame, LidarScan
+from weatheralign.data.errors import DataFormatError, read_float32_records, require_file, validate_scan
+from weatheralign.data.frame import CameraView, Frame, LidarScan, read_image_size
 from weatheralign.data.rings import HDL64E_ELEVATIONS_DEG, rings_from_elevation
 from weatheralign.geometry import NonRigidTransformError, check_rigid
 
@@ -191,21 +189,21 @@ def read_kitti_calib(path: Path) -> KittiCalib:
     return calib
 
 
+KITTI_INTENSITY_MAX = 1.0
+"""KITTI's declared reflectance scale (0..1)."""
+
+KITTI_FIELDS = ("x", "y", "z", "reflectance")
+
+
 def read_kitti_points(path: Path) -> NDArray[np.float32]:
     """(N, 5) float32 ``x, y, z`` [m], reflectance on 0..1, ring (from elevation, HDL-64E table) of a KITTI ``.bin``.
 
     Raises:
-        DataFormatError: missing file, size not a multiple of 16 bytes, NaN/inf coordinates, reflectance outside 0..1.
+        DataFormatError: missing file, size not a multiple of 16 bytes, an empty scan, NaN/inf coordinates or
+            reflectances, reflectance outside 0..1 (`weatheralign.data.errors.validate_scan` with KITTI's scale).
     """
     raw = read_float32_records(Path(path), 4, "KITTI velodyne scan")
-    refl = raw[:, 3]
-    bad = ~np.isfinite(refl) | (refl < 0.0) | (refl > 1.0)
-    if bad.any():
-        first = int(np.flatnonzero(bad)[0])
-        raise DataFormatError(
-            f"{path}: {int(bad.sum())} reflectances outside 0..1 (first at row {first}: {float(refl[first])}); "
-            f"expected KITTI reflectance on 0..1"
-        )
+    validate_scan(raw, path, intensity_max=KITTI_INTENSITY_MAX, num_rings=None, fields=KITTI_FIELDS)
     points = np.empty((len(raw), 5), dtype=np.float32)
     points[:, :4] = raw
     points[:, 4] = rings_from_elevation(raw[:, :3], HDL64E_ELEVATIONS_DEG)
@@ -213,13 +211,12 @@ def read_kitti_points(path: Path) -> NDArray[np.float32]:
 
 
 def image_size(path: Path, what: str) -> tuple[int, int]:
-    """(width, height) [px] of an image file, reading only its header."""
-    path = require_file(Path(path), what)
-    try:
-        with Image.open(path) as im:
-            return int(im.width), int(im.height)
-    except OSError as exc:
-        raise DataFormatError(f"{path}: cannot read {what} ({exc}); expected a PNG/JPEG image") from exc
+    """(width, height) [px] of an image file, decoded in full (`weatheralign.data.frame.read_image_size`).
+
+    Raises:
+        DataFormatError: missing file, or truncated / not a valid JPEG/PNG image.
+    """
+    return read_image_size(Path(path), what)
 
 
 def load_kitti_frame(velodyne_bin: Path, image: Path | None, calib_json: Path) -> Frame:
@@ -246,7 +243,7 @@ def load_kitti_frame(velodyne_bin: Path, image: Path | None, calib_json: Path) -
         timestamp=0.0,
         T_ego_lidar=np.eye(4),
         T_global_ego=np.eye(4),
-        intensity_max=1.0,
+        intensity_max=KITTI_INTENSITY_MAX,
         num_rings=64,
         path=velodyne_bin,
     )

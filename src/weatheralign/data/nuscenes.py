@@ -8,15 +8,18 @@ dataset ships no per-point firing times (real nuScenes), they are derived from e
 from __future__ import annotations
 
 import io
+import json
+import math
 from contextlib import redirect_stdout
 from pathlib import Path
+from typing import Any, Callable
 
 import numpy as np
 from numpy.typing import NDArray
 from nuscenes.nuscenes import NuScenes
 from pyquaternion import Quaternion
 
-from weatheralign.data.errors import DataFormatError, read_float32_records, resolve_inside
+from weatheralign.data.errors import DataFormatError, read_float32_records, resolve_inside, validate_scan
 from weatheralign.data.frame import Box, CameraView, Frame, LidarScan
 from weatheralign.geometry import NonRigidTransformError, apply, check_rigid, invert, transform_from_quaternion
 
@@ -25,6 +28,24 @@ SWEEP_START_AZIMUTH = np.pi / 2  # ego +y (left)
 SWEEP_PERIOD_S = 0.05  # 20 Hz
 TABLES = ("category", "attribute", "visibility", "instance", "sensor", "calibrated_sensor", "ego_pose", "log",
           "scene", "sample", "sample_data", "sample_annotation", "map")
+NUSCENES_INTENSITY_MAX = 255.0
+"""Declared intensity scale of nuScenes ``.pcd.bin`` scans (0..255)."""
+NUSCENES_NUM_RINGS = 32
+"""Rings of the nuScenes ``LIDAR_TOP`` (HDL-32E; the synthetic world's too): ring column 0..31."""
+NUSCENES_FIELDS = ("x", "y", "z", "intensity", "ring")
+"""The five float32 columns of a nuScenes scan."""
+
+# Fields the devkit reads while indexing the tables (`NuScenes.__make_reverse_index__`), and its token references.
+_INDEX_FIELDS: dict[str, tuple[str, ...]] = {
+    "category": ("name",), "instance": ("category_token",), "sensor": ("modality", "channel"),
+    "calibrated_sensor": ("sensor_token",), "sample_data": ("calibrated_sensor_token", "is_key_frame", "sample_token"),
+    "sample_annotation": ("instance_token", "sample_token"), "map": ("log_tokens", "filename"),
+}
+_INDEX_REFERENCES: tuple[tuple[str, str, str], ...] = (
+    ("instance", "category_token", "category"), ("calibrated_sensor", "sensor_token", "sensor"),
+    ("sample_data", "calibrated_sensor_token", "calibrated_sensor"), ("sample_data", "sample_token", "sample"),
+    ("sample_annotation", "instance_token", "instance"), ("sample_annotation", "sample_token", "sample"),
+)
 
 
 def sweep_fraction_at_azimuth(azimuth: NDArray | float) -> NDArray:
@@ -34,7 +55,13 @@ def sweep_fraction_at_azimuth(azimuth: NDArray | float) -> NDArray:
 
 
 def open_nuscenes(dataroot: str | Path, version: str) -> NuScenes:
-    """Open a dataroot with the devkit, first checking the layout so that errors name what is missing."""
+    """Open a dataroot with the devkit, first checking the layout so that errors name what is missing.
+
+    Raises:
+        DataFormatError: a missing table folder or table; or, where the devkit fails, the first problem
+            `check_tables` finds (invalid JSON with its position, a record without a ``token`` or a field the devkit
+            indexes, a dangling token), else the devkit's own error with the table folder.
+    """
     root = Path(dataroot)
     table_dir = root / version
     if not table_dir.is_dir():
@@ -42,8 +69,127 @@ def open_nuscenes(dataroot: str | Path, version: str) -> NuScenes:
     missing = [t for t in TABLES if not (table_dir / f"{t}.json").is_file()]
     if missing:
         raise DataFormatError(f"{table_dir}: missing nuScenes tables {', '.join(m + '.json' for m in missing)}")
-    with redirect_stdout(io.StringIO()):
-        return NuScenes(version=version, dataroot=str(root), verbose=False)
+    try:
+        with redirect_stdout(io.StringIO()):
+            return NuScenes(version=version, dataroot=str(root), verbose=False)
+    except Exception as exc:  # the devkit raises JSONDecodeError, KeyError, TypeError, IndexError, AssertionError...
+        check_tables(root, version)
+        raise DataFormatError(f"{table_dir}: the nuScenes devkit cannot load these tables "
+                              f"({type(exc).__name__}: {exc})") from exc
+
+
+def _load_table_json(path: Path, table: str) -> list[dict]:
+    try:
+        data = json.loads(path.read_text())
+    except json.JSONDecodeError as exc:
+        raise DataFormatError(f"{path}: not valid JSON: {exc.msg} at line {exc.lineno} column {exc.colno} "
+                              f"(char {exc.pos}); expected a JSON list of {table} records") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise DataFormatError(f"{path}: cannot read the {table} table ({type(exc).__name__}: {exc})") from None
+    if not isinstance(data, list):
+        raise DataFormatError(f"{path}: the top level is a JSON {type(data).__name__}; expected a JSON list of "
+                              f"{table} records")
+    for i, record in enumerate(data):
+        if not isinstance(record, dict):
+            raise DataFormatError(f"{path}: {table} record {i} is a JSON {type(record).__name__}; expected an object")
+        if not isinstance(record.get("token"), str):
+            raise DataFormatError(f"{path}: {table} record {i}: missing field 'token' (or not a string); expected "
+                                  f"every record to have a string token")
+    return data
+
+
+def check_tables(dataroot: str | Path, version: str) -> None:
+    """Check what the devkit needs to index a dataroot's tables, naming the first problem.
+
+    Every table must be valid JSON, a list of objects with a string ``token``; the fields the devkit indexes
+    (`_INDEX_FIELDS`) must be present and their tokens must resolve; every log must have a map, whose mask file
+    exists. Called by `open_nuscenes` when the devkit fails (it parses every table once more).
+
+    Raises:
+        DataFormatError: naming the table file, the record's token and the field (or the JSON error position).
+    """
+    root = Path(dataroot)
+    table_dir = root / version
+    tables = {t: _load_table_json(table_dir / f"{t}.json", t) for t in TABLES}
+    tokens = {t: {r["token"] for r in records} for t, records in tables.items()}
+    for table, fields in _INDEX_FIELDS.items():
+        for record in tables[table]:
+            for key in fields:
+                if key not in record:
+                    raise DataFormatError(f"{table_dir / (table + '.json')}: {table} {record['token']}: missing field "
+                                          f"{key!r}")
+    for table, key, target in _INDEX_REFERENCES:
+        for record in tables[table]:
+            value = record[key]
+            if not isinstance(value, str) or value not in tokens[target]:
+                raise DataFormatError(f"{table_dir / (table + '.json')}: {table} {record['token']}: {key} {value!r} "
+                                      f"matches no record of {target}.json")
+    map_path = table_dir / "map.json"
+    if not tables["map"]:
+        raise DataFormatError(f"{map_path}: no map records; expected at least one map with log_tokens")
+    mapped: set = set()
+    for record in tables["map"]:
+        if not isinstance(record["log_tokens"], list):
+            raise DataFormatError(f"{map_path}: map {record['token']}: field 'log_tokens' = "
+                                  f"{record['log_tokens']!r}; expected a list of log tokens")
+        mapped.update(t for t in record["log_tokens"] if isinstance(t, str))
+        if not isinstance(record["filename"], str) or not (root / record["filename"]).is_file():
+            raise DataFormatError(f"{map_path}: map {record['token']}: mask file {record['filename']!r} is missing "
+                                  f"under {root}")
+    for record in tables["log"]:
+        if record["token"] not in mapped:
+            raise DataFormatError(f"{table_dir / 'log.json'}: log {record['token']}: no map record lists it in "
+                                  f"log_tokens ({map_path})")
+
+
+# ------------------------------------------------------------------------------------------------ record access
+
+_Check = tuple[Callable[[Any], bool], str]
+_STRING: _Check = (lambda v: isinstance(v, str), "a string")
+_TOKEN_OR_EMPTY: _Check = (lambda v: v is None or isinstance(v, str), "a token string ('' for none)")
+_TIMESTAMP: _Check = (lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v),
+                      "a finite timestamp [microseconds]")
+_PIXELS: _Check = (lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                   and v == int(v) and v > 0, "a positive whole number of pixels")
+_LIST: _Check = (lambda v: isinstance(v, list), "a JSON list")
+_COUNT: _Check = (lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                  and v == int(v) and v >= 0, "a non-negative integer")
+
+
+def _table_path(nusc: NuScenes, table: str) -> Path:
+    return Path(nusc.table_root) / f"{table}.json"
+
+
+def _get(nusc: NuScenes, table: str, token: Any, referrer: str) -> dict:
+    """``nusc.get(table, token)``, or an error naming the table, the token and who refers to it."""
+    try:
+        return nusc.get(table, token)
+    except (KeyError, TypeError):
+        raise DataFormatError(f"{_table_path(nusc, table)}: no {table} record with token {token!r} (referenced by "
+                              f"{referrer})") from None
+
+
+def _field(nusc: NuScenes, table: str, record: dict, key: str, check: _Check | None = None) -> Any:
+    """``record[key]``, or an error naming the table, the record's token and the missing or malformed field."""
+    if key not in record:
+        raise DataFormatError(f"{_table_path(nusc, table)}: {table} {record.get('token', '?')}: missing field {key!r}")
+    value = record[key]
+    if check is not None and not check[0](value):
+        raise DataFormatError(f"{_table_path(nusc, table)}: {table} {record.get('token', '?')}: field {key!r} = "
+                              f"{value!r}; expected {check[1]}")
+    return value
+
+
+def _vector(nusc: NuScenes, table: str, record: dict, key: str, n: int) -> NDArray[np.float64]:
+    value = _field(nusc, table, record, key)
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        arr = np.full(0, np.nan)
+    if arr.shape != (n,) or not np.isfinite(arr).all():
+        raise DataFormatError(f"{_table_path(nusc, table)}: {table} {record.get('token', '?')}: field {key!r} = "
+                              f"{value!r}; expected {n} finite numbers")
+    return arr
 
 
 def _transform(record: dict, what: str) -> NDArray[np.float64]:
@@ -58,7 +204,10 @@ def _transform(record: dict, what: str) -> NDArray[np.float64]:
             raise ValueError(f"rotation quaternion has norm {np.linalg.norm(q):.6f}, expected a unit quaternion "
                              "(a non-rigid calibration)")
         return check_rigid(transform_from_quaternion(q, t), what)
-    except (KeyError, TypeError, ValueError, NonRigidTransformError) as err:
+    except KeyError as err:
+        raise DataFormatError(f"{what}: missing field {err.args[0]!r}; expected a rotation [w, x, y, z] and a "
+                              f"translation [x, y, z]") from None
+    except (TypeError, ValueError, NonRigidTransformError) as err:
         raise DataFormatError(f"{what}: invalid rotation/translation: {err}") from None
 
 
@@ -80,19 +229,39 @@ def extras_relpath(filename: str) -> str:
     return f"extras/{channel}/{stem}.npy"
 
 
+def _pose_record(nusc: NuScenes, sd: dict, table: str, key: str) -> tuple[dict, str]:
+    """The ``calibrated_sensor`` / ``ego_pose`` record of ``sd`` and the label its transform's errors carry."""
+    token = _field(nusc, "sample_data", sd, key, _STRING)
+    record = _get(nusc, table, token, f"sample_data {sd['token']}.{key}")
+    return record, f"{table} of {sd['filename']} ({_table_path(nusc, table)}, token {token})"
+
+
 def _read_scan(nusc: NuScenes, sd: dict) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray, NDArray]:
     root = Path(nusc.dataroot)
-    path = resolve_inside(root, sd["filename"], f"sample_data {sd['token']}")
+    filename = _field(nusc, "sample_data", sd, "filename", _STRING)
+    path = resolve_inside(root, filename, f"sample_data {sd['token']}")
     points = read_float32_records(path, 5)
-    T_ego_lidar = _transform(nusc.get("calibrated_sensor", sd["calibrated_sensor_token"]),
-                             f"calibrated_sensor of {sd['filename']}")
-    T_global_ego = _transform(nusc.get("ego_pose", sd["ego_pose_token"]), f"ego_pose of {sd['filename']}")
-    extras = root / extras_relpath(sd["filename"])
+    validate_scan(points, path, intensity_max=NUSCENES_INTENSITY_MAX, num_rings=NUSCENES_NUM_RINGS,
+                  fields=NUSCENES_FIELDS)
+    T_ego_lidar = _transform(*_pose_record(nusc, sd, "calibrated_sensor", "calibrated_sensor_token"))
+    T_global_ego = _transform(*_pose_record(nusc, sd, "ego_pose", "ego_pose_token"))
+    extras = root / extras_relpath(filename)
     if extras.is_file():
-        ex = np.load(extras)
+        try:
+            ex = np.load(extras)
+            offsets = ex["time_offset"].astype(np.float32)
+        except (OSError, ValueError, EOFError, KeyError, IndexError, TypeError) as exc:
+            raise DataFormatError(f"{extras}: not a valid per-point extras array ({type(exc).__name__}: {exc}); "
+                                  f"expected a structured .npy with a 'time_offset' field per point of "
+                                  f"{path}") from None
         if len(ex) != len(points):
             raise DataFormatError(f"{extras}: {len(ex)} records for {len(points)} points in {path}")
-        offsets = ex["time_offset"].astype(np.float32)
+        bad = ~np.isfinite(offsets)
+        if bad.any():
+            first = int(np.flatnonzero(bad)[0])
+            raise DataFormatError(f"{extras}: {int(bad.sum())} NaN/inf time offsets (field 'time_offset', first at "
+                                  f"row {first}: {float(offsets[first])}); expected finite firing times [s] relative "
+                                  f"to the scan timestamp")
     else:
         offsets = derived_time_offsets(points, T_ego_lidar)
     return points, offsets, T_ego_lidar, T_global_ego
@@ -100,23 +269,33 @@ def _read_scan(nusc: NuScenes, sd: dict) -> tuple[NDArray[np.float32], NDArray[n
 
 def load_lidar(nusc: NuScenes, sample_data_token: str, nsweeps: int = 1) -> LidarScan:
     """A LiDAR scan with ``nsweeps`` sweeps (the given one and earlier ones via ``prev``), every earlier sweep
-    transformed into this scan's sensor frame through the global frame (ego-motion compensation)."""
+    transformed into this scan's sensor frame through the global frame (ego-motion compensation).
+
+    Every sweep read is validated (`weatheralign.data.errors.validate_scan`: not empty, finite coordinates,
+    intensities on 0..255 and not a 0..1 scan, rings 0..31).
+
+    Raises:
+        DataFormatError: a bad scan file (naming it, the field and the first bad row), or a missing or malformed
+            table record or field (naming the table, the token and the field).
+    """
     if nsweeps < 1:
         raise ValueError(f"nsweeps must be >= 1, got {nsweeps}")
-    sd = nusc.get("sample_data", sample_data_token)
+    sd = _get(nusc, "sample_data", sample_data_token, "load_lidar")
     points, offsets, T_ego_lidar, T_global_ego = _read_scan(nusc, sd)
-    t_ref = sd["timestamp"] * 1e-6
+    t_ref = _field(nusc, "sample_data", sd, "timestamp", _TIMESTAMP) * 1e-6
     T_lidar_global = invert(T_global_ego @ T_ego_lidar)
     all_pts, all_off, all_idx = [points], [offsets], [np.zeros(len(points), np.int16)]
     pose_times, poses = [t_ref], [T_global_ego]
     cur = sd
     for k in range(1, nsweeps + 1):
-        if not cur["prev"]:
+        prev = _field(nusc, "sample_data", cur, "prev", _TOKEN_OR_EMPTY)
+        if not prev:
             break
-        cur = nusc.get("sample_data", cur["prev"])
-        pose_times.insert(0, cur["timestamp"] * 1e-6)
+        cur = _get(nusc, "sample_data", prev, f"sample_data {cur['token']}.prev")
+        pose_times.insert(0, _field(nusc, "sample_data", cur, "timestamp", _TIMESTAMP) * 1e-6)
         if k >= nsweeps:  # only its pose is needed, for per-point poses within the oldest sweep
-            poses.insert(0, _transform(nusc.get("ego_pose", cur["ego_pose_token"]), f"ego_pose of {cur['filename']}"))
+            _field(nusc, "sample_data", cur, "filename", _STRING)
+            poses.insert(0, _transform(*_pose_record(nusc, cur, "ego_pose", "ego_pose_token")))
             break
         p_k, off_k, T_el_k, T_ge_k = _read_scan(nusc, cur)
         poses.insert(0, T_ge_k)
@@ -128,56 +307,104 @@ def load_lidar(nusc: NuScenes, sample_data_token: str, nsweeps: int = 1) -> Lida
         all_idx.append(np.full(len(p_k), k, np.int16))
     return LidarScan(
         points=np.concatenate(all_pts), timestamp=t_ref, T_ego_lidar=T_ego_lidar, T_global_ego=T_global_ego,
-        intensity_max=255.0, num_rings=32, time_offsets=np.concatenate(all_off),
+        intensity_max=NUSCENES_INTENSITY_MAX, num_rings=NUSCENES_NUM_RINGS, time_offsets=np.concatenate(all_off),
         sweep_index=np.concatenate(all_idx) if nsweeps > 1 else None,
         pose_times=np.array(pose_times), poses=np.stack(poses), path=Path(nusc.dataroot) / sd["filename"])
 
 
 def load_camera(nusc: NuScenes, sample_data_token: str) -> CameraView:
-    """A camera view: image path, intrinsics, extrinsics and ego pose at its own timestamp."""
-    sd = nusc.get("sample_data", sample_data_token)
+    """A camera view: image path, intrinsics, extrinsics and ego pose at its own timestamp.
+
+    Raises:
+        DataFormatError: a missing image file, or a missing or malformed table record or field (naming the table,
+            the token and the field).
+    """
+    sd = _get(nusc, "sample_data", sample_data_token, "load_camera")
     root = Path(nusc.dataroot)
-    path = resolve_inside(root, sd["filename"], f"sample_data {sd['token']}")
+    filename = _field(nusc, "sample_data", sd, "filename", _STRING)
+    path = resolve_inside(root, filename, f"sample_data {sd['token']}")
     if not path.is_file():
         raise DataFormatError(f"sample_data {sd['token']}: missing sensor file {path}")
-    cs = nusc.get("calibrated_sensor", sd["calibrated_sensor_token"])
-    K = np.asarray(cs.get("camera_intrinsic") or [], dtype=np.float64)
-    if K.shape != (3, 3):
-        raise DataFormatError(f"calibrated_sensor {cs['token']}: camera_intrinsic must be 3x3, got shape {K.shape}")
+    cs, cs_what = _pose_record(nusc, sd, "calibrated_sensor", "calibrated_sensor_token")
+    try:
+        K = np.asarray(cs.get("camera_intrinsic") or [], dtype=np.float64)
+    except (TypeError, ValueError):
+        K = np.zeros(0)
+    if K.shape != (3, 3) or not np.isfinite(K).all():
+        detail = "" if K.shape != (3, 3) else " with NaN/inf"
+        raise DataFormatError(f"calibrated_sensor {cs['token']}: camera_intrinsic must be 3x3, got shape {K.shape}"
+                              f"{detail} ({_table_path(nusc, 'calibrated_sensor')})")
     channel = path.parent.name
-    rng_file = root / extras_relpath(sd["filename"])
-    return CameraView(channel=channel, image_path=path, K=K, width=int(sd["width"]), height=int(sd["height"]),
-                      T_ego_cam=_transform(cs, f"calibrated_sensor of {sd['filename']}"),
-                      T_global_ego=_transform(nusc.get("ego_pose", sd["ego_pose_token"]), f"ego_pose of {sd['filename']}"),
-                      timestamp=sd["timestamp"] * 1e-6, range_path=rng_file if rng_file.is_file() else None)
+    rng_file = root / extras_relpath(filename)
+    width = int(_field(nusc, "sample_data", sd, "width", _PIXELS))
+    height = int(_field(nusc, "sample_data", sd, "height", _PIXELS))
+    timestamp = _field(nusc, "sample_data", sd, "timestamp", _TIMESTAMP) * 1e-6
+    return CameraView(channel=channel, image_path=path, K=K, width=width, height=height,
+                      T_ego_cam=_transform(cs, cs_what),
+                      T_global_ego=_transform(*_pose_record(nusc, sd, "ego_pose", "ego_pose_token")),
+                      timestamp=timestamp, range_path=rng_file if rng_file.is_file() else None)
+
+
+def _box(nusc: NuScenes, ann_token: str, sample_token: str) -> Box:
+    ann = _get(nusc, "sample_annotation", ann_token, f"sample {sample_token}")
+    table = "sample_annotation"
+    inst_token = _field(nusc, table, ann, "instance_token", _STRING)
+    inst = _get(nusc, "instance", inst_token, f"sample_annotation {ann_token}.instance_token")
+    cat = _get(nusc, "category", _field(nusc, "instance", inst, "category_token", _STRING),
+               f"instance {inst_token}.category_token")
+    category = _field(nusc, "category", cat, "name", _STRING)
+    attrs = [_field(nusc, "attribute", _get(nusc, "attribute", t, f"sample_annotation {ann_token}.attribute_tokens"),
+                    "name", _STRING)
+             for t in _field(nusc, table, ann, "attribute_tokens", _LIST)]
+    center = _vector(nusc, table, ann, "translation", 3)
+    size = _vector(nusc, table, ann, "size", 3)
+    q = _vector(nusc, table, ann, "rotation", 4)
+    if np.linalg.norm(q) < 1e-6:
+        raise DataFormatError(f"{_table_path(nusc, table)}: {table} {ann_token}: field 'rotation' = {q.tolist()}; "
+                              f"expected a unit quaternion [w, x, y, z]")
+    num_lidar_pts = int(_field(nusc, table, ann, "num_lidar_pts", _COUNT))
+    visibility = _field(nusc, table, ann, "visibility_token")
+    try:
+        velocity = np.asarray(nusc.box_velocity(ann_token), float)
+    except (KeyError, TypeError, ValueError, IndexError) as exc:
+        raise DataFormatError(f"{_table_path(nusc, table)}: {table} {ann_token}: cannot derive its velocity from "
+                              f"its prev/next annotations ({type(exc).__name__}: {exc}); expected 'prev'/'next' "
+                              f"tokens ('' for none) of annotations whose samples have timestamps") from None
+    return Box(token=ann_token, instance_token=inst_token, category=category, center=center, size=size,
+               yaw=float(Quaternion(q).yaw_pitch_roll[0]), velocity=velocity, num_lidar_pts=num_lidar_pts,
+               attribute=attrs[0] if attrs else "", visibility=str(visibility))
 
 
 def load_boxes(nusc: NuScenes, sample: dict) -> tuple[Box, ...]:
-    """The sample's annotations as global-frame `Box` es (velocity from the devkit's neighbouring annotations)."""
-    boxes = []
-    for ann_token in sample["anns"]:
-        ann = nusc.get("sample_annotation", ann_token)
-        inst = nusc.get("instance", ann["instance_token"])
-        category = nusc.get("category", inst["category_token"])["name"]
-        attrs = [nusc.get("attribute", t)["name"] for t in ann["attribute_tokens"]]
-        q = Quaternion(ann["rotation"])
-        boxes.append(Box(token=ann_token, instance_token=ann["instance_token"], category=category,
-                         center=np.asarray(ann["translation"], float), size=np.asarray(ann["size"], float),
-                         yaw=float(q.yaw_pitch_roll[0]), velocity=np.asarray(nusc.box_velocity(ann_token), float),
-                         num_lidar_pts=int(ann["num_lidar_pts"]), attribute=attrs[0] if attrs else "",
-                         visibility=str(ann["visibility_token"])))
-    return tuple(boxes)
+    """The sample's annotations as global-frame `Box` es (velocity from the devkit's neighbouring annotations).
+
+    Raises:
+        DataFormatError: a missing or malformed annotation record or field (naming the table, token and field).
+    """
+    return tuple(_box(nusc, ann_token, sample["token"]) for ann_token in sample["anns"])
+
+
+def _channel_token(nusc: NuScenes, sample: dict, channel: str) -> str:
+    if channel not in sample["data"]:
+        raise DataFormatError(
+            f"{_table_path(nusc, 'sample')}: sample {sample['token']}: no {channel} sample_data (no key-frame record "
+            f"of {_table_path(nusc, 'sample_data')} with this sample_token on a {channel} sensor; channels: "
+            f"{sorted(sample['data'])})")
+    return sample["data"][channel]
 
 
 def load_frame(nusc: NuScenes, sample_token: str, nsweeps: int = 1,
                cameras: tuple[str, ...] = CAMERA_CHANNELS) -> Frame:
-    """The `Frame` of one sample: LiDAR (``nsweeps`` aggregated), the requested cameras, the boxes."""
-    sample = nusc.get("sample", sample_token)
-    lidar = load_lidar(nusc, sample["data"]["LIDAR_TOP"], nsweeps)
-    views = {}
-    for ch in cameras:
-        if ch not in sample["data"]:
-            raise DataFormatError(f"sample {sample_token}: no {ch} sample_data (channels: {sorted(sample['data'])})")
-        views[ch] = load_camera(nusc, sample["data"][ch])
-    return Frame(token=sample_token, timestamp=sample["timestamp"] * 1e-6, lidar=lidar, cameras=views,
+    """The `Frame` of one sample: LiDAR (``nsweeps`` aggregated), the requested cameras, the boxes.
+
+    Raises:
+        DataFormatError: a bad sensor file, or a missing or malformed table record or field (a sample without a
+            LIDAR_TOP or a requested camera, a sample_data without ``filename``...), naming the table, the token
+            and the field.
+    """
+    sample = _get(nusc, "sample", sample_token, "load_frame")
+    lidar = load_lidar(nusc, _channel_token(nusc, sample, "LIDAR_TOP"), nsweeps)
+    views = {ch: load_camera(nusc, _channel_token(nusc, sample, ch)) for ch in cameras}
+    timestamp = _field(nusc, "sample", sample, "timestamp", _TIMESTAMP) * 1e-6
+    return Frame(token=sample_token, timestamp=timestamp, lidar=lidar, cameras=views,
                  boxes=load_boxes(nusc, sample), source="nuscenes")

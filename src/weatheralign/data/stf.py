@@ -43,7 +43,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from weatheralign.data.errors import DataFormatError, read_float32_records, require_file, resolve_inside
+from weatheralign.data.errors import (DataFormatError, read_float32_records, require_file, resolve_inside,
+                                      validate_scan)
 from weatheralign.data.frame import CameraView, Frame, LidarScan
 from weatheralign.data.kitti import image_size, intrinsics_and_offset
 from weatheralign.geometry import NonRigidTransformError, check_rigid, invert
@@ -57,6 +58,7 @@ LIDAR_TF_FRAME = "lidar_hdl64_s3_roof"
 CAMERA_TF_FRAME = "cam_stereo_left_optical"
 CAMERA_CHANNEL = "cam_stereo_left"
 HDL64_RINGS = 64
+STF_FIELDS = ("x", "y", "z", "intensity", "channel")
 
 STF_CALIBRATED_SIZE: tuple[int, int] = (1920, 1024)
 """(width, height) [px] of the stereo-left image that ``calib_cam_stereo_left.json`` describes."""
@@ -269,26 +271,15 @@ def read_stf_points(path: Path, num_rings: int = HDL64_RINGS, intensity_max: flo
             intensities are returned as stored, on ``0..intensity_max``.
 
     Raises:
-        DataFormatError: missing file, size not a multiple of 20 bytes, NaN/inf coordinates, intensity outside
-            ``0..intensity_max`` (e.g. a 0..255 scan declared as 0..1), or a channel that is not an integer in
-            ``0..num_rings-1``.
+        DataFormatError: missing file, size not a multiple of 20 bytes, an empty scan, NaN/inf coordinates or
+            intensities, intensity outside ``0..intensity_max`` (e.g. a 0..255 scan declared as 0..1), every intensity
+            <= 1.0 in a scan declared 0..255 (a 0..1 scan on the wrong scale), or a channel that is not an integer in
+            ``0..num_rings-1`` (`weatheralign.data.errors.validate_scan`).
     """
     if intensity_max not in (1.0, 255.0):
         raise DataFormatError(f"{path}: intensity_max = {intensity_max!r}; expected the declared scale 255 or 1.0")
     points = read_float32_records(Path(path), 5, "STF LiDAR scan")
-    intensity, channel = points[:, 3], points[:, 4]
-    bad = ~np.isfinite(intensity) | (intensity < 0) | (intensity > intensity_max)
-    if bad.any():
-        first = int(np.flatnonzero(bad)[0])
-        scale = "0..255" if intensity_max == 255.0 else "0..1"
-        raise DataFormatError(f"{path}: {int(bad.sum())} intensities outside {scale} (first at row {first}: "
-                              f"{float(intensity[first])}); expected intensity on {scale} (declared intensity_max = "
-                              f"{intensity_max:g})")
-    bad = ~np.isfinite(channel) | (channel < 0) | (channel > num_rings - 1) | (channel != np.round(channel))
-    if bad.any():
-        first = int(np.flatnonzero(bad)[0])
-        raise DataFormatError(f"{path}: {int(bad.sum())} invalid channels (first at row {first}: "
-                              f"{float(channel[first])}); expected integers 0..{num_rings - 1} in column 5")
+    validate_scan(points, path, intensity_max=float(intensity_max), num_rings=num_rings, fields=STF_FIELDS)
     return np.ascontiguousarray(points, dtype=np.float32)
 
 

@@ -52,6 +52,10 @@ DEFAULT_GAP_FACTOR = 1.5
 MIN_RING_POINTS = 16
 """Rings with fewer points are not reconstructed (their elevation and azimuth step are unreliable)."""
 
+MIN_AZIMUTH_STEP = 2 * math.pi / 10_000
+"""Floor of the reconstructed azimuth step [rad]: no spinning LiDAR fires more than ~4,500 times per turn, and
+near-duplicate points (a few µrad apart) must not turn one gap into a million beams."""
+
 
 @dataclass(frozen=True, eq=False)
 class Beams:
@@ -319,7 +323,7 @@ def reconstruct_no_return_beams(scan: LidarScan, *, gap_factor: float = DEFAULT_
     steps = steps[steps > 1e-7]
     if not len(steps):
         return _empty_no_return()
-    step = float(np.median(steps))
+    step = max(float(np.median(steps)), MIN_AZIMUTH_STEP)
     out_az, out_el, out_ring = [], [], []
     starts = np.concatenate([[0], np.cumsum(counts)])
     for k, ring_value in enumerate(ring_ids):

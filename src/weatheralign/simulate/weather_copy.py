@@ -10,8 +10,9 @@ per-point records re-indexed to the new points: weather points get ``instance`` 
 (`WeatherLabel`), ``particle_id`` (-1 if none), ``source_index`` (input row, -1 for clutter)). LiDAR sweeps are copied
 unchanged (identity labels) unless ``simulate.sweeps``, which runs every sweep through the same media (LiDAR only);
 the ``points_*`` metrics count keyframe scans, ``sweep_points_*`` the sweeps. Camera range maps are not copied.
-Every file is written atomically; a finished sample leaves a record in ``<out>/.progress/`` tagged with the run's
-fingerprint (`copy_fingerprint`: the stage's declared code and params, the scene's media, the sensors, the input
+Every file is written atomically; a finished sample leaves a record in ``<out parent>/.progress/<copy name>/``
+(beside the copy: a finished copy holds only data) with the size and SHA-256 of every file it wrote, tagged with the
+run's fingerprint (`copy_fingerprint`: the stage's declared code and params, the scene's media, the sensors, the input
 dataset's digest) plus the stamps of its input files, so a rerun skips it.
 """
 
@@ -33,7 +34,7 @@ from weatheralign.camera.depth import camera_range_map
 from weatheralign.data.frame import Frame
 from weatheralign.data.nuscenes import extras_relpath, load_frame, load_lidar
 from weatheralign.lidar.labels import WeatherLabel
-from weatheralign.provenance import file_stamps
+from weatheralign.provenance import file_digests, file_stamps, files_intact
 from weatheralign.sensors import SensorRig
 from weatheralign.simulate.media import SceneMedia
 from weatheralign.simulate.observe import COUNT_KEYS, FrameWeather, LidarWeather, ObserveOptions, observe, observe_lidar
@@ -92,21 +93,30 @@ def _outputs(nusc, sample_token: str, sweeps: bool = False) -> list[str]:
     return [rel for f in scans for rel in (f, extras_relpath(f), weather_relpath(f))] + cams
 
 
+def progress_dir(out_root: Path) -> Path:
+    """Where a copy's resume records live: ``<parent>/.progress/<copy name>/``, beside the copy, not in it (a
+    finished copy holds only data)."""
+    out_root = Path(out_root)
+    return out_root.parent / PROGRESS_DIR / out_root.name
+
+
 def _progress_file(out_root: Path, sample_token: str) -> Path:
-    return out_root / PROGRESS_DIR / f"{sample_token}.json"
+    return progress_dir(out_root) / f"{sample_token}.json"
 
 
 def load_finished(nusc, sample_token: str, out_root: Path, digest: str, sweeps: bool = False) -> dict | None:
-    """The record of a sample finished by an earlier run with the same config hash, if all its files exist."""
+    """The record of a sample finished by an earlier run with the same fingerprint, if every file it wrote is still
+    there with the size and SHA-256 recorded at write time (a truncated or replaced file is redone)."""
     marker = _progress_file(out_root, sample_token)
     if not marker.is_file():
         return None
-    record = json.loads(marker.read_text())
-    if record.get("config") != digest:
+    try:
+        record = json.loads(marker.read_text())
+    except json.JSONDecodeError:
         return None
-    if not all((out_root / rel).is_file() for rel in _outputs(nusc, sample_token, sweeps)):
+    if record.get("config") != digest or set(record.get("files", {})) != set(_outputs(nusc, sample_token, sweeps)):
         return None
-    return record
+    return record if files_intact(out_root, record["files"]) else None
 
 
 def _copy_file(src: Path, dst: Path) -> None:
@@ -197,7 +207,8 @@ def run_sample(nusc, src_root: Path, out_root: Path, job: SampleJob, sensors: Se
             write_scan(src_root, out_root, sd["filename"], lw, scan.timestamp)
             for k, v in lw.counts.items():
                 sweep_counts[k] += v
-    record = {"config": digest, "sample": token, "counts": fw.lidar.counts, "sweep_counts": sweep_counts,
+    record = {"config": digest, "sample": token, "files": file_digests(out_root, _outputs(nusc, token, sweeps)),
+              "counts": fw.lidar.counts, "sweep_counts": sweep_counts,
               "particles_rendered": fw.particles_rendered,
               "reprojection_px": [float(e) for e in fw.reprojection_px],
               "reprojection_channels": list(fw.reprojection_channels), "seconds": round(time.time() - t0, 3)}
@@ -211,6 +222,9 @@ def finalize_copy(nusc, src_root: Path, out_root: Path, version: str) -> int:
     (last, so the copy loads only once complete).
     Returns the number of files copied now."""
     src_root, out_root = Path(src_root), Path(out_root)
+    for leftover in out_root.rglob(".*.tmp"):  # temporaries of writes a killed run never renamed
+        if leftover.is_file():
+            leftover.unlink()
     copied = 0
     for sd in nusc.sample_data:
         rels = [sd["filename"]]

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 import shutil
 from collections import Counter
 from collections.abc import Sequence
@@ -16,14 +17,55 @@ from pathlib import Path
 
 from weatheralign import atomic
 from weatheralign.config import WorldConfig
+from weatheralign.data.errors import DataFormatError
 from weatheralign.data.nuscenes import extras_relpath
-from weatheralign.provenance import stage_code_digest
+from weatheralign.provenance import file_digests, files_intact, stage_code_digest
 from weatheralign.world.build import SampleResult, SceneSpec, render_sample, scene_specs
 from weatheralign.world.rig import T_EGO_LIDAR, make_cameras
 from weatheralign.world.tables import (RoadFootprint, SensorCalibration, build_tables, write_dataset_tables)
 
 PROGRESS_DIR = ".progress"
 SENSOR_DIRS = ("samples", "sweeps", "extras")
+OWNER_FILE = ".weatheralign-world"
+"""Marks a dataroot the world stage claimed (`claim_dataroot`)."""
+OWN_NAME = re.compile(r"^\.?wa-\d+-synthetic-log\d+__")
+"""The world's sensor files are ``wa-<seed>-synthetic-log<k>__<channel>__<timestamp>.<ext>`` (atomic temporaries
+``.<name>.<random>.tmp``): a file under ``samples/``, ``sweeps/`` or ``extras/`` named otherwise is not ours."""
+
+
+def _is_ours(dataroot: Path, path: Path, version: str) -> bool:
+    """Whether ``path`` (a file under ``dataroot``) is one the world stage writes."""
+    rel = path.relative_to(dataroot)
+    top = rel.parts[0]
+    if rel.as_posix() == OWNER_FILE or top == PROGRESS_DIR:
+        return True
+    if top in SENSOR_DIRS:
+        return bool(OWN_NAME.match(path.name))
+    if top == version:
+        return len(rel.parts) == 2 and path.suffix == ".json"
+    return top == "maps" and path.suffix == ".png"
+
+
+def claim_dataroot(dataroot: Path, version: str) -> None:
+    """Make sure the world stage may render into ``dataroot``: the folder must be absent, empty, or hold only files the
+    stage writes (`_is_ours`: its own sensor-file names, its tables and map, its progress records); it then carries
+    `OWNER_FILE`. Anything else (a real nuScenes dataroot, a user's files) is refused before a single file is written
+    or removed.
+
+    Raises:
+        DataFormatError: naming the folder and up to five files that are not the stage's.
+    """
+    root = Path(dataroot)
+    root.mkdir(parents=True, exist_ok=True)
+    foreign = sorted(str(p.relative_to(root)) for p in root.rglob("*") if p.is_file() and not _is_ours(root, p, version))
+    if foreign:
+        raise DataFormatError(
+            f"{root}: holds {len(foreign)} file(s) the world stage did not write ({', '.join(foreign[:5])}"
+            f"{', ...' if len(foreign) > 5 else ''}): refusing to render into it, nothing was changed. Move them "
+            f"away, point paths.data elsewhere, or read a dataset of your own with world.source: nuscenes")
+    if not (root / OWNER_FILE).is_file():
+        atomic.write_text(root / OWNER_FILE, "written by the weatheralign world stage: it replaces and removes the "
+                                             "files it wrote here (and no others)\n")
 
 
 def config_hash(cfg: WorldConfig) -> str:
@@ -42,18 +84,26 @@ def _progress_file(dataroot: Path, spec: SceneSpec, sample_index: int) -> Path:
 
 
 def load_finished(dataroot: Path, spec: SceneSpec, sample_index: int, cfg: WorldConfig) -> SampleResult | None:
-    """The records of a job finished by an earlier run with the same config, if its files are all present."""
+    """The records of a job finished by an earlier run with the same config, if every file it wrote is still there
+    with the size and SHA-256 recorded at write time."""
     marker = _progress_file(dataroot, spec, sample_index)
     if not marker.is_file():
         return None
-    data = json.loads(marker.read_text())
-    if data.get("config") != config_hash(cfg):
+    try:
+        data = json.loads(marker.read_text())
+    except json.JSONDecodeError:
+        return None
+    if data.get("config") != config_hash(cfg) or "files" not in data:
         return None
     result = SampleResult.from_json(data["result"])
-    for rec in result.lidar + result.cameras:
-        if not (dataroot / rec.filename).is_file() or not (dataroot / extras_relpath(rec.filename)).is_file():
-            return None
+    if set(data["files"]) != set(_job_files(result)) or not files_intact(dataroot, data["files"]):
+        return None  # a file is missing, truncated or replaced: render the job again
     return result
+
+
+def _job_files(result: SampleResult) -> list[str]:
+    """The files one job writes: every sensor file and its extras."""
+    return [rel for rec in result.lidar + result.cameras for rel in (rec.filename, extras_relpath(rec.filename))]
 
 
 def render_or_resume(spec: SceneSpec, sample_index: int, cfg: WorldConfig, dataroot: Path,
@@ -64,7 +114,8 @@ def render_or_resume(spec: SceneSpec, sample_index: int, cfg: WorldConfig, datar
         return done, False
     result = render_sample(spec, sample_index, cfg, dataroot, nthreads=nthreads)
     atomic.write_json(_progress_file(dataroot, spec, sample_index),
-                      {"config": config_hash(cfg), "result": result.to_json()})
+                      {"config": config_hash(cfg), "files": file_digests(dataroot, _job_files(result)),
+                       "result": result.to_json()})
     return result, True
 
 
@@ -91,7 +142,7 @@ def finalize(cfg: WorldConfig, dataroot: Path, results: Sequence[SampleResult]) 
     splits = {"weatheralign_train": [s.name for s in specs if s.split == "train"],
               "weatheralign_val": [s.name for s in specs if s.split == "val"]}
     write_dataset_tables(dataroot, cfg.version, tables, splits, roads)
-    _remove_unreferenced(dataroot, tables)
+    _remove_unreferenced(dataroot, tables, cfg.version)
     shutil.rmtree(dataroot / PROGRESS_DIR, ignore_errors=True)
     lidar = [sd for sd in tables["sample_data"] if sd["filename"].startswith(("samples/LIDAR", "sweeps/LIDAR"))]
     categories = {c["token"]: c["name"] for c in tables["category"]}
@@ -106,7 +157,8 @@ def finalize(cfg: WorldConfig, dataroot: Path, results: Sequence[SampleResult]) 
     }
 
 
-def _remove_unreferenced(dataroot: Path, tables: dict[str, list[dict]]) -> None:
+def _remove_unreferenced(dataroot: Path, tables: dict[str, list[dict]], version: str) -> None:
+    """Remove the stage's own sensor files (`_is_ours`) that no table references; files of any other name stay."""
     keep = set()
     for sd in tables["sample_data"]:
         keep.add((dataroot / sd["filename"]).resolve())
@@ -116,5 +168,5 @@ def _remove_unreferenced(dataroot: Path, tables: dict[str, list[dict]]) -> None:
         if not root.is_dir():
             continue
         for path in root.rglob("*"):
-            if path.is_file() and path.resolve() not in keep:
+            if path.is_file() and path.resolve() not in keep and _is_ours(dataroot, path, version):
                 path.unlink()
