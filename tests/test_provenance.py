@@ -47,3 +47,19 @@ def test_file_stamps_follow_size_mtime_and_presence(tmp_path: Path) -> None:
     assert file_stamps(tmp_path, ["samples/x.bin"]) not in (stamp, touched)
     f.unlink()
     assert file_stamps(tmp_path, ["samples/x.bin"]) not in (stamp, touched)
+
+
+def test_resume_record_verifies_what_it_keeps(tmp_path: Path) -> None:
+    from weatheralign.provenance import read_resume_record, write_resume_record
+
+    (tmp_path / "a.bin").write_bytes(b"abc" * 100)
+    rec = tmp_path / ".progress" / "job.json"
+    written = write_resume_record(rec, "fp1", tmp_path, ["a.bin"], {"result": 7})
+    assert read_resume_record(rec, "fp1", tmp_path) == written and written["result"] == 7
+    assert read_resume_record(rec, "fp2", tmp_path) is None  # another fingerprint
+    (tmp_path / "a.bin").write_bytes(b"abc" * 50)  # truncated
+    assert read_resume_record(rec, "fp1", tmp_path) is None
+    (tmp_path / "a.bin").write_bytes(b"abd" * 100)  # same size, other bytes
+    assert read_resume_record(rec, "fp1", tmp_path) is None
+    rec.write_text("{broken")
+    assert read_resume_record(rec, "fp1", tmp_path) is None

@@ -8,6 +8,7 @@ the output would: the parameters (each stage hashes its own config), the code th
 from __future__ import annotations
 
 import hashlib
+import json
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -139,3 +140,29 @@ def files_intact(root: Path, digests: dict[str, list]) -> bool:
         if hashlib.sha256(path.read_bytes()).hexdigest() != sha:
             return False
     return True
+
+
+def write_resume_record(path: Path, fingerprint: str, root: Path, relpaths: Iterable[str], payload: dict) -> dict:
+    """Write (atomically) the resume record of a finished job: its ``fingerprint``, the `file_digests` of the files
+    it wrote under ``root`` and its ``payload`` (merged in); returns the record."""
+    from weatheralign import atomic
+
+    record = {"config": fingerprint, "files": file_digests(root, relpaths), **payload}
+    atomic.write_json(path, record)
+    return record
+
+
+def read_resume_record(path: Path, fingerprint: str, root: Path) -> dict | None:
+    """The record at ``path`` (`write_resume_record`) if it carries ``fingerprint`` and every file it lists is still
+    under ``root`` with its recorded size and SHA-256; None otherwise (absent, unreadable, another fingerprint, a
+    missing, truncated or replaced file): the job is done again."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    try:
+        record = json.loads(path.read_text())
+    except json.JSONDecodeError:
+        return None
+    if not isinstance(record, dict) or record.get("config") != fingerprint or not isinstance(record.get("files"), dict):
+        return None
+    return record if files_intact(root, record["files"]) else None

@@ -65,7 +65,7 @@ class PulseSensor:
         }
         for name, (value, ok, allowed) in checks.items():
             if not (math.isfinite(value) and ok):
-                raise ValueError(f"PulseSensor.{name} = {value!r}; expected {allowed}")
+                raise ValueError(f"{type(self).__name__}.{name} = {value!r}; expected {allowed}")
 
     @property
     def beta_0(self) -> float:

@@ -58,10 +58,9 @@ from numba import njit
 from numpy.typing import ArrayLike, NDArray
 from scipy.integrate import cumulative_trapezoid
 
-F64 = NDArray[np.float64]
+from weatheralign.sensors import SPEED_OF_LIGHT, PulseSensor
 
-SPEED_OF_LIGHT = 299_792_458.0
-"""c [m/s]."""
+F64 = NDArray[np.float64]
 
 TABLE_STEP_M = 1e-3
 """Grid step [m] of the running integrals and of the unobstructed response."""
@@ -71,7 +70,7 @@ TARGET, FOG = 1, 2
 
 
 @dataclass(frozen=True)
-class ExactSensor:
+class ExactSensor(PulseSensor):
     """The reference LiDAR: pulse, bi-static overlap and detector limits.
 
     Attributes:
@@ -83,39 +82,19 @@ class ExactSensor:
         saturation: largest received peak the detector reports (0..255 scale).
     """
 
-    tau_h: float = 20e-9
-    r1: float = 0.9
-    r2: float = 1.0
     fov_ratio: float = 2.0
-    gamma: float = 1e-6
     min_range: float = 1.0
-    max_range: float = 120.0
-    saturation: float = 255.0
 
     def __post_init__(self) -> None:
+        super().__post_init__()  # pulse, overlap, Γ, saturation
         checks = {
-            "tau_h": (self.tau_h, 0.0 < self.tau_h < 1e-6, "0 < tau_h < 1e-6 s"),
-            "r1": (self.r1, 0.0 < self.r1, "r1 > 0 m"),
-            "r2": (self.r2, self.r1 < self.r2, f"r2 > r1 = {self.r1} m"),
             "fov_ratio": (self.fov_ratio, self.fov_ratio >= 1.0, "fov_ratio >= 1"),
-            "gamma": (self.gamma, self.gamma > 0.0, "gamma > 0"),
             "min_range": (self.min_range, self.min_range >= self.r2, f"min_range >= r2 = {self.r2} m"),
             "max_range": (self.max_range, self.max_range > self.min_range, "max_range > min_range"),
-            "saturation": (self.saturation, 0.0 < self.saturation <= 255.0, "0 < saturation <= 255"),
         }
         for name, (value, ok, allowed) in checks.items():
             if not (math.isfinite(value) and ok):
                 raise ValueError(f"ExactSensor.{name} = {value!r}; expected {allowed}")
-
-    @property
-    def beta_0(self) -> float:
-        """``Γ / π`` [1/sr]."""
-        return self.gamma / math.pi
-
-    @property
-    def pulse_length(self) -> float:
-        """``c τ_H`` [m]: a hard target at ``R_0`` echoes on ``[R_0, R_0 + c τ_H]``, peaking at the middle."""
-        return SPEED_OF_LIGHT * self.tau_h
 
     @property
     def listen_end(self) -> float:

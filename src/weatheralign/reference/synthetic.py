@@ -54,7 +54,7 @@ from weatheralign.data.rings import HDL64E_ELEVATIONS_DEG
 from weatheralign.data.stf import CAMERA_CALIB_FILE, CAMERA_TF_FRAME, LIDAR_TF_FRAME, TF_TREE_FILE
 from weatheralign.geometry import camera_rotation_from_yaw, make_transform
 from weatheralign.medium.fog import LN20, PAPER_BETA_FACTORS
-from weatheralign.provenance import stage_code_digest
+from weatheralign.provenance import read_resume_record, stage_code_digest, write_resume_record
 from weatheralign.reference.camera_exact import encode_with_noise, fog_radiance
 from weatheralign.reference.layout import CAMERA_FOLDER, LEVELS, LIDAR_FOLDER, RANGE_FOLDER, split_files_of
 from weatheralign.reference.lidar_exact import (FOG, TARGET, Detector, ExactSensor, exact_returns, fog_tables,
@@ -359,20 +359,10 @@ def _progress_file(data: Path, spec: FrameSpec) -> Path:
 
 
 def load_finished(spec: FrameSpec, cfg: ReferenceConfig, data: Path, digest: str | None = None) -> FrameRecord | None:
-    """The record of ``spec`` from an earlier run with the same parameters and code, if all its files exist."""
-    marker = _progress_file(data, spec)
-    if not marker.is_file():
-        return None
-    try:
-        record = json.loads(marker.read_text())
-    except json.JSONDecodeError:
-        return None
-    if record.get("config") != (digest or config_hash(cfg)):
-        return None
-    root = synthetic_root(data)
-    if not all((root / rel).is_file() for rel in frame_files(spec)):
-        return None
-    return FrameRecord(**record["record"])
+    """The record of ``spec`` from an earlier run with the same parameters and code, if every file it wrote is still
+    there with the size and SHA-256 recorded at write time."""
+    record = read_resume_record(_progress_file(data, spec), digest or config_hash(cfg), synthetic_root(data))
+    return None if record is None else FrameRecord(**record["record"])
 
 
 def render_or_resume(spec: FrameSpec, cfg: ReferenceConfig, data: Path, nthreads: int = 1) -> tuple[FrameRecord, bool]:
@@ -385,7 +375,8 @@ def render_or_resume(spec: FrameSpec, cfg: ReferenceConfig, data: Path, nthreads
     frame = render_frame(spec, cfg, fog, nthreads=nthreads)
     write_frame(synthetic_root(data), spec, frame)
     record = FrameRecord(spec.level, spec.index, spec.sample_id, frame.stats)
-    atomic.write_json(_progress_file(data, spec), {"config": digest, "record": asdict(record)})
+    write_resume_record(_progress_file(data, spec), digest, synthetic_root(data), frame_files(spec),
+                        {"record": asdict(record)})
     return record, True
 
 

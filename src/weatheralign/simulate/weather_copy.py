@@ -34,7 +34,7 @@ from weatheralign.camera.depth import camera_range_map
 from weatheralign.data.frame import Frame
 from weatheralign.data.nuscenes import extras_relpath, load_frame, load_lidar
 from weatheralign.lidar.labels import WeatherLabel
-from weatheralign.provenance import file_digests, file_stamps, files_intact
+from weatheralign.provenance import file_stamps, read_resume_record, write_resume_record
 from weatheralign.sensors import SensorRig
 from weatheralign.simulate.media import SceneMedia
 from weatheralign.simulate.observe import COUNT_KEYS, FrameWeather, LidarWeather, ObserveOptions, observe, observe_lidar
@@ -102,21 +102,6 @@ def progress_dir(out_root: Path) -> Path:
 
 def _progress_file(out_root: Path, sample_token: str) -> Path:
     return progress_dir(out_root) / f"{sample_token}.json"
-
-
-def load_finished(nusc, sample_token: str, out_root: Path, digest: str, sweeps: bool = False) -> dict | None:
-    """The record of a sample finished by an earlier run with the same fingerprint, if every file it wrote is still
-    there with the size and SHA-256 recorded at write time (a truncated or replaced file is redone)."""
-    marker = _progress_file(out_root, sample_token)
-    if not marker.is_file():
-        return None
-    try:
-        record = json.loads(marker.read_text())
-    except json.JSONDecodeError:
-        return None
-    if record.get("config") != digest or set(record.get("files", {})) != set(_outputs(nusc, sample_token, sweeps)):
-        return None
-    return record if files_intact(out_root, record["files"]) else None
 
 
 def _copy_file(src: Path, dst: Path) -> None:
@@ -187,7 +172,7 @@ def run_sample(nusc, src_root: Path, out_root: Path, job: SampleJob, sensors: Se
     token = job.sample_token
     digest = copy_fingerprint(run_digest, job.media, sensors, job.airlight) + file_stamps(
         src_root, _outputs(nusc, token, sweeps))
-    done = load_finished(nusc, token, out_root, digest, sweeps)
+    done = read_resume_record(_progress_file(out_root, token), digest, out_root)
     if done is not None:
         return done, False
     t0 = time.time()
@@ -207,12 +192,10 @@ def run_sample(nusc, src_root: Path, out_root: Path, job: SampleJob, sensors: Se
             write_scan(src_root, out_root, sd["filename"], lw, scan.timestamp)
             for k, v in lw.counts.items():
                 sweep_counts[k] += v
-    record = {"config": digest, "sample": token, "files": file_digests(out_root, _outputs(nusc, token, sweeps)),
-              "counts": fw.lidar.counts, "sweep_counts": sweep_counts,
-              "particles_rendered": fw.particles_rendered,
-              "reprojection_px": [float(e) for e in fw.reprojection_px],
-              "reprojection_channels": list(fw.reprojection_channels), "seconds": round(time.time() - t0, 3)}
-    atomic.write_json(_progress_file(out_root, token), record)
+    record = write_resume_record(_progress_file(out_root, token), digest, out_root, _outputs(nusc, token, sweeps), {
+        "sample": token, "counts": fw.lidar.counts, "sweep_counts": sweep_counts,
+        "particles_rendered": fw.particles_rendered, "reprojection_px": [float(e) for e in fw.reprojection_px],
+        "reprojection_channels": list(fw.reprojection_channels), "seconds": round(time.time() - t0, 3)})
     return record, True
 
 

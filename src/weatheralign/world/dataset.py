@@ -8,7 +8,6 @@ tables no longer reference (e.g. after a config change), then the progress recor
 from __future__ import annotations
 
 import hashlib
-import json
 import re
 import shutil
 from collections import Counter
@@ -19,7 +18,7 @@ from weatheralign import atomic
 from weatheralign.config import WorldConfig
 from weatheralign.data.errors import DataFormatError
 from weatheralign.data.nuscenes import extras_relpath
-from weatheralign.provenance import file_digests, files_intact, stage_code_digest
+from weatheralign.provenance import read_resume_record, stage_code_digest, write_resume_record
 from weatheralign.world.build import SampleResult, SceneSpec, render_sample, scene_specs
 from weatheralign.world.rig import T_EGO_LIDAR, make_cameras
 from weatheralign.world.tables import (RoadFootprint, SensorCalibration, build_tables, write_dataset_tables)
@@ -86,19 +85,8 @@ def _progress_file(dataroot: Path, spec: SceneSpec, sample_index: int) -> Path:
 def load_finished(dataroot: Path, spec: SceneSpec, sample_index: int, cfg: WorldConfig) -> SampleResult | None:
     """The records of a job finished by an earlier run with the same config, if every file it wrote is still there
     with the size and SHA-256 recorded at write time."""
-    marker = _progress_file(dataroot, spec, sample_index)
-    if not marker.is_file():
-        return None
-    try:
-        data = json.loads(marker.read_text())
-    except json.JSONDecodeError:
-        return None
-    if data.get("config") != config_hash(cfg) or "files" not in data:
-        return None
-    result = SampleResult.from_json(data["result"])
-    if set(data["files"]) != set(_job_files(result)) or not files_intact(dataroot, data["files"]):
-        return None  # a file is missing, truncated or replaced: render the job again
-    return result
+    record = read_resume_record(_progress_file(dataroot, spec, sample_index), config_hash(cfg), dataroot)
+    return None if record is None else SampleResult.from_json(record["result"])
 
 
 def _job_files(result: SampleResult) -> list[str]:
@@ -113,9 +101,8 @@ def render_or_resume(spec: SceneSpec, sample_index: int, cfg: WorldConfig, datar
     if done is not None:
         return done, False
     result = render_sample(spec, sample_index, cfg, dataroot, nthreads=nthreads)
-    atomic.write_json(_progress_file(dataroot, spec, sample_index),
-                      {"config": config_hash(cfg), "files": file_digests(dataroot, _job_files(result)),
-                       "result": result.to_json()})
+    write_resume_record(_progress_file(dataroot, spec, sample_index), config_hash(cfg), dataroot, _job_files(result),
+                        {"result": result.to_json()})
     return result, True
 
 
