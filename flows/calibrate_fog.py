@@ -153,7 +153,7 @@ def calibrate_fog_flow(params: Params) -> dict:
 
 def main(argv: list[str] | None = None) -> dict:
     params = parse_stage_args("calibrate_fog", argv)
-    return run_stage(calibrate_fog_flow, params)
+    return run_stage(calibrate_fog_flow, params, runner="threads")  # cells share the frames in memory
 
 
 if __name__ == "__main__":

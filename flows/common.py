@@ -8,7 +8,7 @@ import logging
 import os
 import sys
 from collections.abc import Callable, Iterable, Sequence
-from typing import Any
+from typing import Any, Literal
 
 from prefect.futures import PrefectFuture, as_completed
 from prefect.task_runners import TaskRunner, ThreadPoolTaskRunner
@@ -58,9 +58,11 @@ def _quiet_console() -> None:
             handler.addFilter(_NoTracebackForExpectedErrors())
 
 
-def run_stage(flow: Any, params: Params, runner: bool = True) -> Any:
+def run_stage(flow: Any, params: Params, runner: Literal["processes", "threads"] | None = "processes") -> Any:
     """Run a stage's flow: SIGTERM / SIGHUP end it cleanly, and its Prefect API is ``PREFECT_API_URL`` or a server
-    of its own that cannot outlive it (`flows.api_server`); ``runner``: with the stage's task runner (`task_runner`).
+    of its own that cannot outlive it (`flows.api_server`); ``runner``: its tasks on Dask worker processes
+    (`task_runner`), on a thread pool of ``run.max_workers`` (tasks that share large in-memory inputs and release
+    the interpreter lock), or None for the flow's default.
 
     A `DataFormatError` or `ConfigError` ends the stage with ``error: <message>`` on stderr and exit code 2, without
     Prefect's traceback on the console (set ``WEATHERALIGN_VERBOSE=1`` to see it; the Prefect UI has it anyway).
@@ -77,7 +79,11 @@ def run_stage(flow: Any, params: Params, runner: bool = True) -> Any:
         with prefect_api() as url:
             settings = temporary_settings(updates={PREFECT_API_URL: url}) if url else contextlib.nullcontext()
             with settings:
-                return (flow.with_options(task_runner=task_runner(params)) if runner else flow)(params)
+                if runner == "processes":
+                    flow = flow.with_options(task_runner=task_runner(params))
+                elif runner == "threads":
+                    flow = flow.with_options(task_runner=ThreadPoolTaskRunner(max_workers=params.run.max_workers))
+                return flow(params)
     except EXPECTED_ERRORS as err:
         if verbose:
             raise
@@ -86,12 +92,21 @@ def run_stage(flow: Any, params: Params, runner: bool = True) -> Any:
 
 
 def task_runner(params: Params) -> TaskRunner:
-    """A bounded thread pool on this machine, or a Dask cluster when ``run.dask_address`` is set."""
-    if params.run.dask_address:
-        from prefect_dask import DaskTaskRunner
+    """Dask: the scheduler at ``run.dask_address`` when set, else a `distributed.LocalCluster` of
+    ``run.max_workers`` worker processes with one thread each (per-sample work is CPU-bound Python and numpy: threads
+    of one process would share its interpreter lock), started with the flow and closed with it."""
+    from prefect_dask import DaskTaskRunner
 
+    if params.run.dask_address:
         return DaskTaskRunner(address=params.run.dask_address)
-    return ThreadPoolTaskRunner(max_workers=params.run.max_workers)
+    return DaskTaskRunner(cluster_class="distributed.LocalCluster", cluster_kwargs=local_cluster_kwargs(params))
+
+
+def local_cluster_kwargs(params: Params) -> dict[str, Any]:
+    """`distributed.LocalCluster` arguments: ``run.max_workers`` processes x 1 thread, no dashboard, memory limit
+    shared out of the machine's."""
+    return {"n_workers": params.run.max_workers, "threads_per_worker": 1, "processes": True,
+            "dashboard_address": None, "memory_limit": "auto"}
 
 
 def threads_per_task(params: Params) -> int:
@@ -100,16 +115,19 @@ def threads_per_task(params: Params) -> int:
 
 
 def gather(futures: Iterable[PrefectFuture], desc: str, show: bool, on_result: Callable[[Any], None] | None = None,
-           ) -> list[Any]:
-    """Results of mapped task futures in submission order, with a progress bar as they complete."""
+           weights: Sequence[int] | None = None) -> list[Any]:
+    """Results of mapped task futures in submission order, with a progress bar as they complete (advancing by each
+    task's ``weights`` entry, e.g. the samples of a chunk; 1 per task by default)."""
     futures = list(futures)
     order = {id(f): i for i, f in enumerate(futures)}
     results: list[Any] = [None] * len(futures)
-    with tqdm(total=len(futures), desc=desc, disable=not show, unit="task") as bar:
+    steps = list(weights) if weights is not None else [1] * len(futures)
+    with tqdm(total=sum(steps), desc=desc, disable=not show, unit="sample" if weights is not None else "task") as bar:
         for fut in as_completed(futures):
             value = fut.result()
-            results[order[id(fut)]] = value
+            i = order[id(fut)]
+            results[i] = value
             if on_result is not None:
                 on_result(value)
-            bar.update(1)
+            bar.update(steps[i])
     return results

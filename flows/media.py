@@ -44,7 +44,7 @@ def media_flow(params: Params) -> dict:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    return run_stage(media_flow, parse_stage_args("media", argv), runner=False)
+    return run_stage(media_flow, parse_stage_args("media", argv), runner=None)
 
 
 if __name__ == "__main__":

@@ -2,8 +2,9 @@
 
 ``python -m flows.simulate --set simulate.condition=snow --set simulate.aligned=true`` reads the world's manifest
 (dataroot, sensors, content digest) and the condition's media (``<paths.data>/media/<condition>.json``, the media
-stage); plans the jobs (`weatheralign.simulate.plan`), maps one task per sample (`weatheralign.simulate.weather_copy.
-run_sample` around the pure core `weatheralign.simulate.observe`), completes the copy and tracks. Writes
+stage); plans the jobs (`weatheralign.simulate.plan`), maps one task per chunk of ``run.samples_per_task`` samples of a scene
+(`weatheralign.simulate.weather_copy.run_chunk` around the pure core `weatheralign.simulate.observe`) onto the Dask
+workers, completes the copy with hard links and tracks. Writes
 ``<paths.data>/simulate/<condition>-<aligned|unaligned>/`` (a complete nuScenes dataroot) and
 ``reports/simulate/<condition>-<aligned|unaligned>/metrics.json`` plus a side-by-side figure (clean vs weather: LiDAR
 BEV coloured by label, CAM_FRONT), also logged to an MLflow child run.
@@ -22,7 +23,7 @@ from PIL import Image, ImageDraw
 from prefect import flow
 
 from flows.common import gather, parse_stage_args, run_stage, threads_per_task
-from tasks.simulate import simulate_sample_task
+from tasks.simulate import simulate_chunk_task
 from tasks.tracking import StageTracker
 from weatheralign.conditions import condition_named, variant_name
 from weatheralign.config import Params
@@ -31,8 +32,9 @@ from weatheralign.manifest import display_path, manifest_path, read_manifest
 from weatheralign.provenance import stage_fingerprint
 from weatheralign.simulate.media import ConditionMedia, media_path, read_media
 from weatheralign.simulate.observe import ObserveOptions
-from weatheralign.simulate.plan import plan_jobs
-from weatheralign.simulate.weather_copy import finalize_copy, summarise, weather_relpath
+from weatheralign.simulate.plan import chunk_jobs, plan_jobs
+from weatheralign.simulate.weather_copy import (DatasetRef, copy_outputs, finalize_copy, read_weather_record,
+                                                summarise)
 from weatheralign.viz import bev_figure
 
 
@@ -49,7 +51,7 @@ def side_by_side(src_root: Path, out_root: Path, version: str, sample_token: str
         colour = None
         if root == out_root:
             lidar_file = nusc.get("sample_data", nusc.get("sample", sample_token)["data"]["LIDAR_TOP"])["filename"]
-            colour = np.load(root / weather_relpath(lidar_file))["label"].astype(float)
+            colour = read_weather_record(root, lidar_file, len(frame.lidar.points))["label"].astype(float)
         fig = bev_figure(frame, title=f"{name}: LIDAR_TOP" + (" (label: 0 unchanged, 1 attenuated, 2 scattered)"
                                                                if colour is not None else ""),
                          point_colour=colour, cmap="plasma")
@@ -95,17 +97,22 @@ def simulate_flow(params: Params) -> dict:
         jobs = plan_jobs(nusc, media, cfg.aligned, cfg.rain_appearance, cfg.max_samples)
         options = ObserveOptions(cfg.near_clip_m, cfg.refine_transmission, threads_per_task(params))
         run_digest = stage_fingerprint("simulate", params, world.content_digest)
+        dataset = DatasetRef(str(src_root), world.version, world.content_digest)
+        chunks = chunk_jobs(jobs, params.run.samples_per_task)
         t0 = time.time()
-        futures = [simulate_sample_task.submit(nusc, src_root, out_root, job, world.sensors, options, run_digest,
-                                               cfg.jpeg_quality, cfg.sweeps) for job in jobs]
-        outcomes = gather(futures, f"simulate {name}: samples", params.run.show_progress)
+        futures = [simulate_chunk_task.submit(dataset, out_root, chunk, world.sensors, options, run_digest,
+                                              cfg.jpeg_quality, cfg.sweeps) for chunk in chunks]
+        outcomes = [o for chunk in gather(futures, f"simulate {name}: samples", params.run.show_progress,
+                                          weights=[len(c) for c in chunks]) for o in chunk]
         elapsed = time.time() - t0
-        finalize_copy(nusc, src_root, out_root, world.version)
+        completed = finalize_copy(nusc, src_root, out_root, world.version,
+                                  copy_outputs(nusc, [j.sample_token for j in jobs], cfg.sweeps))
         records = [r for r, _ in outcomes]
         done_now = sum(1 for _, now in outcomes if now)
         metrics = {"dataroot": display_path(out_root), "source": display_path(src_root), "condition": cfg.condition,
                    "aligned": cfg.aligned, **fog_metrics(media, cfg.aligned), **summarise(records),
-                   "samples_simulated_this_run": done_now,
+                   "samples_simulated_this_run": done_now, "files_linked_this_run": completed["linked"],
+                   "files_copied_this_run": completed["copied"],
                    "wall_seconds_per_sample_this_run": round(elapsed / done_now, 3) if done_now else None}
         if records:
             fig_path = tracker.reports / "side_by_side.png"

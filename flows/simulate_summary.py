@@ -94,7 +94,7 @@ def simulate_summary_flow(params: Params) -> dict:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    return run_stage(simulate_summary_flow, parse_stage_args("simulate_summary", argv), runner=False)
+    return run_stage(simulate_summary_flow, parse_stage_args("simulate_summary", argv), runner=None)
 
 
 if __name__ == "__main__":

@@ -18,7 +18,7 @@ from prefect import flow
 
 from flows.common import gather, parse_stage_args, run_stage, threads_per_task
 from tasks.tracking import StageTracker
-from tasks.world import render_sample_task
+from tasks.world import render_samples_task
 from weatheralign.config import Params
 from weatheralign.data.check import check_dataset
 from weatheralign.data.nuscenes import load_frame, load_lidar, open_nuscenes
@@ -39,8 +39,11 @@ def _render_synthetic(params: Params) -> tuple[Path, dict]:
     jobs = sample_jobs(cfg)
     t0 = time.time()
     nthreads = threads_per_task(params)
-    futures = [render_sample_task.submit(spec, k, cfg, dataroot, nthreads) for spec, k in jobs]
-    outcomes = gather(futures, "world: rendering samples", params.run.show_progress)
+    size = params.run.samples_per_task
+    chunks = [jobs[i:i + size] for i in range(0, len(jobs), size)]
+    futures = [render_samples_task.submit(chunk, cfg, dataroot, nthreads) for chunk in chunks]
+    outcomes = [o for chunk in gather(futures, "world: rendering samples", params.run.show_progress,
+                                      weights=[len(c) for c in chunks]) for o in chunk]
     elapsed = time.time() - t0
     rendered = sum(1 for _, now in outcomes if now)
     summary = finalize(cfg, dataroot, [r for r, _ in outcomes])

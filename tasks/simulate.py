@@ -1,4 +1,4 @@
-"""Per-sample task of the `simulate` stage."""
+"""Per-chunk task of the `simulate` stage."""
 
 from __future__ import annotations
 
@@ -10,11 +10,13 @@ from prefect.cache_policies import NO_CACHE
 from weatheralign.sensors import SensorRig
 from weatheralign.simulate.observe import ObserveOptions
 from weatheralign.simulate.plan import SampleJob
-from weatheralign.simulate.weather_copy import run_sample
+from weatheralign.simulate.weather_copy import DatasetRef, run_chunk
 
 
-@task(name="simulate-sample", cache_policy=NO_CACHE, retries=0)
-def simulate_sample_task(nusc, src_root: Path, out_root: Path, job: SampleJob, sensors: SensorRig,
-                         options: ObserveOptions, run_digest: str, jpeg_quality: int, sweeps: bool) -> tuple[dict, bool]:
-    """Simulate one keyframe sample (LiDAR + six cameras) of the weather copy, or pick up a finished one."""
-    return run_sample(nusc, src_root, out_root, job, sensors, options, run_digest, jpeg_quality, sweeps)
+@task(name="simulate-samples", cache_policy=NO_CACHE, retries=0)
+def simulate_chunk_task(dataset: DatasetRef, out_root: Path, jobs: list[SampleJob], sensors: SensorRig,
+                        options: ObserveOptions, run_digest: str, jpeg_quality: int, sweeps: int,
+                        ) -> list[tuple[dict, bool]]:
+    """Simulate consecutive keyframe samples of one scene (LiDAR keyframe and sweeps, six cameras) of the weather
+    copy, or pick up finished ones; the worker process opens the dataset itself (nothing large is shipped)."""
+    return run_chunk(dataset, out_root, jobs, sensors, options, run_digest, jpeg_quality, sweeps)

@@ -1,4 +1,4 @@
-"""Per-sample task of the `world` stage."""
+"""Per-chunk task of the `world` stage."""
 
 from __future__ import annotations
 
@@ -12,8 +12,9 @@ from weatheralign.world.build import SampleResult, SceneSpec
 from weatheralign.world.dataset import render_or_resume
 
 
-@task(name="render-sample", cache_policy=NO_CACHE, retries=0)
-def render_sample_task(spec: SceneSpec, sample_index: int, cfg: WorldConfig, dataroot: Path,
-                       nthreads: int) -> tuple[SampleResult, bool]:
-    """Render (or pick up from an interrupted run) one keyframe sample with its sweeps and six cameras."""
-    return render_or_resume(spec, sample_index, cfg, dataroot, nthreads=nthreads)
+@task(name="render-samples", cache_policy=NO_CACHE, retries=0)
+def render_samples_task(jobs: list[tuple[SceneSpec, int]], cfg: WorldConfig, dataroot: Path,
+                        nthreads: int) -> list[tuple[SampleResult, bool]]:
+    """Render (or pick up from an interrupted run) consecutive keyframe samples, each with its sweeps and six
+    cameras; one (result, rendered_now) per job."""
+    return [render_or_resume(spec, k, cfg, dataroot, nthreads=nthreads) for spec, k in jobs]

@@ -364,8 +364,13 @@ def test_synthetic_reference_layout_is_readable(tiny_reference):
     assert all(s.with_range == 2 for s in summary.values())
     means = [summary[level].mean_intensity_255 for level in ("clear", "light", "dense")]
     assert means[0] > means[1] > means[2]
-    assert summary["dense"].near_fraction > summary["clear"].near_fraction
-    frame = ds.load_frame(ids["clear"][0])
+    # dense fog loses the far returns (a 16 % drop here; the near-return fraction depends on what passes the ego in two
+    # frames of different scenes and is no test of fog)
+    assert summary["dense"].points_per_scan < 0.95 * summary["clear"].points_per_scan
+    assert all(0.0 <= s.near_fraction <= 1.0 for s in summary.values())
+    # the clear frame that sees sky (a truck may fill the other's view)
+    token = max(ids["clear"], key=lambda t: int(np.isinf(ds.load_range(t)).sum()))
+    frame = ds.load_frame(token)
     pts = frame.lidar.points
     assert frame.lidar.intensity_max == 255.0 and pts[:, 3].min() >= 1.0 and np.all(pts[:, 3] == np.round(pts[:, 3]))
     # STF channel order: channel 0 is the lowest laser

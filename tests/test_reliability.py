@@ -188,7 +188,7 @@ def test_nuscenes_bad_extras_time_offsets(world_copy):
     with pytest.raises(DataFormatError, match=r"1 NaN/inf time offsets \(field 'time_offset', first at row 3: nan\)"):
         load_frame(open_nuscenes(root, version), sample_token)
     extras.write_bytes(extras.read_bytes()[:200])
-    with pytest.raises(DataFormatError, match=r"LIDAR_TOP/.*\.npy: not a valid per-point extras array"):
+    with pytest.raises(DataFormatError, match=r"LIDAR_TOP/.*\.npy: not a valid per-point records file"):
         load_frame(open_nuscenes(root, version), sample_token)
 
 

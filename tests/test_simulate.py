@@ -18,7 +18,7 @@ import pytest
 from weatheralign.conditions import CONDITIONS
 from weatheralign.config import params_from_dict
 from weatheralign.data.errors import DataFormatError
-from weatheralign.data.nuscenes import extras_relpath, load_frame, open_nuscenes
+from weatheralign.data.nuscenes import compressed_extras_relpath, load_frame, open_nuscenes, read_point_extras
 from weatheralign.lidar import simulate_fog
 from weatheralign.manifest import DatasetManifest, dataset_digest, manifest_path, write_manifest
 from weatheralign.medium.conditions import field_spec
@@ -27,7 +27,8 @@ from weatheralign.simulate.media import (ConditionMedia, SceneMedia, calibrated_
                                          resolve_media)
 from weatheralign.simulate.observe import ObserveOptions, observe, observe_lidar
 from weatheralign.simulate.plan import SampleJob, plan_jobs, scene_airlight
-from weatheralign.simulate.weather_copy import finalize_copy, run_sample, summarise, sweep_records, weather_relpath
+from weatheralign.simulate.weather_copy import (copy_outputs, finalize_copy, read_weather_record, run_sample, summarise,
+                                                smallest_int_dtype, sweep_records, weather_relpath)
 
 from .conftest import REPO, write_params_file
 
@@ -85,7 +86,7 @@ def snow_copy(world, tmp_path_factory):
     job = _job(world, "snow", True)
     record, now = run_sample(nusc, tw.dataroot, out, job, sensors, OPTIONS, RUN)
     assert now
-    finalize_copy(nusc, tw.dataroot, out, tw.params.world.version)
+    finalize_copy(nusc, tw.dataroot, out, tw.params.world.version, copy_outputs(nusc, [frame.token], 0))
     return out, before, record, job
 
 
@@ -95,18 +96,29 @@ def test_weather_copy_loads_with_identical_tables_and_file_set(world, snow_copy)
     version = tw.params.world.version
     for table in sorted((tw.dataroot / version).iterdir()):
         assert (out / version / table.name).read_bytes() == table.read_bytes(), table.name
-    assert _files(out, ("extras/weather", ".progress")) == _files(tw.dataroot, ("extras/range",))
+    lidar_file = copy_lidar = nusc.get("sample_data", nusc.get("sample", frame.token)["data"]["LIDAR_TOP"])["filename"]
+    written = _files(out, ("extras/weather", ".progress"))
+    # the same files as the input (the weather scan's per-point records compressed), range maps left out
+    assert {f.replace(compressed_extras_relpath(copy_lidar), compressed_extras_relpath(copy_lidar)[:-1] + "y")
+            for f in written} == _files(tw.dataroot, ("extras/range",))
+    weather_files = copy_outputs(nusc, [frame.token], 0)
+    for rel in written - weather_files:  # everything the weather did not touch is a hard link to the input
+        assert (out / rel).samefile(tw.dataroot / rel), rel
+    for rel in weather_files:
+        assert (out / rel).stat().st_nlink == 1, rel
     copy = open_nuscenes(out, version)
     assert len(copy.sample) == len(nusc.sample) and len(copy.sample_data) == len(nusc.sample_data)
     for sample in copy.sample:
         f = load_frame(copy, sample["token"])
         lidar_file = copy.get("sample_data", sample["data"]["LIDAR_TOP"])["filename"]
-        rec = np.load(out / weather_relpath(lidar_file))
-        assert len(rec) == len(f.lidar.points) == len(np.load(out / extras_relpath(lidar_file)))
+        rec = read_weather_record(out, lidar_file, len(f.lidar.points))
+        assert len(rec) == len(f.lidar.points) == len(read_point_extras(out, lidar_file))
     # the simulated sample changed: snow scattered points (with particle ids), the images differ
     wf = load_frame(copy, frame.token)
-    lidar_file = copy.get("sample_data", copy.get("sample", frame.token)["data"]["LIDAR_TOP"])["filename"]
-    rec = np.load(out / weather_relpath(lidar_file))
+    rec = read_weather_record(out, copy_lidar, len(wf.lidar.points))
+    # labels, ids and rows in the smallest exact dtypes
+    assert rec.dtype["label"] == np.uint8 and rec.dtype["source_index"] == np.dtype(np.int32)
+    assert rec.dtype["particle_id"] == smallest_int_dtype(rec["particle_id"]).newbyteorder("=")
     assert (rec["label"] == 2).sum() > 100 and np.all(rec["particle_id"][rec["label"] == 2] >= 0)
     assert np.all(rec["particle_id"][rec["label"] != 2] == -1)
     assert not np.array_equal(wf.lidar.points, frame.lidar.points)
@@ -179,7 +191,7 @@ def test_resume_skips_finished_samples(world, snow_copy):
     # leftover temporaries of a killed run are removed when the copy is completed
     leftover = out / "samples" / "CAM_FRONT" / ".x.jpg.abc123.tmp"
     leftover.write_bytes(b"x")
-    finalize_copy(nusc, tw.dataroot, out, tw.params.world.version)
+    finalize_copy(nusc, tw.dataroot, out, tw.params.world.version, copy_outputs(nusc, [frame.token], 0))
     assert not leftover.exists()
     # another sensor (a different exposure), another run fingerprint: not a finished sample
     other = SensorRig(sensors.lidar, {k: replace(v, exposure_s=0.004) for k, v in sensors.cameras.items()})
@@ -288,20 +300,33 @@ def test_fog_levels_from_the_calibration_file(tmp_path):
         calibrated_fog_levels(path)
 
 
-def test_sweeps_through_the_same_medium_when_asked(world, tmp_path):
+def test_the_nearest_sweeps_through_the_same_medium(world, tmp_path):
+    """``sweeps=1``: the sweep nearest before the keyframe gets the weather (its own records), the older one stays
+    clear (a hard link after completion); asking for fewer sweeps later turns a stale weather sweep back into a link."""
     tw, nusc, _, frame, airlight, sensors, _ = world
     job = _job(world, "fog_dense", True)
-    record, now = run_sample(nusc, tw.dataroot, tmp_path, job, sensors, OPTIONS, RUN, sweeps=True)
     sweeps = sweep_records(nusc, frame.token)
-    assert now and len(sweeps) == tw.params.world.sweeps_per_sample
-    for sd in sweeps:
-        new = np.fromfile(tmp_path / sd["filename"], dtype="<f4").reshape(-1, 5)
-        old = np.fromfile(tw.dataroot / sd["filename"], dtype="<f4").reshape(-1, 5)
-        assert not np.array_equal(new, old)
-        assert len(np.load(tmp_path / weather_relpath(sd["filename"]))) == len(new)
-        assert len(np.load(tmp_path / extras_relpath(sd["filename"]))) == len(new)
+    assert len(sweeps) == tw.params.world.sweeps_per_sample == 2
+    record, now = run_sample(nusc, tw.dataroot, tmp_path, job, sensors, OPTIONS, RUN, sweeps=1)
+    assert now and record["sweeps_simulated"] == 1
+    new = np.fromfile(tmp_path / sweeps[-1]["filename"], dtype="<f4").reshape(-1, 5)
+    old = np.fromfile(tw.dataroot / sweeps[-1]["filename"], dtype="<f4").reshape(-1, 5)
+    assert not np.array_equal(new, old)
+    assert len(read_weather_record(tmp_path, sweeps[-1]["filename"], len(new))) == len(new)
+    assert len(read_point_extras(tmp_path, sweeps[-1]["filename"])) == len(new)
+    assert not (tmp_path / sweeps[0]["filename"]).exists()
     assert record["sweep_counts"]["LOST"] + record["sweep_counts"]["SCATTERED"] > 0
-    assert run_sample(nusc, tw.dataroot, tmp_path, job, sensors, OPTIONS, RUN, sweeps=True)[1] is False
+    assert run_sample(nusc, tw.dataroot, tmp_path, job, sensors, OPTIONS, RUN, sweeps=1)[1] is False
+    version = tw.params.world.version
+    stray = tmp_path / "samples" / "LIDAR_TOP" / "an-earlier-input__LIDAR_TOP__1.pcd.bin"  # no table lists it
+    stray.write_bytes(b"\0" * 20)
+    finalize_copy(nusc, tw.dataroot, tmp_path, version, copy_outputs(nusc, [frame.token], 1))
+    assert not stray.exists()
+    assert (tmp_path / sweeps[0]["filename"]).samefile(tw.dataroot / sweeps[0]["filename"])
+    finalize_copy(nusc, tw.dataroot, tmp_path, version, copy_outputs(nusc, [frame.token], 0))
+    assert (tmp_path / sweeps[-1]["filename"]).samefile(tw.dataroot / sweeps[-1]["filename"])
+    assert not (tmp_path / weather_relpath(sweeps[-1]["filename"])).exists()
+    assert not (tmp_path / compressed_extras_relpath(sweeps[-1]["filename"])).exists()
 
 
 # ------------------------------------------------------------------------------------------------ mixed weather

@@ -5,6 +5,7 @@ from __future__ import annotations
 import hashlib
 import json
 import shutil
+from pathlib import Path
 
 import matplotlib
 import numpy as np
@@ -294,3 +295,118 @@ def test_resume_skips_finished_samples_and_cleans_stale_files(tmp_path):
     changed = tiny_params(tmp_path, num_train_scenes=1, num_val_scenes=1, samples_per_scene=2, sweeps_per_sample=0,
                           camera={"image_scale": 0.1}, seed=5).world
     assert render_or_resume(*sample_jobs(changed)[0], changed, root)[1]
+
+
+def _footprints(layout, times: np.ndarray) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Scene-frame centres (A + 1, T, 2) of every actor's box and of the ego at ``times`` (T,) [s from the scene
+    start], the half extents (A + 1, 2) of their axis-aligned bounds, and names."""
+    from weatheralign.world.layout import EGO_LENGTH, EGO_WIDTH, box_half_extents
+
+    T = layout.T_scene_global
+    heading = np.arctan2(layout.T_global_scene[1, 0], layout.T_global_scene[0, 0])
+    centres, halves, names = [], [], []
+    for a in layout.actors:
+        p = a.position_at(layout.t_start + times)
+        centres.append((p @ T[:3, :3].T + T[:3, 3])[:, :2])
+        halves.append(box_half_extents(a.size, a.yaw - heading))
+        names.append(f"{a.category}#{a.instance}")
+    centres.append(np.stack([layout.ego_speed * times, np.full_like(times, layout.ego_lane_y)], 1))
+    halves.append((EGO_LENGTH / 2, EGO_WIDTH / 2))
+    names.append("ego")
+    return np.array(centres), np.array(halves), names
+
+
+def test_a_20_second_scene_is_built_for_the_whole_drive_and_no_boxes_ever_overlap():
+    """nuScenes-length scenes (40 keyframes, ~20 s) at the fastest ego speed, from the layout alone: the street,
+    its buildings and furniture reach far beyond the drive; road users fill the window around the ego at the start,
+    middle and end alike and stay on the built street; the cross street lies along the drive; no two boxes (nor a box
+    and the ego) overlap at any of 4001 instants of the scene."""
+    from weatheralign.world.build import scene_duration_s
+    from weatheralign.world.layout import USERS_AHEAD_M, USERS_BEHIND_M
+    from weatheralign.world.materials import Material
+
+    w = tiny_params(Path("/unused"), samples_per_scene=40, sweeps_per_sample=9, ego_speed_min=11.5,
+                    ego_speed_max=12.0).world
+    duration = scene_duration_s(w)
+    assert duration == pytest.approx(20.0)
+    times = np.linspace(0.0, duration, 4001)  # 5 ms apart: < 15 cm between samples at the largest relative speed
+    for spec in scene_specs(w)[:3]:
+        layout = spec.layout(w)
+        drive = layout.ego_speed * duration
+        assert drive > 229.0
+        lo, hi = layout.road.x_extent
+        b_lo, b_hi = layout.road.built_extent
+        assert lo <= -300.0 and hi >= drive + 300.0  # ground, road, sidewalks
+        assert b_lo <= -250.0 and b_hi >= drive + 300.0  # buildings: beyond the LiDAR's and the cameras' reach
+        T = layout.T_scene_global
+        v = layout.static_mesh.vertices @ T[:3, :3].T + T[:3, 3]
+        facade = v[layout.static_mesh.triangles[layout.static_mesh.material == Material.FACADE].ravel()]
+        furniture = v[layout.static_mesh.triangles[np.isin(layout.static_mesh.material, [Material.TRUNK,
+                                                                                         Material.METAL])].ravel()]
+        assert facade[:, 0].min() < -240.0 and facade[:, 0].max() > drive + 290.0
+        assert furniture[:, 0].min() < -180.0 and furniture[:, 0].max() > drive + 230.0
+        if layout.road.crossing_x is not None:
+            assert 25.0 <= layout.road.crossing_x <= drive + 40.0
+        centres, halves, names = _footprints(layout, times)
+        # every road user stays on the built street, all the time
+        assert centres[:-1, :, 0].min() > lo and centres[:-1, :, 0].max() < hi
+        # as many road users around the ego at the end of the drive as at its start
+        rel = centres[:-1, :, 0] - centres[-1, None, :, 0]
+        around = ((rel > -USERS_BEHIND_M) & (rel < USERS_AHEAD_M)).sum(0)
+        assert around.min() >= 10 and around[-1] >= 0.5 * around[0], around[[0, 2000, 4000]]
+        # no overlap at any instant (axis-aligned bounds of the boxes: conservative)
+        for i in range(len(centres) - 1):
+            apart = np.abs(centres[i + 1:] - centres[i, None])
+            touch = (apart < halves[i + 1:, None, :] + halves[i]).all(axis=2).any(axis=1)
+            others = [names[i + 1 + j] for j in np.flatnonzero(touch)]
+            assert not touch.any(), f"{spec.name}: {names[i]} overlaps {others}"
+
+
+def test_occupancy_is_exact_in_continuous_time():
+    """Two fast road users whose footprints meet for 54 ms only (they pass through each other between two of 25
+    samples of the scene) are in conflict; one a centimetre to the side is not."""
+    from weatheralign.world.layout import _Occupancy
+
+    occ = _Occupancy(20.0)
+    occ.add(occ.footprint(0.0, 0.0, 12.0, 0.0, 0.5, 0.5))
+    # head-on at 37 m/s relative: overlapping while |384.8 - 37 t| < 1, i.e. 10.4 s +- 27 ms
+    samples = np.linspace(0.0, 20.0, 25)
+    assert np.all(np.abs(384.8 - 37.0 * samples) >= 1.0)  # a sampled check would miss it
+    assert not occ.free(occ.footprint(384.8, 0.0, -25.0, 0.0, 0.5, 0.5))
+    assert occ.free(occ.footprint(384.8, 1.01, -25.0, 0.0, 0.5, 0.5))
+    assert occ.free(occ.footprint(-5.0, 0.0, 12.0, 0.0, 0.5, 0.5))  # same speed, behind: never meets
+    assert not occ.free(occ.footprint(0.5, 0.5, 0.0, 0.0, 0.2, 0.2))  # overlapping at t = 0
+    assert occ.free(occ.footprint(-1.0, 0.0, 0.0, 0.0, 0.4, 0.4))  # behind the first, which drives away
+
+
+def test_one_pass_camera_equals_the_step_by_step_camera(tiny_world, layouts):
+    """`render_camera` (rasterised depth, then one pass for directions, hits, shadows, noise and sRGB) gives the very
+    bytes of the step-by-step functions (`pixel_directions`, `cast_camera`, `sun_lit`, `camera_noise`,
+    `camera_pixels`), and its range map is stored as numpy's own float16."""
+    from weatheralign.world.render import pixel_directions, render_camera, sun_lit, to_float16
+    from weatheralign.world.shading import camera_noise, camera_pixels, noise_key
+
+    w = tiny_world.params.world
+    layout = layouts[0]
+    caster = WorldRaycaster(layout)
+    sky = []
+    for cam in make_cameras(0.25):
+        t = layout.t_start + 0.7
+        frame = render_camera(caster, cam, w.camera, t, np.random.default_rng(7))
+        T_global_cam = layout.T_global_ego(t) @ cam.T_ego_cam
+        dirs = pixel_directions(cam, T_global_cam)
+        hits = caster.cast_camera(cam.K, T_global_cam, cam.width, cam.height, t, dirs)
+        lit = sun_lit(caster, T_global_cam[:3, 3], dirs, hits, t, w.camera.shadows)
+        noise = camera_noise(noise_key(np.random.default_rng(7)), len(dirs))
+        image = camera_pixels(layout, T_global_cam[:3, 3], dirs, hits.range, hits.normal, hits.material, hits.albedo,
+                              hits.reflectivity, lit, noise, w.camera.noise_std)
+        assert np.array_equal(frame.image.reshape(-1, 3), image), cam.channel
+        assert np.array_equal(frame.range.ravel(), hits.range.astype(np.float32))
+        assert np.array_equal(frame.instance.ravel(), hits.instance)
+        assert lit.any() and not lit.all()
+        assert np.array_equal(to_float16(frame.range).view(np.uint16), frame.range.astype(np.float16).view(np.uint16))
+        sky.append(np.isinf(frame.range).mean())
+    assert max(sky) > 0.01
+    z = camera_noise(12345, 200_000)
+    assert abs(z.mean()) < 0.01 and abs(z.std() - 1.0) < 0.01 and np.abs(z).max() < 4.33
+    assert np.array_equal(z, camera_noise(12345, 200_000)) and not np.array_equal(z, camera_noise(12346, 200_000))

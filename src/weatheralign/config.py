@@ -115,6 +115,7 @@ class RunConfig(_Section):
     """How per-frame work is executed."""
 
     max_workers: Annotated[int, Field(ge=1, le=64)] = 2
+    samples_per_task: Annotated[int, Field(ge=1, le=10_000)] = 8
     dask_address: str | None = None
     torch_threads: Annotated[int, Field(ge=1, le=64)] = 2
     show_progress: bool = True
@@ -278,7 +279,7 @@ class SimulateConfig(_Section):
     near_clip_m: Annotated[float, Field(gt=0.0, le=5.0)] = 0.5
     refine_transmission: bool = True
     max_samples: Annotated[int, Field(ge=0, le=10_000_000)] = 0
-    sweeps: bool = False
+    sweeps: Annotated[int, Field(ge=0, le=9)] = 2
 
     @field_validator("aligned", mode="before")
     @classmethod

@@ -51,7 +51,7 @@ def read_rgb_image(path: Path, what: str) -> NDArray[np.uint8]:
     try:
         with Image.open(path) as im:
             im.load()  # decode everything now: Pillow reports truncation only when the pixels are read
-            return np.asarray(im.convert("RGB"))
+            return np.asarray(im if im.mode == "RGB" else im.convert("RGB"))
     except _IMAGE_ERRORS as exc:
         raise _image_error(path, what, exc) from None
 

@@ -7,9 +7,11 @@ dataset ships no per-point firing times (real nuScenes), they are derived from e
 
 from __future__ import annotations
 
+import functools
 import io
 import json
 import math
+import zipfile
 from contextlib import redirect_stdout
 from pathlib import Path
 from typing import Any, Callable
@@ -76,6 +78,15 @@ def open_nuscenes(dataroot: str | Path, version: str) -> NuScenes:
         check_tables(root, version)
         raise DataFormatError(f"{table_dir}: the nuScenes devkit cannot load these tables "
                               f"({type(exc).__name__}: {exc})") from exc
+
+
+@functools.lru_cache(maxsize=2)
+def open_nuscenes_cached(dataroot: str, version: str, content_digest: str) -> NuScenes:
+    """`open_nuscenes`, memoised per process: the read-only tables of a dataset opened once per worker process
+    however many tasks it runs; ``content_digest`` (the dataset's manifest digest) is part of the key, so a changed
+    dataset is opened anew."""
+    del content_digest  # only keys the cache
+    return open_nuscenes(dataroot, version)
 
 
 def _load_table_json(path: Path, table: str) -> list[dict]:
@@ -229,6 +240,46 @@ def extras_relpath(filename: str) -> str:
     return f"extras/{channel}/{stem}.npy"
 
 
+def compressed_extras_relpath(filename: str) -> str:
+    """``extras/<channel>/<stem>.npz``: a scan's per-point records as a compressed ``.npz`` (one member per field),
+    the form weather copies write; `read_point_extras` reads either form."""
+    return str(Path(extras_relpath(filename)).with_suffix(".npz"))
+
+
+def read_point_extras(root: Path, filename: str) -> NDArray | None:
+    """A scan's per-point records (structured (N,) array: ``time_offset`` and whatever else the writer stored) from
+    ``extras/<channel>/<stem>.npy`` or its compressed ``.npz`` form; None where the dataset has neither.
+
+    Raises:
+        DataFormatError: a file that is truncated or not a valid array (naming it).
+    """
+    for rel in (extras_relpath(filename), compressed_extras_relpath(filename)):
+        path = Path(root) / rel
+        if path.is_file():
+            try:
+                return read_record_file(path)
+            except (OSError, ValueError, EOFError, KeyError, TypeError, zipfile.BadZipFile) as exc:
+                raise DataFormatError(f"{path}: not a valid per-point records file ({type(exc).__name__}: {exc}); "
+                                      f"expected a structured .npy or an .npz of equal-length fields") from None
+    return None
+
+
+def read_record_file(path: Path) -> NDArray:
+    """(N,) structured array from a ``.npy`` or from an ``.npz`` whose members are its fields (equal lengths)."""
+    loaded = np.load(path, allow_pickle=False)
+    if not isinstance(loaded, np.lib.npyio.NpzFile):
+        return loaded
+    with loaded:
+        fields = {name: loaded[name] for name in loaded.files}
+    lengths = {len(a) for a in fields.values()}
+    if len(lengths) != 1 or any(a.ndim != 1 for a in fields.values()):
+        raise ValueError(f"members of unequal lengths or shapes: { {k: a.shape for k, a in fields.items()} }")
+    out = np.empty(lengths.pop(), dtype=[(k, a.dtype) for k, a in fields.items()])
+    for name, a in fields.items():
+        out[name] = a
+    return out
+
+
 def _pose_record(nusc: NuScenes, sd: dict, table: str, key: str) -> tuple[dict, str]:
     """The ``calibrated_sensor`` / ``ego_pose`` record of ``sd`` and the label its transform's errors carry."""
     token = _field(nusc, "sample_data", sd, key, _STRING)
@@ -245,21 +296,20 @@ def _read_scan(nusc: NuScenes, sd: dict) -> tuple[NDArray[np.float32], NDArray[n
                   fields=NUSCENES_FIELDS)
     T_ego_lidar = _transform(*_pose_record(nusc, sd, "calibrated_sensor", "calibrated_sensor_token"))
     T_global_ego = _transform(*_pose_record(nusc, sd, "ego_pose", "ego_pose_token"))
-    extras = root / extras_relpath(filename)
-    if extras.is_file():
-        try:
-            ex = np.load(extras)
-            offsets = ex["time_offset"].astype(np.float32)
-        except (OSError, ValueError, EOFError, KeyError, IndexError, TypeError) as exc:
-            raise DataFormatError(f"{extras}: not a valid per-point extras array ({type(exc).__name__}: {exc}); "
-                                  f"expected a structured .npy with a 'time_offset' field per point of "
-                                  f"{path}") from None
-        if len(ex) != len(points):
-            raise DataFormatError(f"{extras}: {len(ex)} records for {len(points)} points in {path}")
+    extras = read_point_extras(root, filename)
+    if extras is not None:
+        where = root / extras_relpath(filename)
+        if extras.dtype.names is None or "time_offset" not in extras.dtype.names:
+            raise DataFormatError(f"{where} (.npy or .npz): no 'time_offset' field; expected per-point records "
+                                  f"with a 'time_offset' field per point of {path}")
+        offsets = extras["time_offset"].astype(np.float32)
+        if len(extras) != len(points):
+            raise DataFormatError(f"{where} (.npy or .npz): {len(extras)} records for {len(points)} points in "
+                                  f"{path}")
         bad = ~np.isfinite(offsets)
         if bad.any():
             first = int(np.flatnonzero(bad)[0])
-            raise DataFormatError(f"{extras}: {int(bad.sum())} NaN/inf time offsets (field 'time_offset', first at "
+            raise DataFormatError(f"{where}: {int(bad.sum())} NaN/inf time offsets (field 'time_offset', first at "
                                   f"row {first}: {float(offsets[first])}); expected finite firing times [s] relative "
                                   f"to the scan timestamp")
     else:

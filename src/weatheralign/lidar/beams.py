@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 from typing import TYPE_CHECKING
 
 from weatheralign.data.frame import LidarScan
-from weatheralign.data.nuscenes import derived_time_offsets, extras_relpath
+from weatheralign.data.nuscenes import derived_time_offsets, read_point_extras
 from weatheralign.geometry import invert
 
 if TYPE_CHECKING:
@@ -148,6 +148,25 @@ def _empty_no_return() -> NoReturnBeams:
 # ------------------------------------------------------------------------------------------------ sensor motion
 
 
+def _pose_knots(scan: LidarScan, times: F64, num_knots: int) -> tuple[F64, F64]:
+    """Knot times (M,) spread over ``times`` (plus every pose time inside) and the exact ``T_global_lidar``
+    (M, 4, 4) at each."""
+    t_lo, t_hi = float(times.min()), float(times.max())
+    pose_times = np.asarray(scan.pose_times, dtype=np.float64)
+    knots = np.unique(np.concatenate([np.linspace(t_lo, t_hi, max(num_knots, 2)),
+                                      pose_times[(pose_times > t_lo) & (pose_times < t_hi)]]))
+    return knots, scan.global_poses_at(knots) @ scan.T_ego_lidar
+
+
+def sensor_origins_at(scan: LidarScan, times: NDArray, num_knots: int = 64) -> F64:
+    """Sensor origins (K, 3) [m] at absolute ``times`` (K,) [s]: the translation part of `sensor_poses_at`."""
+    times = np.asarray(times, dtype=np.float64)
+    if scan.poses is None or scan.pose_times is None or len(times) == 0:
+        return np.broadcast_to(scan.T_global_lidar[:3, 3], (len(times), 3)).copy()
+    knots, T_knots = _pose_knots(scan, times, num_knots)
+    return np.stack([np.interp(times, knots, T_knots[:, c, 3]) for c in range(3)], axis=1)
+
+
 def sensor_poses_at(scan: LidarScan, times: NDArray, num_knots: int = 64) -> tuple[F64, F64]:
     """Sensor origins (K, 3) [m] and rotations ``R_global_lidar`` (K, 3, 3) at absolute ``times`` (K,) [s].
 
@@ -161,11 +180,7 @@ def sensor_poses_at(scan: LidarScan, times: NDArray, num_knots: int = 64) -> tup
     if scan.poses is None or scan.pose_times is None or k == 0:
         T = scan.T_global_lidar
         return np.broadcast_to(T[:3, 3], (k, 3)).copy(), np.broadcast_to(T[:3, :3], (k, 3, 3)).copy()
-    t_lo, t_hi = float(times.min()), float(times.max())
-    pose_times = np.asarray(scan.pose_times, dtype=np.float64)
-    knots = np.unique(np.concatenate([np.linspace(t_lo, t_hi, max(num_knots, 2)),
-                                      pose_times[(pose_times > t_lo) & (pose_times < t_hi)]]))
-    T_knots = scan.global_poses_at(knots) @ scan.T_ego_lidar
+    knots, T_knots = _pose_knots(scan, times, num_knots)
     origins = np.stack([np.interp(times, knots, T_knots[:, c, 3]) for c in range(3)], axis=1)
     rot = np.empty((k, 3, 3))
     for a in range(3):
@@ -199,7 +214,7 @@ def beam_origins(scan: LidarScan, frame: str = "global") -> F64 | None:
     if frame == "scan":
         if not moving or len(scan.points) == 0:
             return None
-        origins = sensor_poses_at(scan, scan.point_times())[0]
+        origins = sensor_origins_at(scan, scan.point_times())
         T = invert(scan.T_global_lidar)
         return origins @ T[:3, :3].T + T[:3, 3]
     if frame != "global":
@@ -207,7 +222,7 @@ def beam_origins(scan: LidarScan, frame: str = "global") -> F64 | None:
     times = scan_times(scan)
     if not moving:
         return np.broadcast_to(scan.T_global_lidar[:3, 3], (len(times), 3)).copy()
-    return sensor_poses_at(scan, times)[0]
+    return sensor_origins_at(scan, times)
 
 
 # ------------------------------------------------------------------------------------------------ beams without return
@@ -224,12 +239,12 @@ def synthetic_columns(scan: LidarScan) -> NDArray[np.int16] | None:
         return None
     dataroot = path.parents[2]
     try:
-        extras = dataroot / extras_relpath(str(path.relative_to(dataroot)))
-    except (ValueError, IndexError):
+        rel = str(path.relative_to(dataroot))
+    except ValueError:  # the scan is not inside a dataroot
         return None
-    if not extras.is_file():
+    records = read_point_extras(dataroot, rel)
+    if records is None:
         return None
-    records = np.load(extras)
     if records.dtype.names is None or "column" not in records.dtype.names or len(records) != len(scan.points):
         return None
     return np.asarray(records["column"], dtype=np.int16)

@@ -170,8 +170,9 @@ def _fill_kernel(seed_key: np.uint64, cells: NDArray, counts: NDArray, cell_size
 
 @njit(nogil=True, cache=True)
 def _positions_from_ids_kernel(seed_key: np.uint64, ids: NDArray, cell_size: float, cell_z: float,
-                               shift: NDArray, z_min: float, height: float, positions: NDArray) -> None:
-    """World positions (N, 3) of particles given by id (same expressions as `_fill_kernel`)."""
+                               shifts: NDArray, z_min: float, height: float, positions: NDArray) -> None:
+    """World positions (N, 3) of particles given by id, each with its own shift (N, 3) (same expressions as
+    `_fill_kernel`)."""
     for n in range(ids.shape[0]):
         u = np.uint64(ids[n])
         j = u & _U_RANK_MASK
@@ -181,9 +182,9 @@ def _positions_from_ids_kernel(seed_key: np.uint64, ids: NDArray, cell_size: flo
         ix = np.int64((packed >> (_U_Z_BITS + _U_XY_BITS)) & _U_XY_MASK) - XY_OFFSET
         key = _cell_key(seed_key, packed)
         c = np.uint64(4) * j
-        positions[n, 0] = (ix + _uniform(key, c + np.uint64(1))) * cell_size + shift[0]
-        positions[n, 1] = (iy + _uniform(key, c + np.uint64(2))) * cell_size + shift[1]
-        positions[n, 2] = z_min + _wrap((iz + _uniform(key, c + np.uint64(3))) * cell_z + shift[2], height)
+        positions[n, 0] = (ix + _uniform(key, c + np.uint64(1))) * cell_size + shifts[n, 0]
+        positions[n, 1] = (iy + _uniform(key, c + np.uint64(2))) * cell_size + shifts[n, 1]
+        positions[n, 2] = z_min + _wrap((iz + _uniform(key, c + np.uint64(3))) * cell_z + shifts[n, 2], height)
 
 
 # ------------------------------------------------------------------------------------------------------------- types
@@ -374,11 +375,23 @@ class ParticleField:
         """
         t = _finite("t", t, "s")
         ids = particles.ids if isinstance(particles, Particles) else np.asarray(particles)
+        return self._positions(ids, np.tile(self._shift(t), (len(ids), 1)))
+
+    def positions_at_times(self, ids: NDArray, times: NDArray) -> F64:
+        """World positions (N, 3) [m] of particles ``ids`` (N,), each at its own time ``times`` (N,) [s]: row ``n``
+        equals ``positions_at(ids[n:n + 1], times[n])`` exactly."""
+        ids, times = np.asarray(ids), np.asarray(times, dtype=np.float64)
+        if times.shape != ids.shape or not np.isfinite(times).all():
+            raise ValueError(f"times: expected {ids.shape} finite times [s], got {times.shape}")
+        return self._positions(ids, self.velocity_array[None, :] * (times - self.t_ref)[:, None])
+
+    def _positions(self, ids: NDArray, shifts: F64) -> F64:
         if ids.ndim != 1 or not np.issubdtype(ids.dtype, np.integer) or (ids.size and ids.min() < 0):
             raise ValueError("ids must be a 1-D array of non-negative integers (ids of this field)")
         out = np.empty((ids.shape[0], 3))
         _positions_from_ids_kernel(_seed_key(self.seed), np.ascontiguousarray(ids, dtype=np.int64), self.cell_size,
-                                   self.cell_z, self._shift(t), self.z_min, self.z_max - self.z_min, out)
+                                   self.cell_z, np.ascontiguousarray(shifts, dtype=np.float64), self.z_min,
+                                   self.z_max - self.z_min, out)
         return out
 
     def cell_indices(self, points: NDArray, t: float) -> I64:

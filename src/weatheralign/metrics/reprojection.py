@@ -101,10 +101,7 @@ def reprojection_check(lidar_field: ParticleField, lidar_ids: NDArray, fire_time
     if ids.size == 0:
         return ReprojectionResult([], np.zeros(0, np.int64), np.zeros(0))
     # the position known to the LiDAR side: each particle at its own firing time
-    p_fire = np.empty((ids.size, 3))
-    for t in np.unique(times):
-        m = times == t
-        p_fire[m] = lidar_field.positions_at(ids[m], float(t))
+    p_fire = lidar_field.positions_at_times(ids, times)
     vel = lidar_field.velocity_array
     for cam in cameras:
         p_cam = p_fire + np.outer(cam.timestamp - times, vel)

@@ -11,10 +11,10 @@ How media compose (see `weatheralign.conditions`):
   fog) through `weatheralign.lidar.simulate_particles`, which adds the fog's extinction to every echo and lets the
   fog's backscatter compete with the strongest echo of each beam. The sensor is the dataset's `LidarModel`.
 - Cameras (`observe_camera`), each at its own timestamp and ego pose: one transmission per pixel, the fog's
-  ``exp(-α ℓ)`` times the unresolved particles' ``exp(-τ_u(ℓ))``, guided-filtered, composited with the scene's
-  airlight in linear light (`weatheralign.camera.fog.composite`); then the field's resolvable particles splatted
-  with exposure streaks (`weatheralign.camera.splat`), pre-fogged by the same fog. Unaligned cameras see the
-  media's twins (`SceneMedia.camera_alpha`, ``field.field(aligned=False)``).
+  ``exp(-α ℓ)`` times the unresolved particles' ``exp(-τ_u(ℓ))``, guided-filtered and composited with the scene's
+  airlight in linear light in one compiled pass (`weatheralign.camera.fog.composite_image`); then the field's
+  resolvable particles splatted with exposure streaks (`weatheralign.camera.splat`), pre-fogged by the same fog.
+  Unaligned cameras see the media's twins (`SceneMedia.camera_alpha`, ``field.field(aligned=False)``).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from weatheralign.camera.fog import composite, decode_srgb_u8, encode_srgb_u8, refine_transmission, srgb_to_linear
+from weatheralign.camera.fog import composite_image, encode_srgb_u8, srgb_to_linear
 from weatheralign.camera.fog import transmission as fog_transmission
 from weatheralign.camera.splat import (APPEARANCES, focal_px, materialize_for_camera, render_particles,
                                        unresolved_extinction_profile)
@@ -145,17 +145,15 @@ def observe_camera(image: NDArray[np.uint8], range_map: NDArray[np.float32], vie
         profile = unresolved_extinction_profile(fld, focal_px(view.K), look, near_clip=near)
         t_particles = profile.transmission(range_map)
         t = t_particles if t is None else t * t_particles
-    if options.refine_transmission:
-        t = refine_transmission(t, image)
     a_lin = srgb_to_linear(np.asarray(airlight, dtype=np.float64))
-    background = composite(decode_srgb_u8(image), t, a_lin)
     if fld is None:
-        return CameraWeather(encode_srgb_u8(background), None, 0)
+        return CameraWeather(composite_image(image, t, a_lin, options.refine_transmission), None, 0)
+    background = composite_image(image, t, a_lin, options.refine_transmission, encode=False)
     T_global_cam = view.T_global_cam
     v_rel = fld.velocity_array - np.asarray(ego_vel, dtype=np.float64)
     parts = materialize_for_camera(fld, view.K, view.width, view.height, T_global_cam, view.timestamp, look,
                                    near_clip=near, streak_m=float(np.linalg.norm(v_rel)) * camera.exposure_s)
-    res = render_particles(background.astype(np.float32), range_map, view.K, invert(T_global_cam), parts.positions,
+    res = render_particles(background, range_map, view.K, invert(T_global_cam), parts.positions,
                            parts.diameters, parts.ids, fld.velocity_array, ego_vel, exposure_s=camera.exposure_s,
                            appearance=look, fog_alpha=alpha, airlight=a_lin, unresolved=profile, near_clip=near)
     cp = CameraParticles(view.channel, view.K, T_global_cam, view.timestamp, view.width, view.height, parts.ids,

@@ -2,7 +2,8 @@
 
 `plan_jobs` walks every scene of a nuScenes-format dataset in scene order and every sample of a scene through its
 ``next`` chain; each `SampleJob` carries the scene's `SceneMedia` and the scene's one airlight (`scene_airlight` of
-its first sample's cameras). Flows map the jobs as tasks; tests call the same function.
+its first sample's cameras). Flows map chunks of consecutive jobs of a scene (`chunk_jobs`) as tasks; tests call the
+same functions.
 """
 
 from __future__ import annotations
@@ -49,4 +50,17 @@ def plan_jobs(nusc, media: ConditionMedia, aligned: bool, rain_appearance: str =
     return jobs[:max_samples] if max_samples else jobs
 
 
-__all__ = ["SampleJob", "plan_jobs", "scene_airlight"]
+def chunk_jobs(jobs: list[SampleJob], size: int) -> list[list[SampleJob]]:
+    """``jobs`` in order, cut into runs of at most ``size`` consecutive jobs of the same scene (one task each)."""
+    if size < 1:
+        raise ValueError(f"chunk size must be >= 1, got {size}")
+    chunks: list[list[SampleJob]] = []
+    for job in jobs:
+        if chunks and len(chunks[-1]) < size and chunks[-1][-1].media is job.media:
+            chunks[-1].append(job)
+        else:
+            chunks.append([job])
+    return chunks
+
+
+__all__ = ["SampleJob", "chunk_jobs", "plan_jobs", "scene_airlight"]

@@ -2,27 +2,38 @@
 
 `run_sample` loads one sample's inputs (the frame, decoded images, each camera's ray-length map from
 `weatheralign.camera.depth.camera_range_map` with `DEPTH_SWEEPS` aggregated sweeps where the dataset has no exact
-map), runs the pure core `weatheralign.simulate.observe.observe` and writes the files; `finalize_copy` completes
-the copy. The copy holds the input's tables and maps byte-for-byte (tokens, ``num_lidar_pts`` untouched), new
-keyframe LiDAR files and camera JPEGs at the same relative paths, ``extras/LIDAR_TOP/<stem>.npy`` (the input's
-per-point records re-indexed to the new points: weather points get ``instance`` 0 and ``material``
-`WEATHER_MATERIAL`; clutter ``column`` -1) and ``extras/weather/LIDAR_TOP/<stem>.npy`` (per point ``label``
-(`WeatherLabel`), ``particle_id`` (-1 if none), ``source_index`` (input row, -1 for clutter)). LiDAR sweeps are copied
-unchanged (identity labels) unless ``simulate.sweeps``, which runs every sweep through the same media (LiDAR only);
-the ``points_*`` metrics count keyframe scans, ``sweep_points_*`` the sweeps. Camera range maps are not copied.
+map), runs the pure core `weatheralign.simulate.observe.observe` on the keyframe and the ``sweeps`` LiDAR sweeps
+nearest before it (each at its own time through the same media: the sweeps a multi-sweep detector aggregates) and
+writes the files; `run_chunk` does it for consecutive samples of one scene (one task: the per-task overhead of the
+engine is paid once per chunk); `finalize_copy` completes the copy.
+
+The copy is lean. Every file the weather did not change (the older sweeps, cameras a condition leaves clear, the
+tables and maps, the input's per-point extras of unchanged scans) is a **hard link** to the input's file (a copy only
+where the file system refuses links), so it costs no space; weather scans get a new ``.pcd.bin`` at the input's
+relative path, their per-point records re-indexed to the new points as a compressed
+``extras/LIDAR_TOP/<stem>.npz`` (`compressed_extras_relpath`; weather points get ``instance`` 0 and ``material``
+`WEATHER_MATERIAL`, clutter ``column`` -1) and their weather record ``extras/weather/LIDAR_TOP/<stem>.npz``
+(`weather_relpath`): per point ``label`` (`WeatherLabel`, uint8), ``particle_id`` (-1 if none) and ``source_index``
+(input row, -1 for clutter), each in the smallest integer dtype that holds its values exactly. A scan without a
+weather record is unchanged (`read_weather_record` gives its identity record). Weather images are JPEGs at the
+params' quality with 4:2:0 chroma subsampling, like nuScenes' own. Camera range maps are not copied. Because links
+share the input's bytes, edit neither dataset in place.
+
 Every file is written atomically; a finished sample leaves a record in ``<out parent>/.progress/<copy name>/``
 (beside the copy: a finished copy holds only data) with the size and SHA-256 of every file it wrote, tagged with the
 run's fingerprint (`copy_fingerprint`: the stage's declared code and params, the scene's media, the sensors, the input
 dataset's digest) plus the stamps of its input files, so a rerun skips it.
 """
-
 from __future__ import annotations
 
+import errno
 import hashlib
 import io
 import json
+import os
 import shutil
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -32,7 +43,9 @@ from PIL import Image
 from weatheralign import atomic
 from weatheralign.camera.depth import camera_range_map
 from weatheralign.data.frame import Frame
-from weatheralign.data.nuscenes import extras_relpath, load_frame, load_lidar
+from weatheralign.data.nuscenes import (compressed_extras_relpath, extras_relpath, load_frame, load_lidar,
+                                        open_nuscenes_cached, read_point_extras, read_record_file)
+from weatheralign.data.errors import DataFormatError
 from weatheralign.lidar.labels import WeatherLabel
 from weatheralign.provenance import file_stamps, read_resume_record, write_resume_record
 from weatheralign.sensors import SensorRig
@@ -42,16 +55,48 @@ from weatheralign.simulate.plan import SampleJob
 
 WEATHER_MATERIAL = 255
 """``material`` of a point that is a weather echo (scattered or clutter) in the copied per-point extras."""
-WEATHER_DTYPE = np.dtype([("label", "u1"), ("particle_id", "<i8"), ("source_index", "<i8")])
 PROGRESS_DIR = ".progress"
+JPEG_SUBSAMPLING = "4:2:0"
+"""Chroma subsampling of the weather JPEGs: nuScenes' own (and the synthetic world's)."""
 DEPTH_SWEEPS = 3
 """LiDAR sweeps aggregated for a real camera's dense depth (nuScenes: 3 HDL-32E sweeps cover ~2 % of an image)."""
 
 
 def weather_relpath(filename: str) -> str:
-    """``extras/weather/<channel>/<stem>.npy``: per-point labels and particle ids of a weather scan."""
+    """``extras/weather/<channel>/<stem>.npz``: per-point labels, particle ids and source rows of a weather scan."""
     parts = Path(filename).parts
-    return f"extras/weather/{parts[1]}/{parts[-1].split('.')[0]}.npy"
+    return f"extras/weather/{parts[1]}/{parts[-1].split('.')[0]}.npz"
+
+
+def smallest_int_dtype(values: NDArray) -> np.dtype:
+    """The smallest integer dtype holding every value of ``values`` exactly (int8 for an empty array)."""
+    if values.size == 0:
+        return np.dtype(np.int8)
+    return np.promote_types(np.min_scalar_type(int(values.min())), np.min_scalar_type(int(values.max())))
+
+
+def read_weather_record(root: Path, filename: str, num_points: int) -> NDArray:
+    """The weather record of the scan ``filename`` of a weather copy at ``root``: (N,) structured ``label``,
+    ``particle_id``, ``source_index`` (as stored); the identity record (all unchanged, no particle, row i from row i)
+    for a scan the weather left clear (no record).
+
+    Raises:
+        DataFormatError: a record that is not a valid ``.npz`` or whose length differs from ``num_points``.
+    """
+    path = Path(root) / weather_relpath(filename)
+    if not path.is_file():
+        rec = np.zeros(num_points, dtype=[("label", "u1"), ("particle_id", "i1"), ("source_index", "<i8")])
+        rec["particle_id"], rec["source_index"] = -1, np.arange(num_points)
+        return rec
+    try:
+        rec = read_record_file(path)
+    except (OSError, ValueError, EOFError, KeyError, TypeError) as exc:
+        raise DataFormatError(f"{path}: not a valid weather record ({type(exc).__name__}: {exc}); expected an .npz "
+                              f"with label, particle_id and source_index per point of {filename}") from None
+    if len(rec) != num_points or set(rec.dtype.names or ()) != {"label", "particle_id", "source_index"}:
+        raise DataFormatError(f"{path}: fields {rec.dtype.names} with {len(rec)} rows; expected label, particle_id "
+                              f"and source_index for each of the {num_points} points of {filename}")
+    return rec
 
 
 def copy_fingerprint(run_digest: str, media: SceneMedia, sensors: SensorRig, airlight: tuple[float, ...]) -> str:
@@ -87,10 +132,15 @@ def sweep_records(nusc, sample_token: str) -> list[dict]:
     return out[::-1]
 
 
-def _outputs(nusc, sample_token: str, sweeps: bool = False) -> list[str]:
+def weather_sweeps(nusc, sample_token: str, sweeps: int) -> list[dict]:
+    """The ``sweeps`` LiDAR sweeps nearest before the sample's keyframe (oldest first): those the weather reaches."""
+    return sweep_records(nusc, sample_token)[-sweeps:] if sweeps > 0 else []
+
+
+def _outputs(nusc, sample_token: str, sweeps: int = 0) -> list[str]:
     lidar, cams = _sample_files(nusc, sample_token)
-    scans = [lidar] + ([sd["filename"] for sd in sweep_records(nusc, sample_token)] if sweeps else [])
-    return [rel for f in scans for rel in (f, extras_relpath(f), weather_relpath(f))] + cams
+    scans = [lidar] + [sd["filename"] for sd in weather_sweeps(nusc, sample_token, sweeps)]
+    return [rel for f in scans for rel in (f, compressed_extras_relpath(f), weather_relpath(f))] + cams
 
 
 def progress_dir(out_root: Path) -> Path:
@@ -104,16 +154,26 @@ def _progress_file(out_root: Path, sample_token: str) -> Path:
     return progress_dir(out_root) / f"{sample_token}.json"
 
 
-def _copy_file(src: Path, dst: Path) -> None:
+def link_or_copy(src: Path, dst: Path) -> bool:
+    """``dst`` as a hard link to ``src`` (atomically: linked beside it, then renamed), or a copy where the file
+    system refuses links (another device, no link support). Returns True if it copied."""
     with atomic.atomic_path(dst) as tmp:
-        shutil.copyfile(src, tmp)
+        tmp.unlink()
+        try:
+            os.link(src, tmp)
+            return False
+        except OSError as exc:
+            if exc.errno not in (errno.EXDEV, errno.EPERM, errno.EMLINK, errno.ENOTSUP, errno.EACCES):
+                raise
+            shutil.copyfile(src, tmp)
+            return True
 
 
-def _new_extras(src_extras: Path, lw: LidarWeather, scan_timestamp: float) -> NDArray | None:
+def _new_extras(src_root: Path, rel: str, lw: LidarWeather, scan_timestamp: float) -> NDArray | None:
     """The input's per-point records re-indexed to the weather points (None if the input has none)."""
-    if not src_extras.is_file():
+    ex = read_point_extras(src_root, rel)
+    if ex is None:
         return None
-    ex = np.load(src_extras)
     src = lw.source_index
     out = np.zeros(len(src), dtype=ex.dtype)
     kept = src >= 0
@@ -133,14 +193,15 @@ def _new_extras(src_extras: Path, lw: LidarWeather, scan_timestamp: float) -> ND
 def write_scan(src_root: Path, out_root: Path, rel: str, lw: LidarWeather, timestamp: float) -> None:
     """A weather scan at ``rel``: the points, the re-indexed per-point extras and the weather labels (atomically)."""
     atomic.write_bytes(out_root / rel, lw.scan.points.astype("<f4").tobytes())
-    extras = _new_extras(Path(src_root) / extras_relpath(rel), lw, timestamp)
+    extras = _new_extras(Path(src_root), rel, lw, timestamp)
     if extras is None:  # no input extras: per-point firing times alone, so the reader gets exact times
         extras = np.zeros(len(lw.labels), dtype=[("time_offset", "<f4")])
         extras["time_offset"] = (lw.times - timestamp).astype(np.float32)
-    atomic.save_npy(out_root / extras_relpath(rel), extras)
-    rec = np.zeros(len(lw.labels), dtype=WEATHER_DTYPE)
-    rec["label"], rec["particle_id"], rec["source_index"] = lw.labels, lw.particle_id, lw.source_index
-    atomic.save_npy(out_root / weather_relpath(rel), rec)
+    atomic.save_npz_compressed(out_root / compressed_extras_relpath(rel), {n: extras[n] for n in extras.dtype.names})
+    atomic.save_npz_compressed(out_root / weather_relpath(rel), {
+        "label": lw.labels.astype(np.uint8),
+        "particle_id": lw.particle_id.astype(smallest_int_dtype(lw.particle_id)),
+        "source_index": lw.source_index.astype(smallest_int_dtype(lw.source_index))})
 
 
 def write_sample(src_root: Path, out_root: Path, nusc, sample_token: str, fw: FrameWeather, frame: Frame,
@@ -153,18 +214,20 @@ def write_sample(src_root: Path, out_root: Path, nusc, sample_token: str, fw: Fr
         rel = nusc.get("sample_data", sample["data"][ch])["filename"]
         cw = fw.cameras[ch]
         if cw.image is None:
-            _copy_file(view.image_path, out_root / rel)
+            link_or_copy(view.image_path, out_root / rel)
         else:
             buf = io.BytesIO()
-            Image.fromarray(cw.image).save(buf, format="JPEG", quality=jpeg_quality, subsampling=0)
+            Image.fromarray(cw.image).save(buf, format="JPEG", quality=jpeg_quality, subsampling=JPEG_SUBSAMPLING)
             atomic.write_bytes(out_root / rel, buf.getvalue())
 
 
 def run_sample(nusc, src_root: Path, out_root: Path, job: SampleJob, sensors: SensorRig, options: ObserveOptions,
-               run_digest: str, jpeg_quality: int = 92, sweeps: bool = False) -> tuple[dict, bool]:
-    """Simulate and write one sample unless an identical earlier run finished it. Returns (record, done_now).
+               run_digest: str, jpeg_quality: int = 92, sweeps: int = 0) -> tuple[dict, bool]:
+    """Simulate and write one sample (its keyframe, cameras and the ``sweeps`` nearest sweeps) unless an identical
+    earlier run finished it. Returns (record, done_now).
 
-    The record holds the LiDAR counts, the particles rendered, the re-projection errors and the seconds taken.
+    The record holds the LiDAR counts (keyframe and sweeps apart), the particles rendered, the re-projection errors,
+    the bytes written and the wall and CPU seconds taken.
     """
     src_root, out_root = Path(src_root), Path(out_root)
     if src_root.resolve() == out_root.resolve():
@@ -175,7 +238,7 @@ def run_sample(nusc, src_root: Path, out_root: Path, job: SampleJob, sensors: Se
     done = read_resume_record(_progress_file(out_root, token), digest, out_root)
     if done is not None:
         return done, False
-    t0 = time.time()
+    t0, cpu0 = time.time(), time.process_time()
     frame = load_frame(nusc, token)
     exact = all(v.range_path is not None for v in frame.cameras.values())
     depth_lidar = frame.lidar if exact else load_lidar(nusc, nusc.get("sample", token)["data"]["LIDAR_TOP"],
@@ -185,55 +248,110 @@ def run_sample(nusc, src_root: Path, out_root: Path, job: SampleJob, sensors: Se
     fw = observe(frame, images, ranges, job.media, sensors, np.asarray(job.airlight), options)
     write_sample(src_root, out_root, nusc, token, fw, frame, jpeg_quality)
     sweep_counts = {k: 0 for k in COUNT_KEYS}
-    if sweeps:  # the same media through every sweep of the sample (LiDAR only)
-        for sd in sweep_records(nusc, token):
-            scan = load_lidar(nusc, sd["token"])
-            lw = observe_lidar(scan, job.media, sensors.lidar)
-            write_scan(src_root, out_root, sd["filename"], lw, scan.timestamp)
-            for k, v in lw.counts.items():
-                sweep_counts[k] += v
-    record = write_resume_record(_progress_file(out_root, token), digest, out_root, _outputs(nusc, token, sweeps), {
+    sweep_list = weather_sweeps(nusc, token, sweeps)
+    for sd in sweep_list:  # the same media at each sweep's own time (LiDAR only)
+        scan = load_lidar(nusc, sd["token"])
+        lw = observe_lidar(scan, job.media, sensors.lidar)
+        write_scan(src_root, out_root, sd["filename"], lw, scan.timestamp)
+        for k, v in lw.counts.items():
+            sweep_counts[k] += v
+    outputs = _outputs(nusc, token, sweeps)
+    record = write_resume_record(_progress_file(out_root, token), digest, out_root, outputs, {
         "sample": token, "counts": fw.lidar.counts, "sweep_counts": sweep_counts,
-        "particles_rendered": fw.particles_rendered, "reprojection_px": [float(e) for e in fw.reprojection_px],
-        "reprojection_channels": list(fw.reprojection_channels), "seconds": round(time.time() - t0, 3)})
+        "sweeps_simulated": len(sweep_list), "particles_rendered": fw.particles_rendered,
+        "reprojection_px": [float(e) for e in fw.reprojection_px], "reprojection_channels": list(fw.reprojection_channels), "bytes_written": _bytes_written(out_root, outputs),
+        "seconds": round(time.time() - t0, 3), "cpu_seconds": round(time.process_time() - cpu0, 3)})
     return record, True
 
 
-def finalize_copy(nusc, src_root: Path, out_root: Path, version: str) -> int:
-    """Complete the weather copy: every sensor file not simulated (sweeps) copied unchanged with its LiDAR extras,
-    identity labels for keyframe scans left clear, then the ``<version>/`` tables and ``maps/`` byte-for-byte
-    (last, so the copy loads only once complete).
-    Returns the number of files copied now."""
+def _bytes_written(out_root: Path, outputs: list[str]) -> int:
+    """Bytes of the outputs that are files of their own (hard links to the input cost nothing)."""
+    total = 0
+    for rel in outputs:
+        st = (out_root / rel).stat()
+        total += st.st_size if st.st_nlink == 1 else 0
+    return total
+
+
+@dataclass(frozen=True)
+class DatasetRef:
+    """What a worker process needs to open the input dataset itself (`open_nuscenes_cached`): ``dataroot``,
+    ``version`` and the manifest's ``content_digest``."""
+
+    dataroot: str
+    version: str
+    content_digest: str
+
+
+def run_chunk(dataset: DatasetRef, out_root: Path, jobs: list[SampleJob], sensors: SensorRig,
+              options: ObserveOptions, run_digest: str, jpeg_quality: int = 92, sweeps: int = 0,
+              ) -> list[tuple[dict, bool]]:
+    """`run_sample` for consecutive samples, the dataset opened once per process. Returns one (record, done_now)
+    per job, in order."""
+    nusc = open_nuscenes_cached(dataset.dataroot, dataset.version, dataset.content_digest)
+    return [run_sample(nusc, Path(dataset.dataroot), out_root, job, sensors, options, run_digest, jpeg_quality,
+                       sweeps) for job in jobs]
+
+
+def copy_outputs(nusc, sample_tokens: list[str], sweeps: int) -> set[str]:
+    """Relative paths of every file the weather writes for these samples (scans, their records, cameras)."""
+    return {rel for token in sample_tokens for rel in _outputs(nusc, token, sweeps)}
+
+
+def finalize_copy(nusc, src_root: Path, out_root: Path, version: str, written: set[str]) -> dict[str, int]:
+    """Complete the weather copy around the files the weather ``written`` (`copy_outputs`): every other sensor file
+    and its per-point extras a hard link to the input's (`link_or_copy`; a stale weather file of an earlier run with
+    more sweeps or samples is replaced, its weather record removed), then the ``<version>/`` tables and ``maps/`` the
+    same way (last, so the copy loads only once complete); files no table lists (an earlier input's) are removed.
+    Scans left clear have no weather record (`read_weather_record` gives their identity record).
+
+    Returns ``{"linked": n, "copied": m, "removed": k}``: files completed now (copied where links were refused) and
+    stale files removed.
+    """
     src_root, out_root = Path(src_root), Path(out_root)
     for leftover in out_root.rglob(".*.tmp"):  # temporaries of writes a killed run never renamed
         if leftover.is_file():
             leftover.unlink()
-    copied = 0
+    done = {"linked": 0, "copied": 0, "removed": 0}
+
+    def remove(rel: str) -> None:
+        if (out_root / rel).is_file():
+            (out_root / rel).unlink()
+            done["removed"] += 1
+
+    def complete(rel: str) -> None:
+        src, dst = src_root / rel, out_root / rel
+        if not src.is_file():
+            remove(rel)
+            return
+        if dst.is_file() and os.path.samefile(src, dst):
+            return
+        if dst.is_file() and rel not in written:
+            dst.unlink()  # a weather file of an earlier run, or a copy made where links were refused
+        done["copied" if link_or_copy(src, dst) else "linked"] += 1
+
+    expected = set(written)
     for sd in nusc.sample_data:
-        rels = [sd["filename"]]
-        if not sd["filename"].split("/")[1].startswith("CAM"):
-            rels.append(extras_relpath(sd["filename"]))
-        for rel in rels:
-            src, dst = src_root / rel, out_root / rel
-            if src.is_file() and not dst.is_file():
-                _copy_file(src, dst)
-                copied += 1
-        label_file = out_root / weather_relpath(sd["filename"])
-        if sd["sensor_modality"] == "lidar" and not label_file.is_file():
-            # a scan left clear (sweeps by default, samples beyond ``max_samples``): identity labels, so every
-            # scan of the copy has its record
-            n = (out_root / sd["filename"]).stat().st_size // 20
-            rec = np.zeros(n, dtype=WEATHER_DTYPE)
-            rec["particle_id"], rec["source_index"] = -1, np.arange(n)
-            atomic.save_npy(label_file, rec)
+        rel = sd["filename"]
+        if rel in written:
+            continue
+        if sd["sensor_modality"] == "lidar":
+            remove(weather_relpath(rel))
+            complete(extras_relpath(rel))
+            complete(compressed_extras_relpath(rel))
+            expected |= {extras_relpath(rel), compressed_extras_relpath(rel)}
+        complete(rel)
+        expected.add(rel)
     for top in ("maps", version):
         for src in sorted((src_root / top).rglob("*")):
             if src.is_file():
-                dst = out_root / src.relative_to(src_root)
-                if not (dst.is_file() and dst.read_bytes() == src.read_bytes()):
-                    _copy_file(src, dst)
-                    copied += 1
-    return copied
+                complete(str(src.relative_to(src_root)))
+                expected.add(str(src.relative_to(src_root)))
+    for path in sorted(out_root.rglob("*")):  # files of an earlier input no table lists any more
+        if path.is_file() and str(path.relative_to(out_root)) not in expected:
+            path.unlink()
+            done["removed"] += 1
+    return done
 
 
 def summarise(records: list[dict]) -> dict:
@@ -251,9 +369,15 @@ def summarise(records: list[dict]) -> dict:
         "sweep_points_scattered": sum(r.get("sweep_counts", {}).get("SCATTERED", 0)
                                       + r.get("sweep_counts", {}).get("CLUTTER", 0) for r in records),
         "sweep_points_lost": sum(r.get("sweep_counts", {}).get("LOST", 0) for r in records),
+        "sweeps_simulated": max((r.get("sweeps_simulated", 0) for r in records), default=0),
         "seconds_per_sample": round(float(np.mean([r["seconds"] for r in records])), 3) if records else None,
+        "cpu_seconds_per_sample": round(float(np.mean([r.get("cpu_seconds", np.nan) for r in records])), 3)
+        if records else None,
+        "bytes_written_per_sample": round(float(np.mean([r.get("bytes_written", 0) for r in records]))) if records
+        else None,
     }
 
 
-__all__ = ["DEPTH_SWEEPS", "WEATHER_DTYPE", "WEATHER_MATERIAL", "copy_fingerprint", "finalize_copy", "run_sample",
-           "summarise", "sweep_records", "weather_relpath", "write_sample", "write_scan"]
+__all__ = ["DEPTH_SWEEPS", "JPEG_SUBSAMPLING", "WEATHER_MATERIAL", "DatasetRef", "copy_fingerprint", "copy_outputs",
+           "finalize_copy", "link_or_copy", "read_weather_record", "run_chunk", "run_sample", "smallest_int_dtype",
+           "summarise", "sweep_records", "weather_relpath", "weather_sweeps", "write_sample", "write_scan"]

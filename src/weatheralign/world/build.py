@@ -1,17 +1,19 @@
 """Rendering of whole samples of the synthetic world: sensor files written into a nuScenes-style dataroot plus the
-records the table writer needs. A sample is self-contained (its scene is regenerated from the seed), so samples can
-be rendered in any order, in parallel, on other machines, and skipped when already done."""
+records the table writer needs. A sample is self-contained (its scene is regenerated from the seed; a process keeps
+its last scenes, `scene_caster`), so samples can be rendered in any order, in parallel, on other machines, and skipped
+when already done."""
 
 from __future__ import annotations
 
 import hashlib
 import io
 import json
+import threading
+from collections import OrderedDict
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-import open3d as o3d
 from numpy.typing import NDArray
 from PIL import Image
 
@@ -20,9 +22,10 @@ from weatheralign.config import WorldConfig
 from weatheralign.data.nuscenes import extras_relpath
 from weatheralign.geometry import apply, invert, project, quaternion_wxyz
 from weatheralign.world.layout import Actor, SceneLayout, generate_layout
-from weatheralign.world.raycast import WorldRaycaster, cast_rays, scene_of_mesh
-from weatheralign.world.render import CameraFrame, LidarSweep, render_camera, render_lidar_sweep
-from weatheralign.sensors import lidar_model_from_params
+from weatheralign.world.raster import pinhole_depth
+from weatheralign.world.raycast import WorldRaycaster
+from weatheralign.world.render import CameraFrame, LidarSweep, render_camera, render_lidar_sweep, to_float16
+from weatheralign.sensors import FiringPattern, lidar_model_from_params
 from weatheralign.world.rig import Camera, camera_time_offset, make_cameras
 
 SWEEP_PERIOD_US = 50_000
@@ -167,19 +170,22 @@ def write_sweep(dataroot: Path, filename: str, sweep: LidarSweep) -> None:
     atomic.save_npy(dataroot / extras_relpath(filename), extras)
 
 
+JPEG_SUBSAMPLING = "4:2:0"  # chroma subsampling of the camera JPEGs, as nuScenes' own
+
+
 def write_camera(dataroot: Path, filename: str, frame: CameraFrame, quality: int) -> None:
-    """The image (``filename``, JPEG at ``quality``, no chroma subsampling) and its range map (float16 .npy)."""
+    """The image (``filename``, baseline JPEG at ``quality`` with 4:2:0 chroma subsampling, as nuScenes' cameras)
+    and its exact range map (float16 .npy, uncompressed: later stages memory-map it)."""
     buf = io.BytesIO()
-    Image.fromarray(frame.image).save(buf, format="JPEG", quality=quality, subsampling=0)
+    Image.fromarray(frame.image).save(buf, format="JPEG", quality=quality, subsampling=JPEG_SUBSAMPLING)
     atomic.write_bytes(dataroot / filename, buf.getvalue())
-    atomic.save_npy(dataroot / extras_relpath(filename), frame.range.astype(np.float16))
+    atomic.save_npy(dataroot / extras_relpath(filename), to_float16(frame.range))
 
 
-def visible_fraction(layout: SceneLayout, actor: Actor, actor_scene: o3d.t.geometry.RaycastingScene, camera: Camera,
-                     frame: CameraFrame) -> tuple[int, int]:
+def visible_fraction(layout: SceneLayout, actor: Actor, camera: Camera, frame: CameraFrame) -> tuple[int, int]:
     """(visible, unoccluded) pixel counts of ``actor`` in one camera on a stride-4 pixel grid: pixels where the actor
-    is the nearest surface vs pixels its mesh (``actor_scene``: `scene_of_mesh` of it, body frame) covers when nothing
-    else exists."""
+    is the nearest surface vs pixels its mesh covers when nothing else exists (the pixel rays of that grid tested
+    against the actor's triangles alone, by the camera's exact rasteriser `raster.pinhole_depth`)."""
     T_global_cam = layout.T_global_ego(frame.timestamp) @ camera.T_ego_cam
     T_cam_body = invert(T_global_cam) @ actor.T_global_body(frame.timestamp)
     corners = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (0, 1)], float)
@@ -197,16 +203,15 @@ def visible_fraction(layout: SceneLayout, actor: Actor, actor_scene: o3d.t.geome
     u1, v1 = min(u1, camera.width), min(v1, camera.height)
     if u0 >= u1 or v0 >= v1:
         return 0, 0
-    us, vs = np.meshgrid(np.arange(u0, u1, VISIBILITY_STRIDE), np.arange(v0, v1, VISIBILITY_STRIDE))
-    us, vs = us.ravel(), vs.ravel()
-    visible = int((frame.instance[vs, us] == actor.instance).sum())
-    d = np.stack([(us - camera.K[0, 2]) / camera.K[0, 0], (vs - camera.K[1, 2]) / camera.K[1, 1],
-                  np.ones(len(us))], 1)
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    T_body_cam = invert(T_cam_body)
-    o = np.broadcast_to(T_body_cam[:3, 3], d.shape)
-    t, _, _ = cast_rays(actor_scene, o, d @ T_body_cam[:3, :3].T)
-    return visible, int(np.isfinite(t).sum())
+    us, vs = np.arange(u0, u1, VISIBILITY_STRIDE), np.arange(v0, v1, VISIBILITY_STRIDE)
+    visible = int((frame.instance[np.ix_(vs, us)] == actor.instance).sum())
+    # the grid's pixels as a camera of their own: pixel (i, j) is (u0 + 4 i, v0 + 4 j) of the full image
+    K = camera.K
+    K_grid = np.array([[K[0, 0] / VISIBILITY_STRIDE, 0.0, (K[0, 2] - u0) / VISIBILITY_STRIDE],
+                       [0.0, K[1, 1] / VISIBILITY_STRIDE, (K[1, 2] - v0) / VISIBILITY_STRIDE], [0.0, 0.0, 1.0]])
+    _, tri = pinhole_depth(apply(T_cam_body, actor.mesh.vertices), actor.mesh.triangles.astype(np.int64), K_grid,
+                           len(us), len(vs))
+    return visible, int((tri >= 0).sum())
 
 
 def visibility_token(visible: int, unoccluded: int) -> int:
@@ -215,13 +220,54 @@ def visibility_token(visible: int, unoccluded: int) -> int:
     return 1 + int(frac > 0.4) + int(frac > 0.6) + int(frac > 0.8)
 
 
+SCENE_CACHE_SIZE = 2
+"""Scenes whose ray caster a process keeps for its next samples (`scene_caster`)."""
+_scene_cache: OrderedDict[tuple, WorldRaycaster] = OrderedDict()
+_pattern_cache: dict[str, FiringPattern] = {}
+_cache_lock = threading.Lock()
+
+
+def scene_caster(spec: SceneSpec, cfg: WorldConfig, nthreads: int = 0) -> WorldRaycaster:
+    """The `WorldRaycaster` of ``spec``'s layout. The process keeps the last `SCENE_CACHE_SIZE` scenes' casters
+    (layout, BVHs, triangle tables, the static sun grid once built), so a worker rendering consecutive samples of a
+    scene generates it once instead of once per sample; a caster is safe to share between threads (read only after
+    construction)."""
+    key = (spec, scene_duration_s(cfg), cfg.ego_speed_min, cfg.ego_speed_max, nthreads)
+    with _cache_lock:
+        caster = _scene_cache.get(key)
+        if caster is not None:
+            _scene_cache.move_to_end(key)
+            return caster
+    caster = WorldRaycaster(spec.layout(cfg), nthreads=nthreads)
+    with _cache_lock:
+        caster = _scene_cache.setdefault(key, caster)
+        _scene_cache.move_to_end(key)
+        while len(_scene_cache) > SCENE_CACHE_SIZE:
+            _scene_cache.popitem(last=False)
+    return caster
+
+
+def firing_pattern(cfg: WorldConfig) -> FiringPattern:
+    """The LiDAR's `FiringPattern` (kept per LiDAR config)."""
+    key = cfg.lidar.model_dump_json()
+    with _cache_lock:
+        pattern = _pattern_cache.get(key)
+    if pattern is None:
+        pattern = lidar_model_from_params(cfg.lidar).firing_pattern()
+        for array in (pattern.directions, pattern.ring, pattern.column, pattern.time_offsets, pattern.elevations_deg):
+            array.flags.writeable = False  # shared by every sample of the process
+        with _cache_lock:
+            _pattern_cache[key] = pattern
+    return pattern
+
+
 def render_sample(spec: SceneSpec, sample_index: int, cfg: WorldConfig, dataroot: Path,
                   nthreads: int = 0) -> SampleResult:
     """Render keyframe ``sample_index`` of scene ``spec``: its preceding LiDAR sweeps, the keyframe sweep, the six
     cameras and the annotations; write the files under ``dataroot``; return the records."""
-    layout = spec.layout(cfg)
-    caster = WorldRaycaster(layout, nthreads=nthreads)
-    pattern = lidar_model_from_params(cfg.lidar).firing_pattern()
+    caster = scene_caster(spec, cfg, nthreads)
+    layout = caster.layout
+    pattern = firing_pattern(cfg)
     t_key = keyframe_time_us(spec, cfg, sample_index)
     lidar_records: list[SensorRecord] = []
     key_sweep: LidarSweep | None = None
@@ -250,13 +296,15 @@ def render_sample(spec: SceneSpec, sample_index: int, cfg: WorldConfig, dataroot
         camera_records.append(SensorRecord(cam.channel, t_us, fname, True, cam.width, cam.height, tr, rot))
         frames.append((cam, frame))
 
-    annotations = annotate(layout, key_sweep, frames, t_key * 1e-6, nthreads)
+    annotations = annotate(caster, key_sweep, frames, t_key * 1e-6)
     return SampleResult(spec.index, sample_index, t_key, lidar_records, camera_records, annotations)
 
 
-def annotate(layout: SceneLayout, key_sweep: LidarSweep, frames: list[tuple[Camera, CameraFrame]], t_key: float,
-             nthreads: int) -> list[AnnotationRecord]:
-    """Boxes of the actors near the ego at keyframe time ``t_key`` [s] that at least one sensor observes."""
+def annotate(caster: WorldRaycaster, key_sweep: LidarSweep, frames: list[tuple[Camera, CameraFrame]],
+             t_key: float) -> list[AnnotationRecord]:
+    """Boxes of the actors near the ego at keyframe time ``t_key`` [s] that at least one sensor observes (the scene
+    of ``caster``)."""
+    layout = caster.layout
     ego_xy = layout.T_global_ego(t_key)[:2, 3]
     counts = np.bincount(key_sweep.instance, minlength=len(layout.actors) + 1)
     out = []
@@ -265,9 +313,8 @@ def annotate(layout: SceneLayout, key_sweep: LidarSweep, frames: list[tuple[Came
         if np.hypot(*(centre[:2] - ego_xy)) > ANNOTATION_RADIUS_M:
             continue
         visible = unoccluded = 0
-        scene = scene_of_mesh(actor.mesh, nthreads)
         for cam, frame in frames:
-            v, u = visible_fraction(layout, actor, scene, cam, frame)
+            v, u = visible_fraction(layout, actor, cam, frame)
             visible, unoccluded = visible + v, unoccluded + u
         n_pts = int(counts[actor.instance])
         if n_pts == 0 and visible == 0:

@@ -125,7 +125,8 @@ def finalize(cfg: WorldConfig, dataroot: Path, results: Sequence[SampleResult]) 
     for spec in specs:
         layout = spec.layout(cfg)
         r = layout.road
-        roads.append(RoadFootprint(layout.T_global_scene, r.road_half_width, r.crossing_x, r.crossing_half_width))
+        roads.append(RoadFootprint(layout.T_global_scene, r.road_half_width, r.crossing_x, r.crossing_half_width,
+                                   r.x_extent))
     splits = {"weatheralign_train": [s.name for s in specs if s.split == "train"],
               "weatheralign_val": [s.name for s in specs if s.split == "val"]}
     write_dataset_tables(dataroot, cfg.version, tables, splits, roads)

@@ -2,7 +2,13 @@
 cross street, and road users with nuScenes categories, realistic sizes and constant velocities.
 
 Everything is generated in a scene frame (road along +x, ego starting at x = 0 in the first right-hand lane) and
-placed in the global frame by ``T_global_scene``. Road users never overlap each other or the ego during the scene.
+placed in the global frame by ``T_global_scene``. The street is built for the whole drive (``ego_speed * duration``
+metres, 240 m for 20 s at 12 m/s): ground and sidewalks wherever a road user ever is, buildings and street furniture
+from well behind the start to well beyond the end (`static_extent`), the cross street somewhere along the drive. Road users are placed with a uniform density within the window around the ego (`USERS_BEHIND_M`
+behind to `USERS_AHEAD_M` ahead) at every time of the scene: each moving user's start position is drawn from the
+interval of starts that bring it into that window at some time, so none appears from nowhere near the ego. Road users
+never overlap each other, the street furniture or the ego at any time of the scene (an exact test of their
+constant-velocity footprints over the whole continuous duration, not a sampled one).
 """
 
 from __future__ import annotations
@@ -22,7 +28,13 @@ F64 = NDArray[np.float64]
 LANE_WIDTH = 3.5
 PARKING_WIDTH = 2.5
 CURB_HEIGHT = 0.15
-SCENE_X_RANGE = (-90.0, 150.0)  # where road users are placed, scene frame [m]
+USERS_BEHIND_M = 100.0  # road users are placed within this distance behind the ego (the LiDAR's range) ...
+USERS_AHEAD_M = 150.0  # ... and this far ahead of it, at every time of the scene [m]
+STATIC_BEHIND_M = (320.0, 260.0, 200.0)  # ground + sidewalks, buildings, furniture: from this far behind the start
+STATIC_AHEAD_M = (380.0, 320.0, 260.0)  # ... to at least this far ahead of the start ...
+STATIC_BEYOND_M = (360.0, 300.0, 240.0)  # ... and this far beyond the end of the drive [m]
+MAX_TRAFFIC_SPEED = 13.0  # fastest road user [m/s] (vehicles in a lane: 3..13 m/s; cyclists, pedestrians slower)
+PLACEMENT_TRIES = 4  # positions tried per road user before it is left out (occupied elsewhere at some time)
 
 CAR_COLOURS: tuple[RGB, ...] = ((0.6, 0.6, 0.62), (0.05, 0.05, 0.06), (0.8, 0.8, 0.8), (0.35, 0.02, 0.02),
                                 (0.05, 0.1, 0.3), (0.25, 0.27, 0.3), (0.5, 0.45, 0.35), (0.7, 0.7, 0.75),
@@ -70,13 +82,18 @@ class Actor:
 
 @dataclass(frozen=True)
 class RoadGeometry:
-    """Scene-frame description of the street used by procedural textures and the map."""
+    """Scene-frame description of the street used by procedural textures and the map: lanes per direction, half
+    width of the road (lanes + parking) and sidewalk width [m], the cross street's centre x and half width [m] (None:
+    no cross street); ``x_extent`` (x_min, x_max) [m] of ground, road and sidewalks (`street_extent`) and
+    ``built_extent`` of the buildings along the street."""
 
     lanes_per_direction: int
     road_half_width: float
     sidewalk_width: float
     crossing_x: float | None
     crossing_half_width: float
+    x_extent: tuple[float, float] = (-320.0, 380.0)
+    built_extent: tuple[float, float] = (-260.0, 320.0)
 
 
 @dataclass(frozen=True)
@@ -118,23 +135,73 @@ class SceneLayout:
 
 @dataclass
 class _Occupancy:
-    """Axis-aligned scene-frame footprints of placed road users over time, for rejection sampling."""
+    """Axis-aligned scene-frame footprints of placed road users, each moving at constant velocity, for rejection
+    sampling over the continuous scene time [0, ``duration``] (exact: no two footprints overlap at any instant).
 
-    times: F64
-    boxes: list[F64] = field(default_factory=list)  # each (T, 4): xmin, xmax, ymin, ymax per time
+    A footprint is a row (x, y, vx, vy, half_x, half_y): centre at t = 0 [m], velocity [m/s], half extents [m]."""
 
-    def footprint(self, x: float, y: float, vx: float, vy: float, half_l: float, half_w: float) -> F64:
-        cx = x + vx * self.times
-        cy = y + vy * self.times
-        return np.stack([cx - half_l, cx + half_l, cy - half_w, cy + half_w], 1)
+    duration: float
+    rows: F64 = field(default_factory=lambda: np.zeros((0, 6)))
+
+    @staticmethod
+    def footprint(x: float, y: float, vx: float, vy: float, half_x: float, half_y: float) -> F64:
+        return np.array([x, y, vx, vy, half_x, half_y], np.float64)
 
     def free(self, fp: F64) -> bool:
-        for other in self.boxes:
-            overlap = (fp[:, 0] < other[:, 1]) & (other[:, 0] < fp[:, 1]) & (fp[:, 2] < other[:, 3]) & (
-                other[:, 2] < fp[:, 3])
-            if overlap.any():
-                return False
-        return True
+        """Whether ``fp`` overlaps no placed footprint at any time in [0, duration]. Per axis, the centres' relative
+        offset ``d0 + dv t`` is within the summed half extents on an open time interval; the footprints overlap when
+        both axes' intervals and [0, duration] intersect in more than a point."""
+        if not len(self.rows):
+            return True
+        lo = np.zeros(len(self.rows))
+        hi = np.full(len(self.rows), self.duration)
+        for axis in (0, 1):
+            d0 = fp[axis] - self.rows[:, axis]
+            dv = fp[2 + axis] - self.rows[:, 2 + axis]
+            reach = fp[4 + axis] + self.rows[:, 4 + axis]
+            moving = dv != 0.0
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t0 = np.where(moving, (-reach - d0) / dv, -np.inf)
+                t1 = np.where(moving, (reach - d0) / dv, np.inf)
+            still_apart = ~moving & (np.abs(d0) >= reach)
+            lo = np.maximum(lo, np.minimum(t0, t1))
+            hi = np.minimum(hi, np.where(still_apart, -np.inf, np.maximum(t0, t1)))
+        return not bool(np.any(lo < hi))
+
+    def add(self, fp: F64) -> None:
+        self.rows = np.vstack([self.rows, fp[None]])
+
+
+def box_half_extents(size: tuple[float, float, float], yaw: float) -> tuple[float, float]:
+    """Half extents (along x, along y) [m] of the axis-aligned bounds of a box of ``size`` (width, length, height)
+    turned by ``yaw`` about z (length along the body x)."""
+    c, s = abs(np.cos(yaw)), abs(np.sin(yaw))
+    return c * size[1] / 2 + s * size[0] / 2, s * size[1] / 2 + c * size[0] / 2
+
+
+def start_interval(vx: float, ego_speed: float, duration: float) -> tuple[float, float]:
+    """Scene-frame x [m] at t = 0 of the road users moving along the street at ``vx`` [m/s] that are within the window
+    from `USERS_BEHIND_M` behind to `USERS_AHEAD_M` ahead of the ego at some time in [0, ``duration``] (the ego at
+    ``ego_speed`` from x = 0): drawn uniformly from it, users of that velocity fill the window uniformly at all
+    times."""
+    drift = (vx - ego_speed) * duration  # how far such a user moves relative to the ego during the scene
+    return -USERS_BEHIND_M - max(drift, 0.0), USERS_AHEAD_M - min(drift, 0.0)
+
+
+def static_extent(kind: int, ego_speed: float, duration: float) -> tuple[float, float]:
+    """Scene-frame x range [m] of the static world's part ``kind`` (0: ground and sidewalks, 1: buildings, 2: street
+    furniture): from `STATIC_BEHIND_M` behind the start to `STATIC_AHEAD_M` ahead of it or `STATIC_BEYOND_M` beyond
+    the end of the drive, whichever is farther (a short scene keeps the street of the first 6-keyframe scenes)."""
+    return -STATIC_BEHIND_M[kind], max(STATIC_AHEAD_M[kind], ego_speed * duration + STATIC_BEYOND_M[kind])
+
+
+def street_extent(ego_speed: float, duration: float) -> tuple[float, float]:
+    """Scene-frame x range [m] of ground and sidewalks: `static_extent` 0, and 30 m beyond every position of any road
+    user during the scene (placed by `start_interval`, at most `MAX_TRAFFIC_SPEED` either way)."""
+    lo, hi = static_extent(0, ego_speed, duration)
+    lo = min(lo, -USERS_BEHIND_M - MAX_TRAFFIC_SPEED * duration - 30.0)
+    hi = max(hi, start_interval(-MAX_TRAFFIC_SPEED, ego_speed, duration)[1] + 30.0)
+    return float(np.floor(lo)), float(np.ceil(hi))
 
 
 def _pick(rng: np.random.Generator, options: tuple) -> object:
@@ -167,11 +234,13 @@ def _person(rng: np.random.Generator, walking: bool) -> tuple[tuple[float, float
     return size, mesh
 
 
-def _static_world(rng: np.random.Generator, road: RoadGeometry) -> tuple[list[Mesh], list[tuple[float, float]]]:
-    """Ground, sidewalks with curbs, buildings, trees, lamps and signs in the scene frame; also the (x, y) of the
-    street furniture, which road users must keep clear of."""
+def _static_world(rng: np.random.Generator, road: RoadGeometry,
+                  furniture_extent: tuple[float, float]) -> tuple[list[Mesh], list[tuple[float, float]]]:
+    """Ground, sidewalks with curbs (over ``road.x_extent``), buildings (over ``road.built_extent``), trees, lamps and
+    signs (over ``furniture_extent``) in the scene frame; also the (x, y) of the street furniture, which road users
+    must keep clear of."""
     W, sw = road.road_half_width, road.sidewalk_width
-    x_lo, x_hi = -320.0, 380.0
+    x_lo, x_hi = road.x_extent
     parts = [box(x_lo, x_hi, -400, 400, -1.0, 0.0, M.ROAD, (0.16, 0.16, 0.17), 0.12)]
     furniture: list[tuple[float, float]] = []
     gaps: list[tuple[float, float]] = []
@@ -194,7 +263,7 @@ def _static_world(rng: np.random.Generator, road: RoadGeometry) -> tuple[list[Me
             parts.append(box(s0, s1, min(y_in, y_out), max(y_in, y_out), -1.0, CURB_HEIGHT, M.CURB,
                              (0.5, 0.5, 0.48), 0.35, top=(M.SIDEWALK, (0.42, 0.41, 0.39), 0.3)))
         # buildings: a row of blocks behind the sidewalk
-        for s0, s1 in segments(-260.0, 320.0):
+        for s0, s1 in segments(*road.built_extent):
             x = s0 + rng.uniform(0, 4)
             while x < s1 - 6:
                 width = min(rng.uniform(8, 26), s1 - x)
@@ -207,7 +276,7 @@ def _static_world(rng: np.random.Generator, road: RoadGeometry) -> tuple[list[Me
                                               _pick(rng, FACADES)))
                 x += width + (rng.uniform(0, 1.5) if rng.random() < 0.75 else rng.uniform(4, 10))
         # street furniture near the curb
-        for s0, s1 in segments(-200.0, 260.0):
+        for s0, s1 in segments(*furniture_extent):
             x = s0 + rng.uniform(2, 8)
             while x < s1 - 2:
                 y = side * (W + 0.75)
@@ -226,43 +295,65 @@ def _static_world(rng: np.random.Generator, road: RoadGeometry) -> tuple[list[Me
     return parts, furniture
 
 
+EGO_LENGTH, EGO_WIDTH = 4.9, 2.0  # the ego's footprint [m] (kept clear of road users with margins)
+COUNT_WINDOW_M = 240.0  # road-user counts are drawn per this length of their start interval [m]
+
+
+def _count(rng: np.random.Generator, low: int, high: int, length: float) -> int:
+    """A count drawn in [low, high) per `COUNT_WINDOW_M`, scaled to ``length`` [m] (a density along the street)."""
+    return int(round(int(rng.integers(low, high)) * length / COUNT_WINDOW_M))
+
+
 def generate_layout(name: str, seed: int, t_start: float, duration: float, ego_speed_range: tuple[float, float],
                     origin: F64, heading: float) -> SceneLayout:
-    """A procedural scene from ``seed``.
+    """A procedural scene from ``seed``, built for the ego's whole drive.
 
     Args:
-        t_start: time [s] at which the ego is at x = 0; ``duration`` [s] the time span the scene must cover.
+        t_start: time [s] at which the ego is at x = 0; ``duration`` [s] the time span the scene must cover: the street
+            reaches far beyond the drive, road users fill the window around the ego at every time of it, and none
+            overlap during ``[t_start, t_start + duration]``.
         origin: (2,) global position [m] of the scene frame origin; ``heading``: road direction in global [rad].
     """
     rng = np.random.default_rng(seed)
     lanes = int(rng.integers(1, 3))
     parking = bool(rng.random() < 0.65)
     W = lanes * LANE_WIDTH + (PARKING_WIDTH if parking else 0.0)
-    crossing = float(rng.uniform(25, 80)) if rng.random() < 0.6 else None
-    road = RoadGeometry(lanes, W, float(rng.uniform(3.0, 5.0)), crossing, 7.5)
+    crossing_at = float(rng.random()) if rng.random() < 0.6 else None  # where along the drive, 0..1
+    sidewalk = float(rng.uniform(3.0, 5.0))
     ego_speed = float(rng.uniform(*ego_speed_range))
+    drive = ego_speed * duration
+    # the cross street 25 m .. (40 m beyond the end of the drive or 80 m, whichever is farther) ahead of the start
+    crossing = None if crossing_at is None else 25.0 + (max(80.0, drive + 40.0) - 25.0) * crossing_at
+    road = RoadGeometry(lanes, W, sidewalk, crossing, 7.5, street_extent(ego_speed, duration),
+                        static_extent(1, ego_speed, duration))
+    sw = road.sidewalk_width
     ego_lane_y = -LANE_WIDTH / 2
     T_global_scene = make_transform(yaw_matrix(heading), np.array([origin[0], origin[1], 0.0]))
 
-    static_parts, furniture = _static_world(rng, road)
-    times = np.linspace(0.0, duration, 25)
-    occ = _Occupancy(times)
+    static_parts, furniture = _static_world(rng, road, static_extent(2, ego_speed, duration))
+    occ = _Occupancy(duration)
     for fx, fy in furniture:  # trunks, posts (lamp heads and crowns overhang above head height)
-        occ.boxes.append(occ.footprint(fx, fy, 0.0, 0.0, 0.35, 0.35))
-    ego_len, ego_w = 4.9, 2.0
-    occ.boxes.append(occ.footprint(0.0, ego_lane_y, ego_speed, 0.0, ego_len / 2 + 1.5, ego_w / 2 + 0.3))
+        occ.add(occ.footprint(fx, fy, 0.0, 0.0, 0.35, 0.35))
+    if crossing is not None:  # no sidewalk across the cross street: nobody stands or walks there
+        for side in (-1.0, 1.0):
+            occ.add(occ.footprint(crossing, side * (W + sw / 2), 0.0, 0.0, road.crossing_half_width, sw / 2))
+    occ.add(occ.footprint(0.0, ego_lane_y, ego_speed, 0.0, EGO_LENGTH / 2 + 1.5, EGO_WIDTH / 2 + 0.3))
 
     actors: list[Actor] = []
     R_scene = T_global_scene[:3, :3]
 
-    def add(category: str, attribute: str, size: tuple[float, float, float], mesh: Mesh, x: float, y: float,
-            z: float, yaw: float, vx: float, vy: float, margin: float) -> bool:
-        half_l = size[1] / 2 if abs(np.sin(yaw)) < 1e-6 else max(size[:2]) / 2
-        half_w = size[0] / 2 if abs(np.sin(yaw)) < 1e-6 else max(size[:2]) / 2
-        fp = occ.footprint(x, y, vx, vy, half_l + margin, half_w + margin * 0.3)
-        if not occ.free(fp):
+    def add(category: str, attribute: str, size: tuple[float, float, float], mesh: Mesh, xs: list[float], y: float,
+            z: float, yaw: float, vx: float, vy: float, margin: float, lateral: float) -> bool:
+        """Place the road user at the first free start x of ``xs`` (scene frame, t = 0), its footprint grown by
+        ``margin`` along x and ``lateral`` along y [m]."""
+        half_x, half_y = box_half_extents(size, yaw)
+        for x in xs:
+            fp = occ.footprint(x, y, vx, vy, half_x + margin, half_y + lateral)
+            if occ.free(fp):
+                break
+        else:
             return False
-        occ.boxes.append(fp)
+        occ.add(fp)
         instance = len(actors) + 1
         pos = (T_global_scene @ np.array([x, y, z, 1.0]))[:3]
         vel = R_scene @ np.array([vx, vy, 0.0])
@@ -270,90 +361,118 @@ def generate_layout(name: str, seed: int, t_start: float, duration: float, ego_s
                             t_start, mesh.with_instance(instance)))
         return True
 
-    x_lo, x_hi = SCENE_X_RANGE
-    # moving and stopped traffic, per lane
+    def starts(vx: float, first: float | None = None) -> list[float]:
+        """`PLACEMENT_TRIES` start positions for a user moving at ``vx``: ``first`` (when given), then uniform draws
+        from its `start_interval`."""
+        lo, hi = start_interval(vx, ego_speed, duration)
+        xs = [] if first is None else [first]
+        return xs + [float(rng.uniform(lo, hi)) for _ in range(PLACEMENT_TRIES - len(xs))]
+
+    def union_start(vx_min: float, vx_max: float, count: tuple[int, int]) -> tuple[int, float, float]:
+        """For users drawing their own velocity in [vx_min, vx_max] (along x): how many to draw (``count`` per
+        `COUNT_WINDOW_M` of the union) and the union of their start intervals. A user's first start is drawn from the
+        union and the user is left out unless it lies in its own interval, so every velocity fills the window with the
+        same density."""
+        lo, hi = start_interval(vx_max, ego_speed, duration)[0], start_interval(vx_min, ego_speed, duration)[1]
+        return _count(rng, *count, hi - lo), lo, hi
+
+    def within(x: float, vx: float) -> bool:
+        lo, hi = start_interval(vx, ego_speed, duration)
+        return lo <= x <= hi
+
+    # moving and stopped traffic, per lane (one speed per lane)
     for direction in (1.0, -1.0):
         for k in range(lanes):
             y = direction * -(LANE_WIDTH / 2 + k * LANE_WIDTH)
             is_ego_lane = direction > 0 and k == 0
-            speed = ego_speed if is_ego_lane else float(rng.uniform(3.0, 13.0))
+            speed = ego_speed if is_ego_lane else float(rng.uniform(3.0, MAX_TRAFFIC_SPEED))
             if not is_ego_lane and rng.random() < 0.15:
                 speed = 0.0
-            for _ in range(int(rng.integers(3, 8))):
+            lo, hi = start_interval(direction * speed, ego_speed, duration)
+            for _ in range(_count(rng, 3, 8, hi - lo)):
                 kind = _pick(rng, ("car",) * 14 + ("truck",) * 2 + ("bus",) + ("motorcycle",))
                 if k == lanes - 1 and kind in ("truck", "bus") and lanes > 1:
                     kind = "car"
                 category, size, mesh = _vehicle(rng, kind)
-                x = float(rng.uniform(x_lo, x_hi))
                 attribute = "vehicle.moving" if speed > 0 else "vehicle.stopped"
                 if category == "vehicle.motorcycle":
                     attribute = "cycle.with_rider"
                 yaw = 0.0 if direction > 0 else np.pi
-                add(category, attribute, size, mesh, x, y, 0.0, yaw, direction * speed, 0.0, margin=2.0)
-    # cyclists close to the outer edge of each direction
+                add(category, attribute, size, mesh, starts(direction * speed), y, 0.0, yaw, direction * speed, 0.0,
+                    margin=2.0, lateral=0.05)
+    # cyclists along the outer edge of each direction's lanes
     for direction in (1.0, -1.0):
-        for _ in range(int(rng.integers(0, 3))):
+        n, lo, hi = union_start(min(3.0 * direction, 6.5 * direction), max(3.0 * direction, 6.5 * direction), (0, 3))
+        for _ in range(n):
             size = (rng.uniform(0.55, 0.7), rng.uniform(1.65, 1.85), rng.uniform(1.6, 1.8))
+            vx = direction * float(rng.uniform(3.0, 6.5))
+            x0 = float(rng.uniform(lo, hi))
+            if not within(x0, vx):
+                continue
             rider = (_pick(rng, CLOTHES), _pick(rng, CLOTHES), _pick(rng, objects.SKIN_TONES))
             mesh = objects.bicycle(size, _pick(rng, CAR_COLOURS), rider)
-            y = direction * -(lanes * LANE_WIDTH - 0.55)
-            add("vehicle.bicycle", "cycle.with_rider", size, mesh, float(rng.uniform(x_lo, x_hi)), y, 0.0,
-                0.0 if direction > 0 else np.pi, direction * float(rng.uniform(3.0, 6.5)), 0.0, margin=1.0)
+            y = direction * -(lanes * LANE_WIDTH - 0.05 - size[0] / 2)
+            add("vehicle.bicycle", "cycle.with_rider", size, mesh, starts(vx, x0), y, 0.0,
+                0.0 if direction > 0 else np.pi, vx, 0.0, margin=1.0, lateral=0.25)
+    static_lo, static_hi = start_interval(0.0, ego_speed, duration)
     # parked cars
     if parking:
         for side in (-1.0, 1.0):
             y = side * (lanes * LANE_WIDTH + PARKING_WIDTH / 2)
-            x = x_lo + float(rng.uniform(0, 5))
-            while x < x_hi:
+            x = static_lo + float(rng.uniform(0, 5))
+            while x < static_hi:
                 category, size, mesh = _vehicle(rng, "car" if rng.random() < 0.92 else "truck")
                 x += size[1] / 2
                 if rng.random() < 0.7 and (crossing is None or abs(x - crossing) > road.crossing_half_width + 6):
-                    add(category, "vehicle.parked", size, mesh, x, y + side * 0.1, 0.0,
-                        0.0 if side < 0 else np.pi, 0.0, 0.0, margin=0.1)
+                    add(category, "vehicle.parked", size, mesh, [x], y + side * 0.1, 0.0,
+                        0.0 if side < 0 else np.pi, 0.0, 0.0, margin=0.1, lateral=0.03)
                 x += size[1] / 2 + float(rng.uniform(0.8, 6.0))
     # pedestrians on the sidewalks
-    for _ in range(int(rng.integers(8, 22))):
+    n, lo, hi = union_start(-1.7, 1.7, (8, 22))
+    for _ in range(n):
         side = 1.0 if rng.random() < 0.5 else -1.0
-        y = side * (W + rng.uniform(1.4, road.sidewalk_width - 0.4))
+        y = side * (W + rng.uniform(1.4, sw - 0.4))
         walking = rng.random() < 0.75
+        vx = (1.0 if rng.random() < 0.5 else -1.0) * float(rng.uniform(0.9, 1.7)) if walking else 0.0
+        x0 = float(rng.uniform(lo, hi))
+        if not within(x0, vx):
+            continue
         size, mesh = _person(rng, walking)
         if walking:
-            sign = 1.0 if rng.random() < 0.5 else -1.0
-            speed = float(rng.uniform(0.9, 1.7))
-            add("human.pedestrian.adult", "pedestrian.moving", size, mesh, float(rng.uniform(x_lo, x_hi)), y,
-                CURB_HEIGHT, 0.0 if sign > 0 else np.pi, sign * speed, 0.0, margin=0.3)
+            add("human.pedestrian.adult", "pedestrian.moving", size, mesh, starts(vx, x0), y, CURB_HEIGHT,
+                0.0 if vx > 0 else np.pi, vx, 0.0, margin=0.3, lateral=0.09)
         else:
-            add("human.pedestrian.adult", "pedestrian.standing", size, mesh, float(rng.uniform(x_lo, x_hi)), y,
-                CURB_HEIGHT, float(rng.uniform(-np.pi, np.pi)), 0.0, 0.0, margin=0.2)
+            add("human.pedestrian.adult", "pedestrian.standing", size, mesh, starts(0.0, x0), y, CURB_HEIGHT,
+                float(rng.uniform(-np.pi, np.pi)), 0.0, 0.0, margin=0.2, lateral=0.06)
     # people waiting at the crossing
     if crossing is not None:
         for _ in range(int(rng.integers(0, 4))):
             side = 1.0 if rng.random() < 0.5 else -1.0
             size, mesh = _person(rng, False)
             x = crossing + road.crossing_half_width + 2.0 * (1 if rng.random() < 0.5 else -1) + rng.uniform(-1.2, 1.2)
-            add("human.pedestrian.adult", "pedestrian.standing", size, mesh, x, side * (W + rng.uniform(0.5, 1.2)),
-                CURB_HEIGHT, -side * np.pi / 2, 0.0, 0.0, margin=0.1)
+            add("human.pedestrian.adult", "pedestrian.standing", size, mesh, [x], side * (W + rng.uniform(0.5, 1.2)),
+                CURB_HEIGHT, -side * np.pi / 2, 0.0, 0.0, margin=0.1, lateral=0.03)
     # parked bicycles
-    for _ in range(int(rng.integers(0, 4))):
+    for _ in range(_count(rng, 0, 4, static_hi - static_lo)):
         side = 1.0 if rng.random() < 0.5 else -1.0
         size = (rng.uniform(0.5, 0.65), rng.uniform(1.6, 1.8), rng.uniform(1.0, 1.15))
         mesh = objects.bicycle(size, _pick(rng, CAR_COLOURS), None)
-        add("vehicle.bicycle", "cycle.without_rider", size, mesh, float(rng.uniform(x_lo, x_hi)),
-            side * (W + road.sidewalk_width - 0.6), CURB_HEIGHT, 0.0, 0.0, 0.0, margin=0.1)
-    # a construction zone: cones along a line, barriers behind them
+        add("vehicle.bicycle", "cycle.without_rider", size, mesh, starts(0.0), side * (W + sw - 0.6), CURB_HEIGHT,
+            0.0, 0.0, 0.0, margin=0.1, lateral=0.03)
+    # a construction zone: cones along a line near the curb, barriers on the sidewalk behind them
     if rng.random() < 0.6:
         side = 1.0 if rng.random() < 0.5 else -1.0
-        y_line = side * (W - 0.6)  # on the road along the curb
-        x0 = float(rng.uniform(10, 90))
+        y_line = side * (W - 0.35)  # on the road along the curb
+        x0 = float(rng.uniform(10, drive + 90))
         for i in range(int(rng.integers(4, 10))):
             size = (rng.uniform(0.35, 0.45), rng.uniform(0.35, 0.45), rng.uniform(0.7, 1.0))
-            add("movable_object.trafficcone", "", size, objects.traffic_cone(size), x0 + 2.5 * i, y_line, 0.0,
-                float(rng.uniform(-np.pi, np.pi)), 0.0, 0.0, margin=0.0)
+            add("movable_object.trafficcone", "", size, objects.traffic_cone(size), [x0 + 2.5 * i], y_line, 0.0,
+                float(rng.uniform(-np.pi, np.pi)), 0.0, 0.0, margin=0.0, lateral=0.0)
         for i in range(int(rng.integers(1, 5))):
             size = (rng.uniform(2.0, 2.6), rng.uniform(0.45, 0.6), rng.uniform(0.8, 1.05))
             colour = (0.8, 0.8, 0.78) if rng.random() < 0.5 else (0.75, 0.15, 0.05)
-            add("movable_object.barrier", "", size, objects.barrier(size, colour),
-                x0 + 3.0 * i, side * (W + road.sidewalk_width * 0.5), CURB_HEIGHT, np.pi / 2, 0.0, 0.0, margin=0.0)
+            add("movable_object.barrier", "", size, objects.barrier(size, colour), [x0 + 3.0 * i],
+                side * (W + sw * 0.5), CURB_HEIGHT, np.pi / 2, 0.0, 0.0, margin=0.0, lateral=0.0)
 
     static_mesh = concat([p.transformed(R_scene, T_global_scene[:3, 3]) for p in static_parts]
                          + [a.mesh.transformed(yaw_matrix(a.yaw), a.position) for a in actors if not a.moving])

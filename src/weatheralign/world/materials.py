@@ -50,7 +50,7 @@ SPECULAR[Material.LAMP] = 0.2
 @njit(nogil=True, cache=True, inline="always")
 def wrap(x: float, period: float) -> float:
     """``x`` modulo ``period`` in [0, period] (floor-based; cheaper than the exact ``fmod``)."""
-    return x - period * np.floor(x / period)
+    return x - period * np.floor(x * (1.0 / period))
 
 
 @njit(nogil=True, cache=True, inline="always")
@@ -64,7 +64,8 @@ def _hash2(a: float, b: float) -> float:
 @njit(nogil=True, cache=True, inline="always")
 def value_noise(x: float, y: float, cell: float) -> float:
     """Smooth value noise in [0, 1) of a 2-D position (metres) with feature size ``cell`` metres."""
-    gx, gy = x / cell, y / cell
+    inv = 1.0 / cell
+    gx, gy = x * inv, y * inv
     ix, iy = np.floor(gx), np.floor(gy)
     fx, fy = gx - ix, gy - iy
     fx, fy = fx * fx * (3.0 - 2.0 * fx), fy * fy * (3.0 - 2.0 * fy)

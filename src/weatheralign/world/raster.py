@@ -68,15 +68,59 @@ def _span(lo: float, hi: float, w: Vec3, s: float, dy: float, fx: float, cx: flo
     return (lo, hi) if beta >= -slack else (1.0, 0.0)
 
 
+TALL_BOX_ROWS = 8  # triangles whose image box is taller than this have their rows bound by `_row_range` first
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _clip_polygon(us: NDArray, vs: NDArray, m: int, w: Vec3, s: float, fx: float, fy: float, cx: float, cy: float,
+                  out_u: NDArray, out_v: NDArray) -> int:
+    """Clip the convex pixel-space polygon ``us[:m], vs[:m]`` to the half-plane where the edge function
+    ``s w . ((u - cx) / fx, (v - cy) / fy, 1)`` is >= 0 (Sutherland-Hodgman); returns the vertex count written to
+    ``out_u``, ``out_v``."""
+    n = 0
+    for i in range(m):
+        j = i + 1 if i + 1 < m else 0
+        ei = s * (w[0] * (us[i] - cx) / fx + w[1] * (vs[i] - cy) / fy + w[2])
+        ej = s * (w[0] * (us[j] - cx) / fx + w[1] * (vs[j] - cy) / fy + w[2])
+        if ei >= 0:
+            out_u[n], out_v[n] = us[i], vs[i]
+            n += 1
+        if (ei >= 0) != (ej >= 0):
+            f = ei / (ei - ej)
+            out_u[n], out_v[n] = us[i] + f * (us[j] - us[i]), vs[i] + f * (vs[j] - vs[i])
+            n += 1
+    return n
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _row_range(u0: float, u1: float, v0: float, v1: float, w0: Vec3, w1: Vec3, w2: Vec3, s: float, fx: float,
+               fy: float, cx: float, cy: float, buf: NDArray) -> tuple[float, float]:
+    """The rows (v0, v1) of the pixel box [u0, u1] x [v0, v1] that the three edge half-planes of a triangle may leave
+    pixels in: the box clipped to them, widened by a row either way (conservative: the per-row spans decide);
+    empty: v0 > v1. ``buf`` (4, 8) is scratch."""
+    buf[0, 0], buf[0, 1], buf[0, 2], buf[0, 3] = u0, u1, u1, u0
+    buf[1, 0], buf[1, 1], buf[1, 2], buf[1, 3] = v0, v0, v1, v1
+    m = _clip_polygon(buf[0], buf[1], 4, w0, s, fx, fy, cx, cy, buf[2], buf[3])
+    m = _clip_polygon(buf[2], buf[3], m, w1, s, fx, fy, cx, cy, buf[0], buf[1])
+    m = _clip_polygon(buf[0], buf[1], m, w2, s, fx, fy, cx, cy, buf[2], buf[3])
+    if m == 0:
+        return 1.0, 0.0
+    lo, hi = np.inf, -np.inf
+    for i in range(m):
+        lo, hi = min(lo, buf[3, i]), max(hi, buf[3, i])
+    return max(v0, np.floor(lo) - 1.0), min(v1, np.ceil(hi) + 1.0)
+
+
 @njit(nogil=True, cache=True)
 def _raster_kernel(verts: NDArray, tris: NDArray, fx: float, fy: float, cx: float, cy: float, width: int,
                    height: int, inv_depth: NDArray, gid: NDArray) -> None:
     """Nearest triangle along each pixel-centre ray of a pinhole camera: camera-frame ``verts`` (V, 3) (x right,
     y down, z forward), ``tris`` (T, 3); updates ``inv_depth`` (H*W,) [1/m, 1 / camera z; 0: nothing] and ``gid``
     (H*W,) triangle index where a triangle is nearer. A pixel's ray meets a triangle when the three edge planes
-    through the camera centre agree in sign (exact, watertight for shared edges); spans per row bound the pixels
-    tested."""
+    through the camera centre agree in sign (exact, watertight for shared edges); the rows of tall triangles are
+    bound by clipping their image box to the edge planes, spans per row bound the pixels tested."""
     dxs = (np.arange(width) - cx) / fx
+    buf = np.empty((4, 8))
     for k in range(len(tris)):
         a = (verts[tris[k, 0], 0], verts[tris[k, 0], 1], verts[tris[k, 0], 2])
         b = (verts[tris[k, 1], 0], verts[tris[k, 1], 1], verts[tris[k, 1], 2])
@@ -95,6 +139,11 @@ def _raster_kernel(verts: NDArray, tris: NDArray, fx: float, fy: float, cx: floa
         box = _clipped_box(a, b, c, fx, fy, cx, cy)
         u0, u1 = max(0.0, np.ceil(box[0] - 1e-6)), min(width - 1.0, np.floor(box[1] + 1e-6))
         v0, v1 = max(0.0, np.ceil(box[2] - 1e-6)), min(height - 1.0, np.floor(box[3] + 1e-6))
+        if u0 > u1:
+            continue
+        if v1 - v0 > TALL_BOX_ROWS:
+            v0, v1 = _row_range(u0, u1, v0, v1, w0, w1, w2, s, fx, fy, cx, cy, buf)
+        a_z = iz[0]
         for v in range(int(v0), int(v1) + 1):
             dy = (v - cy) / fy
             lo, hi = _span(u0, u1, w0, s, dy, fx, cx)
@@ -104,18 +153,21 @@ def _raster_kernel(verts: NDArray, tris: NDArray, fx: float, fy: float, cx: floa
                 continue
             e0, e1, e2 = w0[1] * dy + w0[2], w1[1] * dy + w1[2], w2[1] * dy + w2[2]
             iz_row = iz[1] * dy + iz[2]
+            ua, ub = int(max(u0, np.floor(lo))), int(min(u1, np.ceil(hi))) + 1
             row = v * width
-            for u in range(int(max(u0, np.floor(lo))), int(min(u1, np.ceil(hi))) + 1):
-                dx = dxs[u]
-                if s * (w0[0] * dx + e0) < 0 or s * (w1[0] * dx + e1) < 0 or s * (w2[0] * dx + e2) < 0:
-                    continue
-                z_inv = iz[0] * dx + iz_row
-                nearest = inv_depth[row + u]
-                # coplanar faces (a tyre flush with a body side): the later triangle wins, so a mesh's later parts
-                # show consistently instead of fighting; branch-free update, the test is hard to predict
-                closer = z_inv > 0 and z_inv >= nearest * (1.0 - COPLANAR_TOLERANCE)
-                inv_depth[row + u] = z_inv if closer else nearest
-                gid[row + u] = k if closer else gid[row + u]
+            inv_row, gid_row, dx_row = inv_depth[row + ua:row + ub], gid[row + ua:row + ub], dxs[ua:ub]
+            for j in range(ub - ua):
+                # branch-free with unsigned indices (the loop vectorises): inside all three edge planes and nearer.
+                # Coplanar faces (a tyre flush with a body side): the later triangle wins, so a mesh's later parts
+                # show consistently instead of fighting
+                jj = np.uint64(j)
+                dx = dx_row[jj]
+                z_inv = a_z * dx + iz_row
+                nearest = inv_row[jj]
+                closer = ((s * (w0[0] * dx + e0) >= 0) & (s * (w1[0] * dx + e1) >= 0) & (s * (w2[0] * dx + e2) >= 0)
+                          & (z_inv > 0) & (z_inv >= nearest * (1.0 - COPLANAR_TOLERANCE)))
+                inv_row[jj] = z_inv if closer else nearest
+                gid_row[jj] = k if closer else gid_row[jj]
 
 
 @njit(nogil=True, cache=True)
@@ -148,18 +200,44 @@ def triangle_normals(mesh: Mesh) -> NDArray[np.float64]:
     return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-30)
 
 
-def pinhole_hits(verts_cam: NDArray, triangles: NDArray, K: NDArray, width: int,
-                 height: int) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+def pinhole_depth(verts_cam: NDArray, triangles: NDArray, K: NDArray, width: int,
+                  height: int) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     """Nearest triangle along each pixel-centre ray (row-major, u = col, v = row) of a pinhole camera with intrinsics
     ``K`` (3, 3): camera-frame vertices ``verts_cam`` (V, 3) (x right, y down, z forward) and ``triangles`` (T, 3).
 
-    Returns the ray length per pixel (H*W,) [m] (inf: nothing) and the triangle index (H*W,) (-1: nothing).
+    Returns the inverse camera-frame depth per pixel (H*W,) [1/m] (0: nothing) and the triangle index (H*W,) (-1:
+    nothing).
     """
     inv_depth, tri = np.zeros(width * height), np.full(width * height, -1, np.int64)
     fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
     _raster_kernel(np.ascontiguousarray(verts_cam, np.float64), triangles, fx, fy, cx, cy, width, height, inv_depth,
                    tri)
-    return _pixel_ranges(inv_depth, fx, fy, cx, cy, width), tri
+    return inv_depth, tri
+
+
+def pixel_ranges(inv_depth: NDArray, K: NDArray, width: int) -> NDArray[np.float64]:
+    """Ray lengths (H*W,) [m] of the pixel-centre rays from their inverse camera-frame depths (H*W,) (0: inf)."""
+    return _pixel_ranges(inv_depth, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), width)
+
+
+def pinhole_hits(verts_cam: NDArray, triangles: NDArray, K: NDArray, width: int,
+                 height: int) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """`pinhole_depth` as the ray length per pixel (H*W,) [m] (inf: nothing) and the triangle index (H*W,) (-1:
+    nothing)."""
+    inv_depth, tri = pinhole_depth(verts_cam, triangles, K, width, height)
+    return pixel_ranges(inv_depth, K, width), tri
+
+
+class TriangleTable(NamedTuple):
+    """Per-triangle attributes of a scene posed at one instant (the rows `raster.pinhole_depth` indexes): unit
+    geometric ``normal`` (T, 3) float32 (global frame, right-handed winding), ``material`` (T,) uint8, ``albedo``
+    (T, 3) float32, ``reflectivity`` (T,) float32, ``instance`` (T,) int32."""
+
+    normal: NDArray[np.float32]
+    material: NDArray[np.uint8]
+    albedo: NDArray[np.float32]
+    reflectivity: NDArray[np.float32]
+    instance: NDArray[np.int32]
 
 
 class SunGrid(NamedTuple):
@@ -167,8 +245,9 @@ class SunGrid(NamedTuple):
 
     ``axes`` (3, 3) rows: two unit axes (a, b) of the plane and the sun direction (depth h). Grid: corner ``origin``
     (a0, b0), ``cell`` [m], ``cols`` x ``rows`` cells (cell index = col * rows + row); the triangles of cell c are the
-    records ``cells[cell_start[c]:cell_start[c + 1]]``, highest first (`SUN_RECORD`). ``wide`` triangles, too big to
-    bin, are tested for every ray (records, highest first)."""
+    records ``cells[cell_start[c]:cell_start[c + 1]]``, highest first (`SUN_RECORD`); ``occupied`` (ceil(cells / 8),)
+    uint8: bit c % 8 of byte c // 8 set when cell c holds any (most cells hold none: a compact first test). ``wide``
+    triangles, too big to bin, are tested for every ray (records, highest first)."""
 
     axes: NDArray[np.float64]
     origin: tuple[float, float]
@@ -178,6 +257,7 @@ class SunGrid(NamedTuple):
     cell_start: NDArray[np.int64]
     cells: NDArray[np.float64]
     wide: NDArray[np.float64]
+    occupied: NDArray[np.uint8]
 
 
 # One projected triangle per row of SunGrid.cells/wide (copied per cell: a shadow ray reads its cell's records in
@@ -187,6 +267,7 @@ SUN_RECORD = ("z_top", "a_min", "a_max", "b_min", "b_max", "winding", "a0", "b0"
               "p2", "unused")
 SUN_CELL_M = 1.0  # grid cell size along the plane across the sun
 MAX_SUN_CELLS = 4_000_000  # cells grow beyond SUN_CELL_M when the scene is larger
+MAX_MOVING_SUN_CELLS = 65_536  # the moving actors' grid (built per exposure, spread along the street): fewer cells
 WIDE_CELLS = 50_000  # triangles larger than this many cells are tested for every ray instead of binned
 
 
@@ -199,31 +280,63 @@ def sun_axes(sun: NDArray) -> NDArray[np.float64]:
     return np.stack([a, np.cross(s, a), s])
 
 
-def sun_grid(vertices: NDArray, triangles: NDArray, sun: NDArray) -> SunGrid:
-    """A `SunGrid` of the triangles (T, 3) over ``vertices`` (V, 3) (global frame) for the unit ``sun`` (3,)."""
+@njit(nogil=True, cache=True)
+def _sun_records(vertices: NDArray, triangles: NDArray, axes: NDArray, sun_up: bool, records: NDArray,
+                 corners: NDArray, area2: NDArray) -> None:
+    """Per triangle (T, 3) over ``vertices`` (V, 3): its `SUN_RECORD` row of ``records`` (T, 16), its corners (a, b)
+    ``corners`` (T, 3, 2) on the plane across the sun (``axes`` (3, 3) rows: a, b, sun) and twice its signed
+    projected area ``area2`` (T,)."""
+    for t in range(len(triangles)):
+        q = np.empty((3, 3))
+        z_top = -np.inf
+        for k in range(3):
+            v = triangles[t, k]
+            px, py, pz = vertices[v, 0], vertices[v, 1], vertices[v, 2]
+            z_top = max(z_top, pz)
+            for r in range(3):
+                q[k, r] = axes[r, 0] * px + axes[r, 1] * py + axes[r, 2] * pz
+        e1 = (q[1, 0] - q[0, 0], q[1, 1] - q[0, 1], q[1, 2] - q[0, 2])
+        e2 = (q[2, 0] - q[0, 0], q[2, 1] - q[0, 1], q[2, 2] - q[0, 2])
+        n = (e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0])
+        records[t, 0] = z_top if sun_up else np.inf
+        records[t, 1], records[t, 2] = min(q[0, 0], q[1, 0], q[2, 0]), max(q[0, 0], q[1, 0], q[2, 0])
+        records[t, 3], records[t, 4] = min(q[0, 1], q[1, 1], q[2, 1]), max(q[0, 1], q[1, 1], q[2, 1])
+        records[t, 5] = np.sign(n[2])
+        for k in range(3):
+            records[t, 6 + 2 * k], records[t, 7 + 2 * k] = q[k, 0], q[k, 1]
+            corners[t, k, 0], corners[t, k, 1] = q[k, 0], q[k, 1]
+        # the plane n . (a, b, h) = n . corner0 solved for h
+        div = n[2] if n[2] != 0 else 1.0
+        records[t, 12] = -n[0] / div
+        records[t, 13] = -n[1] / div
+        records[t, 14] = (n[0] * q[0, 0] + n[1] * q[0, 1] + n[2] * q[0, 2]) / div
+        records[t, 15] = 0.0
+        area2[t] = n[2]
+
+
+def sun_grid(vertices: NDArray, triangles: NDArray, sun: NDArray, max_cells: int = MAX_SUN_CELLS) -> SunGrid:
+    """A `SunGrid` of the triangles (T, 3) over ``vertices`` (V, 3) (global frame) for the unit ``sun`` (3,) (T may
+    be 0: a grid that blocks nothing), with cells of `SUN_CELL_M` or larger, at most about ``max_cells``."""
     axes = sun_axes(sun)
-    tri = (np.asarray(vertices, np.float64) @ axes.T)[triangles]  # (T, 3, 3): a, b, h per corner
-    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])  # in (a, b, h); [:, 2]: twice the signed area
-    records = np.zeros((len(triangles), len(SUN_RECORD)))
-    records[:, 0] = np.asarray(vertices)[triangles][:, :, 2].max(1) if sun[2] > 0 else np.inf
-    records[:, 1:5] = np.stack([tri[:, :, 0].min(1), tri[:, :, 0].max(1), tri[:, :, 1].min(1), tri[:, :, 1].max(1)], 1)
-    records[:, 5] = np.sign(normal[:, 2])
-    records[:, 6:12] = tri[:, :, :2].reshape(-1, 6)
-    # the plane n . (a, b, h) = n . corner0 solved for h
-    plane = np.stack([-normal[:, 0], -normal[:, 1], np.einsum("ij,ij->i", normal, tri[:, 0])], 1)
-    records[:, 12:15] = plane / np.where(normal[:, 2] != 0, normal[:, 2], 1.0)[:, None]
+    n = len(triangles)
+    records, corners, area2 = np.empty((n, len(SUN_RECORD))), np.empty((n, 3, 2)), np.empty(n)
+    _sun_records(np.ascontiguousarray(vertices, np.float64), np.ascontiguousarray(triangles, np.int64), axes,
+                 bool(sun[2] > 0), records, corners, area2)
     order = np.argsort(-records[:, 0], kind="stable")
     order = order[records[order, 5] != 0]  # edge-on triangles never block
-    wide = np.abs(normal[order, 2]) / 2 > WIDE_CELLS * SUN_CELL_M**2
+    wide = np.abs(area2[order]) / 2 > WIDE_CELLS * SUN_CELL_M**2
     binned = order[~wide]
-    lo = records[binned][:, [1, 3]].min(0) if len(binned) else np.zeros(2)
-    hi = records[binned][:, [2, 4]].max(0) if len(binned) else np.zeros(2)
-    cell = max(SUN_CELL_M, float(np.sqrt((hi - lo).prod() / MAX_SUN_CELLS)))
+    if len(binned):
+        lo = np.array([records[binned, 1].min(), records[binned, 3].min()])
+        hi = np.array([records[binned, 2].max(), records[binned, 4].max()])
+    else:
+        lo = hi = np.zeros(2)
+    cell = max(SUN_CELL_M, float(np.sqrt((hi - lo).prod() / max_cells)))
     cols, rows = int((hi[0] - lo[0]) // cell) + 1, int((hi[1] - lo[1]) // cell) + 1
-    corners = np.ascontiguousarray(tri[:, :, :2])
     cell_start, cell_tris = _bin_triangles(corners, binned, float(lo[0]), float(lo[1]), cell, cols, rows)
-    return SunGrid(axes, (float(lo[0]), float(lo[1])), cell, cols, rows, cell_start, records[cell_tris],
-                   records[order[wide]])
+    return SunGrid(axes, (float(lo[0]), float(lo[1])), float(cell), int(cols), int(rows), cell_start,
+                   records[cell_tris], np.ascontiguousarray(records[order[wide]]),
+                   np.packbits(np.diff(cell_start) > 0, bitorder="little"))
 
 
 @njit(nogil=True, cache=True, inline="always")
@@ -314,25 +427,54 @@ def _any_blocks(records: NDArray, lo: int, hi: int, pa: float, pb: float, ph: fl
     return False
 
 
+@njit(nogil=True, cache=True, inline="always")
+def blocked_at(axes: NDArray, a0: float, b0: float, inv_cell: float, cols: int, rows: int, cell_start: NDArray,
+               cells: NDArray, wide: NDArray, occupied: NDArray, px: float, py: float, pz: float,
+               hint: int) -> tuple[bool, int]:
+    """`point_blocked` on the fields of a `SunGrid` (``axes``, ``origin`` = (a0, b0), 1 / ``cell``, ``cols``, ``rows``,
+    ``cell_start``, ``cells``, ``wide``, ``occupied``), taken out of the tuple once by the caller: arrays read from a
+    tuple inside a per-pixel loop cost reference counting on every access."""
+    pa = axes[0, 0] * px + axes[0, 1] * py + axes[0, 2] * pz
+    pb = axes[1, 0] * px + axes[1, 1] * py + axes[1, 2] * pz
+    ph = axes[2, 0] * px + axes[2, 1] * py + axes[2, 2] * pz
+    if hint >= 0 and _blocks(cells, hint, pa, pb, ph):
+        return True, hint
+    if len(wide) and _any_blocks(wide, 0, len(wide), pa, pb, ph, pz):
+        return True, hint
+    fa, fb = (pa - a0) * inv_cell, (pb - b0) * inv_cell  # the triangles are binned with a margin: a product
+    if 0.0 <= fa < cols and 0.0 <= fb < rows:  # instead of the quotient may only pick an equally good cell
+        c = int(fa) * rows + int(fb)
+        if not (occupied[c >> 3] >> (c & 7)) & 1:
+            return False, hint
+        for e in range(cell_start[c], cell_start[c + 1]):
+            if cells[e, 0] <= pz:  # the ray rises above all that is left
+                break
+            if _blocks(cells, e, pa, pb, ph):
+                return True, e
+    return False, hint
+
+
+@njit(nogil=True, cache=True, inline="always")
+def point_blocked(grid: SunGrid, px: float, py: float, pz: float, hint: int) -> tuple[bool, int]:
+    """Whether the ray from the global point (px, py, pz) towards the sun meets a triangle of ``grid``, and the record
+    of ``grid.cells`` that blocked it (else ``hint``). ``hint`` (-1: none) is tested first: the blocker of a nearby
+    ray, which usually blocks this one too (any blocker decides, so the answer is the same without it)."""
+    return blocked_at(grid.axes, grid.origin[0], grid.origin[1], 1.0 / grid.cell, grid.cols, grid.rows, grid.cell_start,
+                      grid.cells, grid.wide, grid.occupied, px, py, pz, hint)
+
+
 @njit(nogil=True, cache=True)
-def _sun_blocked_kernel(axes: NDArray, a0: float, b0: float, cell: float, cols: int, rows: int, cell_start: NDArray,
-                        cells: NDArray, wide: NDArray, points: NDArray, out: NDArray) -> None:
+def _sun_blocked_kernel(grid: SunGrid, points: NDArray, out: NDArray) -> None:
+    hint = -1
+    axes, (a0, b0), inv_cell, cols, rows = grid.axes, grid.origin, 1.0 / grid.cell, grid.cols, grid.rows
+    cell_start, cells, wide, occupied = grid.cell_start, grid.cells, grid.wide, grid.occupied
     for i in range(len(points)):
-        px, py, pz = float(points[i, 0]), float(points[i, 1]), float(points[i, 2])
-        pa = axes[0, 0] * px + axes[0, 1] * py + axes[0, 2] * pz
-        pb = axes[1, 0] * px + axes[1, 1] * py + axes[1, 2] * pz
-        ph = axes[2, 0] * px + axes[2, 1] * py + axes[2, 2] * pz
-        blocked = _any_blocks(wide, 0, len(wide), pa, pb, ph, pz)
-        col, row = int(np.floor((pa - a0) / cell)), int(np.floor((pb - b0) / cell))
-        if not blocked and 0 <= col < cols and 0 <= row < rows:
-            c = col * rows + row
-            blocked = _any_blocks(cells, cell_start[c], cell_start[c + 1], pa, pb, ph, pz)
-        out[i] = blocked
+        out[i], hint = blocked_at(axes, a0, b0, inv_cell, cols, rows, cell_start, cells, wide, occupied,
+                                  float(points[i, 0]), float(points[i, 1]), float(points[i, 2]), hint)
 
 
 def sun_blocked(grid: SunGrid, points: NDArray) -> NDArray[np.bool_]:
     """(N,) whether the ray from each global point (N, 3) towards the sun meets a triangle of ``grid``."""
     out = np.empty(len(points), bool)
-    _sun_blocked_kernel(grid.axes, grid.origin[0], grid.origin[1], grid.cell, grid.cols, grid.rows, grid.cell_start,
-                        grid.cells, grid.wide, points, out)
+    _sun_blocked_kernel(grid, points, out)
     return out

@@ -23,8 +23,8 @@ from numpy.typing import NDArray
 
 from weatheralign.world.layout import Actor, SceneLayout
 from weatheralign.world.meshes import Mesh
-from weatheralign.world.raster import (SunGrid, Vec3, gather_rows, pinhole_hits, sun_blocked, sun_grid,
-                                       triangle_normals)
+from weatheralign.world.raster import (MAX_MOVING_SUN_CELLS, SunGrid, TriangleTable, Vec3, gather_rows,
+                                       pinhole_depth, pixel_ranges, sun_blocked, sun_grid, triangle_normals)
 from weatheralign.geometry import yaw_matrix
 
 
@@ -43,20 +43,23 @@ class Hits:
 
 
 def scene_of_mesh(mesh: Mesh, nthreads: int) -> o3d.t.geometry.RaycastingScene:
-    """An Embree BVH of ``mesh`` (its triangle ids index the mesh's per-triangle arrays)."""
+    """An Embree BVH of ``mesh`` (its triangle ids index the mesh's per-triangle arrays), committed (open3d builds
+    the BVH on the first query: done here, so later concurrent queries only read it)."""
     scene = o3d.t.geometry.RaycastingScene(nthreads=nthreads)
     scene.add_triangles(o3d.core.Tensor(mesh.vertices.astype(np.float32)),
                         o3d.core.Tensor(mesh.triangles.astype(np.uint32)))
+    scene.cast_rays(o3d.core.Tensor(np.array([[0.0, 0.0, 0.0, 0.0, 0.0, 1.0]], np.float32)), nthreads=1)
     return scene
 
 
-def cast_rays(scene: o3d.t.geometry.RaycastingScene, origins: NDArray,
-              directions: NDArray) -> tuple[NDArray, NDArray, NDArray]:
-    """Cast rays (N, 3) + unit (N, 3): hit distance (N,) [m] (inf = miss), triangle id (N,), normal (N, 3)."""
+def cast_rays(scene: o3d.t.geometry.RaycastingScene, origins: NDArray, directions: NDArray,
+              nthreads: int = 0) -> tuple[NDArray, NDArray, NDArray]:
+    """Cast rays (N, 3) + unit (N, 3) with ``nthreads`` native threads (0: all cores): hit distance (N,) [m]
+    (inf = miss), triangle id (N,), normal (N, 3)."""
     rays = np.empty((len(origins), 6), dtype=np.float32)
     rays[:, :3] = origins
     rays[:, 3:] = directions
-    out = scene.cast_rays(o3d.core.Tensor(rays))
+    out = scene.cast_rays(o3d.core.Tensor(rays), nthreads=nthreads)
     t = out["t_hit"].numpy().astype(np.float64)
     prim = out["primitive_ids"].numpy().astype(np.int64)
     normal = out["primitive_normals"].numpy()
@@ -194,6 +197,9 @@ class WorldRaycaster:
         self._moving: tuple[Actor, ...] = tuple(a for a in layout.actors if a.moving)
         self._moving_scenes = [scene_of_mesh(a.mesh, nthreads) for a in self._moving]
         self._moving_radius = np.array([np.linalg.norm(a.mesh.vertices, axis=1).max() for a in self._moving])
+        self._moving_positions = np.array([a.position for a in self._moving], np.float64).reshape(-1, 3)
+        self._moving_velocities = np.array([a.velocity for a in self._moving], np.float64).reshape(-1, 3)
+        self._moving_t_refs = np.array([a.t_ref for a in self._moving], np.float64)
         # one triangle table: the static mesh, then each moving actor's mesh (global triangle id = offset + id)
         meshes = [layout.static_mesh, *(a.mesh for a in self._moving)]
         self._offsets = np.cumsum([0] + [m.num_triangles for m in meshes])
@@ -205,46 +211,51 @@ class WorldRaycaster:
         self._triangles = np.concatenate([m.triangles.astype(np.int64) + o for m, o in zip(meshes, vertex_offsets)])
         self._static_counts = (len(layout.static_mesh.vertices), layout.static_mesh.num_triangles)
         self._normals = [triangle_normals(m) for m in meshes]  # static: global frame; actors: body frame
-
-    def _candidates(self, origins: NDArray, directions: NDArray, times: NDArray,
-                    tmax: NDArray) -> list[tuple[int, NDArray[np.int64]]]:
-        """(moving actor index, ray indices) for each moving actor that some ray may hit before ``tmax`` (N,)."""
-        if not self._moving:
-            return []
-        positions = np.array([a.position for a in self._moving], np.float64)
-        velocities = np.array([a.velocity for a in self._moving], np.float64)
-        t_refs = np.array([a.t_ref for a in self._moving], np.float64)
-        rays, starts = _actor_candidates(origins, directions, times, tmax, positions, velocities, t_refs,
-                                         self._moving_radius)
-        return [(k, rays[starts[k]:starts[k + 1]]) for k in range(len(self._moving)) if starts[k + 1] > starts[k]]
-
-    def _body_rays(self, k: int, origins: NDArray, directions: NDArray, times: NDArray,
-                   idx: NDArray) -> tuple[NDArray, NDArray, NDArray]:
-        """Rays ``idx`` in the body frame of moving actor ``k`` at their times: origins, directions (M, 3) and the
-        body -> global rotation (3, 3)."""
-        actor = self._moving[k]
-        R = yaw_matrix(actor.yaw)
-        o_body = (origins[idx] - actor.position_at(times[idx])) @ R  # R^T (o - p)
-        return o_body, directions[idx] @ R, R
+        self._static_normals32 = self._normals[0].astype(np.float32)
+        self._posed: tuple[float, tuple[NDArray, NDArray]] | None = None
+        # the moving actors translate and never turn: their vertices turned and placed at t_ref, each vertex's
+        # velocity and t_ref, their turned normals (`_moving_at`)
+        turns = [yaw_matrix(a.yaw) for a in self._moving]
+        self._moving_base = np.concatenate(
+            [np.zeros((0, 3))] + [a.mesh.vertices @ R.T + a.position for a, R in zip(self._moving, turns)])
+        self._moving_velocity = np.concatenate(
+            [np.zeros((0, 3))] + [np.broadcast_to(a.velocity, (len(a.mesh.vertices), 3)) for a in self._moving])
+        self._moving_t_ref = np.concatenate(
+            [np.zeros(0)] + [np.full(len(a.mesh.vertices), a.t_ref) for a in self._moving])
+        self._moving_normals = np.concatenate(
+            [np.zeros((0, 3))] + [n @ R.T for n, R in zip(self._normals[1:], turns)])
 
     def cast_rolling(self, origins: NDArray, directions: NDArray, times: NDArray) -> Hits:
         """Cast rays whose times differ (a rolling LiDAR sweep): each ray sees every moving actor where it is at
-        that ray's time ``times`` (N,) [s]. Origins/directions (N, 3) in the global frame."""
+        that ray's time ``times`` (N,) [s]. Origins/directions (N, 3) in the global frame.
+
+        Static geometry by its BVH; moving actors by `_actor_candidates` (the rays that pass near an actor at their
+        own times), cast into the actor's BVH in its body frame."""
         n = len(origins)
         if self._static is not None:
-            t, tri, normal = cast_rays(self._static, origins, directions)
+            t, tri, normal = cast_rays(self._static, origins, directions, self.nthreads)
             gid = np.where(np.isfinite(t), tri, -1)
             normal = normal.astype(np.float32, copy=False)
         else:
             t, gid, normal = np.full(n, np.inf), np.full(n, -1, np.int64), np.zeros((n, 3), np.float32)
-        for k, idx in self._candidates(origins, directions, times, t):
-            o_body, d_body, R = self._body_rays(k, origins, directions, times, idx)
-            tb, trib, nb = cast_rays(self._moving_scenes[k], o_body, d_body)
-            closer = tb < t[idx]
-            sel = idx[closer]
-            t[sel] = tb[closer]
-            gid[sel] = self._offsets[k + 1] + trib[closer]
-            normal[sel] = (nb[closer] @ R.T).astype(np.float32)
+        if self._moving:
+            origins = np.ascontiguousarray(origins, np.float64)
+            directions = np.ascontiguousarray(directions, np.float64)
+            times = np.ascontiguousarray(times, np.float64)
+            rays, starts = _actor_candidates(origins, directions, times, t, self._moving_positions,
+                                             self._moving_velocities, self._moving_t_refs, self._moving_radius)
+            for k, actor in enumerate(self._moving):
+                idx = rays[starts[k]:starts[k + 1]]
+                if not len(idx):
+                    continue
+                R = yaw_matrix(actor.yaw)
+                o_body = (origins[idx] - actor.position_at(times[idx])) @ R  # R^T (o - p)
+                tb, trib, nb = cast_rays(self._moving_scenes[k], o_body, directions[idx] @ R, self.nthreads)
+                closer = tb < t[idx]
+                sel = idx[closer]
+                t[sel] = tb[closer]
+                gid[sel] = self._offsets[k + 1] + trib[closer]
+                normal[sel] = (nb[closer] @ R.T).astype(np.float32)
         return self._finish(t, gid, normal, directions)
 
     def _finish(self, t: NDArray, gid: NDArray, normal: NDArray, directions: NDArray) -> Hits:
@@ -261,43 +272,67 @@ class WorldRaycaster:
         """Cast rays (N, 3) origins, (N, 3) unit directions, global frame, all at one instant ``time`` [s]."""
         return self.cast_rolling(origins, directions, np.full(len(origins), time))
 
+    def camera_depth(self, K: NDArray, T_global_cam: NDArray, width: int, height: int,
+                     time: float) -> tuple[NDArray[np.float64], NDArray[np.int64], TriangleTable]:
+        """The nearest triangle along each pixel-centre ray (row-major, H*W) of a pinhole camera with intrinsics ``K``
+        (3, 3) and pose ``T_global_cam`` (4, 4) at ``time`` [s], by rasterising every triangle with an exact per-pixel
+        ray test (`raster.pinhole_depth`; of coincident surfaces, the later triangle): the inverse camera depth
+        (H*W,) [1/m] (0: nothing), the triangle (H*W,) (-1: nothing) and the `TriangleTable` it indexes (the scene
+        posed at ``time``)."""
+        R, o = T_global_cam[:3, :3], T_global_cam[:3, 3]
+        moving, moving_normals = self._moving_at(time)
+        verts_cam = (np.concatenate([self.layout.static_mesh.vertices, moving]) - o) @ R  # R^T (v - o)
+        inv_depth, gid = pinhole_depth(verts_cam, self._triangles, K, width, height)
+        normal = np.concatenate([self._static_normals32, moving_normals.astype(np.float32)])
+        return inv_depth, gid, TriangleTable(normal, self._tri_material, self._tri_albedo, self._tri_reflectivity,
+                                             self._tri_instance)
+
     def cast_camera(self, K: NDArray, T_global_cam: NDArray, width: int, height: int, time: float,
                     directions: NDArray) -> Hits:
         """Hits of the pixel-centre rays (row-major, H*W) of a pinhole camera with intrinsics ``K`` (3, 3) and pose
         ``T_global_cam`` (4, 4) at ``time`` [s]; ``directions`` (H*W, 3) are those rays' unit global directions.
 
         The same as `cast_at_time` of those rays (of coincident surfaces, the later triangle), computed by
-        rasterising every triangle with an exact per-pixel ray test (several times cheaper than tracing each pixel).
+        rasterising every triangle with an exact per-pixel ray test (`camera_depth`; several times cheaper than
+        tracing each pixel).
         """
-        R, o = T_global_cam[:3, :3], T_global_cam[:3, 3]
-        moving, moving_normals = self._moving_at(time)
-        verts_cam = (np.concatenate([self.layout.static_mesh.vertices, moving]) - o) @ R  # R^T (v - o)
-        ranges, gid = pinhole_hits(verts_cam, self._triangles, K, width, height)
-        normal = gather_rows(np.concatenate([self._normals[0], moving_normals]).astype(np.float32), gid)
-        return self._finish(ranges, gid, normal, directions)
+        inv_depth, gid, tris = self.camera_depth(K, T_global_cam, width, height, time)
+        normal = gather_rows(tris.normal, gid)
+        return self._finish(pixel_ranges(inv_depth, K, width), gid, normal, directions)
 
     def _moving_at(self, time: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The moving actors' vertices (V, 3) (in the order of `_triangles`) and triangle normals (T, 3) posed at
-        ``time`` [s], global frame."""
-        vertices, normals = [np.zeros((0, 3))], [np.zeros((0, 3))]
-        for actor, body_normals in zip(self._moving, self._normals[1:]):
-            R = yaw_matrix(actor.yaw)
-            vertices.append(actor.mesh.vertices @ R.T + actor.position_at(time))
-            normals.append(body_normals @ R.T)
-        return np.concatenate(vertices), np.concatenate(normals)
+        ``time`` [s], global frame (the last instant's are kept: a camera asks twice)."""
+        last = self._posed
+        if last is not None and last[0] == time:
+            return last[1]
+        posed = self._moving_base + self._moving_velocity * (time - self._moving_t_ref)[:, None], self._moving_normals
+        self._posed = (time, posed)
+        return posed
 
     @cached_property
     def _sun_grid(self) -> SunGrid:
         mesh = self.layout.static_mesh
         return sun_grid(mesh.vertices, mesh.triangles, self.layout.sun_direction)
 
+    def moving_sun_grid(self, time: float) -> SunGrid | None:
+        """The `SunGrid` of the moving actors posed at ``time`` [s] (None: no moving actors)."""
+        if not self._moving:
+            return None
+        n_vertices, n_triangles = self._static_counts
+        return sun_grid(self._moving_at(time)[0], self._triangles[n_triangles:] - n_vertices,
+                        self.layout.sun_direction, MAX_MOVING_SUN_CELLS)
+
+    @property
+    def static_sun_grid(self) -> SunGrid:
+        """The `SunGrid` of the static scene (built on first use)."""
+        return self._sun_grid
+
     def sun_blocked(self, points: NDArray, time: float) -> NDArray[np.bool_]:
         """(N,) whether the ray from each global point (N, 3) towards the sun meets anything at ``time`` [s] (shadow
         rays; by `SunGrid`: the static one of the scene, and one of the moving actors posed at ``time``)."""
         blocked = sun_blocked(self._sun_grid, points)
-        if self._moving:
-            n_vertices, n_triangles = self._static_counts
-            moving = sun_grid(self._moving_at(time)[0], self._triangles[n_triangles:] - n_vertices,
-                              self.layout.sun_direction)
+        moving = self.moving_sun_grid(time)
+        if moving is not None:
             blocked |= sun_blocked(moving, points)
         return blocked

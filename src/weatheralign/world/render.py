@@ -14,9 +14,8 @@ from weatheralign.world.layout import SceneLayout
 from weatheralign.world.raycast import Hits, WorldRaycaster
 from weatheralign.sensors import FiringPattern
 from weatheralign.world.rig import T_EGO_LIDAR, Camera
-from weatheralign.world.shading import camera_pixels, lidar_intensity, texture
-
-SHADOW_EPS = 0.02  # m, shadow ray start offset along the normal
+from weatheralign.world.raster import SunGrid, sun_grid
+from weatheralign.world.shading import SHADOW_EPS, camera_frame, lidar_returns, noise_key
 
 
 @dataclass(frozen=True)
@@ -52,6 +51,33 @@ def ego_positions(layout: SceneLayout, times: NDArray) -> NDArray[np.float64]:
     return apply(T, local)
 
 
+@njit(nogil=True, cache=True)
+def _beam_rays(directions: NDArray, times: NDArray, start: NDArray, velocity: NDArray, t_start: float,
+               R_gl: NDArray, origins: NDArray, dirs: NDArray) -> None:
+    """Global origins and unit directions (N, 3) of beams with sensor-frame ``directions`` (N, 3) fired at ``times``
+    (N,) [s]: the sensor at ``start + velocity (t - t_start)`` ((3,) each), sensor -> global rotation ``R_gl``."""
+    for i in range(len(times)):
+        dt = times[i] - t_start
+        for c in range(3):
+            origins[i, c] = start[c] + velocity[c] * dt
+            dirs[i, c] = R_gl[c, 0] * directions[i, 0] + R_gl[c, 1] * directions[i, 1] + R_gl[c, 2] * directions[i, 2]
+
+
+@njit(nogil=True, cache=True)
+def _sweep_points(origins: NDArray, dirs: NDArray, measured: NDArray, idx: NDArray, intensity: NDArray,
+                  ring: NDArray, T: NDArray, out: NDArray) -> None:
+    """Points (M, 5) float32 ``(x, y, z, intensity, ring)`` of beams ``idx`` at their ``measured`` range, in the
+    frame ``T`` (4, 4) maps global points into."""
+    for k in range(len(idx)):
+        i = idx[k]
+        p = (origins[i, 0] + dirs[i, 0] * measured[i], origins[i, 1] + dirs[i, 1] * measured[i],
+             origins[i, 2] + dirs[i, 2] * measured[i])
+        for c in range(3):
+            out[k, c] = T[c, 0] * p[0] + T[c, 1] * p[1] + T[c, 2] * p[2] + T[c, 3]
+        out[k, 3] = intensity[k]
+        out[k, 4] = ring[i]
+
+
 def render_lidar_sweep(caster: WorldRaycaster, pattern: FiringPattern, cfg: LidarConfig, timestamp: float,
                        rng: np.random.Generator) -> LidarSweep:
     """Render the sweep ending at ``timestamp`` [s]: each beam fires at its own time from where the sensor is then.
@@ -62,28 +88,22 @@ def render_lidar_sweep(caster: WorldRaycaster, pattern: FiringPattern, cfg: Lida
     layout = caster.layout
     times = timestamp + pattern.time_offsets
     R = layout.T_global_scene[:3, :3]  # ego -> global rotation (constant)
-    R_gl = R @ T_EGO_LIDAR[:3, :3]
-    origins = ego_positions(layout, times) + R @ T_EGO_LIDAR[:3, 3]
-    dirs = pattern.directions @ R_gl.T
+    start = apply(layout.T_global_scene, np.array([[0.0, layout.ego_lane_y, 0.0]]))[0] + R @ T_EGO_LIDAR[:3, 3]
+    n = len(times)
+    origins, dirs = np.empty((n, 3)), np.empty((n, 3))
+    _beam_rays(pattern.directions, times, start, R[:, 0] * layout.ego_speed, layout.t_start,
+               R @ T_EGO_LIDAR[:3, :3], origins, dirs)
     hits = caster.cast_rolling(origins, dirs, times)
 
     sigma = cfg.range_noise_std_m
-    noise = np.clip(rng.normal(0.0, sigma, len(times)), -2 * sigma, 2 * sigma) if sigma > 0 else 0.0
-    measured = hits.range + noise
-    valid = np.isfinite(hits.range) & (measured >= cfg.min_range_m) & (measured <= cfg.max_range_m)
-    idx = np.flatnonzero(valid)
-    pos = origins[idx] + dirs[idx] * hits.range[idx, None]
-    surf = texture(layout, pos, hits.normal[idx], hits.material[idx], hits.albedo[idx], hits.reflectivity[idx])
-    cos_inc = np.einsum("ij,ij->i", hits.normal[idx], dirs[idx])
-    raw = lidar_intensity(surf.reflectivity, cos_inc, measured[idx])
-    detectable = raw >= cfg.min_detectable_intensity
-    idx, raw, surf_mat = idx[detectable], raw[detectable], surf.material[detectable]
+    noise = np.clip(rng.normal(0.0, sigma, n), -2 * sigma, 2 * sigma) if sigma > 0 else np.zeros(n)
+    idx, raw, surf_mat = lidar_returns(layout, origins, dirs, hits.range, noise, hits.normal, hits.material,
+                                       hits.albedo, hits.reflectivity, cfg.min_range_m, cfg.max_range_m,
+                                       cfg.min_detectable_intensity)
     intensity = np.clip(np.round(raw + rng.normal(0.0, cfg.intensity_noise_std, len(idx))), 0, 255)
-
-    p_global = origins[idx] + dirs[idx] * measured[idx, None]
     T_lidar_global = invert(layout.T_global_ego(timestamp) @ T_EGO_LIDAR)
-    p_lidar = apply(T_lidar_global, p_global)
-    points = np.column_stack([p_lidar, intensity, pattern.ring[idx]]).astype(np.float32)
+    points = np.empty((len(idx), 5), np.float32)
+    _sweep_points(origins, dirs, hits.range + noise, idx, intensity, pattern.ring, T_lidar_global, points)
     return LidarSweep(timestamp, points, pattern.time_offsets[idx].astype(np.float32), pattern.column[idx],
                       hits.instance[idx], surf_mat)
 
@@ -110,11 +130,11 @@ def pixel_directions(camera: Camera, T_global_cam: NDArray) -> NDArray[np.float3
 
 @njit(nogil=True, cache=True)
 def _shadow_starts(origin: NDArray, dirs: NDArray, ranges: NDArray, normals: NDArray,
-                   sun: NDArray) -> tuple[NDArray[np.int64], NDArray[np.float32]]:
-    """Hits whose surface faces the sun: their indices (M,) and shadow-ray origins (M, 3) float32, ``SHADOW_EPS``
-    off the surface along the normal."""
+                   sun: NDArray) -> tuple[NDArray[np.int64], NDArray[np.float64]]:
+    """Hits whose surface faces the sun: their indices (M,) and shadow-ray origins (M, 3), ``SHADOW_EPS`` off the
+    surface along the normal."""
     idx = np.empty(len(dirs), np.int64)
-    starts = np.empty((len(dirs), 3), np.float32)
+    starts = np.empty((len(dirs), 3), np.float64)
     m = 0
     for i in range(len(dirs)):
         if not np.isfinite(ranges[i]) or normals[i, 0] * sun[0] + normals[i, 1] * sun[1] + normals[i, 2] * sun[2] <= 0:
@@ -137,19 +157,66 @@ def sun_lit(caster: WorldRaycaster, origin: NDArray, dirs: NDArray, hits: Hits, 
     return lit
 
 
+@njit(nogil=True, cache=True)
+def _half_bits(bits: NDArray, out: NDArray) -> None:
+    """IEEE binary16 bit patterns (round to nearest, ties to even; numpy's own conversion, step by step) of the
+    float32 bit patterns ``bits`` (N,) uint32."""
+    for i in range(len(bits)):
+        f = np.uint32(bits[i])
+        sign = np.uint16((f & np.uint32(0x80000000)) >> np.uint32(16))
+        exp = f & np.uint32(0x7F800000)
+        if exp >= np.uint32(0x47800000):  # inf, nan or too large: inf (nan keeps a payload bit)
+            sig = f & np.uint32(0x007FFFFF)
+            if exp == np.uint32(0x7F800000) and sig != 0:
+                h = np.uint16(0x7C00) + np.uint16(sig >> np.uint32(13))
+                out[i] = sign + (h + np.uint16(1) if h == np.uint16(0x7C00) else h)
+            else:
+                out[i] = sign + np.uint16(0x7C00)
+        elif exp <= np.uint32(0x38000000):  # subnormal or zero
+            if exp < np.uint32(0x33000000):
+                out[i] = sign
+            else:
+                sig = (np.uint32(0x00800000) + (f & np.uint32(0x007FFFFF))) >> (np.uint32(113) - (exp >> np.uint32(23)))
+                if (sig & np.uint32(0x3FFF)) != np.uint32(0x1000) or (f & np.uint32(0x7FF)) != 0:
+                    sig += np.uint32(0x1000)  # (the shift above may drop up to 11 bits: they count for the tie)
+                out[i] = sign + np.uint16(sig >> np.uint32(13))
+        else:
+            sig = f & np.uint32(0x007FFFFF)
+            if (sig & np.uint32(0x3FFF)) != np.uint32(0x1000):
+                sig += np.uint32(0x1000)
+            out[i] = sign + np.uint16((sig >> np.uint32(13)) + ((exp - np.uint32(0x38000000)) >> np.uint32(13)))
+
+
+def to_float16(values: NDArray[np.float32]) -> NDArray[np.float16]:
+    """``values.astype(np.float16)`` (the same bits) at a fraction of numpy's cost."""
+    values = np.ascontiguousarray(values, np.float32)
+    out = np.empty(values.shape, np.uint16)
+    _half_bits(values.reshape(-1).view(np.uint32), out.reshape(-1))
+    return out.view(np.float16)
+
+
 def render_camera(caster: WorldRaycaster, camera: Camera, cfg: CameraConfig, timestamp: float,
                   rng: np.random.Generator) -> CameraFrame:
     """Render ``camera`` exposed at ``timestamp`` [s]. Colour: textured materials lit by sun (with cast shadows) and
-    sky, sky background, aerial perspective, sensor noise."""
+    sky, sky background, aerial perspective, sensor noise (keyed by ``rng``, `shading.camera_noise`).
+
+    The visible triangle per pixel comes from `WorldRaycaster.camera_depth`; directions, hits, shadow rays, noise and
+    shading then run in one pass (`shading.camera_frame`), byte for byte what `pixel_directions`,
+    `WorldRaycaster.cast_camera`, `sun_lit`, `shading.camera_noise` and `shading.camera_pixels` give in turn."""
     layout = caster.layout
     T_global_cam = layout.T_global_ego(timestamp) @ camera.T_ego_cam
-    dirs = pixel_directions(camera, T_global_cam)
-    origin = T_global_cam[:3, 3]
-    hits = caster.cast_camera(camera.K, T_global_cam, camera.width, camera.height, timestamp, dirs)
-    lit = sun_lit(caster, origin, dirs, hits, timestamp, cfg.shadows)
-    noise = rng.standard_normal(dirs.shape, dtype=np.float32) if cfg.noise_std else None
-    image = camera_pixels(layout, origin, dirs, hits.range, hits.normal, hits.material, hits.albedo,
-                          hits.reflectivity, lit, noise, cfg.noise_std).reshape(camera.height, camera.width, 3)
-    rng_map = hits.range.astype(np.float32).reshape(camera.height, camera.width)
-    inst = hits.instance.reshape(camera.height, camera.width)
+    inv_depth, gid, tris = caster.camera_depth(camera.K, T_global_cam, camera.width, camera.height, timestamp)
+    key = noise_key(rng)
+    if cfg.shadows:
+        static_grid, moving_grid = caster.static_sun_grid, caster.moving_sun_grid(timestamp)
+    else:
+        static_grid, moving_grid = empty_sun_grid(layout.sun_direction), None
+    image, rng_map, inst = camera_frame(layout, T_global_cam[:3, 3], T_global_cam[:3, :3], camera.K, inv_depth, gid,
+                                        tris, static_grid, moving_grid, cfg.shadows, key, cfg.noise_std,
+                                        camera.height, camera.width)
     return CameraFrame(timestamp, image, rng_map, inst)
+
+
+def empty_sun_grid(sun: NDArray) -> SunGrid:
+    """A `SunGrid` without triangles (blocks nothing) for the unit ``sun`` (3,)."""
+    return sun_grid(np.zeros((0, 3)), np.zeros((0, 3), np.int64), sun)

@@ -1,8 +1,10 @@
 """Surface appearance shared by the sensors: procedural textures (albedo + LiDAR reflectivity) and camera shading.
 
 Camera colours are computed in linear RGB and encoded to sRGB; LiDAR intensity uses the textured reflectivity, so a
-lane marking is bright in the image and in the scan. Texturing and shading run per hit point in numba kernels (one
-fused pass per camera image); they release the GIL, so concurrent samples render in parallel.
+lane marking is bright in the image and in the scan. Texturing and shading run per hit point in numba kernels; a
+camera image is one pass over its pixels (`camera_frame`: ray directions, hit attributes, sun shadow rays, texture,
+shading, sensor noise and sRGB encoding per pixel, float64 arithmetic), the same bytes as the step-by-step functions
+(`camera_pixels` and the functions of `render` it follows). They release the GIL.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from numpy.typing import NDArray
 
 from weatheralign.world.layout import LANE_WIDTH, SceneLayout
 from weatheralign.world.materials import SPECULAR, Material, facade_window, road_marking, value_noise, wrap
+from weatheralign.world.raster import SunGrid, TriangleTable, blocked_at
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -24,6 +27,7 @@ F64 = NDArray[np.float64]
 CLEAR_AIR_EXTINCTION = float(np.log(20.0) / 30000.0)
 SUN_COLOUR = (1.0, 0.96, 0.9)
 SUN_GLOW_COLOUR = (1.0, 0.95, 0.85)
+SHADOW_EPS = 0.02  # m, shadow ray start offset along the normal
 
 
 @dataclass(frozen=True)
@@ -192,51 +196,115 @@ def _shade_point(look: Look, material: int, albedo: Vec3, normal: Vec3, d: Vec3,
     return r * transmit + hor[0] * haze, g * transmit + hor[1] * haze, b * transmit + hor[2] * haze
 
 
-def _srgb_root_table(size: int = 4096) -> F64:
-    """``x ** (1 / 2.4)`` sampled uniformly in ``sqrt(x)`` over [0, 1] (smooth there, so linear interpolation of
-    ``size`` samples is exact to ~1e-7)."""
-    table = np.linspace(0.0, 1.0, size) ** (2 / 2.4)
+def _srgb_code_table(size: int = 4096) -> F64:
+    """(size + 1,) 255 x the exact sRGB encoding (IEC 61966-2-1: ``12.92 x`` up to x = 0.0031308, then
+    ``1.055 x^(1/2.4) - 0.055``) of the linear values ``k / size``: linear interpolation between entries is exact to
+    0.005 code values (the curve's largest curvature, just above the knee, is ~2400 per unit^2)."""
+    x = np.linspace(0.0, 1.0, size + 1)
+    table = 255.0 * np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1.0 / 2.4) - 0.055)
     table.flags.writeable = False
     return table
 
 
-SRGB_ROOT_TABLE = _srgb_root_table()
+SRGB_CODE_TABLE = _srgb_code_table()
+
+NOISE_BITS = 16
+
+
+def _gauss_table(bits: int = NOISE_BITS) -> F32:
+    """(2**bits,) float32 standard normal quantiles at the midpoints ``(k + 0.5) / 2**bits`` (rescaled to unit
+    variance): indexed by a uniform random ``bits``-bit integer, a normal variate quantised to 2**bits equally likely
+    values and truncated at +-4.32 sigma (P = 1.6e-5 beyond), far finer than the 8-bit image it perturbs."""
+    from scipy.special import ndtri
+
+    z = ndtri((np.arange(1 << bits) + 0.5) / (1 << bits))
+    table = (z / np.sqrt(np.mean(z * z))).astype(np.float32)
+    table.flags.writeable = False
+    return table
+
+
+GAUSS_TABLE = _gauss_table()
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _mix64(key: np.uint64, i: int) -> np.uint64:
+    """64 random bits of counter ``i`` under ``key``: the SplitMix64 finaliser of ``key + (i + 1) * golden``."""
+    z = key + np.uint64(i + 1) * np.uint64(0x9E3779B97F4A7C15)
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _pixel_noise(key: np.uint64, i: int, gauss: NDArray) -> Vec3:
+    """Three standard normal variates (R, G, B) of pixel ``i``: 16-bit fields of one `_mix64` draw into ``gauss``."""
+    h = _mix64(key, i)
+    return (float(gauss[int(h & np.uint64(0xFFFF))]), float(gauss[int((h >> np.uint64(16)) & np.uint64(0xFFFF))]),
+            float(gauss[int((h >> np.uint64(32)) & np.uint64(0xFFFF))]))
+
+
+@njit(nogil=True, cache=True)
+def _noise_kernel(key: np.uint64, gauss: NDArray, out: NDArray) -> None:
+    for i in range(len(out)):
+        z = _pixel_noise(key, i, gauss)
+        out[i, 0], out[i, 1], out[i, 2] = z[0], z[1], z[2]
+
+
+def noise_key(rng: np.random.Generator) -> int:
+    """The key of one exposure's sensor noise, drawn from its generator (`camera_noise`)."""
+    return int(rng.integers(0, 2**63))
+
+
+def camera_noise(key: int, n: int) -> F32:
+    """(n, 3) float32 standard normal sensor noise of the pixels 0..n-1 (row-major) of the exposure with ``key``
+    (`noise_key`): a counter-based generator, so pixel i's noise depends on (key, i) only. Each pixel's 64 hashed bits
+    (SplitMix64) give three 16-bit uniform integers, each mapped to a normal variate by `GAUSS_TABLE`."""
+    out = np.empty((n, 3), np.float32)
+    _noise_kernel(np.uint64(key), GAUSS_TABLE, out)
+    return out
 
 
 @njit(nogil=True, cache=True, inline="always")
 def _encode(linear: float, noise: float, table: NDArray) -> int:
-    """sRGB code value 0..255 of a linear value in [0, ~1] plus ``noise`` in encoded units (0..1)."""
-    x = min(max(linear, 0.0031308), 1.0)  # x <= 0.0031 is below 1/255
-    t = np.sqrt(x) * (len(table) - 1)
-    k = min(int(t), len(table) - 2)
-    root = table[k] + (t - k) * (table[k + 1] - table[k])
-    return int(min(max(np.rint((1.055 * root - 0.055 + noise) * 255.0), 0.0), 255.0))
+    """sRGB code value 0..255 of a linear value (clipped to [0, 1]) plus ``noise`` in code values, rounded: by linear
+    interpolation in ``table`` (`SRGB_CODE_TABLE`)."""
+    x = min(max(linear, 0.0), 1.0) * (len(table) - 1)
+    k = min(int(x), len(table) - 2)
+    code = table[k] + (x - k) * (table[k + 1] - table[k]) + noise
+    return int(min(max(np.rint(code), 0.0), 255.0))
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _point_radiance(look: Look, origin: Vec3, d: Vec3, t: float, normal: Vec3, material: int, albedo: Vec3,
+                    reflectivity: float, lit: bool, specular: NDArray) -> Vec3:
+    """Linear RGB seen along the unit global direction ``d`` from ``origin``: the sky where the ray length ``t`` [m] is
+    inf, else the surface hit there (triangle ``normal`` facing the ray, ``material``, ``albedo``, ``reflectivity``;
+    ``lit``: the sun reaches it), textured and shaded."""
+    if not np.isfinite(t):
+        return _sky_point(look, d)
+    p = (origin[0] + d[0] * t, origin[1] + d[1] * t, origin[2] + d[2] * t)
+    m, alb, _ = _texture_point(look, p, normal, material, albedo, reflectivity)
+    return _shade_point(look, m, alb, normal, d, lit, t, float(specular[m]))
 
 
 @njit(nogil=True, cache=True, inline="always")
 def _ray_radiance(look: Look, origin: Vec3, dirs: NDArray, ranges: NDArray, normals: NDArray, material: NDArray,
                   albedo: NDArray, reflectivity: NDArray, lit: NDArray, specular: NDArray, i: int) -> Vec3:
-    """Linear RGB of camera ray ``i``: the sky where its range is inf, else the textured and shaded surface."""
-    d = (float(dirs[i, 0]), float(dirs[i, 1]), float(dirs[i, 2]))
-    t = ranges[i]
-    if not np.isfinite(t):
-        return _sky_point(look, d)
-    p = (origin[0] + d[0] * t, origin[1] + d[1] * t, origin[2] + d[2] * t)
-    normal = (float(normals[i, 0]), float(normals[i, 1]), float(normals[i, 2]))
-    m, alb, _ = _texture_point(look, p, normal, int(material[i]),
-                               (float(albedo[i, 0]), float(albedo[i, 1]), float(albedo[i, 2])),
-                               float(reflectivity[i]))
-    return _shade_point(look, m, alb, normal, d, lit[i], t, float(specular[m]))
+    """`_point_radiance` of camera ray ``i`` of the arrays."""
+    return _point_radiance(look, origin, (float(dirs[i, 0]), float(dirs[i, 1]), float(dirs[i, 2])), ranges[i],
+                           (float(normals[i, 0]), float(normals[i, 1]), float(normals[i, 2])), int(material[i]),
+                           (float(albedo[i, 0]), float(albedo[i, 1]), float(albedo[i, 2])), float(reflectivity[i]),
+                           lit[i], specular)
 
 
 @njit(nogil=True, cache=True)
 def _camera_kernel(look: Look, origin: Vec3, dirs: NDArray, ranges: NDArray, normals: NDArray, material: NDArray,
                    albedo: NDArray, reflectivity: NDArray, lit: NDArray, specular: NDArray, noise: NDArray,
-                   noise_std: float, table: NDArray, out: NDArray) -> None:
+                   noise_code_std: float, table: NDArray, out: NDArray) -> None:
     for i in range(len(dirs)):
         colour = _ray_radiance(look, origin, dirs, ranges, normals, material, albedo, reflectivity, lit, specular, i)
         for c in range(3):
-            out[i, c] = _encode(colour[c], noise_std * noise[i, c] if len(noise) else 0.0, table)
+            out[i, c] = _encode(colour[c], noise_code_std * noise[i, c] if len(noise) else 0.0, table)
 
 
 @njit(nogil=True, cache=True)
@@ -264,13 +332,113 @@ def camera_pixels(layout: SceneLayout, origin: NDArray, dirs: NDArray, ranges: N
     """sRGB (N, 3) uint8 of camera rays from the global ``origin`` (3,) along unit ``dirs`` (N, 3): the sky where
     ``ranges`` (N,) [m] is inf, else the textured (`texture`) and shaded surface with hit ``normals`` (N, 3), triangle
     ``material`` (N,), ``albedo`` (N, 3), ``reflectivity`` (N,), and ``lit`` (N,) bool: the sun reaches it. Colours
-    are computed in linear RGB; sensor noise ``noise_std * noise`` ((N, 3) standard normal, or None) is added in
-    encoded units."""
+    are computed in linear RGB and encoded by the exact sRGB curve; sensor noise ``noise_std * noise`` ((N, 3)
+    standard normal, e.g. `camera_noise`, or None) is added in encoded units [0, 1] before rounding.
+
+    The step by step form of what `camera_frame` computes in one pass (the same bytes for the same inputs)."""
     out = np.empty((len(dirs), 3), np.uint8)
     noise = np.zeros((0, 3), np.float32) if noise is None else noise
     _camera_kernel(scene_look(layout), _vec3(origin), dirs, ranges, normals, material, albedo, reflectivity, lit,
-                   SPECULAR, noise, float(noise_std), SRGB_ROOT_TABLE, out)
+                   SPECULAR, noise, 255.0 * float(noise_std), SRGB_CODE_TABLE, out)
     return out
+
+
+@njit(nogil=True, cache=True)
+def _camera_frame_kernel(look: Look, origin: Vec3, R: NDArray, K: NDArray, inv_depth: NDArray, gid: NDArray,
+                         tris: TriangleTable, specular: NDArray, shadows: bool, static_grid: SunGrid,
+                         moving_grid: SunGrid, has_moving: bool, noise_key: np.uint64, noise_code_std: float,
+                         gauss: NDArray, table: NDArray, image: NDArray, range_out: NDArray,
+                         instance_out: NDArray) -> None:
+    """One pass per pixel of the steps `render.pixel_directions`, `raycast.WorldRaycaster.cast_camera` (from the
+    rasterised depth), `render.sun_lit`, `camera_noise` and `camera_pixels` take in turn, in the same arithmetic (the
+    float32 directions and normals of those steps included), without their per-pixel arrays."""
+    width = image.shape[1]
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    sun = look.sun
+    # arrays out of their tuples once (read from a tuple per pixel, each access costs reference counting)
+    tri_normal, tri_material, tri_albedo = tris.normal, tris.material, tris.albedo
+    tri_reflectivity, tri_instance = tris.reflectivity, tris.instance
+    s_axes, (s_a0, s_b0), s_inv_cell, s_cols, s_rows = static_grid.axes, static_grid.origin, 1.0 / static_grid.cell, \
+        static_grid.cols, static_grid.rows
+    s_start, s_cells, s_wide, s_occ = static_grid.cell_start, static_grid.cells, static_grid.wide, \
+        static_grid.occupied
+    m_axes, (m_a0, m_b0), m_inv_cell, m_cols, m_rows = moving_grid.axes, moving_grid.origin, 1.0 / moving_grid.cell, \
+        moving_grid.cols, moving_grid.rows
+    m_start, m_cells, m_wide, m_occ = moving_grid.cell_start, moving_grid.cells, moving_grid.wide, \
+        moving_grid.occupied
+    static_hint = moving_hint = -1  # the last blocking records: shadows are coherent from pixel to pixel
+    xs = (np.arange(width) - cx) / fx
+    for v in range(image.shape[0]):
+        y = (v - cy) / fy
+        for u in range(width):
+            i = v * width + u
+            x = xs[u]
+            root = np.sqrt(x * x + y * y + 1.0)
+            inv = 1.0 / root
+            d32 = (np.float32((R[0, 0] * x + R[0, 1] * y + R[0, 2]) * inv),
+                   np.float32((R[1, 0] * x + R[1, 1] * y + R[1, 2]) * inv),
+                   np.float32((R[2, 0] * x + R[2, 1] * y + R[2, 2]) * inv))
+            d = (float(d32[0]), float(d32[1]), float(d32[2]))
+            g = gid[i]
+            if g < 0:
+                colour = _sky_point(look, d)
+                range_out[i] = np.inf
+                instance_out[i] = 0
+            else:
+                t = root / inv_depth[i]
+                n0, n1, n2 = tri_normal[g, 0], tri_normal[g, 1], tri_normal[g, 2]
+                if n0 * d32[0] + n1 * d32[1] + n2 * d32[2] > 0:  # float32, as `_finish_kernel`
+                    n0, n1, n2 = -n0, -n1, -n2
+                lit = False
+                if n0 * sun[0] + n1 * sun[1] + n2 * sun[2] > 0:
+                    lit = True
+                    if shadows:  # the shadow ray's origin, as `_shadow_starts`
+                        px = origin[0] + d32[0] * t + SHADOW_EPS * n0
+                        py = origin[1] + d32[1] * t + SHADOW_EPS * n1
+                        pz = origin[2] + d32[2] * t + SHADOW_EPS * n2
+                        blocked, static_hint = blocked_at(s_axes, s_a0, s_b0, s_inv_cell, s_cols, s_rows, s_start,
+                                                          s_cells, s_wide, s_occ, px, py, pz, static_hint)
+                        if not blocked and has_moving:
+                            blocked, moving_hint = blocked_at(m_axes, m_a0, m_b0, m_inv_cell, m_cols, m_rows, m_start,
+                                                              m_cells, m_wide, m_occ, px, py, pz, moving_hint)
+                        lit = not blocked
+                colour = _point_radiance(look, origin, d, t, (float(n0), float(n1), float(n2)),
+                                         int(tri_material[g]), (float(tri_albedo[g, 0]), float(tri_albedo[g, 1]),
+                                                                float(tri_albedo[g, 2])),
+                                         float(tri_reflectivity[g]), lit, specular)
+                range_out[i] = t
+                instance_out[i] = tri_instance[g]
+            if noise_code_std > 0.0:
+                z = _pixel_noise(noise_key, i, gauss)
+                for c in range(3):
+                    image[v, u, c] = _encode(colour[c], noise_code_std * z[c], table)
+            else:
+                for c in range(3):
+                    image[v, u, c] = _encode(colour[c], 0.0, table)
+
+
+def camera_frame(layout: SceneLayout, origin: NDArray, R: NDArray, K: NDArray, inv_depth: NDArray, gid: NDArray,
+                 tris: TriangleTable, static_grid: SunGrid, moving_grid: SunGrid | None, shadows: bool, key: int,
+                 noise_std: float, height: int, width: int) -> tuple[NDArray[np.uint8], F32, NDArray[np.int32]]:
+    """A camera image in one pass: the pinhole camera at ``origin`` (3,) with rotation ``R`` (3, 3) (camera -> global)
+    and intrinsics ``K`` (3, 3), whose pixel rays (row-major, ``height`` x ``width``) meet triangle ``gid`` (H*W,)
+    of ``tris`` (-1: sky) at inverse camera depth ``inv_depth`` (H*W,) [1/m] (`raster.pinhole_depth`); sun shadows
+    (with ``shadows``) from ``static_grid`` and ``moving_grid`` (the moving actors posed at the exposure; None: none);
+    sensor noise of ``noise_std`` (encoded units) from ``key`` (`camera_noise`).
+
+    Returns the (H, W, 3) uint8 sRGB image, the ray length per pixel (H, W) float32 [m] (inf = sky) and the
+    instance per pixel (H, W) int32 (0 = background): the same as `camera_pixels` of the step-by-step hits, lit
+    flags and `camera_noise`, byte for byte.
+    """
+    image = np.empty((height, width, 3), np.uint8)
+    range_out = np.empty(height * width, np.float32)
+    instance_out = np.empty(height * width, np.int32)
+    _camera_frame_kernel(scene_look(layout), _vec3(origin), np.ascontiguousarray(R, np.float64),
+                         np.asarray(K, np.float64), inv_depth, gid, tris, SPECULAR, bool(shadows), static_grid,
+                         static_grid if moving_grid is None else moving_grid, moving_grid is not None,
+                         np.uint64(key), 255.0 * float(noise_std), GAUSS_TABLE, SRGB_CODE_TABLE, image, range_out,
+                         instance_out)
+    return image, range_out.reshape(height, width), instance_out.reshape(height, width)
 
 
 def lidar_intensity(reflectivity: NDArray, cos_incidence: NDArray, ranges: NDArray) -> F32:
@@ -281,3 +449,47 @@ def lidar_intensity(reflectivity: NDArray, cos_incidence: NDArray, ranges: NDArr
     """
     falloff = np.minimum(1.0, 10.0 / np.maximum(ranges, 1e-3))
     return (255.0 * reflectivity * np.abs(cos_incidence) * falloff).astype(np.float32)
+
+
+@njit(nogil=True, cache=True)
+def _lidar_returns_kernel(look: Look, origins: NDArray, dirs: NDArray, true_range: NDArray, noise: NDArray,
+                          normals: NDArray, material: NDArray, albedo: NDArray, reflectivity: NDArray,
+                          min_range: float, max_range: float, min_intensity: float, idx_out: NDArray,
+                          raw_out: NDArray, mat_out: NDArray) -> int:
+    m = 0
+    for i in range(len(true_range)):
+        t = true_range[i]
+        if not np.isfinite(t):
+            continue
+        measured = t + noise[i]
+        if measured < min_range or measured > max_range:
+            continue
+        d = (dirs[i, 0], dirs[i, 1], dirs[i, 2])
+        normal = (float(normals[i, 0]), float(normals[i, 1]), float(normals[i, 2]))
+        mat, _, refl = _texture_point(look, (origins[i, 0] + d[0] * t, origins[i, 1] + d[1] * t,
+                                             origins[i, 2] + d[2] * t), normal, int(material[i]),
+                                      (float(albedo[i, 0]), float(albedo[i, 1]), float(albedo[i, 2])),
+                                      float(reflectivity[i]))
+        cos_inc = normal[0] * d[0] + normal[1] * d[1] + normal[2] * d[2]
+        raw = np.float32(255.0 * np.float32(refl) * abs(cos_inc) * min(1.0, 10.0 / max(measured, 1e-3)))
+        if raw >= min_intensity:
+            idx_out[m], raw_out[m], mat_out[m] = i, raw, mat
+            m += 1
+    return m
+
+
+def lidar_returns(layout: SceneLayout, origins: NDArray, dirs: NDArray, true_range: NDArray, noise: NDArray,
+                  normals: NDArray, material: NDArray, albedo: NDArray, reflectivity: NDArray, min_range: float,
+                  max_range: float, min_intensity: float) -> tuple[NDArray[np.int64], F32, NDArray[np.uint8]]:
+    """The beams (rays from ``origins`` (N, 3) along unit ``dirs`` (N, 3)) that return: a hit (``true_range`` (N,)
+    [m] finite) whose measured range ``true_range + noise`` lies in [``min_range``, ``max_range``] and whose raw
+    intensity (`lidar_intensity` of the textured reflectivity (`texture`), |cos incidence| with the hit ``normals``
+    and the measured range) reaches ``min_intensity``. Returns their indices (M,), raw intensities (M,) float32 and
+    textured materials (M,) uint8."""
+    n = len(true_range)
+    idx, raw, mat = np.empty(n, np.int64), np.empty(n, np.float32), np.empty(n, np.uint8)
+    m = _lidar_returns_kernel(scene_look(layout), np.asarray(origins, np.float64), np.asarray(dirs, np.float64),
+                              true_range, np.broadcast_to(np.asarray(noise, np.float64), (n,)), normals, material,
+                              albedo, reflectivity, float(min_range), float(max_range), float(min_intensity), idx,
+                              raw, mat)
+    return idx[:m], raw[:m], mat[:m]

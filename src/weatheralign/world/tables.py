@@ -48,12 +48,14 @@ class SensorCalibration:
 
 @dataclass(frozen=True)
 class RoadFootprint:
-    """A street's drivable area for the map: scene -> global transform, half width, optional crossing x [m]."""
+    """A street's drivable area for the map: scene -> global transform, half width, optional crossing x [m], and the
+    street's scene-frame x range [m] (`RoadGeometry.x_extent`)."""
 
     T_global_scene: NDArray[np.float64]
     road_half_width: float
     crossing_x: float | None
     crossing_half_width: float
+    x_extent: tuple[float, float] = (-200.0, 260.0)
 
 
 def _sensor_records(seed: int, sensors: Sequence[SensorCalibration]) -> tuple[list[dict], list[dict]]:
@@ -167,7 +169,7 @@ def drivable_mask(roads: Sequence[RoadFootprint]) -> NDArray[np.uint8]:
         cv2.fillPoly(mask, [np.round(px).astype(np.int32)], 255)
 
     for road in roads:
-        fill(road.T_global_scene, -200.0, 260.0, -road.road_half_width, road.road_half_width)
+        fill(road.T_global_scene, *road.x_extent, -road.road_half_width, road.road_half_width)
         if road.crossing_x is not None:
             fill(road.T_global_scene, road.crossing_x - road.crossing_half_width,
                  road.crossing_x + road.crossing_half_width, -150.0, 150.0)
