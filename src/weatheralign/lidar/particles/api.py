@@ -16,7 +16,8 @@ from weatheralign.data.frame import LidarScan
 from weatheralign.geometry import invert
 from weatheralign.lidar.beams import Beams, beams_from_scan
 from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel
-from weatheralign.lidar.particles.beam_index import HitBuffer, index_beams, reachable_cells, shell_edges
+from weatheralign.lidar.particles.beam_index import (empty_hits, field_hits, index_beams, list_hits, range_shells,
+                                                     rank_cutoffs, reachable_cells, shell_edges)
 from weatheralign.lidar.particles.kernels import response_kernel
 from weatheralign.lidar.particles.records import (BeamOutcome, BeamTargets, HitArrays, Medium, ParticleBatch,
                                                   PulseParams, Shells)
@@ -445,7 +446,7 @@ def simulate_particles(
     if len(beams) == 0 or (empty and fog_alpha <= 0.0):
         return _identity(beams, points, imax, stats)
     if empty:  # fog alone, through the same response: no hits, the fog's extinction everywhere
-        hits = HitBuffer().collect()
+        hits = empty_hits()
         response = _respond(beams, hits, np.array([0.0, 1e300]), np.array([fog_alpha]), opt)
         _fog_backscatter(beams, response, fog, opt)
         return _assemble(beams, points, T_out, imax, hits, response, stats)
@@ -465,29 +466,21 @@ def simulate_particles(
     else:
         alphas = np.zeros(len(thresholds))
     alphas = alphas + fog_alpha if fog_alpha > 0.0 else alphas
-    cells, d_near = reachable_cells(field, index, index.t_ref, float(edges[-1]), e_all, r_max)
+    # shells whose threshold leaves no particle (rank cut-off < 0: beyond the largest diameter) need no cells
+    empty_from = np.flatnonzero(rank_cutoffs(field, thresholds)[1] < 0.0)
+    s_cut = float(edges[empty_from[0]]) if len(empty_from) else float(edges[-1])
+    cells, d_near = reachable_cells(field, index, index.t_ref, float(edges[-1]), e_all, r_max, s_cut)
     # each cell is materialised once, with the threshold of the shell of its nearest point (<= that of any of its
     # particles' own shell, which the hit kernel then applies per particle)
     cell_shell = np.clip(np.searchsorted(edges, d_near, side="right") - 1, 0, len(thresholds) - 1)
     order = np.argsort(cell_shell, kind="stable")
-    bounds = np.searchsorted(cell_shell[order], np.arange(len(thresholds) + 1))
-    buffer = HitBuffer()
-    shells = []
-    shell_table = Shells(edges=edges, thresholds=thresholds)
-    for k in range(len(thresholds)):
-        group = cells[order[bounds[k]:bounds[k + 1]]]
-        n_part = n_hits = 0
-        if len(group):
-            parts = field.materialize_cells(group, index.t_ref, min_diameter=float(thresholds[k]),
-                                            max_particles=max_particles_per_shell)
-            n_part = len(parts)
-            pos = np.ascontiguousarray(parts.positions - index.center)
-            batch = ParticleBatch(pos=pos, radius=0.5 * parts.diameters, ids=parts.ids, vel=vel, t_part=index.t_ref)
-            n_hits = buffer.add(index, batch, shell_table)
-        shells.append({"s0": float(edges[k]), "s1": float(edges[k + 1]), "min_diameter": float(thresholds[k]),
-                       "cells": int(len(group)), "particles": n_part, "hits": n_hits,
-                       "unresolved_extinction": float(alphas[k])})
-    hits = buffer.collect()
+    shell_off = np.searchsorted(cell_shell[order], np.arange(len(thresholds) + 1))
+    hits, per_shell = field_hits(field, index, cells[order], shell_off, range_shells(edges, thresholds),
+                                 max_particles_per_shell)
+    shells = [{"s0": float(edges[k]), "s1": float(edges[k + 1]), "min_diameter": float(thresholds[k]),
+               "cells": int(shell_off[k + 1] - shell_off[k]), "particles": int(per_shell[k, 0]),
+               "hits": int(per_shell[k, 1]), "unresolved_extinction": float(alphas[k])}
+              for k in range(len(thresholds))]
     response = _respond(beams, hits, edges, alphas, opt)
     if fog is not None and fog_alpha > 0.0:
         _fog_backscatter(beams, response, fog, opt)
@@ -525,12 +518,9 @@ def simulate_particle_list(
         return _identity(beams, points, imax, stats)
     vel = np.asarray(velocity, dtype=np.float64).reshape(3)
     index = index_beams(beams)
-    buffer = HitBuffer()
-    if len(particles):
-        pos = np.ascontiguousarray(np.asarray(particles.positions, dtype=np.float64) - index.center)
-        batch = ParticleBatch(pos=pos, radius=0.5 * np.asarray(particles.diameters, dtype=np.float64),
-                              ids=np.asarray(particles.ids, dtype=np.int64), vel=vel, t_part=float(particles.t))
-        buffer.add(index, batch, Shells(edges=np.array([0.0, math.inf]), thresholds=np.zeros(1)))  # all resolved
-    hits = buffer.collect()
+    pos = np.ascontiguousarray(np.asarray(particles.positions, dtype=np.float64).reshape(-1, 3) - index.center)
+    batch = ParticleBatch(pos=pos, radius=0.5 * np.asarray(particles.diameters, dtype=np.float64),
+                          ids=np.asarray(particles.ids, dtype=np.int64), vel=vel, t_part=float(particles.t))
+    hits = list_hits(index, batch, range_shells(np.array([0.0, math.inf]), np.zeros(1)))  # all resolved
     response = _respond(beams, hits, np.array([0.0, 1e300]), np.array([float(extinction)]), opt)
     return _assemble(beams, points, T_out, imax, hits, response, stats)

@@ -9,35 +9,39 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
 from weatheralign.lidar.beams import Beams
-from weatheralign.lidar.particles.kernels import cells_kernel, hits_kernel
-from weatheralign.lidar.particles.records import (BeamRays, CellQuery, DirectionGrid, FieldGrid, HitArrays,
-                                                  ParticleBatch, ReachMap, Shells, TimeSlices)
-from weatheralign.medium.field import ParticleField
+from weatheralign.lidar.particles.kernels import (cells_kernel, field_hits_kernel, hits_kernel, reach_kernel,
+                                                  slices_kernel, sort_hits_kernel)
+from weatheralign.lidar.particles.records import (BeamRays, CellQuery, FieldGrid, FieldSource, HitArrays,
+                                                  ParticleBatch, ReachMap, Shells, SliceIndex, Sizer, TimeSlices)
+from weatheralign.medium.field import MAX_PER_CELL, ParticleField, _seed_key
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
 _SLICE_BEAMS = 1024  # beams per time slice of the sweep
 _MAX_SLICES = 64
-_BIN = 3e-3  # angular bin [rad] of the beam-direction grid
 _REACH_BIN = 0.0175  # reach-map bin: z-component of the direction, and azimuth [rad]
-_SLICE_TABLE_BIN = math.radians(2.0)
-_OCC_BIN = 1e-3  # sin-elevation bin of the beam-occupancy prefilter
+_EL_BIN = 1e-3  # fine z-component bin of the slices' beams
+_LIST_CELL = 1.0  # grid [m] that orders an explicit particle list into compact batches
+_CONVEX_SPAN = math.pi - 1e-3  # a slice's azimuths within this span get a wedge [rad]
+_MIN_TABLE_BINS = 180  # azimuth bins of the slice table, at least
+_MAX_LUT = 1 << 16  # largest shell look-up table
 
 
 @dataclass(frozen=True, eq=False)
 class BeamIndex:
-    """Beams in local coordinates (global minus ``center``) with their time slices, direction grid and reach map."""
+    """Beams in local coordinates (global minus ``center``) with their time slices, sorted beams and reach map."""
 
     center: F64  # (3,) global position of the local origin [m]
     beams: BeamRays
     slices: TimeSlices
-    grid: DirectionGrid
+    lookup: SliceIndex
     reach: ReachMap
     t_ref: float  # reference time of the particles: the median firing time [s]
     e_origin: float  # max |origin - center| [m]
@@ -54,10 +58,58 @@ def perpendicular_basis(d: F64) -> tuple[F64, F64]:
     return e1, np.cross(d, e1)
 
 
+class _SliceGeometry(NamedTuple):
+    slices: TimeSlices
+    az0: F64  # (K,) first azimuth of each slice [rad]
+    span: F64  # (K,) its azimuth span [rad]
+
+
+def _slice_geometry(origins: F64, d: F64, az: F64, times: F64, lengths: F64, order: I64,
+                    bounds: I64) -> tuple[_SliceGeometry, tuple]:
+    """The time slices of the beams ``order[bounds[k]:bounds[k+1]]`` (`slices_kernel`) and the per-bin, per-run and
+    sorted-beam arrays of the `SliceIndex` (el_cum, run_at, run_lo, run_start, beam, rays, proj)."""
+    k = len(bounds) - 1
+    f = {name: np.empty(k) for name in ("time", "e", "dt", "z_lo", "z_hi", "z0", "az0", "span")}
+    orig, tangent, wedge = np.empty((k, 3)), np.empty((k, 2)), np.empty((k, 5))
+    n_el = np.empty(k, dtype=np.int64)
+    el_base = np.empty(k, dtype=np.int64)
+    run_base = np.empty(k + 1, dtype=np.int64)
+    s_beam = np.empty(len(order), dtype=np.int64)
+    proj = np.empty(len(order))
+    per_bin = slices_kernel(origins, d, az, times, order, bounds, 1.0 / _EL_BIN, _CONVEX_SPAN, orig, f["time"],
+                            f["e"], f["dt"], f["z_lo"], f["z_hi"], f["z0"], f["az0"], f["span"], tangent, wedge, n_el,
+                            el_base, run_base, s_beam, proj)
+    slices = TimeSlices(orig=orig, time=f["time"], e=f["e"], dt=f["dt"], z_lo=f["z_lo"], z_hi=f["z_hi"],
+                        tangent=tangent, wedge=wedge, z0=f["z0"], n_el=n_el, el_base=el_base, beam_base=bounds,
+                        run_base=run_base)
+    return (_SliceGeometry(slices, f["az0"], f["span"]),
+            (*per_bin, s_beam, np.ascontiguousarray(np.column_stack([times[s_beam], origins[s_beam], d[s_beam],
+                                                                    lengths[s_beam]])), proj))
+
+
+def _slice_table(az0: F64, span: F64, n_bins: int) -> tuple[I64, I64]:
+    """The slices (CSR ``offsets`` (n_bins+1,), ``slices``) whose azimuth range ``[az0, az0 + span]`` [rad] reaches
+    each of ``n_bins`` azimuth bins over ``[-π, π)``."""
+    d_tb = 2 * math.pi / n_bins
+    lists: list[list[int]] = [[] for _ in range(n_bins)]
+    for k in range(len(az0)):
+        if span[k] > _CONVEX_SPAN:
+            bins = range(n_bins)
+        else:
+            b0 = int(math.floor((az0[k] + math.pi) / d_tb)) - 1
+            b1 = int(math.floor((az0[k] + span[k] + math.pi) / d_tb)) + 1
+            bins = sorted({b % n_bins for b in range(b0, b1 + 1)})
+        for b in bins:
+            lists[b].append(k)
+    offsets = np.zeros(n_bins + 1, dtype=np.int64)
+    np.cumsum([len(x) for x in lists], out=offsets[1:])
+    return offsets, np.array([k for x in lists for k in x], dtype=np.int64)
+
+
 def index_beams(beams: Beams, t_ref: float | None = None) -> BeamIndex:
-    """Slice the beams by firing time and bin each slice's beam directions on a grid of (z-component of the
-    direction, azimuth) cells of ``_BIN``; also the azimuth table of the slices, the elevation occupancy and the reach
-    map (longest beam per direction bin)."""
+    """Cut the beams into time slices of `_SLICE_BEAMS` (by firing time; beams fired together by azimuth), each with
+    its reference origin and time, direction bounds (z-component range, azimuth wedge) and its beams sorted by fine
+    z-component bin (`_EL_BIN`); also the reach map (longest beam per direction bin)."""
     n = len(beams)
     lo, hi = beams.origins.min(axis=0), beams.origins.max(axis=0)
     center = 0.5 * (lo + hi)
@@ -73,119 +125,138 @@ def index_beams(beams: Beams, t_ref: float | None = None) -> BeamIndex:
     order = np.lexsort((az, times))  # by firing time; beams fired together: by azimuth
     n_slices = int(np.clip(n // _SLICE_BEAMS, 1, _MAX_SLICES))
     bounds = np.linspace(0, n, n_slices + 1).astype(np.int64)
-    sl = {k: [] for k in ("orig", "time", "e", "dt", "az0", "span", "full", "z0", "nz", "naz", "base")}
-    flat = np.empty(n, dtype=np.int64)
-    base = 0
-    for k in range(n_slices):
-        idx = order[bounds[k]:bounds[k + 1]]
-        o = origins[idx]
-        o_k = 0.5 * (o.min(axis=0) + o.max(axis=0))
-        t = times[idx]
-        t_k = 0.5 * (t.min() + t.max())
-        a = np.sort(az[idx])
-        gaps = np.diff(np.concatenate([a, [a[0] + 2 * np.pi]]))
-        g = int(np.argmax(gaps))
-        az0 = a[(g + 1) % len(a)]
-        span = 2 * np.pi - gaps[g]
-        full = span >= 2 * np.pi - 4 * _BIN
-        if full:
-            az0, span = -np.pi, 2 * np.pi
-            naz = int(math.ceil(2 * np.pi / _BIN))
-        else:
-            naz = int(math.floor(span / _BIN)) + 1
-        z0 = float(d[idx, 2].min()) - 1e-9  # bins in the z-component (sine of the elevation)
-        nz = int(math.floor((float(d[idx, 2].max()) - z0) / _BIN)) + 1
-        eb = np.minimum(np.floor((d[idx, 2] - z0) / _BIN).astype(np.int64), nz - 1)
-        rel = np.mod(az[idx] - az0, 2 * np.pi)
-        ab = np.floor(rel / _BIN).astype(np.int64)
-        ab = np.mod(ab, naz) if full else np.clip(ab, 0, naz - 1)
-        flat[idx] = base + eb * naz + ab
-        for key, val in (("orig", o_k), ("time", t_k), ("e", float(np.linalg.norm(o - o_k, axis=1).max())),
-                         ("dt", float(np.abs(t - t_k).max())), ("az0", az0), ("span", span), ("full", full),
-                         ("z0", z0), ("nz", nz), ("naz", naz), ("base", base)):
-            sl[key].append(val)
-        base += nz * naz
-    n_tb = int(round(2 * math.pi / _SLICE_TABLE_BIN))
-    tb_lists: list[list[int]] = [[] for _ in range(n_tb)]
-    for k in range(n_slices):
-        if sl["full"][k]:
-            bins = range(n_tb)
-        else:
-            b0 = int(math.floor((sl["az0"][k] + math.pi) / _SLICE_TABLE_BIN))
-            b1 = int(math.floor((sl["az0"][k] + sl["span"][k] + math.pi) / _SLICE_TABLE_BIN))
-            bins = sorted({b % n_tb for b in range(b0, b1 + 1)})
-        for b in bins:
-            tb_lists[b].append(k)
-    tb_off = np.zeros(n_tb + 1, dtype=np.int64)
-    np.cumsum([len(x) for x in tb_lists], out=tb_off[1:])
-    tb_slices = np.array([k for x in tb_lists for k in x], dtype=np.int64)
-    bin_beams = np.argsort(flat, kind="stable").astype(np.int64)
-    bin_off = np.zeros(base + 1, dtype=np.int64)
-    np.cumsum(np.bincount(flat, minlength=base), out=bin_off[1:])
-
-    n_occ = int(math.ceil(2.0 / _OCC_BIN)) + 1
-    occ = np.zeros(n_occ, dtype=np.int64)
-    occ_b = np.clip(np.floor((d[:, 2] + 1.0) / _OCC_BIN).astype(np.int64), 0, n_occ - 1)
-    occ[np.unique(occ_b)] = 1
-    occ_cum = np.zeros(n_occ + 1, dtype=np.int64)
-    np.cumsum(occ, out=occ_cum[1:])
+    lengths = np.ascontiguousarray(beams.lengths, dtype=np.float64)
+    geometry, lookup = _slice_geometry(origins, d, az, times, lengths, order, bounds)
+    e_origin = float(np.linalg.norm(origins, axis=1).max()) if n else 0.0
+    n_tb = max(_MIN_TABLE_BINS, 4 * n_slices)
+    tb_off, tb_slices = _slice_table(geometry.az0, geometry.span, n_tb)
     n_re, n_ra = int(math.ceil(2.0 / _REACH_BIN)) + 1, int(round(2 * math.pi / _REACH_BIN))
     reach = np.full((n_re, n_ra), -1.0)
     re_b = np.clip(np.floor((d[:, 2] + 1.0) / _REACH_BIN).astype(np.int64), 0, n_re - 1)
     ra_b = np.mod(np.floor((az + np.pi) / _REACH_BIN).astype(np.int64), n_ra)
-    np.maximum.at(reach, (re_b, ra_b), beams.lengths)
+    reach_kernel(reach, re_b, ra_b, np.ascontiguousarray(beams.lengths, dtype=np.float64))
     return BeamIndex(
         center=center,
         beams=BeamRays(origins=origins, directions=d, e1=e1, e2=e2, times=times,
                        lengths=np.ascontiguousarray(beams.lengths, dtype=np.float64),
                        tanh=math.tan(0.5 * beams.divergence),
                        t_half=float(np.abs(times - t_ref).max()) if n else 0.0),
-        slices=TimeSlices(orig=np.ascontiguousarray(np.array(sl["orig"]).reshape(-1, 3)), time=np.array(sl["time"]),
-                          e=np.array(sl["e"]), dt=np.array(sl["dt"]), az0=np.array(sl["az0"]),
-                          span=np.array(sl["span"]), full=np.array(sl["full"], dtype=bool), z0=np.array(sl["z0"]),
-                          nz=np.array(sl["nz"], dtype=np.int64), naz=np.array(sl["naz"], dtype=np.int64),
-                          base=np.array(sl["base"], dtype=np.int64)),
-        grid=DirectionGrid(d_bin=_BIN, bin_off=bin_off, bin_beams=bin_beams, d_tb=_SLICE_TABLE_BIN, tb_off=tb_off,
-                           tb_slices=tb_slices, d_occ=_OCC_BIN, occ_cum=occ_cum),
+        slices=geometry.slices,
+        lookup=SliceIndex(e_origin=e_origin, d_tb=2 * math.pi / n_tb, tb_off=tb_off, tb_slices=tb_slices,
+                          inv_d_el=1.0 / _EL_BIN, el_cum=lookup[0], run_at=lookup[1], run_lo=lookup[2],
+                          run_start=lookup[3], beam=lookup[4], rays=lookup[5], proj=lookup[6]),
         reach=ReachMap(reach=reach, d_reach=_REACH_BIN,
                        tan_lo=float(np.clip(np.tan(el.min()), -1e3, 1e3)) if n else 0.0,
                        tan_hi=float(np.clip(np.tan(el.max()), -1e3, 1e3)) if n else 0.0),
         t_ref=float(t_ref),
-        e_origin=float(np.linalg.norm(origins, axis=1).max()) if n else 0.0)
+        e_origin=e_origin)
 
 
-class HitBuffer:
-    """Growable hit arrays filled shell by shell."""
+def _run_hits(kernel, cap: int, *args) -> tuple[HitArrays, tuple]:
+    """Run a hit ``kernel`` (its last argument the `HitArrays` output, its first return value the hit count) with
+    room for ``cap`` hits, again with room for all if they did not fit; the hits sorted by beam, then range (stable:
+    `sort_hits_kernel`), and the kernel's other return values."""
+    while True:
+        out = HitArrays(np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap), np.empty(cap),
+                        np.empty(cap), np.empty(cap))
+        ret = kernel(*args, out)
+        n, rest = (ret[0], ret[1:]) if isinstance(ret, tuple) else (ret, ())
+        if n <= cap:
+            break
+        cap = n
+    sorted_hits = HitArrays(*(np.empty(n, a.dtype) for a in out))
+    sort_hits_kernel(out, n, int(out.beam[:n].max()) + 1 if n else 0, sorted_hits)
+    return sorted_hits, rest
 
-    def __init__(self) -> None:
-        self.parts: list[HitArrays] = []
 
-    def add(self, index: BeamIndex, batch: ParticleBatch, shells: Shells) -> int:
-        """Match ``batch`` against every beam of ``index`` (`hits_kernel`); returns the number of hits added."""
-        if len(batch.pos) == 0:
-            return 0
-        e_all = index.e_origin + float(np.linalg.norm(batch.vel)) * index.beams.t_half
-        cap = max(4096, len(batch.pos) // 8)
-        while True:
-            out = HitArrays(np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap), np.empty(cap),
-                            np.empty(cap), np.empty(cap))
-            n = hits_kernel(batch, shells, index.beams, e_all, index.slices, index.grid, out)
-            if n <= cap:
-                break
-            cap = n
-        self.parts.append(HitArrays(*(a[:n].copy() for a in out)))
-        return n
+def empty_hits() -> HitArrays:
+    """No hits."""
+    return HitArrays(np.zeros(0, np.int64), np.zeros(0, np.int64), *(np.zeros(0) for _ in range(4)))
 
-    def collect(self) -> HitArrays:
-        """All hits so far, sorted by beam, then range."""
-        if not self.parts:
-            return HitArrays(np.zeros(0, np.int64), np.zeros(0, np.int64), *(np.zeros(0) for _ in range(4)))
-        cols = HitArrays(*(np.concatenate(col) for col in zip(*self.parts)))
-        order = np.lexsort((cols.s, cols.beam))
-        return HitArrays(*(c[order] for c in cols))
+
+def list_hits(index: BeamIndex, batch: ParticleBatch, shells: Shells) -> HitArrays:
+    """The hits of the explicit particles ``batch`` on every beam of ``index`` (`hits_kernel`), sorted by beam, then
+    range."""
+    if len(batch.pos) == 0:
+        return empty_hits()
+    cell = np.floor(batch.pos / _LIST_CELL).astype(np.int64)  # consecutive particles close together
+    order = np.lexsort((cell[:, 2], cell[:, 1], cell[:, 0]))
+    hits, _ = _run_hits(hits_kernel, max(4096, len(batch.pos) // 8), batch, order, shells, index.beams,
+                        index.slices, index.lookup)
+    return hits
+
+
+def rank_cutoffs(fld: ParticleField, min_diameters: F64) -> tuple[F64, F64]:
+    """Per minimum diameter (K,) [m]: the smallest diameter a query materialises (the field's floor) and the rank
+    cut-off (the expected count per cell of particles at least that large): a cell holds particle j iff its
+    ``E_j <= cut-off``, so a negative cut-off means no particle at all (`ParticleField.materialize_cells`)."""
+    spec = fld.spectrum
+    scale = spec.n0 * fld.cell_volume / spec.lam
+    exp_lam_dmax = math.exp(-spec.lam * spec.d_max)
+    floors = np.array([fld._floor(m) for m in min_diameters])
+    return floors, np.array([scale * (math.exp(-spec.lam * m) - exp_lam_dmax) for m in floors])
+
+
+def field_hits(fld: ParticleField, index: BeamIndex, cells: I64, shell_off: I64, shells: Shells,
+               max_particles: int) -> tuple[HitArrays, I64]:
+    """The hits of the particles of ``fld`` in the co-moving ``cells`` (M, 3), grouped by shell (the cells of shell
+    k are rows ``shell_off[k]:shell_off[k+1]``, materialised with ``min_diameter = shells.thresholds[k]``, exactly
+    as `ParticleField.materialize_cells` would at ``index.t_ref``), on every beam of ``index``
+    (`field_hits_kernel`: generated and matched cell by cell, never stored), sorted by beam, then range; and the
+    particles and hits per shell (K, 2).
+
+    Raises:
+        ValueError: a shell expects or holds more than ``max_particles`` particles, or a cell more than the field's
+            rank bits allow (as `ParticleField.materialize_cells`).
+    """
+    floors, c_max = rank_cutoffs(fld, shells.thresholds)
+    spec = fld.spectrum
+    scale = spec.n0 * fld.cell_volume / spec.lam
+    exp_lam_dmax = math.exp(-spec.lam * spec.d_max)
+    n_cells = np.diff(shell_off)
+    for k in np.flatnonzero(n_cells):
+        fld._check_cells(cells[shell_off[k]:shell_off[k + 1]])
+        if c_max[k] * n_cells[k] > max_particles:
+            raise ValueError(f"query expects {c_max[k] * n_cells[k]:.3g} particles in its cells (> max_particles = "
+                             f"{max_particles}): raise min_diameter (now {floors[k]} m) or shrink the region")
+    vel = fld.velocity_array
+    # a particle of shell k whose rank variable exceeds the cut-off of a slightly smaller diameter is certainly below
+    # the shell's threshold (the margin covers the rounding of its diameter; the kernel decides the others exactly)
+    _, e_cut = rank_cutoffs(fld, shells.thresholds * (1.0 - 1e-6))
+    src = FieldSource(seed_key=_seed_key(fld.seed), cells=np.ascontiguousarray(cells, dtype=np.int64),
+                      shell_off=np.ascontiguousarray(shell_off, dtype=np.int64), c_max=c_max, e_cut=e_cut,
+                      cut_pad=np.concatenate([e_cut, np.full(4, -np.inf)]),
+                      edge_pad=np.concatenate([shells.edges, np.full(4, np.inf)]),
+                      d_floor=floors, cell_size=fld.cell_size, cell_z=fld.cell_z, z_min=fld.z_min,
+                      height=fld.z_max - fld.z_min, shift=fld._shift(index.t_ref), center=index.center,
+                      sizer=Sizer(lam=spec.lam, exp_lam_dmax=exp_lam_dmax, scale=scale, d_max=spec.d_max),
+                      max_particles=int(max_particles))
+    per_shell = np.zeros((len(n_cells), 2), dtype=np.int64)
+    cap = max(4096, int(np.dot(c_max, n_cells)) // 8)
+    hits, (status,) = _run_hits(field_hits_kernel, cap, src, index.t_ref, vel, shells, index.beams, index.slices,
+                                index.lookup, per_shell)
+    if status > 0:
+        raise ValueError(f"shell {status - 1} holds more than max_particles = {max_particles} particles in its cells")
+    if status < 0:
+        raise ValueError(f"a cell exceeds {MAX_PER_CELL} particles: use a smaller cell_size")
+    return hits, per_shell
 
 
 # ============================================================================================== field queries
+
+
+def range_shells(edges: F64, thresholds: F64) -> Shells:
+    """The range shells ``edges`` (K+1,) [m] with minimum resolved diameters ``thresholds`` (K,) [m] and their
+    look-up table (bins of half the narrowest finite shell, at most `_MAX_LUT` of them)."""
+    edges = np.ascontiguousarray(edges, dtype=np.float64)
+    widths = np.diff(edges[np.isfinite(edges)])
+    top = float(edges[np.isfinite(edges)].max()) if np.isfinite(edges).any() else 0.0
+    w = 0.5 * float(widths.min()) if len(widths) and widths.min() > 0.0 else math.inf
+    n_lut = int(min(_MAX_LUT, math.floor(top / w) + 2)) if math.isfinite(w) else 1
+    inv_w = (n_lut - 1) / top if n_lut > 1 and top > 0.0 else 0.0
+    lut = np.searchsorted(edges, np.arange(n_lut) / inv_w if inv_w > 0.0 else np.zeros(1), side="right") - 1
+    return Shells(edges=edges, thresholds=np.ascontiguousarray(thresholds, dtype=np.float64), inv_w=inv_w,
+                  lut=lut.astype(np.int64))
 
 
 def shell_edges(reach: float, first: float, ratio: float) -> F64:
@@ -197,17 +268,19 @@ def shell_edges(reach: float, first: float, ratio: float) -> F64:
 
 
 def reachable_cells(fld: ParticleField, index: BeamIndex, t_ref: float, s_max: float, e_all: float,
-                    r_max: float) -> tuple[I64, F64]:
+                    r_max: float, s_cut: float | None = None) -> tuple[I64, F64]:
     """Co-moving cells (M, 3) of ``fld`` holding particles within ``s_max`` of the sensor centre at ``t_ref`` that some
-    beam can reach, and the distance (M,) [m] of each cell's nearest point from the centre."""
+    beam can reach, and the distance (M,) [m] of each cell's nearest point from the centre; only those nearer than
+    ``s_cut`` (default ``s_max``; the others' order and distances are unchanged)."""
+    s_cut = s_max if s_cut is None else min(s_cut, s_max)
     shift = fld.velocity_array * (t_ref - fld.t_ref)
     c = index.center
     cs = fld.cell_size
-    ix_lo = math.floor((c[0] - s_max - shift[0]) / cs) - 1
-    ix_hi = math.floor((c[0] + s_max - shift[0]) / cs) + 1
-    iy_lo = math.floor((c[1] - s_max - shift[1]) / cs) - 1
-    iy_hi = math.floor((c[1] + s_max - shift[1]) / cs) + 1
-    query = CellQuery(s_max, float(c[0]), float(c[1]), float(c[2]), e_all, r_max, index.beams.tanh)
+    ix_lo = math.floor((c[0] - s_cut - shift[0]) / cs) - 1
+    ix_hi = math.floor((c[0] + s_cut - shift[0]) / cs) + 1
+    iy_lo = math.floor((c[1] - s_cut - shift[1]) / cs) - 1
+    iy_hi = math.floor((c[1] + s_cut - shift[1]) / cs) + 1
+    query = CellQuery(s_max, s_cut, float(c[0]), float(c[1]), float(c[2]), e_all, r_max, index.beams.tanh)
     grid = FieldGrid(cs, fld.cell_z, fld.nz, fld.z_min, fld.z_max - fld.z_min, shift, ix_lo, ix_hi, iy_lo, iy_hi)
     cap = int(min((ix_hi - ix_lo + 1) * (iy_hi - iy_lo + 1) * fld.nz, 1 << 20))
     while True:

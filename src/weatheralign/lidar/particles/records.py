@@ -34,34 +34,42 @@ class BeamRays(NamedTuple):
 
 
 class TimeSlices(NamedTuple):
-    """Consecutive beams by firing time, each slice with its own reference origin and time and its own grid of beam
-    directions (z-component of the direction x azimuth from ``az0``) inside the `DirectionGrid`."""
+    """Consecutive beams by firing time, each slice with its own reference origin and time, the bounds of its beam
+    directions (z-component range, azimuth wedge) and its beams sorted by fine z-component bin (`SliceIndex`)."""
 
     orig: F64  # (K, 3) reference origin: centre of the slice's beam origins [m]
     time: F64  # (K,) reference time: middle of the slice's firing times [s]
     e: F64  # (K,) largest distance of a beam origin from ``orig`` [m]
     dt: F64  # (K,) largest |firing time - time| [s]
-    az0: F64  # (K,) azimuth where the slice's azimuth range starts [rad]
-    span: F64  # (K,) azimuth range covered [rad]
-    full: NDArray[np.bool_]  # (K,) the slice covers every azimuth (its azimuth bins wrap)
-    z0: F64  # (K,) lower edge of the first z-component bin
-    nz: I64  # (K,) number of z-component bins
-    naz: I64  # (K,) number of azimuth bins
-    base: I64  # (K,) first cell of the slice's grid in `DirectionGrid.bin_off`
+    z_lo: F64  # (K,) smallest z-component of the slice's beam directions
+    z_hi: F64  # (K,) largest z-component
+    tangent: F64  # (K, 2) horizontal unit vector across the slice's middle azimuth
+    wedge: F64  # (K, 5) horizontal unit normals n_lo, n_hi (x, y each) and a slack: every beam direction d of
+    # the slice has d·n >= -slack for both normals (all zero where the slice's azimuths span more than π)
+    z0: F64  # (K,) lower edge of the slice's first fine z-component bin
+    n_el: I64  # (K,) number of fine z-component bins of the slice
+    el_base: I64  # (K,) first entry of the slice's cumulative bin counts in `SliceBeams.el_cum`
+    beam_base: I64  # (K+1,) the beams of slice k are rows beam_base[k]:beam_base[k+1] of `SliceIndex`
+    run_base: I64  # (K+1,) the runs of slice k are runs run_base[k]:run_base[k+1] of `SliceIndex`
 
 
-class DirectionGrid(NamedTuple):
-    """Where to look for beams near a direction: per-slice direction cells (CSR), the slices per azimuth bin (CSR),
-    and the occupied sin-elevation bins of all beams."""
+class SliceIndex(NamedTuple):
+    """Where to look for beams near a direction: the time slices per azimuth bin (seen from the local origin); per
+    slice its fine z-component bins (``floor((d_z - z0[k]) inv_d_el)``) and their runs (maximal sequences of
+    consecutive bins holding a beam: a ring of a spinning LiDAR); the beams sorted by slice, run and projection."""
 
-    d_bin: float  # width of a direction cell, in z-component and in azimuth [rad]
-    bin_off: I64  # (C+1,) the beams of cell c are bin_beams[bin_off[c]:bin_off[c+1]]
-    bin_beams: I64  # (B,) beam indices sorted by cell
+    e_origin: float  # largest distance of a beam origin from the local origin [m]
     d_tb: float  # azimuth bin of the slice table [rad]
     tb_off: I64  # (T+1,) the slices reaching azimuth bin t are tb_slices[tb_off[t]:tb_off[t+1]]
     tb_slices: I64  # slice indices sorted by azimuth bin
-    d_occ: float  # sin-elevation bin of the occupancy prefilter
-    occ_cum: I64  # (O+1,) cumulative count of the sin-elevation bins holding a beam
+    inv_d_el: float  # inverse width of a fine z-component bin
+    el_cum: NDArray[np.int32]  # per slice k, (n_el[k]+1,) from el_base[k]: beams of the slice in its bins < f
+    run_at: NDArray[np.int32]  # per slice k, (n_el[k]+1,) from el_base[k]: the first run not below bin f
+    run_lo: NDArray[np.int32]  # (R,) first fine bin of each run of consecutive occupied bins of a slice
+    run_start: NDArray[np.int32]  # (R+1,) the beams of run r are rows run_start[r]:run_start[r+1]
+    beam: I64  # (B,) beam indices sorted by slice, run, then projection on the slice's tangent
+    rays: F64  # (B, 8) their firing time [s], local origin (x, y, z) [m], unit direction (x, y, z), length [m]
+    proj: F64  # (B,) their projection on their slice's tangent (ascending within a run)
 
 
 class ReachMap(NamedTuple):
@@ -79,7 +87,8 @@ class ReachMap(NamedTuple):
 class CellQuery(NamedTuple):
     """The sensor side of the reachable-cells query."""
 
-    s_max: float  # query radius around the sensor centre [m]
+    s_max: float  # radius around the sensor centre that the beams reach [m]
+    s_cut: float  # only cells whose nearest point is closer than this to the sensor centre (<= s_max) [m]
     cx: float  # sensor centre (global) [m]
     cy: float
     cz: float
@@ -116,11 +125,60 @@ class ParticleBatch(NamedTuple):
     t_part: float  # time of ``pos`` [s]
 
 
+class FieldSource(NamedTuple):
+    """The particle field side of the fused materialise-and-match kernel: the reachable co-moving cells grouped by
+    range shell and the field's generator constants (`weatheralign.medium.field`: the same hash streams, expressions
+    and ids as `ParticleField.materialize_cells`)."""
+
+    seed_key: np.uint64  # the field's hashed seed
+    cells: I64  # (M, 3) co-moving cells (ix, iy, iz), grouped by shell
+    shell_off: I64  # (K+1,) the cells of shell k are rows shell_off[k]:shell_off[k+1]
+    c_max: F64  # (K,) rank cut-off per shell: particle j of a cell exists iff E_j <= c_max[k]
+    e_cut: F64  # (K,) a particle in shell k with E_j > e_cut[k] is below the shell's threshold (never resolved)
+    cut_pad: F64  # (K+4,) e_cut followed by -inf (beyond the last shell)
+    edge_pad: F64  # (K+5,) the shell edges followed by +inf
+    d_floor: F64  # (K,) smallest materialised diameter per shell [m]
+    cell_size: float  # horizontal cell size [m]
+    cell_z: float  # vertical cell size [m]
+    z_min: float  # bottom of the field's layer [m]
+    height: float  # z_max - z_min [m]
+    shift: F64  # (3,) world minus co-moving position at the particles' time (before the z wrap) [m]
+    center: F64  # (3,) global position of the local origin (`BeamIndex.center`) [m]
+    sizer: Sizer  # the diameter of a particle from its rank variable
+    max_particles: int  # refuse a shell holding more particles
+
+
+class Sizer(NamedTuple):
+    """A field particle's diameter from its rank variable E_j: ``min(max(-log(exp_lam_dmax + e / scale) / lam,
+    floor), d_max)`` (`weatheralign.medium.field`; the floor is the query's)."""
+
+    lam: float  # slope of the size spectrum [1/m]
+    exp_lam_dmax: float  # exp(-lam d_max)
+    scale: float  # expected count per cell above D is scale (exp(-lam D) - exp_lam_dmax)
+    d_max: float  # largest diameter [m]
+
+
+class Batch(NamedTuple):
+    """Particles matched together (capacity P) and the scratch of `kernels._match_batch` (K time slices)."""
+
+    pos: F64  # (3, P) local centres [m]
+    r_ub: F64  # (P,) upper bound of the radius [m]
+    r: F64  # (P,) the radius [m]; -1 until computed from ``e`` (field particles)
+    e: F64  # (P,) rank variable E_j of a field particle
+    shell: I64  # (P,) range shell of the particle
+    ids: I64  # (P,) particle ids
+    work: F64  # (2, P) scratch
+    bins: I64  # (4, P) scratch
+    cand: I64  # (2, K) scratch, second row zero
+
+
 class Shells(NamedTuple):
-    """Range shells around the local origin with the smallest resolved diameter in each."""
+    """Range shells around the local origin with the smallest resolved diameter in each (`beam_index.shells`)."""
 
     edges: F64  # (K+1,) shell edges [m]
     thresholds: F64  # (K,) minimum diameter of a resolved particle [m]
+    inv_w: float  # inverse width of the bins of ``lut`` [1/m]
+    lut: I64  # (L,) the shell holding the start i / inv_w of bin i (searchsorted(edges, ., "right") - 1)
 
 
 class HitArrays(NamedTuple):
