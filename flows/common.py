@@ -104,9 +104,9 @@ def task_runner(params: Params) -> TaskRunner:
 
 def local_cluster_kwargs(params: Params) -> dict[str, Any]:
     """`distributed.LocalCluster` arguments: ``run.max_workers`` processes x 1 thread, no dashboard, memory limit
-    shared out of the machine's."""
+    shared out of the machine's, the cluster's own start-up chatter kept off the console (warnings still shown)."""
     return {"n_workers": params.run.max_workers, "threads_per_worker": 1, "processes": True,
-            "dashboard_address": None, "memory_limit": "auto"}
+            "dashboard_address": None, "memory_limit": "auto", "silence_logs": logging.WARNING}
 
 
 def threads_per_task(params: Params) -> int:
