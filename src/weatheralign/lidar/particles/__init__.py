@@ -40,23 +40,28 @@ of a beam even when centred on it is folded into the bulk extinction: space is c
 around the sensor path (``0, 1 m, then x1.25``) with thresholds ``D_k = 2 w(s_0) sqrt(ratio_threshold)``; the field
 cells that some beam can reach (an angular reach map of beam lengths, widened by the sensor's motion, the beam and
 the particle radius) are materialised once each, with the threshold of the shell of the cell's nearest point (the
-field's nested ``min_diameter`` queries return exactly the particles ``D >= D_k`` of the one field), and a particle
-counts as resolved iff ``D >= D_k`` of the shell holding its centre. The unresolved rest of shell k attenuates every
+field's nested ``min_diameter`` queries return exactly the particles ``D >= D_k`` of the one field; the kernel
+generates them with the field's own hash streams cell by cell and never stores them), and a particle counts as
+resolved iff ``D >= D_k`` of the shell holding its centre. The unresolved rest of shell k attenuates every
 echo by ``exp(-2 · factor · ∫ field.unresolved_extinction(D_k) ds)``; ``factor = 1/4`` (default) is their geometric
 shadow counted once, exactly how a resolved particle's ratio acts on the target (Q_ext = 2 counts diffraction too,
 which the 3 mrad beam keeps; a monostatic beam is hidden where it is shadowed), which makes the results independent
-of the threshold (measured in the benchmark). Resolved particles are matched to beams through a grid of beam
-directions per time slice of the sweep (each slice with its own reference origin and time; the search window is
-widened by their spread, the beam radius and the particle radius), and every candidate pair is tested exactly at the
-beam's firing time. Kernels are serial numba (``nogil``): run frames in parallel threads.
+of the threshold (measured in the benchmark). The particles of a cell are matched to the beams together: the time
+slices of the sweep (each with its own reference origin and time) that the cell can reach, then per slice the
+particles inside its azimuth wedge whose elevation window holds a beam (fine bins of the z-component: a LiDAR's rings),
+then per particle the beams of those bins within its window (sorted by the projection on the slice's tangent) and its
+cone; the windows are widened by the slices' origin and time spread, the beam radius and the particle radius, so
+every candidate pair is then tested exactly at the beam's firing time, with the same expressions whatever the index.
+Kernels are serial numba (``nogil``): run frames in parallel threads.
 
 Labels: `weatheralign.lidar.labels.WeatherLabel` (``ParticleLabel`` here, ``FogLabel`` in the fog model): UNCHANGED,
 ATTENUATED, SCATTERED, LOST per point, and NO_ECHO for a beam without return that stays empty.
 
 Modules: `api` (this package's public names: `ParticleResult`, `simulate_particles` (with the optional fog),
-`simulate_particle_list`), `beam_index` (beam geometry set up once per scan: time slices, direction grid, reach map,
-reachable field cells, hit buffer), `kernels` (the numba kernels only) and `records` (the typed records the kernels
-take).
+`simulate_particle_list`), `beam_index` (beam geometry set up once per scan: time slices, sorted beams, reach map;
+range shells, reachable field cells; the drivers of the hit kernels), `kernels` (the numba kernels that index the
+beams and find the hits), `response` (the numba kernel of the per-beam response) and `records` (the typed records
+the kernels take).
 """
 
 from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel

@@ -18,9 +18,9 @@ from weatheralign.lidar.beams import Beams, beams_from_scan
 from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel
 from weatheralign.lidar.particles.beam_index import (empty_hits, field_hits, index_beams, list_hits, range_shells,
                                                      rank_cutoffs, reachable_cells, shell_edges)
-from weatheralign.lidar.particles.kernels import response_kernel
+from weatheralign.lidar.particles.response import response_kernel
 from weatheralign.lidar.particles.records import (BeamOutcome, BeamTargets, HitArrays, Medium, ParticleBatch,
-                                                  PulseParams, Shells)
+                                                  PulseParams)
 from weatheralign.lidar.fog import soft_target_response
 from weatheralign.medium.distributions import RAIN_REFLECTIVITY, SNOW_REFLECTIVITY  # noqa: F401  (re-exported)
 from weatheralign.medium.fog import FogMedium

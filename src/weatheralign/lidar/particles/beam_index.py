@@ -1,6 +1,7 @@
 """Beam geometry set up once per scan for the snow / rain kernels: the beams in local coordinates, their time slices,
-direction grid and reach map (`BeamIndex`), the reachable-cells query against a `ParticleField`, and the buffer that
-collects the particle–beam hits shell by shell (`HitBuffer`).
+the beams of each slice sorted for the search and the reach map (`BeamIndex`, `index_beams`); the range shells and
+the reachable-cells query against a `ParticleField`; the drivers of the hit kernels (`field_hits`: the particles of
+the field, generated and matched cell by cell; `list_hits`: an explicit particle list).
 
 Local coordinates: global minus `BeamIndex.center` (the centre of the beam origins' bounding box) [m].
 """
@@ -9,7 +10,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -58,33 +58,26 @@ def perpendicular_basis(d: F64) -> tuple[F64, F64]:
     return e1, np.cross(d, e1)
 
 
-class _SliceGeometry(NamedTuple):
-    slices: TimeSlices
-    az0: F64  # (K,) first azimuth of each slice [rad]
-    span: F64  # (K,) its azimuth span [rad]
-
-
-def _slice_geometry(origins: F64, d: F64, az: F64, times: F64, lengths: F64, order: I64,
-                    bounds: I64) -> tuple[_SliceGeometry, tuple]:
-    """The time slices of the beams ``order[bounds[k]:bounds[k+1]]`` (`slices_kernel`) and the per-bin, per-run and
-    sorted-beam arrays of the `SliceIndex` (el_cum, run_at, run_lo, run_start, beam, rays, proj)."""
-    k = len(bounds) - 1
+def _slices(origins: F64, d: F64, az: F64, times: F64, lengths: F64, order: I64,
+            bounds: I64) -> tuple[TimeSlices, F64, F64, dict]:
+    """The time slices of the beams ``order[bounds[k]:bounds[k+1]]`` (`slices_kernel`; local ``origins`` (B, 3) [m],
+    unit directions ``d`` (B, 3), azimuths ``az`` (B,) [rad], ``times`` (B,) [s], ``lengths`` (B,) [m]): the
+    `TimeSlices`, each slice's first azimuth and azimuth span (K,) [rad], and the per-bin, per-run and sorted-beam
+    arrays of the `SliceIndex` (by field name)."""
+    k, n = len(bounds) - 1, len(order)
     f = {name: np.empty(k) for name in ("time", "e", "dt", "z_lo", "z_hi", "z0", "az0", "span")}
     orig, tangent, wedge = np.empty((k, 3)), np.empty((k, 2)), np.empty((k, 5))
-    n_el = np.empty(k, dtype=np.int64)
-    el_base = np.empty(k, dtype=np.int64)
-    run_base = np.empty(k + 1, dtype=np.int64)
-    s_beam = np.empty(len(order), dtype=np.int64)
-    proj = np.empty(len(order))
-    per_bin = slices_kernel(origins, d, az, times, order, bounds, 1.0 / _EL_BIN, _CONVEX_SPAN, orig, f["time"],
-                            f["e"], f["dt"], f["z_lo"], f["z_hi"], f["z0"], f["az0"], f["span"], tangent, wedge, n_el,
-                            el_base, run_base, s_beam, proj)
+    n_el, el_base, run_base = np.empty(k, np.int64), np.empty(k, np.int64), np.empty(k + 1, np.int64)
+    beam, proj = np.empty(n, np.int64), np.empty(n)
+    el_cum, run_at, run_lo, run_start = slices_kernel(
+        origins, d, az, times, order, bounds, 1.0 / _EL_BIN, _CONVEX_SPAN, orig, f["time"], f["e"], f["dt"],
+        f["z_lo"], f["z_hi"], f["z0"], f["az0"], f["span"], tangent, wedge, n_el, el_base, run_base, beam, proj)
     slices = TimeSlices(orig=orig, time=f["time"], e=f["e"], dt=f["dt"], z_lo=f["z_lo"], z_hi=f["z_hi"],
                         tangent=tangent, wedge=wedge, z0=f["z0"], n_el=n_el, el_base=el_base, beam_base=bounds,
                         run_base=run_base)
-    return (_SliceGeometry(slices, f["az0"], f["span"]),
-            (*per_bin, s_beam, np.ascontiguousarray(np.column_stack([times[s_beam], origins[s_beam], d[s_beam],
-                                                                    lengths[s_beam]])), proj))
+    rays = np.ascontiguousarray(np.column_stack([times[beam], origins[beam], d[beam], lengths[beam]]))
+    return slices, f["az0"], f["span"], dict(el_cum=el_cum, run_at=run_at, run_lo=run_lo, run_start=run_start,
+                                             beam=beam, rays=rays, proj=proj)
 
 
 def _slice_table(az0: F64, span: F64, n_bins: int) -> tuple[I64, I64]:
@@ -108,8 +101,9 @@ def _slice_table(az0: F64, span: F64, n_bins: int) -> tuple[I64, I64]:
 
 def index_beams(beams: Beams, t_ref: float | None = None) -> BeamIndex:
     """Cut the beams into time slices of `_SLICE_BEAMS` (by firing time; beams fired together by azimuth), each with
-    its reference origin and time, direction bounds (z-component range, azimuth wedge) and its beams sorted by fine
-    z-component bin (`_EL_BIN`); also the reach map (longest beam per direction bin)."""
+    its reference origin and time, direction bounds (z-component range, azimuth wedge) and its beams sorted by run
+    of fine z-component bins (`_EL_BIN`) and projection on the slice's tangent; the slices per azimuth bin; the reach
+    map (longest beam per direction bin)."""
     n = len(beams)
     lo, hi = beams.origins.min(axis=0), beams.origins.max(axis=0)
     center = 0.5 * (lo + hi)
@@ -126,25 +120,23 @@ def index_beams(beams: Beams, t_ref: float | None = None) -> BeamIndex:
     n_slices = int(np.clip(n // _SLICE_BEAMS, 1, _MAX_SLICES))
     bounds = np.linspace(0, n, n_slices + 1).astype(np.int64)
     lengths = np.ascontiguousarray(beams.lengths, dtype=np.float64)
-    geometry, lookup = _slice_geometry(origins, d, az, times, lengths, order, bounds)
+    slices, az0, span, sorted_beams = _slices(origins, d, az, times, lengths, order, bounds)
     e_origin = float(np.linalg.norm(origins, axis=1).max()) if n else 0.0
     n_tb = max(_MIN_TABLE_BINS, 4 * n_slices)
-    tb_off, tb_slices = _slice_table(geometry.az0, geometry.span, n_tb)
+    tb_off, tb_slices = _slice_table(az0, span, n_tb)
     n_re, n_ra = int(math.ceil(2.0 / _REACH_BIN)) + 1, int(round(2 * math.pi / _REACH_BIN))
     reach = np.full((n_re, n_ra), -1.0)
     re_b = np.clip(np.floor((d[:, 2] + 1.0) / _REACH_BIN).astype(np.int64), 0, n_re - 1)
     ra_b = np.mod(np.floor((az + np.pi) / _REACH_BIN).astype(np.int64), n_ra)
-    reach_kernel(reach, re_b, ra_b, np.ascontiguousarray(beams.lengths, dtype=np.float64))
+    reach_kernel(reach, re_b, ra_b, lengths)
     return BeamIndex(
         center=center,
-        beams=BeamRays(origins=origins, directions=d, e1=e1, e2=e2, times=times,
-                       lengths=np.ascontiguousarray(beams.lengths, dtype=np.float64),
+        beams=BeamRays(origins=origins, directions=d, e1=e1, e2=e2, times=times, lengths=lengths,
                        tanh=math.tan(0.5 * beams.divergence),
                        t_half=float(np.abs(times - t_ref).max()) if n else 0.0),
-        slices=geometry.slices,
+        slices=slices,
         lookup=SliceIndex(e_origin=e_origin, d_tb=2 * math.pi / n_tb, tb_off=tb_off, tb_slices=tb_slices,
-                          inv_d_el=1.0 / _EL_BIN, el_cum=lookup[0], run_at=lookup[1], run_lo=lookup[2],
-                          run_start=lookup[3], beam=lookup[4], rays=lookup[5], proj=lookup[6]),
+                          inv_d_el=1.0 / _EL_BIN, **sorted_beams),
         reach=ReachMap(reach=reach, d_reach=_REACH_BIN,
                        tan_lo=float(np.clip(np.tan(el.min()), -1e3, 1e3)) if n else 0.0,
                        tan_hi=float(np.clip(np.tan(el.max()), -1e3, 1e3)) if n else 0.0),
@@ -152,97 +144,7 @@ def index_beams(beams: Beams, t_ref: float | None = None) -> BeamIndex:
         e_origin=e_origin)
 
 
-def _run_hits(kernel, cap: int, *args) -> tuple[HitArrays, tuple]:
-    """Run a hit ``kernel`` (its last argument the `HitArrays` output, its first return value the hit count) with
-    room for ``cap`` hits, again with room for all if they did not fit; the hits sorted by beam, then range (stable:
-    `sort_hits_kernel`), and the kernel's other return values."""
-    while True:
-        out = HitArrays(np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap), np.empty(cap),
-                        np.empty(cap), np.empty(cap))
-        ret = kernel(*args, out)
-        n, rest = (ret[0], ret[1:]) if isinstance(ret, tuple) else (ret, ())
-        if n <= cap:
-            break
-        cap = n
-    sorted_hits = HitArrays(*(np.empty(n, a.dtype) for a in out))
-    sort_hits_kernel(out, n, int(out.beam[:n].max()) + 1 if n else 0, sorted_hits)
-    return sorted_hits, rest
-
-
-def empty_hits() -> HitArrays:
-    """No hits."""
-    return HitArrays(np.zeros(0, np.int64), np.zeros(0, np.int64), *(np.zeros(0) for _ in range(4)))
-
-
-def list_hits(index: BeamIndex, batch: ParticleBatch, shells: Shells) -> HitArrays:
-    """The hits of the explicit particles ``batch`` on every beam of ``index`` (`hits_kernel`), sorted by beam, then
-    range."""
-    if len(batch.pos) == 0:
-        return empty_hits()
-    cell = np.floor(batch.pos / _LIST_CELL).astype(np.int64)  # consecutive particles close together
-    order = np.lexsort((cell[:, 2], cell[:, 1], cell[:, 0]))
-    hits, _ = _run_hits(hits_kernel, max(4096, len(batch.pos) // 8), batch, order, shells, index.beams,
-                        index.slices, index.lookup)
-    return hits
-
-
-def rank_cutoffs(fld: ParticleField, min_diameters: F64) -> tuple[F64, F64]:
-    """Per minimum diameter (K,) [m]: the smallest diameter a query materialises (the field's floor) and the rank
-    cut-off (the expected count per cell of particles at least that large): a cell holds particle j iff its
-    ``E_j <= cut-off``, so a negative cut-off means no particle at all (`ParticleField.materialize_cells`)."""
-    spec = fld.spectrum
-    scale = spec.n0 * fld.cell_volume / spec.lam
-    exp_lam_dmax = math.exp(-spec.lam * spec.d_max)
-    floors = np.array([fld._floor(m) for m in min_diameters])
-    return floors, np.array([scale * (math.exp(-spec.lam * m) - exp_lam_dmax) for m in floors])
-
-
-def field_hits(fld: ParticleField, index: BeamIndex, cells: I64, shell_off: I64, shells: Shells,
-               max_particles: int) -> tuple[HitArrays, I64]:
-    """The hits of the particles of ``fld`` in the co-moving ``cells`` (M, 3), grouped by shell (the cells of shell
-    k are rows ``shell_off[k]:shell_off[k+1]``, materialised with ``min_diameter = shells.thresholds[k]``, exactly
-    as `ParticleField.materialize_cells` would at ``index.t_ref``), on every beam of ``index``
-    (`field_hits_kernel`: generated and matched cell by cell, never stored), sorted by beam, then range; and the
-    particles and hits per shell (K, 2).
-
-    Raises:
-        ValueError: a shell expects or holds more than ``max_particles`` particles, or a cell more than the field's
-            rank bits allow (as `ParticleField.materialize_cells`).
-    """
-    floors, c_max = rank_cutoffs(fld, shells.thresholds)
-    spec = fld.spectrum
-    scale = spec.n0 * fld.cell_volume / spec.lam
-    exp_lam_dmax = math.exp(-spec.lam * spec.d_max)
-    n_cells = np.diff(shell_off)
-    for k in np.flatnonzero(n_cells):
-        fld._check_cells(cells[shell_off[k]:shell_off[k + 1]])
-        if c_max[k] * n_cells[k] > max_particles:
-            raise ValueError(f"query expects {c_max[k] * n_cells[k]:.3g} particles in its cells (> max_particles = "
-                             f"{max_particles}): raise min_diameter (now {floors[k]} m) or shrink the region")
-    vel = fld.velocity_array
-    # a particle of shell k whose rank variable exceeds the cut-off of a slightly smaller diameter is certainly below
-    # the shell's threshold (the margin covers the rounding of its diameter; the kernel decides the others exactly)
-    _, e_cut = rank_cutoffs(fld, shells.thresholds * (1.0 - 1e-6))
-    src = FieldSource(seed_key=_seed_key(fld.seed), cells=np.ascontiguousarray(cells, dtype=np.int64),
-                      shell_off=np.ascontiguousarray(shell_off, dtype=np.int64), c_max=c_max, e_cut=e_cut,
-                      cut_pad=np.concatenate([e_cut, np.full(4, -np.inf)]),
-                      edge_pad=np.concatenate([shells.edges, np.full(4, np.inf)]),
-                      d_floor=floors, cell_size=fld.cell_size, cell_z=fld.cell_z, z_min=fld.z_min,
-                      height=fld.z_max - fld.z_min, shift=fld._shift(index.t_ref), center=index.center,
-                      sizer=Sizer(lam=spec.lam, exp_lam_dmax=exp_lam_dmax, scale=scale, d_max=spec.d_max),
-                      max_particles=int(max_particles))
-    per_shell = np.zeros((len(n_cells), 2), dtype=np.int64)
-    cap = max(4096, int(np.dot(c_max, n_cells)) // 8)
-    hits, (status,) = _run_hits(field_hits_kernel, cap, src, index.t_ref, vel, shells, index.beams, index.slices,
-                                index.lookup, per_shell)
-    if status > 0:
-        raise ValueError(f"shell {status - 1} holds more than max_particles = {max_particles} particles in its cells")
-    if status < 0:
-        raise ValueError(f"a cell exceeds {MAX_PER_CELL} particles: use a smaller cell_size")
-    return hits, per_shell
-
-
-# ============================================================================================== field queries
+# =================================================================================== shells and field cells
 
 
 def range_shells(edges: F64, thresholds: F64) -> Shells:
@@ -290,3 +192,98 @@ def reachable_cells(fld: ParticleField, index: BeamIndex, t_ref: float, s_max: f
         if n <= cap:
             return out[:n], out_d[:n]
         cap = n
+
+
+def _sizer(fld: ParticleField) -> Sizer:
+    """The diameter of a particle of ``fld`` from its rank variable (`weatheralign.medium.field`)."""
+    spec = fld.spectrum
+    return Sizer(lam=spec.lam, exp_lam_dmax=math.exp(-spec.lam * spec.d_max),
+                 scale=spec.n0 * fld.cell_volume / spec.lam, d_max=spec.d_max)
+
+
+def rank_cutoffs(fld: ParticleField, min_diameters: F64) -> tuple[F64, F64]:
+    """Per minimum diameter (K,) [m]: the smallest diameter a query materialises (the field's floor) and the rank
+    cut-off (the expected count per cell of particles at least that large): a cell holds particle j iff its
+    ``E_j <= cut-off``, so a negative cut-off means no particle at all (`ParticleField.materialize_cells`)."""
+    sizer = _sizer(fld)
+    floors = np.array([fld._floor(m) for m in min_diameters])
+    return floors, np.array([sizer.scale * (math.exp(-sizer.lam * m) - sizer.exp_lam_dmax) for m in floors])
+
+
+# ============================================================================================== hits
+
+
+def _run_hits(kernel, cap: int, *args) -> tuple[HitArrays, tuple]:
+    """Run a hit ``kernel`` (its last argument the `HitArrays` output, its first return value the hit count) with
+    room for ``cap`` hits, again with room for all if they did not fit; the hits sorted by beam, then range (stable:
+    `sort_hits_kernel`), and the kernel's other return values."""
+    while True:
+        out = HitArrays(np.empty(cap, np.int64), np.empty(cap, np.int64), np.empty(cap), np.empty(cap),
+                        np.empty(cap), np.empty(cap))
+        ret = kernel(*args, out)
+        n, rest = (ret[0], ret[1:]) if isinstance(ret, tuple) else (ret, ())
+        if n <= cap:
+            break
+        cap = n
+    sorted_hits = HitArrays(*(np.empty(n, a.dtype) for a in out))
+    sort_hits_kernel(out, n, int(out.beam[:n].max()) + 1 if n else 0, sorted_hits)
+    return sorted_hits, rest
+
+
+def empty_hits() -> HitArrays:
+    """No hits."""
+    return HitArrays(np.zeros(0, np.int64), np.zeros(0, np.int64), *(np.zeros(0) for _ in range(4)))
+
+
+def list_hits(index: BeamIndex, batch: ParticleBatch, shells: Shells) -> HitArrays:
+    """The hits of the explicit particles ``batch`` on every beam of ``index`` (`hits_kernel`), sorted by beam, then
+    range."""
+    if len(batch.pos) == 0:
+        return empty_hits()
+    cell = np.floor(batch.pos / _LIST_CELL).astype(np.int64)  # consecutive particles close together
+    order = np.lexsort((cell[:, 2], cell[:, 1], cell[:, 0]))
+    hits, _ = _run_hits(hits_kernel, max(4096, len(batch.pos) // 8), batch, order, shells, index.beams,
+                        index.slices, index.lookup)
+    return hits
+
+
+def field_hits(fld: ParticleField, index: BeamIndex, cells: I64, shell_off: I64, shells: Shells,
+               max_particles: int) -> tuple[HitArrays, I64]:
+    """The hits of the particles of ``fld`` in the co-moving ``cells`` (M, 3), grouped by shell (the cells of shell
+    k are rows ``shell_off[k]:shell_off[k+1]``, materialised with ``min_diameter = shells.thresholds[k]``, exactly
+    as `ParticleField.materialize_cells` would at ``index.t_ref``), on every beam of ``index``
+    (`field_hits_kernel`: generated and matched cell by cell, never stored), sorted by beam, then range; and the
+    particles and hits per shell (K, 2).
+
+    Raises:
+        ValueError: a shell expects or holds more than ``max_particles`` particles, or a cell more than the field's
+            rank bits allow (as `ParticleField.materialize_cells`).
+    """
+    floors, c_max = rank_cutoffs(fld, shells.thresholds)
+    n_cells = np.diff(shell_off)
+    for k in np.flatnonzero(n_cells):
+        fld._check_cells(cells[shell_off[k]:shell_off[k + 1]])
+        if c_max[k] * n_cells[k] > max_particles:
+            raise ValueError(f"query expects {c_max[k] * n_cells[k]:.3g} particles in its cells (> max_particles = "
+                             f"{max_particles}): raise min_diameter (now {floors[k]} m) or shrink the region")
+    vel = fld.velocity_array
+    # a particle of shell k whose rank variable exceeds the cut-off of a slightly smaller diameter is certainly below
+    # the shell's threshold (the margin covers the rounding of its diameter; the kernel decides the others exactly)
+    _, e_cut = rank_cutoffs(fld, shells.thresholds * (1.0 - 1e-6))
+    src = FieldSource(seed_key=_seed_key(fld.seed), cells=np.ascontiguousarray(cells, dtype=np.int64),
+                      shell_off=np.ascontiguousarray(shell_off, dtype=np.int64), c_max=c_max, e_cut=e_cut,
+                      cut_pad=np.concatenate([e_cut, np.full(4, -np.inf)]),
+                      edge_pad=np.concatenate([shells.edges, np.full(4, np.inf)]),
+                      d_floor=floors, cell_size=fld.cell_size, cell_z=fld.cell_z, z_min=fld.z_min,
+                      height=fld.z_max - fld.z_min, shift=fld._shift(index.t_ref), center=index.center,
+                      sizer=_sizer(fld),
+                      max_particles=int(max_particles))
+    per_shell = np.zeros((len(n_cells), 2), dtype=np.int64)
+    cap = max(4096, int(np.dot(c_max, n_cells)) // 8)
+    hits, (status,) = _run_hits(field_hits_kernel, cap, src, index.t_ref, vel, shells, index.beams, index.slices,
+                                index.lookup, per_shell)
+    if status > 0:
+        raise ValueError(f"shell {status - 1} holds more than max_particles = {max_particles} particles in its cells")
+    if status < 0:
+        raise ValueError(f"a cell exceeds {MAX_PER_CELL} particles: use a smaller cell_size")
+    return hits, per_shell

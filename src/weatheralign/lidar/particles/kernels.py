@@ -1,10 +1,25 @@
-"""Numba kernels of the snow / rain model (serial, ``nogil``; see `weatheralign.lidar.particles` for the physics).
+"""Numba kernels of the snow / rain model that find the particle–beam intersections (serial, ``nogil``; see
+`weatheralign.lidar.particles` for the physics; the per-beam response is `weatheralign.lidar.particles.response`).
 
-The kernels take typed records (`weatheralign.lidar.particles.records`): `cells_kernel` finds the field cells that
-some beam can reach, `hits_kernel` matches particles to beams, `response_kernel` turns each beam's hits into its
-outcome (a `WeatherLabel`, range and intensity). Each kernel binds the record fields it uses to local names once at
-the top: LLVM then keeps them in registers in the hot loops (attribute access inside the loops measured ~2 % slower).
-Small helpers are inlined into the kernels (``inline="always"``).
+The kernels take typed records (`weatheralign.lidar.particles.records`):
+
+- `slices_kernel` and `reach_kernel` build the beam index (`beam_index.index_beams`): time slices with their
+  direction bounds, the beams of each slice sorted by fine z-component bin and projection, the reach map;
+- `cells_kernel` finds the field cells that some beam can reach;
+- `field_hits_kernel` generates the particles of those cells (the field's own hash streams and expressions, cell by
+  cell, never stored) and matches each cell's particles to the beams as one batch (`_match_batch`);
+  `hits_kernel` does the same for an explicit particle list;
+- `sort_hits_kernel` orders the hits by beam, then range.
+
+A particle's candidate beams are narrowed by conservative bounds only (every bound carries a `_MARGIN`); whether it
+hits is decided by the exact test (`_exact_hit`, the same expressions as ever), so the hits do not depend on the
+index. The hot loops are written so that LLVM vectorises them (no branches, no gathers in the per-particle loops of
+`_survivors` and of the cell generation), and the batch matcher is inlined into its callers (``inline="always"``: a
+call per cell costs more than the work of a small cell far away).
+
+The cell generation reimplements `weatheralign.medium.field` (``_fill_kernel`` and ``_count_kernel``) with its
+own helpers: numba's cache does not see changes of another module, so after editing those helpers clear the cache
+(``__pycache__``) — ``tests/test_particle_kernels_fast.py`` compares both.
 """
 
 from __future__ import annotations
@@ -14,9 +29,21 @@ import math
 import numpy as np
 from numba import njit
 
-from weatheralign.lidar.labels import WeatherLabel
 from weatheralign.lidar.particles.records import Batch, Sizer
 from weatheralign.medium.field import MAX_PER_CELL, _U_RANK_BITS, _cell_key, _packed_cell, _uniform, _wrap
+
+_MARGIN = 1e-9
+"""Relative slack [rad, or m per m of range] added to every prefilter bound (covers rounding; the exact test
+decides)."""
+
+_ANCHOR = 8
+"""Every _ANCHOR-th rank of a cell gets its exact radius while the cell is generated (the next ranks' bound)."""
+
+_LIST_BATCH = 64
+"""Consecutive particles of an explicit list matched together."""
+
+
+# ============================================================================================== geometry helpers
 
 
 @njit(nogil=True, cache=True, inline="always")
@@ -38,10 +65,6 @@ def _window(x, sz):  # pragma: no cover
     return delta, 2.0 * arg * (1.0 + arg * arg), False
 
 
-_ANCHOR = 8  # every _ANCHOR-th rank of a cell gets its exact radius during generation (the next ones' bound)
-_LIST_BATCH = 64  # consecutive particles of a list matched together
-
-
 @njit(nogil=True, cache=True, inline="always")
 def _wrap_bin(b, n):  # pragma: no cover
     """Azimuth bin index ``b`` (at most one turn outside ``[0, n)``) wrapped into ``[0, n)``."""
@@ -56,6 +79,38 @@ def _wrap_bin(b, n):  # pragma: no cover
 def _reach_az_bin(n_ra):  # pragma: no cover
     """Azimuth bin width [rad] of a reach map with ``n_ra`` azimuth bins."""
     return 2.0 * math.pi / n_ra
+
+
+# ============================================================================================== beam index
+
+
+@njit(nogil=True, cache=True)
+def _largest_gap(az, idx):  # pragma: no cover
+    """``(gap, first, last)``: the largest gap [rad] between the azimuths ``az[idx]`` (M,) [rad] on the circle and
+    the azimuths just after and just before it (the range they cover runs from first to last). Linear time: between
+    the smallest and the largest azimuth the largest gap is at least (hi - lo) / M, the width of M buckets, so it
+    runs from the largest value of a bucket to the smallest of the next non-empty one (rounding at a bucket's edge
+    can only make the gap found a smaller one, always a gap between consecutive azimuths)."""
+    m = idx.shape[0]
+    lo = hi = az[idx[0]]
+    for i in idx:
+        lo = min(lo, az[i])
+        hi = max(hi, az[i])
+    b_min = np.full(m, np.inf)
+    b_max = np.full(m, -np.inf)
+    width = (hi - lo) / m
+    for i in idx:
+        b = min(int((az[i] - lo) / width), m - 1) if width > 0.0 else 0
+        b_min[b] = min(b_min[b], az[i])
+        b_max[b] = max(b_max[b], az[i])
+    gap, first, last = lo + 2.0 * math.pi - hi, lo, hi  # across ±π
+    prev = b_max[0]
+    for b in range(1, m):
+        if b_min[b] <= b_max[b]:
+            if b_min[b] - prev > gap:
+                gap, first, last = b_min[b] - prev, b_min[b], prev
+            prev = b_max[b]
+    return gap, first, last
 
 
 @njit(nogil=True, cache=True)
@@ -108,27 +163,20 @@ def slices_kernel(origins, d, az, times, order, bounds, inv_d_el, convex_span, o
             e_k = max(e_k, math.sqrt(ox * ox + oy * oy + oz * oz))
             dt_k = max(dt_k, abs(times[b] - time[k]))
         e[k], dt[k] = e_k * (1.0 + 1e-12), dt_k
-        # azimuth range: the complement of the largest gap between sorted azimuths
-        a = np.sort(az[idx])
-        g, gap = m - 1, a[0] + 2.0 * math.pi - a[m - 1]
-        for i in range(m - 1):
-            if a[i + 1] - a[i] > gap:
-                g, gap = i, a[i + 1] - a[i]
-        az0[k] = a[(g + 1) % m]
+        # azimuth range: the complement of the largest gap between the azimuths (`_largest_gap`)
+        gap, az0[k], az1 = _largest_gap(az, idx)
         span[k] = 2.0 * math.pi - gap
         mid = az0[k] + 0.5 * span[k]
         tangent[k, 0], tangent[k, 1] = -math.sin(mid), math.cos(mid)
         if span[k] > convex_span:
             wedge[k, :] = 0.0
         else:
-            az1 = a[g]
             n0x, n0y, n1x, n1y = -math.sin(az0[k]), math.cos(az0[k]), math.sin(az1), -math.cos(az1)
             slack = 0.0
             for b in idx:
                 slack = max(slack, -(d[b, 0] * n0x + d[b, 1] * n0y), -(d[b, 0] * n1x + d[b, 1] * n1y))
             wedge[k, 0], wedge[k, 1], wedge[k, 2], wedge[k, 3], wedge[k, 4] = n0x, n0y, n1x, n1y, slack
-        # fine bins, their runs of consecutive occupied bins, the beams by run (stable counting sort) after a stable
-        # sort by projection
+        # fine bins, their runs of consecutive occupied bins, the beams by run (counting sort), then by projection
         nb = n_el[k]
         base = el_base[k]
         cum = el_cum[base:base + nb + 1]
@@ -151,17 +199,26 @@ def slices_kernel(origins, d, az, times, order, bounds, inv_d_el, convex_span, o
             if f < nb and run_of_bin[f] >= 0:
                 r = run_of_bin[f]
             run_at[base + f] = r
-        pr = np.empty(m)
-        for i in range(m):
-            pr[i] = d[idx[i], 0] * tangent[k, 0] + d[idx[i], 1] * tangent[k, 1]
         for rr in range(run_base[k], n_runs):
             run_start[rr] = j0 + cum[run_lo[rr]]
         fill = run_start[run_base[k]:n_runs].copy()
-        for i in np.argsort(pr, kind="mergesort"):
+        for i in range(m):
             rr = run_of_bin[fb[i]] - run_base[k]
             s_beam[fill[rr]] = idx[i]
-            proj[fill[rr]] = pr[i]
+            proj[fill[rr]] = d[idx[i], 0] * tangent[k, 0] + d[idx[i], 1] * tangent[k, 1]
             fill[rr] += 1
+        for rr in range(run_base[k], n_runs):  # insertion sort by projection (a sweep's rings come nearly sorted,
+            end = run_start[rr + 1] if rr + 1 < n_runs else j1  # in one order or the other)
+            if proj[run_start[rr]] > proj[end - 1]:
+                s_beam[run_start[rr]:end] = s_beam[run_start[rr]:end][::-1].copy()
+                proj[run_start[rr]:end] = proj[run_start[rr]:end][::-1].copy()
+            for jj in range(run_start[rr] + 1, end):
+                b, p = s_beam[jj], proj[jj]
+                q = jj
+                while q > run_start[rr] and proj[q - 1] > p:
+                    s_beam[q], proj[q] = s_beam[q - 1], proj[q - 1]
+                    q -= 1
+                s_beam[q], proj[q] = b, p
     run_base[n_slices] = n_runs
     run_start[n_runs] = bounds[n_slices]
     return el_cum, run_at, run_lo[:n_runs].copy(), run_start[:n_runs + 1].copy()
@@ -172,6 +229,9 @@ def reach_kernel(reach, re_b, ra_b, lengths):  # pragma: no cover
     """``reach[re_b[i], ra_b[i]] = max(reach[...], lengths[i])`` for every beam i (the reach map, in place)."""
     for i in range(lengths.shape[0]):
         reach[re_b[i], ra_b[i]] = max(reach[re_b[i], ra_b[i]], lengths[i])
+
+
+# ============================================================================================== field cells
 
 
 @njit(nogil=True, cache=True)
@@ -283,16 +343,16 @@ def cells_kernel(query, reach_map, grid, out, out_d):  # pragma: no cover
     return n
 
 
-_MARGIN = 1e-9
-"""Relative slack [rad, or m per m of range] added to every prefilter bound (covers rounding; the exact test decides)."""
+# ============================================================================================== matching
 
 
 @njit(nogil=True, cache=True, inline="always")
 def _exact_hit(px, py, pz, r, pid, jj, beams, rays, beam_of, vel, t_part, out, n):  # pragma: no cover
     """The exact test of the particle at local ``(px, py, pz)`` [m] (at ``t_part``, radius ``r`` [m], id ``pid``)
     against the beam ``beam_of[jj]`` of row ``jj`` of the `SliceIndex` (``rays`` (B, 8): its firing time, origin,
-    direction and length; `BeamRays` ``beams``: its e1, e2) at its firing time, appended to ``out`` (`HitArrays`) at row ``n`` if it hits (counted, not written,
-    past the capacity); returns the new row count."""
+    direction and length; `BeamRays` ``beams``: its e1, e2) at its firing time, appended to ``out`` (`HitArrays`) at
+    row ``n`` if it hits (counted, not written, past the capacity); returns the new row count. The expressions of
+    the original hit kernel: the same ``s``, ``u1``, ``u2``, ``a`` to the bit."""
     dtb = rays[jj, 0] - t_part
     vx = px + vel[0] * dtb - rays[jj, 1]
     vy = py + vel[1] * dtb - rays[jj, 2]
@@ -358,7 +418,7 @@ def _candidate_slices(cx, cy, cz, h, r_max, motion, tanh, lookup, cand):  # prag
     x = big_r / rho if rho > 0.0 else 1.0
     full = x >= 0.5
     if not full:
-        delta, ha, full = _window(x, cz / rho)
+        _, ha, full = _window(x, cz / rho)
     if full:
         for k in range(n_slices):
             cand[0, k] = k
@@ -384,9 +444,9 @@ def _candidate_slices(cx, cy, cz, h, r_max, motion, tanh, lookup, cand):  # prag
 
 
 @njit(nogil=True, cache=True, error_model="numpy", inline="always")
-def _match_batch(batch, m, sphere, floor, sizer, thresholds, beams, vel, t_part, slices, lookup, out,
+def _match_batch(batch, i0, m, sphere, floor, sizer, thresholds, beams, vel, t_part, slices, lookup, out,
                  n):  # pragma: no cover
-    """Every intersection of the first ``m`` particles of ``batch`` (`Batch`: local centres at ``t_part``, radius
+    """Every intersection of the particles ``i0:m`` of ``batch`` (`Batch`: local centres at ``t_part``, radius
     bounds, ids; ideally close together: all within ``h`` of ``(bx, by, bz)`` [m] and of radius <= ``r_max`` [m],
     ``sphere = (bx, by, bz, h, r_max)``) with the beams, appended to ``out`` from row ``n``; returns the new row
     count. A particle whose radius is not known yet (-1) gets it from its rank variable (`Sizer` ``sizer``, diameter
@@ -394,183 +454,153 @@ def _match_batch(batch, m, sphere, floor, sizer, thresholds, beams, vel, t_part,
     shell (``thresholds`` (K,) [m]); the windows before use the radius bound.
 
     Candidate time slices (`TimeSlices`): those of the azimuth bins of the `SliceIndex` around the batch's bounding
-    sphere (seen from the local origin: `_candidate_slices`) that the sphere can reach (`_slice_may_hit`); then
-    per particle, seen from the slice's origin at the slice's time as ``q`` (|q| = rk): every beam the particle can
-    hit has a direction within angle ``asin(x)`` of q, ``x = roff / rk``, ``roff = tanh (rk + eps) + r + eps`` with
-    ``eps`` the slice's origin spread plus the particle's motion over its time spread. So the particle is kept only if
-    q lies within ``x (1 + x²) rk`` (>= asin(x) rk) of the slice's azimuth wedge and a beam of the slice has its
-    z-component within ``x (1 + x²)`` of q's (fine bins, `SliceBeams`); its candidate beams, those bins' beams, must
-    pass ``d·q >= rk sqrt(1 - x²)`` (the cone) before the exact test (`_exact_hit`) at the beam's own time and
-    origin. Particles with ``x >= 0.5`` skip the bins and test every beam of the slice against the cone.
+    sphere (seen from the local origin: `_candidate_slices`) that the sphere can reach (`_slice_may_hit`). Per slice,
+    a particle seen from the slice's origin at the slice's time as ``q`` (|q| = rk) can only hit a beam whose
+    direction is within angle ``asin(x)`` of q: ``x = roff / rk``, ``roff = tanh (rk + eps) + r + eps``, ``eps`` the
+    slice's origin spread plus the particle's motion over the slice's time spread (every hit ray passes within roff
+    of q). `_survivors` keeps the particles within ``x (1 + x²) rk`` (>= asin(x) rk) of the slice's azimuth wedge
+    whose z-component window ``±x (1 + x²)`` holds a beam of the slice (fine bins); `_match_survivors` tests their
+    candidate beams.
     """
-    if m == 0:
+    if m <= i0:
         return n
     tanh = beams.tanh
     speed = math.sqrt(vel[0] * vel[0] + vel[1] * vel[1] + vel[2] * vel[2])
-    pos, radius, r_exact, e_rank, shell, ids = batch.pos, batch.r_ub, batch.r, batch.e, batch.shell, batch.ids
-    work, bins, cand = batch.work, batch.bins, batch.cand
-    px, py, pz = pos[0], pos[1], pos[2]
     bx, by, bz, h, r_max = sphere
-    sl_orig, sl_time, sl_e, sl_dt, wedge = slices.orig, slices.time, slices.e, slices.dt, slices.wedge
-    sl_z0, sl_n_el, sl_el_base, beam_base = slices.z0, slices.n_el, slices.el_base, slices.beam_base
-    run_base, run_at, run_lo, run_start = slices.run_base, lookup.run_at, lookup.run_lo, lookup.run_start
-    inv_d_el, el_cum, s_beam, rays, s_a = lookup.inv_d_el, lookup.el_cum, lookup.beam, lookup.rays, lookup.proj
-    tangent = slices.tangent
-    w_x, w_rk = work[0], work[1]
-    c_lo, c_hi, surv, keep = bins[0], bins[1], bins[2], bins[3]
+    cand = batch.cand
     n_cand = _candidate_slices(bx, by, bz, h, r_max, speed * beams.t_half, tanh, lookup, cand)
     for ck in range(n_cand):
         k = cand[0, ck]
         cand[1, k] = 0
-        dt = sl_time[k] - t_part
-        sx = vel[0] * dt - sl_orig[k, 0]
-        sy = vel[1] * dt - sl_orig[k, 1]
-        sz_ = vel[2] * dt - sl_orig[k, 2]
-        if not _slice_may_hit(k, bx + sx, by + sy, bz + sz_, h, r_max, speed, slices, tanh):
+        dt = slices.time[k] - t_part
+        shift = (vel[0] * dt - slices.orig[k, 0], vel[1] * dt - slices.orig[k, 1], vel[2] * dt - slices.orig[k, 2])
+        if not _slice_may_hit(k, bx + shift[0], by + shift[1], bz + shift[2], h, r_max, speed, slices, tanh):
             continue
-        eps = sl_e[k] + speed * sl_dt[k]
-        z0 = sl_z0[k]
-        top = sl_n_el[k] - 1
-        n0x, n0y, n1x, n1y, slack = wedge[k, 0], wedge[k, 1], wedge[k, 2], wedge[k, 3], wedge[k, 4]
-        eb0 = sl_el_base[k]
-        n_k = beam_base[k + 1] - beam_base[k]
-        # --- stage 1 (a vectorised loop): per particle the window x and the fine bins lo..hi of its z-component
-        # window (hi < lo: outside the wedge; lo -1: a near particle, every beam of the slice); then (scalar) the
-        # particles whose bins hold a beam, listed in surv
-        for i in range(m):
-            qx = px[i] + sx
-            qy = py[i] + sy
-            qz = pz[i] + sz_
-            rk = math.sqrt(qx * qx + qy * qy + qz * qz)
-            inv = 1.0 / rk if rk > 0.0 else 0.0
-            x = (tanh * (rk + eps) + radius[i] + eps) * inv
-            near = not (x < 0.5) or rk <= 0.0
-            xs = 0.0 if near else x
-            delta = xs * (1.0 + xs * xs) + _MARGIN
-            szq = qz * inv
-            lo = min(max(int(math.floor((szq - delta - z0) * inv_d_el)), 0), top + 1)
-            hi = min(max(int(math.floor((szq + delta - z0) * inv_d_el)), lo - 1), top)
-            lim = -(delta + slack) * rk
-            inside = (qx * n0x + qy * n0y >= lim) and (qx * n1x + qy * n1y >= lim)
-            w_x[i] = x if rk > 0.0 else 1e300
-            w_rk[i] = rk
-            c_lo[i] = -1 if near else lo
-            c_hi[i] = hi if inside else lo - 1
-            keep[i] = near | (inside & (hi >= lo))
-        count = 0  # the particles inside the wedge with bins (branch-free), then those whose bins hold a beam
-        for i in range(m):
-            surv[count] = i
-            count += keep[i]
-        kept = count
-        count = 0
-        for c in range(kept):
-            i = surv[c]
-            lo = c_lo[i]
-            go = (lo < 0) | (el_cum[eb0 + max(c_hi[i], lo) + 1] > el_cum[eb0 + max(lo, 0)])
-            surv[count] = i
-            count += go
-        # --- stage 2: per non-empty fine bin, the beams whose projection on the slice's tangent is within delta of
-        # q's (the cone's width: the projection is 1-Lipschitz; a bin's beams are sorted by it), inside the cone; then
-        # the exact test. Near particles: every beam of the slice, inside the cone.
-        b_base = beam_base[k]
-        r_end = run_base[k + 1]
-        tx, ty = tangent[k, 0], tangent[k, 1]
-        for c in range(count):
-            i = surv[c]
-            r = r_exact[i]
-            if r == -1.0:  # the diameter of a field particle (`weatheralign.medium.field`), then its threshold
-                d = -math.log(sizer.exp_lam_dmax + e_rank[i] / sizer.scale) / sizer.lam
-                r = 0.5 * min(max(d, floor), sizer.d_max)
-                if 2.0 * r < thresholds[shell[i]]:
-                    r = -2.0
-                r_exact[i] = r
-            if r < 0.0:  # below its shell's threshold
-                continue
-            qx = px[i] + sx
-            qy = py[i] + sy
-            qz = pz[i] + sz_
-            x = w_x[i]
-            rk = w_rk[i]
-            cthr = rk * math.sqrt(1.0 - x * x) - _MARGIN * (1.0 + rk) if x < 1.0 else -1e300
-            lo = c_lo[i]
-            if lo < 0:
-                for jj in range(b_base, b_base + n_k):
-                    if rays[jj, 4] * qx + rays[jj, 5] * qy + rays[jj, 6] * qz >= cthr:
-                        n = _exact_hit(px[i], py[i], pz[i], r, ids[i], jj, beams, rays, s_beam, vel, t_part, out, n)
-                continue
-            delta = x * (1.0 + x * x) + _MARGIN
-            au = (qx * tx + qy * ty) / rk
-            a_lo = au - delta
-            a_hi = au + delta
-            ru = run_at[eb0 + lo]
-            hi = c_hi[i]
-            while ru < r_end and run_lo[ru] <= hi:
-                j0 = run_start[ru]
-                j1 = run_start[ru + 1]
-                ru += 1
-                # first row with projection >= a_lo: interpolated (a ring's beams are about evenly spaced), then walked
-                p0 = s_a[j0]
-                p1 = s_a[j1 - 1]
-                if a_lo > p1:
-                    continue
-                if a_lo > p0:
-                    g = j0 + int((a_lo - p0) / (p1 - p0) * (j1 - 1 - j0))
-                    g = min(max(g, j0 + 1), j1 - 1)
-                    while s_a[g - 1] >= a_lo:
-                        g -= 1
-                    while s_a[g] < a_lo:
-                        g += 1
-                    j0 = g
-                for jj in range(j0, j1):
-                    if s_a[jj] > a_hi:
-                        break
-                    if rays[jj, 4] * qx + rays[jj, 5] * qy + rays[jj, 6] * qz >= cthr:
-                        n = _exact_hit(px[i], py[i], pz[i], r, ids[i], jj, beams, rays, s_beam, vel, t_part, out, n)
+        count = _survivors(batch, i0, m, k, shift, slices.e[k] + speed * slices.dt[k], tanh, slices, lookup)
+        n = _match_survivors(batch, count, k, shift, floor, sizer, thresholds, beams, vel, t_part, slices, lookup, out,
+                             n)
     return n
 
 
-@njit(nogil=True, cache=True)
-def hits_kernel(batch_in, order, shells, beams, slices, lookup, out):  # pragma: no cover
-    """Every (beam, particle) intersection of the particles ``batch_in`` (`ParticleBatch`: local positions at
-    ``t_part``, radii, ids, velocity) that are resolved at their range (diameter >= ``shells.thresholds[k]`` for the
-    shell ``edges[k] <= distance from the local origin < edges[k+1]``), written to ``out`` (`HitArrays` of some
-    capacity, which then hold the first ones); returns the count (may exceed the capacity). ``order`` (P,): the
-    particles in an order that keeps consecutive ones close (they are matched in batches of `_LIST_BATCH`, whose
-    bounding sphere decides which time slices they are tested against).
+@njit(nogil=True, cache=True, error_model="numpy", inline="always")
+def _survivors(batch, i0, m, k, shift, eps, tanh, slices, lookup):  # pragma: no cover
+    """The particles ``i0:m`` of ``batch`` that may hit a beam of time slice ``k`` (see `_match_batch`; ``shift``:
+    local position minus the slice's origin at the slice's time, ``eps`` [m]), listed in ``batch.bins[2]``; returns
+    their count. Per particle (a vectorised loop) the window x (``batch.work[0]``), the range rk (``work[1]``) and the
+    fine bins lo..hi of its z-component window (``bins[0]``, ``bins[1]``; hi < lo: outside the wedge; lo -1: a near
+    particle, x >= 0.5, for every beam of the slice); then those inside the wedge, then those whose bins hold a beam
+    (branch-free)."""
+    px, py, pz, radius = batch.pos[0], batch.pos[1], batch.pos[2], batch.r_ub
+    w_x, w_rk = batch.work[0], batch.work[1]
+    c_lo, c_hi, surv, keep = batch.bins[0], batch.bins[1], batch.bins[2], batch.bins[3]
+    sx, sy, sz_ = shift
+    z0, top, eb0 = slices.z0[k], slices.n_el[k] - 1, slices.el_base[k]
+    w = slices.wedge
+    n0x, n0y, n1x, n1y, slack = w[k, 0], w[k, 1], w[k, 2], w[k, 3], w[k, 4]
+    inv_d_el, el_cum = lookup.inv_d_el, lookup.el_cum
+    for i in range(i0, m):
+        qx = px[i] + sx
+        qy = py[i] + sy
+        qz = pz[i] + sz_
+        rk = math.sqrt(qx * qx + qy * qy + qz * qz)
+        inv = 1.0 / rk if rk > 0.0 else 0.0
+        x = (tanh * (rk + eps) + radius[i] + eps) * inv
+        near = not (x < 0.5) or rk <= 0.0
+        xs = 0.0 if near else x
+        delta = xs * (1.0 + xs * xs) + _MARGIN
+        szq = qz * inv
+        lo = min(max(int(math.floor((szq - delta - z0) * inv_d_el)), 0), top + 1)
+        hi = min(max(int(math.floor((szq + delta - z0) * inv_d_el)), lo - 1), top)
+        lim = -(delta + slack) * rk
+        inside = (qx * n0x + qy * n0y >= lim) and (qx * n1x + qy * n1y >= lim)
+        w_x[i] = x if rk > 0.0 else 1e300
+        w_rk[i] = rk
+        c_lo[i] = -1 if near else lo
+        c_hi[i] = hi if inside else lo - 1
+        keep[i] = near | (inside & (hi >= lo))
+    count = 0  # the particles inside the wedge with bins (branch-free), then those whose bins hold a beam
+    for i in range(i0, m):
+        surv[count] = i
+        count += keep[i]
+    kept = count
+    count = 0
+    for c in range(kept):
+        i = surv[c]
+        lo = c_lo[i]
+        go = (lo < 0) | (el_cum[eb0 + max(c_hi[i], lo) + 1] > el_cum[eb0 + max(lo, 0)])
+        surv[count] = i
+        count += go
+    return count
 
-    A particle at the beam's firing time ``t_b`` is at ``pos + vel (t_b - t_part)``; it intersects beam b
-    (`BeamRays`) if its axial distance ``s`` from the beam origin is in (0, length) and its distance to the axis is
-    below ``s tan(θ/2) + radius`` (candidates: `_match_batch`). ``out.u1``, ``out.u2``, ``out.a``: the particle's
-    centre in the beam's (e1, e2) cross-section and its radius, in beam radii.
-    """
-    batch = _new_batch(_LIST_BATCH, slices.orig.shape[0])
-    dummy = Sizer(1.0, 0.0, 1.0, 0.0)
-    thresholds = shells.thresholds
-    n = 0
-    m = 0
-    for oi in range(order.shape[0]):
-        i = order[oi]
-        px, py, pz = batch_in.pos[i, 0], batch_in.pos[i, 1], batch_in.pos[i, 2]
-        r = batch_in.radius[i]
-        shell = _shell_of(px, py, pz, shells)
-        if shell < 0 or 2.0 * r < thresholds[shell]:
+
+@njit(nogil=True, cache=True, error_model="numpy", inline="always")
+def _match_survivors(batch, count, k, shift, floor, sizer, thresholds, beams, vel, t_part, slices, lookup, out,
+                     n):  # pragma: no cover
+    """The hits of the ``count`` particles listed by `_survivors` for time slice ``k`` appended to ``out`` from row
+    ``n``; returns the new row count. Per particle: first its radius (from its rank variable, see `_match_batch`;
+    dropped if below its shell's threshold); then its candidate beams: per run of its fine bins, those whose
+    projection on the slice's tangent is within ``x (1 + x²)`` of q's (the projection is 1-Lipschitz; a run's beams
+    are sorted by it, the first found by interpolation), for a near particle every beam of the slice; of these, those
+    inside the cone ``d·q >= rk sqrt(1 - x²)`` get the exact test (`_exact_hit`) at their own firing time and
+    origin."""
+    px, py, pz, r_exact, e_rank, shell, ids = (batch.pos[0], batch.pos[1], batch.pos[2], batch.r, batch.e,
+                                               batch.shell, batch.ids)
+    w_x, w_rk, c_lo, c_hi, surv = batch.work[0], batch.work[1], batch.bins[0], batch.bins[1], batch.bins[2]
+    rays, s_beam, s_a = lookup.rays, lookup.beam, lookup.proj
+    run_at, run_lo, run_start = lookup.run_at, lookup.run_lo, lookup.run_start
+    sx, sy, sz_ = shift
+    tx, ty = slices.tangent[k, 0], slices.tangent[k, 1]
+    eb0, b_lo, b_hi, r_end = slices.el_base[k], slices.beam_base[k], slices.beam_base[k + 1], slices.run_base[k + 1]
+    for c in range(count):
+        i = surv[c]
+        r = r_exact[i]
+        if r == -1.0:  # the diameter of a field particle (`weatheralign.medium.field`), then its threshold
+            d = -math.log(sizer.exp_lam_dmax + e_rank[i] / sizer.scale) / sizer.lam
+            r = 0.5 * min(max(d, floor), sizer.d_max)
+            if 2.0 * r < thresholds[shell[i]]:
+                r = -2.0
+            r_exact[i] = r
+        if r < 0.0:  # below its shell's threshold
             continue
-        batch.pos[0, m] = px
-        batch.pos[1, m] = py
-        batch.pos[2, m] = pz
-        batch.r_ub[m] = r
-        batch.r[m] = r
-        batch.shell[m] = shell
-        batch.ids[m] = batch_in.ids[i]
-        m += 1
-        if m == _LIST_BATCH:
-            n = _match_batch(batch, m, _bounding_sphere(batch, m), 0.0, dummy, thresholds, beams, batch_in.vel,
-                             batch_in.t_part, slices, lookup, out, n)
-            m = 0
-    if m == 0:
-        return n
-    return _match_batch(batch, m, _bounding_sphere(batch, m), 0.0, dummy, thresholds, beams, batch_in.vel,
-                        batch_in.t_part, slices, lookup, out, n)
+        qx, qy, qz = px[i] + sx, py[i] + sy, pz[i] + sz_
+        x = w_x[i]
+        rk = w_rk[i]
+        cthr = rk * math.sqrt(1.0 - x * x) - _MARGIN * (1.0 + rk) if x < 1.0 else -1e300
+        lo = c_lo[i]
+        if lo < 0:
+            for jj in range(b_lo, b_hi):
+                if rays[jj, 4] * qx + rays[jj, 5] * qy + rays[jj, 6] * qz >= cthr:
+                    n = _exact_hit(px[i], py[i], pz[i], r, ids[i], jj, beams, rays, s_beam, vel, t_part, out, n)
+            continue
+        delta = x * (1.0 + x * x) + _MARGIN
+        au = (qx * tx + qy * ty) / rk
+        a_lo = au - delta
+        a_hi = au + delta
+        ru = run_at[eb0 + lo]
+        hi = c_hi[i]
+        while ru < r_end and run_lo[ru] <= hi:
+            j0 = run_start[ru]
+            j1 = run_start[ru + 1]
+            ru += 1
+            # first row with projection >= a_lo: interpolated (a ring's beams are about evenly spaced), then walked
+            p0 = s_a[j0]
+            p1 = s_a[j1 - 1]
+            if a_lo > p1:
+                continue
+            if a_lo > p0:
+                g = j0 + int((a_lo - p0) / (p1 - p0) * (j1 - 1 - j0))
+                g = min(max(g, j0 + 1), j1 - 1)
+                while s_a[g - 1] >= a_lo:
+                    g -= 1
+                while s_a[g] < a_lo:
+                    g += 1
+                j0 = g
+            for jj in range(j0, j1):
+                if s_a[jj] > a_hi:
+                    break
+                if rays[jj, 4] * qx + rays[jj, 5] * qy + rays[jj, 6] * qz >= cthr:
+                    n = _exact_hit(px[i], py[i], pz[i], r, ids[i], jj, beams, rays, s_beam, vel, t_part, out, n)
+    return n
 
 
 @njit(nogil=True, cache=True)
@@ -617,6 +647,53 @@ def _shell_of(px, py, pz, shells):  # pragma: no cover
     while shell >= 0 and rho < edges[shell]:
         shell -= 1
     return shell if inside else -1
+
+
+@njit(nogil=True, cache=True)
+def hits_kernel(batch_in, order, shells, beams, slices, lookup, out):  # pragma: no cover
+    """Every (beam, particle) intersection of the particles ``batch_in`` (`ParticleBatch`: local positions at
+    ``t_part``, radii, ids, velocity) that are resolved at their range (diameter >= ``shells.thresholds[k]`` for the
+    shell ``edges[k] <= distance from the local origin < edges[k+1]``), written to ``out`` (`HitArrays` of some
+    capacity, which then hold the first ones); returns the count (may exceed the capacity). ``order`` (P,): the
+    particles in an order that keeps consecutive ones close (they are matched in batches of `_LIST_BATCH`, whose
+    bounding sphere decides which time slices they are tested against).
+
+    A particle at the beam's firing time ``t_b`` is at ``pos + vel (t_b - t_part)``; it intersects beam b
+    (`BeamRays`) if its axial distance ``s`` from the beam origin is in (0, length) and its distance to the axis is
+    below ``s tan(θ/2) + radius`` (candidates: `_match_batch`). ``out.u1``, ``out.u2``, ``out.a``: the particle's
+    centre in the beam's (e1, e2) cross-section and its radius, in beam radii.
+    """
+    batch = _new_batch(_LIST_BATCH, slices.orig.shape[0])
+    dummy = Sizer(1.0, 0.0, 1.0, 0.0)
+    thresholds = shells.thresholds
+    n = 0
+    m = 0
+    for oi in range(order.shape[0]):
+        i = order[oi]
+        px, py, pz = batch_in.pos[i, 0], batch_in.pos[i, 1], batch_in.pos[i, 2]
+        r = batch_in.radius[i]
+        shell = _shell_of(px, py, pz, shells)
+        if shell < 0 or 2.0 * r < thresholds[shell]:
+            continue
+        batch.pos[0, m] = px
+        batch.pos[1, m] = py
+        batch.pos[2, m] = pz
+        batch.r_ub[m] = r
+        batch.r[m] = r
+        batch.shell[m] = shell
+        batch.ids[m] = batch_in.ids[i]
+        m += 1
+        if m == _LIST_BATCH:
+            n = _match_batch(batch, 0, m, _bounding_sphere(batch, m), 0.0, dummy, thresholds, beams, batch_in.vel,
+                             batch_in.t_part, slices, lookup, out, n)
+            m = 0
+    if m == 0:
+        return n
+    return _match_batch(batch, 0, m, _bounding_sphere(batch, m), 0.0, dummy, thresholds, beams, batch_in.vel,
+                        batch_in.t_part, slices, lookup, out, n)
+
+
+# ============================================================================================== field particles
 
 
 @njit(nogil=True, cache=True)
@@ -740,13 +817,17 @@ def field_hits_kernel(src, t_part, vel, shells, beams, slices, lookup, per_shell
                     shell_of[i] = shell
                     r_exact[i] = -1.0 if shell >= 0 and e_rank[i] <= e_cut[shell] else -2.0
             sphere = (box_x, box_y, box_z, box_h, r_ub[0]) if no_wrap else _bounding_sphere(batch, j)
-            n = _match_batch(batch, j, sphere, floor_k, sizer, thresholds, beams, vel, t_part, slices, lookup, out, n)
+            n = _match_batch(batch, 0, j, sphere, floor_k, sizer, thresholds, beams, vel, t_part, slices, lookup, out,
+                             n)
             n_part += j
             if n_part > src.max_particles:
                 return n, 1 + k
         per_shell[k, 0] = n_part
         per_shell[k, 1] = n - n_shell
     return n, 0
+
+
+# ============================================================================================== hit order
 
 
 @njit(nogil=True, cache=True)
@@ -781,376 +862,3 @@ def sort_hits_kernel(hits, n, n_beams, out):  # pragma: no cover
         out.u1[j] = hits.u1[i]
         out.u2[j] = hits.u2[i]
         out.a[j] = hits.a[i]
-
-
-@njit(nogil=True, cache=True, inline="always")
-def _disk_share(cx, cy, a):  # pragma: no cover
-    """Share of the unit disk covered by the disk of radius ``a`` centred at (cx, cy)."""
-    c = math.sqrt(cx * cx + cy * cy)
-    if c >= 1.0 + a:
-        return 0.0
-    if c <= abs(1.0 - a):
-        m = min(a, 1.0)
-        return m * m
-    c2 = c * c
-    a2 = a * a
-    t1 = a2 * math.acos(max(-1.0, min(1.0, (c2 + a2 - 1.0) / (2.0 * c * a))))
-    t2 = math.acos(max(-1.0, min(1.0, (c2 + 1.0 - a2) / (2.0 * c))))
-    k = (-c + a + 1.0) * (c + a - 1.0) * (c - a + 1.0) * (c + a + 1.0)
-    t3 = 0.5 * math.sqrt(max(k, 0.0))
-    return min(max((t1 + t2 - t3) / math.pi, 0.0), 1.0)
-
-
-@njit(nogil=True, cache=True, inline="always")
-def _optical_depth(s, medium):  # pragma: no cover
-    """One-way optical depth ∫_0^s α for the piecewise-constant α of ``medium`` (`Medium`: ``alphas`` (K,) on
-    ``edges`` (K+1,), extended past the ends; ``tau_edges`` (K+1,) the depth at each edge)."""
-    edges, alphas = medium.edges, medium.alphas
-    if s <= edges[0]:
-        return 0.0
-    k = np.searchsorted(edges, s, side="right") - 1
-    if k >= alphas.shape[0]:
-        k = alphas.shape[0] - 1
-    return medium.tau_edges[k] + alphas[k] * (s - edges[k])
-
-
-@njit(nogil=True, cache=True, inline="always")
-def _gain(r, r_ref, falloff):  # pragma: no cover
-    """The sensor's range compensation ``g(R) = min(1, (r_ref / R)^falloff)`` at range ``r`` > 0 [m] (the scalar
-    form of `IntensityModel.gain`)."""
-    return min(1.0, (r_ref / r) ** falloff)
-
-
-@njit(nogil=True, cache=True, inline="always")
-def _keep_or_lost(val, floor, i0):  # pragma: no cover
-    """Outcome of a return kept at its range with intensity ``val`` (clear intensity ``i0``, both 0..255): LOST if
-    there is a noise ``floor`` (>= 0) and the weather pushed the return below it (a return already below it in clear
-    weather was detected nevertheless and stays), else ATTENUATED."""
-    return WeatherLabel.LOST if (floor >= 0.0 and val < floor and val < i0) else WeatherLabel.ATTENUATED
-
-
-@njit(nogil=True, cache=True)
-def _peak(starts, amps, m, length, bp, cs, sn):  # pragma: no cover
-    """Maximum ``(R*, P*)`` of ``sum_k amps[k] sin²(π (R - starts[k]) / length)`` (each term on
-    ``[starts[k], starts[k] + length]``) over the first ``m`` pulses; exact: between consecutive pulse starts/ends the
-    sum is a constant plus one sinusoid of period ``length``. ``bp``, ``cs``, ``sn``: work arrays (>= 2m, m, m)."""
-    nb = 0
-    r0 = 1e300
-    for k in range(m):
-        if amps[k] > 0.0:
-            r0 = min(r0, starts[k])
-    if r0 == 1e300:
-        return 0.0, 0.0
-    omega = 2.0 * math.pi / length
-    for k in range(m):
-        if amps[k] > 0.0:
-            phi = omega * (starts[k] - r0)
-            cs[k] = amps[k] * math.cos(phi)
-            sn[k] = amps[k] * math.sin(phi)
-            # insertion into the sorted breakpoints
-            for v in (starts[k], starts[k] + length):
-                j = nb
-                while j > 0 and bp[j - 1] > v:
-                    bp[j] = bp[j - 1]
-                    j -= 1
-                bp[j] = v
-                nb += 1
-    best_r = r0
-    best_p = -1.0
-    last_x = math.nan  # the cos / sin of the last segment end (the next segment's start)
-    last_cos = last_sin = 0.0
-    for i in range(nb - 1):
-        lo = bp[i]
-        hi = bp[i + 1]
-        if hi <= lo:
-            continue
-        mid = 0.5 * (lo + hi)
-        a_sum = 0.0
-        c_sum = 0.0
-        s_sum = 0.0
-        for k in range(m):
-            if amps[k] > 0.0 and starts[k] <= mid and mid < starts[k] + length:
-                a_sum += amps[k]
-                c_sum += cs[k]
-                s_sum += sn[k]
-        # no value of this segment exceeds a_sum (|(c_sum, s_sum)| <= a_sum up to rounding): it cannot win
-        if a_sum <= 0.0 or a_sum * (1.0 + 1e-9) < best_p:
-            continue
-        # f(x) = a/2 - (c cos(ωx) + s sin(ωx)) / 2 with x = R - r0
-        x_lo = lo - r0
-        x_hi = hi - r0
-        for x in (x_lo, x_hi):
-            if x == last_x:
-                cos_x, sin_x = last_cos, last_sin
-            else:
-                cos_x, sin_x = math.cos(omega * x), math.sin(omega * x)
-                last_x, last_cos, last_sin = x, cos_x, sin_x
-            val = 0.5 * a_sum - 0.5 * (c_sum * cos_x + s_sum * sin_x)
-            if val > best_p:
-                best_p = val
-                best_r = x + r0
-        psi = math.atan2(s_sum, c_sum)
-        nturn = math.ceil((omega * x_lo - psi - math.pi) / (2.0 * math.pi))
-        x_star = (psi + math.pi + 2.0 * math.pi * nturn) / omega
-        if x_lo <= x_star <= x_hi:
-            val = 0.5 * a_sum + 0.5 * math.sqrt(c_sum * c_sum + s_sum * s_sum)
-            if val > best_p:
-                best_p = val
-                best_r = x_star + r0
-    return best_r, best_p
-
-
-@njit(nogil=True, cache=True, inline="always")
-def _inside(y0, step, g, uy, exx, r2):  # pragma: no cover
-    """Whether grid point ``g`` of a row (``y = y0 + (g + 0.5) step``) is inside the disk of squared radius ``r2``
-    centred at y ``uy``, ``exx`` the squared x offset of the row: ``exx + (y - uy)² < r2``, evaluated exactly as the
-    point-by-point count does."""
-    ey = (y0 + (g + 0.5) * step) - uy
-    return exx + ey * ey < r2
-
-
-@njit(nogil=True, cache=True)
-def _row_interval(y0, step, n, exx, uy, r2):  # pragma: no cover
-    """The grid points ``g`` in [0, n) of a row inside a disk (`_inside`), as ``(first, last)`` (empty if last <
-    first). Exact: y - uy is non-decreasing in g, so the evaluated ``exx + (y - uy)²`` does not increase before the
-    first g with y - uy >= 0 (c) and does not decrease from it (rounding is monotone): the inside points are an
-    interval holding c - 1 or c if any, whose ends are estimated from the circle and then walked to exactly."""
-    if not exx < r2:  # no point of this row is inside
-        return 0, -1
-    t = 0.0
-    if step > 0.0:
-        t = min(max((uy - y0) / step - 0.5, -1.0), n + 1.0)
-    c = min(max(int(math.ceil(t)), 0), n)
-    while c > 0 and (y0 + ((c - 1) + 0.5) * step) - uy >= 0.0:
-        c -= 1
-    while c < n and (y0 + (c + 0.5) * step) - uy < 0.0:
-        c += 1
-    in_left = c > 0 and _inside(y0, step, c - 1, uy, exx, r2)
-    in_right = c < n and _inside(y0, step, c, uy, exx, r2)
-    if not (in_left or in_right):
-        return 0, -1
-    w = math.sqrt(r2 - exx) / step if step > 0.0 else 0.0
-    first = c
-    if in_left:  # the inside points of [0, c) are a suffix ending at c - 1
-        first = min(max(int(math.ceil(max(t - w, -1.0))), 0), c - 1)
-        if _inside(y0, step, first, uy, exx, r2):
-            while first > 0 and _inside(y0, step, first - 1, uy, exx, r2):
-                first -= 1
-        else:
-            while not _inside(y0, step, first, uy, exx, r2):
-                first += 1
-    last = c - 1
-    if in_right:  # the inside points of [c, n) are a prefix starting at c
-        last = min(max(int(math.floor(min(t + w, n + 1.0))), c), n - 1)
-        if _inside(y0, step, last, uy, exx, r2):
-            while last < n - 1 and _inside(y0, step, last + 1, uy, exx, r2):
-                last += 1
-        else:
-            while not _inside(y0, step, last, uy, exx, r2):
-                last -= 1
-    return first, last
-
-
-@njit(nogil=True, cache=True)
-def _uncovered_count(cx, cy, a, x_lo, step_x, y_lo, step_y, grid_n, over, n_over, h_u1, h_u2, h_a, iv_lo,
-                     iv_hi):  # pragma: no cover
-    """The points ``(x_lo + (i + 0.5) step_x, y_lo + (j + 0.5) step_y)`` of a ``grid_n`` x ``grid_n`` grid inside
-    the unit disk and the disk of radius ``a`` at ``(cx, cy)`` but in none of the disks ``over[:n_over]`` (centres
-    ``h_u1``, ``h_u2``, radii ``h_a``): the same count, point for point, as testing every grid point, from the
-    rows' intervals (`_row_interval`). ``iv_lo``, ``iv_hi``: scratch (>= n_over)."""
-    count = 0
-    a2 = a * a
-    for gi in range(grid_n):
-        x = x_lo + (gi + 0.5) * step_x
-        lo_u, hi_u = _row_interval(y_lo, step_y, grid_n, x * x, 0.0, 1.0)
-        ex = x - cx
-        lo_o, hi_o = _row_interval(y_lo, step_y, grid_n, ex * ex, cy, a2)
-        lo = max(lo_u, lo_o)
-        hi = min(hi_u, hi_o)
-        if hi < lo:
-            continue
-        n_iv = 0  # the covered intervals within [lo, hi], sorted by start
-        for q in range(n_over):
-            hq = over[q]
-            ex = x - h_u1[hq]
-            q_lo, q_hi = _row_interval(y_lo, step_y, grid_n, ex * ex, h_u2[hq], h_a[hq] * h_a[hq])
-            q_lo = max(q_lo, lo)
-            q_hi = min(q_hi, hi)
-            if q_hi < q_lo:
-                continue
-            p = n_iv
-            while p > 0 and iv_lo[p - 1] > q_lo:
-                iv_lo[p] = iv_lo[p - 1]
-                iv_hi[p] = iv_hi[p - 1]
-                p -= 1
-            iv_lo[p] = q_lo
-            iv_hi[p] = q_hi
-            n_iv += 1
-        covered = 0
-        end = lo - 1  # last covered point so far
-        for p in range(n_iv):
-            start = max(iv_lo[p], end + 1)
-            if iv_hi[p] >= start:
-                covered += iv_hi[p] - start + 1
-                end = iv_hi[p]
-        count += hi - lo + 1 - covered
-    return count
-
-
-@njit(nogil=True, cache=True)
-def response_kernel(hits, hit_off, beams, pulse, medium, ratio, out):  # pragma: no cover
-    """Per beam: occlusion ratios of its hits (written to ``ratio`` (H,)), the summed pulse, its peak and the outcome.
-
-    ``hits`` (`HitArrays`, sorted by beam then range; beam b's are rows ``hit_off[b]:hit_off[b+1]``, ``hit_off``
-    (B+1,)), ``beams`` (`BeamTargets`), ``pulse`` (`PulseParams`), ``medium`` (`Medium`). ``out`` (`BeamOutcome`):
-    ``state`` a `WeatherLabel`: UNCHANGED keep the input bit for bit, ATTENUATED keep the position with
-    ``out.intensity``, SCATTERED moved to ``out.range`` (dominant hit ``out.dom``), LOST, NO_ECHO nothing detected
-    (beam without return). Intensities are on the 0..255 scale. Returns the number of hits whose ratio was sampled on
-    the grid.
-    """
-    h_s, h_u1, h_u2, h_a, h_ratio = hits.s, hits.u1, hits.u2, hits.a, ratio
-    has_ret, lengths, i0 = beams.has_ret, beams.lengths, beams.i0
-    pulse_len, r1, r2, part_gain = pulse.pulse_len, pulse.r1, pulse.r2, pulse.part_gain
-    r_ref, falloff = pulse.r_ref, pulse.falloff
-    keep_tol, floor, saturation, grid_n = pulse.keep_tol, pulse.floor, pulse.saturation, pulse.grid_n
-    out_state, out_range, out_int, out_dom = out.state, out.range, out.intensity, out.dom
-    n_beams = lengths.shape[0]
-    max_k = 0
-    for b in range(n_beams):
-        max_k = max(max_k, hit_off[b + 1] - hit_off[b])
-    starts = np.empty(max_k + 1)
-    amps = np.empty(max_k + 1)
-    over = np.empty(max_k + 1, dtype=np.int64)
-    iv_lo = np.empty(max_k + 1, dtype=np.int64)
-    iv_hi = np.empty(max_k + 1, dtype=np.int64)
-    work_bp = np.empty(2 * max_k + 2)
-    work_c = np.empty(max_k + 1)
-    work_s = np.empty(max_k + 1)
-    n_sampled = 0
-    for b in range(n_beams):
-        h0 = hit_off[b]
-        k_hits = hit_off[b + 1] - h0
-        length = lengths[b]
-        ret = has_ret[b]
-        out_dom[b] = -1
-        out_range[b] = np.nan
-        out_int[b] = 0.0
-        tau_target = _optical_depth(length, medium) if ret else 0.0
-        if k_hits == 0:
-            if not ret:
-                out_state[b] = WeatherLabel.NO_ECHO
-                continue
-            if tau_target == 0.0 or length <= 0.0:
-                out_state[b] = WeatherLabel.UNCHANGED
-                out_range[b] = length
-                out_int[b] = i0[b]
-                continue
-            val = min(i0[b] * math.exp(-2.0 * tau_target), saturation)
-            out_range[b] = length
-            out_int[b] = val
-            out_state[b] = _keep_or_lost(val, floor, i0[b])
-            continue
-        # --- occlusion ratios, nearest first: closed form for a disk that overlaps no nearer disk inside the beam,
-        # else the uncovered part of its disk is counted on a grid_n x grid_n grid over its box ∩ the beam's box
-        blocked = False
-        for j in range(k_hits):
-            h = h0 + j
-            cx, cy, a = h_u1[h], h_u2[h], h_a[h]
-            share = 0.0 if blocked else _disk_share(cx, cy, a)
-            if share > 0.0:
-                n_over = 0
-                for i in range(j):
-                    hi = h0 + i
-                    if h_ratio[hi] <= 0.0:
-                        continue
-                    dx = cx - h_u1[hi]
-                    dy = cy - h_u2[hi]
-                    rr = a + h_a[hi]
-                    if dx * dx + dy * dy < rr * rr:
-                        over[n_over] = hi
-                        n_over += 1
-                if n_over > 0:
-                    n_sampled += 1
-                    x_lo = max(cx - a, -1.0)
-                    x_hi = min(cx + a, 1.0)
-                    y_lo = max(cy - a, -1.0)
-                    y_hi = min(cy + a, 1.0)
-                    step_x = (x_hi - x_lo) / grid_n
-                    step_y = (y_hi - y_lo) / grid_n
-                    count = _uncovered_count(cx, cy, a, x_lo, step_x, y_lo, step_y, grid_n, over, n_over, h_u1,
-                                             h_u2, h_a, iv_lo, iv_hi)
-                    share = count * step_x * step_y / math.pi
-            h_ratio[h] = share
-            if math.sqrt(cx * cx + cy * cy) + 1.0 <= a:  # this particle covers the whole beam
-                blocked = True
-        covered = 0.0
-        for j in range(k_hits):
-            covered += h_ratio[h0 + j]
-        remaining = max(0.0, 1.0 - covered)
-        # --- pulse amplitudes in raw power units (intensity / (R² g(R)))
-        for j in range(k_hits):
-            h = h0 + j
-            s = h_s[h]
-            xi = min(max((s - r1) / (r2 - r1), 0.0), 1.0)
-            starts[j] = s
-            amps[j] = part_gain * h_ratio[h] * xi / (s * s) * math.exp(
-                -2.0 * _optical_depth(s, medium))
-        m = k_hits
-        if ret and length > 0.0:
-            g0 = _gain(length, r_ref, falloff)
-            starts[m] = length
-            amps[m] = i0[b] / (length * length * g0) * remaining * math.exp(-2.0 * tau_target)
-            m += 1
-        r_peak, p_peak = _peak(starts, amps, m, pulse_len, work_bp, work_c, work_s)
-        if p_peak <= 0.0:
-            if ret and remaining > 0.0:  # a zero-intensity target, no visible particle: stays at zero
-                out_state[b] = WeatherLabel.ATTENUATED
-                out_range[b] = length
-                out_int[b] = 0.0
-            else:  # fully blocked by particles too close to be seen (no overlap ξ), or nothing at all
-                out_state[b] = WeatherLabel.LOST if ret else WeatherLabel.NO_ECHO
-            continue
-        r_meas = r_peak - 0.5 * pulse_len
-        if ret and abs(r_meas - length) <= keep_tol:
-            g0 = _gain(length, r_ref, falloff)
-            val = min(p_peak * length * length * g0, saturation)
-            out_range[b] = length
-            out_int[b] = val
-            out_state[b] = _keep_or_lost(val, floor, i0[b])
-            continue
-        # the particle contributing most at the peak
-        best = -1.0
-        dom = -1
-        for j in range(k_hits):
-            x = r_peak - starts[j]
-            if amps[j] > 0.0 and 0.0 <= x <= pulse_len:
-                c = amps[j] * math.sin(math.pi * x / pulse_len) ** 2
-                if c > best:
-                    best = c
-                    dom = j
-        r_out = min(max(r_meas, 0.0), length)
-        g1 = _gain(max(r_out, 1e-9), r_ref, falloff)
-        val = min(p_peak * r_out * r_out * g1, saturation)
-        if dom < 0 or (floor >= 0.0 and val < floor):
-            if not ret:
-                out_state[b] = WeatherLabel.NO_ECHO
-                continue
-            # the strongest echo is a particle's but undetectable: the target's own echo decides (summed waveform
-            # at the target's pulse peak), lost only if the weather pushed it below the floor
-            x_t = length + 0.5 * pulse_len
-            p_t = 0.0
-            for j in range(m):
-                x = x_t - starts[j]
-                if amps[j] > 0.0 and 0.0 <= x <= pulse_len:
-                    p_t += amps[j] * math.sin(math.pi * x / pulse_len) ** 2
-            g0 = _gain(length, r_ref, falloff)
-            val_t = min(p_t * length * length * g0, saturation)
-            out_range[b] = length
-            out_int[b] = val_t
-            out_state[b] = _keep_or_lost(val_t, floor, i0[b])
-            continue
-        out_state[b] = WeatherLabel.SCATTERED
-        out_range[b] = r_out
-        out_int[b] = val
-        out_dom[b] = h0 + dom
-    return n_sampled

@@ -1,9 +1,9 @@
-"""Typed records passed to the numba kernels (`weatheralign.lidar.particles.kernels`).
+"""Typed records passed to the numba kernels (`weatheralign.lidar.particles.kernels`, `.response`).
 
 Each record is a `typing.NamedTuple` of arrays and scalars: numba compiles them in nopython mode as typed tuples
 (``cache=True`` works because the classes are importable), so a kernel takes a handful of named records instead of
 dozens of positional arrays. Lengths: B beams, K time slices (`TimeSlices`) or range shells (`Shells`, `Medium`),
-P particles, H hits, C direction-grid cells. Positions are local: global minus `BeamIndex.center` [m].
+P particles, H hits, R runs of fine z-component bins. Positions are local: global minus `BeamIndex.center` [m].
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ class BeamRays(NamedTuple):
 
 class TimeSlices(NamedTuple):
     """Consecutive beams by firing time, each slice with its own reference origin and time, the bounds of its beam
-    directions (z-component range, azimuth wedge) and its beams sorted by fine z-component bin (`SliceIndex`)."""
+    directions (z-component range, azimuth wedge) and its fine z-component bins (their beams: `SliceIndex`)."""
 
     orig: F64  # (K, 3) reference origin: centre of the slice's beam origins [m]
     time: F64  # (K,) reference time: middle of the slice's firing times [s]
@@ -48,7 +48,7 @@ class TimeSlices(NamedTuple):
     # the slice has d·n >= -slack for both normals (all zero where the slice's azimuths span more than π)
     z0: F64  # (K,) lower edge of the slice's first fine z-component bin
     n_el: I64  # (K,) number of fine z-component bins of the slice
-    el_base: I64  # (K,) first entry of the slice's cumulative bin counts in `SliceBeams.el_cum`
+    el_base: I64  # (K,) first entry of the slice's cumulative bin counts in `SliceIndex.el_cum`
     beam_base: I64  # (K+1,) the beams of slice k are rows beam_base[k]:beam_base[k+1] of `SliceIndex`
     run_base: I64  # (K+1,) the runs of slice k are runs run_base[k]:run_base[k+1] of `SliceIndex`
 
@@ -126,9 +126,9 @@ class ParticleBatch(NamedTuple):
 
 
 class FieldSource(NamedTuple):
-    """The particle field side of the fused materialise-and-match kernel: the reachable co-moving cells grouped by
-    range shell and the field's generator constants (`weatheralign.medium.field`: the same hash streams, expressions
-    and ids as `ParticleField.materialize_cells`)."""
+    """The particle field side of `kernels.field_hits_kernel`: the reachable co-moving cells grouped by range shell
+    and the field's generator constants (`weatheralign.medium.field`: the same hash streams, expressions and ids as
+    `ParticleField.materialize_cells`)."""
 
     seed_key: np.uint64  # the field's hashed seed
     cells: I64  # (M, 3) co-moving cells (ix, iy, iz), grouped by shell
