@@ -33,6 +33,18 @@ def flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def log_params(client: Any, run_id: str | None, params: dict[str, Any]) -> None:
+    """The leaves of ``params`` (nested dicts flattened with dots) as MLflow params of run ``run_id`` (nothing
+    without a client)."""
+    if client is None:
+        return
+    from mlflow.entities import Param
+
+    items = [Param(k, str(v)[:6000]) for k, v in sorted(flatten(params).items())]
+    for i in range(0, len(items), 100):
+        client.log_batch(run_id, params=items[i:i + 100])
+
+
 def tracking_uri(params: Params, repo: Path) -> str:
     return params.tracking.mlflow_uri or os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{repo / 'mlflow.db'}"
 
@@ -81,13 +93,7 @@ class StageTracker:
         return run.info.run_id
 
     def log_params(self, section: dict[str, Any]) -> None:
-        if self.client is None:
-            return
-        from mlflow.entities import Param
-
-        items = [Param(k, str(v)[:6000]) for k, v in sorted(flatten(section).items())]
-        for i in range(0, len(items), 100):
-            self.client.log_batch(self.run_id, params=items[i:i + 100])
+        log_params(self.client, self.run_id, section)
 
     def log_artifact(self, path: Path, folder: str | None = None) -> None:
         if self.client is not None:
@@ -109,11 +115,57 @@ class StageTracker:
             self.client.log_batch(self.run_id, metrics=items[i:i + 500])
         self.client.log_artifact(self.run_id, str(self.reports / "metrics.json"))
 
+    def child(self, name: str, tags: dict[str, str]) -> "ChildRun":
+        """A nested MLflow run under this stage's run (one training or one evaluation), tagged with ``tags`` (e.g.
+        ``model``, ``weather``, ``alignment``) so that the MLflow UI can group and compare them."""
+        if self.client is None:
+            return ChildRun(None, None)
+        exp_id = self.client.get_run(self.run_id).info.experiment_id
+        run_tags = {"mlflow.parentRunId": self.run_id, STAGE_TAG: self.stage, "mlflow.runName": name,
+                    **{k: str(v) for k, v in tags.items()}}
+        return ChildRun(self.client, self.client.create_run(exp_id, tags=run_tags).info.run_id)
+
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
         if self.client is not None and self.run_id is not None:
             status = "FAILED" if exc_type else "FINISHED"
             self.client.set_terminated(self.run_id, status)
             self.client.set_terminated(self.parent_id, status)  # reopened by the next stage's child if any
+
+
+class ChildRun:
+    """A nested MLflow run (`StageTracker.child`); every method does nothing when tracking is off."""
+
+    def __init__(self, client: Any, run_id: str | None) -> None:
+        self.client, self.run_id = client, run_id
+
+    def log_params(self, params: dict[str, Any]) -> None:
+        log_params(self.client, self.run_id, params)
+
+    def log_metrics(self, metrics: dict[str, Any], step: int = 0) -> None:
+        """Numeric leaves of ``metrics`` (nested dicts flattened with dots) at ``step``."""
+        if self.client is None:
+            return
+        from mlflow.entities import Metric
+
+        now = int(time.time() * 1000)
+        items = [Metric(k, float(v), now, step) for k, v in sorted(flatten(metrics).items())
+                 if isinstance(v, (int, float)) and not isinstance(v, bool)]
+        for i in range(0, len(items), 500):
+            self.client.log_batch(self.run_id, metrics=items[i:i + 500])
+
+    def log_artifact(self, path: Path, folder: str | None = None) -> None:
+        if self.client is not None:
+            self.client.log_artifact(self.run_id, str(path), folder)
+
+    def close(self, failed: bool = False) -> None:
+        if self.client is not None:
+            self.client.set_terminated(self.run_id, "FAILED" if failed else "FINISHED")
+
+    def __enter__(self) -> "ChildRun":
+        return self
+
+    def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
+        self.close(failed=exc_type is not None)
 
 
 def _prefect_flow_run_id() -> str:

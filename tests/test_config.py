@@ -7,12 +7,15 @@ from weatheralign.config import SECTIONS, ConfigError, apply_override, load_para
 from .conftest import REPO
 
 
-def _params_file(tmp_path: Path, old: str = "", new: str = "", name: str = "p.yaml") -> Path:
-    """The repository's params.yaml (every section present, as `load_params` requires) with one text edit."""
+def _params_file(tmp_path: Path, old: str = "", new: str = "", name: str = "p.yaml", section: str = "") -> Path:
+    """The repository's params.yaml (every section present, as `load_params` requires) with one text edit (the
+    first ``old`` of ``section`` when given, else the only one)."""
     text = (REPO / "params.yaml").read_text()
     if old:
-        assert text.count(old) == 1, old
-        text = text.replace(old, new)
+        start = text.index(f"\n{section}:") if section else 0
+        assert old in text[start:] and (section or text.count(old) == 1), old
+        i = text.index(old, start)
+        text = text[:i] + new + text[i + len(old):]
     f = tmp_path / name
     f.write_text(text)
     return f
@@ -132,7 +135,7 @@ def test_empty_file_or_missing_section_is_refused(tmp_path):
         empty.write_text(text)
         with pytest.raises(ConfigError, match=rf"^{empty}: the params file is empty; it must hold the sections "
                                               r"paths, run, tracking, world, particles, simulate, reference, "
-                                              r"calibrate_fog"):
+                                              r"calibrate_fog, detect"):
             load_params(empty)
     partial = tmp_path / "partial.yaml"
     partial.write_text("world:\n  seed: 1\n")
@@ -140,7 +143,7 @@ def test_empty_file_or_missing_section_is_refused(tmp_path):
         load_params(partial)
     msg = str(err.value)
     assert msg.startswith(f"{partial}: missing sections paths, run, tracking, particles, simulate, reference, "
-                          f"calibrate_fog: a params file must hold every section")
+                          f"calibrate_fog, detect: a params file must hold every section")
     # one section short: named alone; --set cannot stand in for it (overrides are for keys)
     f = _params_file(tmp_path, "calibrate_fog:", "calibrate_fog_old:")
     for overrides in ([], ["calibrate_fog.device=cpu"]):
@@ -209,6 +212,8 @@ def test_nan_infinite_and_absurd_values_are_refused(tmp_path):
     ("calibrate_fog.device", ["cpu", "cuda", "cuda:0", "cuda:12", "mps"],
      ["gpu", "CUDA", "cuda:", "cuda:x", "cuda0", "tpu", ""],
      "expected a torch device: cpu, cuda, cuda:N (N = GPU index) or mps"),
+    ("detect.device", ["cpu", "cuda", "cuda:1", "mps"], ["gpu", "cuda:", ""],
+     "expected a torch device: cpu, cuda, cuda:N (N = GPU index) or mps"),
 ])
 def test_addresses_uris_and_devices_are_checked_by_form(tmp_path, key, good, bad, form):
     section, name = key.split(".")
@@ -219,7 +224,8 @@ def test_addresses_uris_and_devices_are_checked_by_form(tmp_path, key, good, bad
             params_from_dict({section: {name: value}})
         assert str(err.value).startswith(f"params: {key} = {value!r} is invalid: {form}"), str(err.value)
     # in the file: the file and the key are named
-    f = _params_file(tmp_path, f"{name}: {'null' if name != 'device' else 'cpu'}", f"{name}: {bad[0]}")
+    f = _params_file(tmp_path, f"{name}: {'null' if name != 'device' else 'cpu'}", f"{name}: {bad[0]}",
+                     section=section)
     with pytest.raises(ConfigError) as err:
         load_params(f)
     assert str(err.value).startswith(f"{f}: {key} = {bad[0]!r} is invalid: {form}"), str(err.value)

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 
 class ConfigError(ValueError):
@@ -102,6 +102,16 @@ _MLFLOW_URI = re.compile(r"^(?:sqlite:///\S+|file:\S+|https?://[^\s/:]+\S*|(?:po
 _MLFLOW_FORMS = ("sqlite:///<path>, file:<path>, http(s)://<host>[:port], postgresql://..., mysql://..., "
                  "databricks[://<profile>]")
 _TORCH_DEVICE = re.compile(r"^(?:cpu|mps|cuda(?::[0-9]{1,2})?)$")
+
+
+def _torch_device(v: str) -> str:
+    """A torch device name, checked by form here (no torch import); whether it exists is the stage's concern."""
+    if not _TORCH_DEVICE.fullmatch(v):
+        raise ValueError("expected a torch device: cpu, cuda, cuda:N (N = GPU index) or mps")
+    return v
+
+
+TorchDevice = Annotated[str, AfterValidator(_torch_device)]
 
 
 class PathsConfig(_Section):
@@ -420,15 +430,41 @@ class CalibrateFogConfig(_Section):
     confidence: Annotated[float, Field(gt=0.5, lt=1.0)] = 0.95
     camera_frames: Annotated[int, Field(ge=0, le=10_000)] = 0
     inception_path: Path | None = None
-    device: str = "cpu"
+    device: TorchDevice = "cpu"
 
-    @field_validator("device")
-    @classmethod
-    def _device(cls, v: str) -> str:
-        """Checked by form here (no torch import); whether the device exists is the stage's concern."""
-        if not _TORCH_DEVICE.fullmatch(v):
-            raise ValueError("expected a torch device: cpu, cuda, cuda:N (N = GPU index) or mps")
-        return v
+
+class DetectConfig(_Section):
+    """The `detect` stage: the small BEVFusion-style detector (`weatheralign.detect`) and the paper's protocol.
+
+    Pretrain on the clean train split for ``pretrain_steps`` (batch ``batch_size``, AdamW at ``lr`` with a one-cycle
+    schedule, the val mAP every ``eval_every`` steps for the learning curve); finetune a copy for ``finetune_steps``
+    at ``finetune_lr`` on each of ``finetune_conditions``: its aligned train split, its unaligned train split, and
+    the aligned train split mixed with the clean one at ``mix_weather_fraction`` (drawn per sample by the data
+    loader). Every model is evaluated on the clean val split and on the val split of the weather copies (nuScenes
+    metrics, frame bootstrap with ``num_bootstrap`` resamples at ``confidence``). The LiDAR aggregates the keyframe
+    and the ``simulate.sweeps`` sweeps before it (the ones the weather copies simulate). ``device``: ``cpu``,
+    ``cuda``, ``cuda:N`` or ``mps`` (the stage says so and stops when it is not present).
+    """
+
+    finetune_conditions: tuple[Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$")], ...] = ("fog_dense", "snow", "rain")
+    device: TorchDevice = "cpu"
+    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
+    image_size: tuple[Annotated[int, Field(ge=32, le=900)], Annotated[int, Field(ge=32, le=1600)]] = (96, 176)
+    bev_range_m: Annotated[float, Field(gt=10.0, le=100.0)] = 51.2
+    bev_cell_m: Annotated[float, Field(gt=0.1, le=2.0)] = 0.8
+    batch_size: Annotated[int, Field(ge=1, le=64)] = 2
+    pretrain_steps: Annotated[int, Field(ge=1, le=1_000_000)] = 1600
+    finetune_steps: Annotated[int, Field(ge=0, le=1_000_000)] = 200
+    lr: Annotated[float, Field(gt=0.0, le=1.0)] = 2e-3
+    finetune_lr: Annotated[float, Field(gt=0.0, le=1.0)] = 5e-4
+    weight_decay: Annotated[float, Field(ge=0.0, le=1.0)] = 0.01
+    modality_dropout: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.15
+    mix_weather_fraction: Annotated[float, Field(gt=0.0, lt=1.0)] = 0.3
+    eval_every: Annotated[int, Field(ge=0, le=1_000_000)] = 400
+    score_threshold: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.05
+    max_detections: Annotated[int, Field(ge=1, le=1000)] = 200
+    num_bootstrap: Annotated[int, Field(ge=10, le=100_000)] = 200
+    confidence: Annotated[float, Field(gt=0.5, lt=1.0)] = 0.95
 
 
 class Params(_Section):
@@ -442,6 +478,7 @@ class Params(_Section):
     simulate: SimulateConfig = SimulateConfig()
     reference: ReferenceConfig = ReferenceConfig()
     calibrate_fog: CalibrateFogConfig = CalibrateFogConfig()
+    detect: DetectConfig = DetectConfig()
 
 
 def apply_override(tree: dict[str, Any], assignment: str) -> tuple[str, ...]:

@@ -1,0 +1,364 @@
+"""`detect` stage: the paper's perception check with a small BEVFusion-style detector trained here.
+
+``python -m flows.detect`` reads the world's manifest (the clean dataroot) and the weather copies of the `simulate`
+matrix (``<paths.data>/simulate/<condition>-<aligned|unaligned>``), caches each split it needs once
+(`weatheralign.detect.data.build_cache`: downsized cameras, the keyframe and ``simulate.sweeps`` sweeps), then
+
+1. pretrains on the clean train split (learning curve: val mAP / NDS every ``detect.eval_every`` steps);
+2. evaluates it on the clean val split and on the val split of every weather copy, aligned and unaligned (the paper's
+   Table 2), and LiDAR-only / camera-only / fused on clean val (the modality ablation);
+3. finetunes it on each of ``detect.finetune_conditions``: the aligned train split, the unaligned one, and the
+   aligned one mixed 30/70 with clean at the data-loader level, each evaluated on clean val and on its weather's
+   aligned and unaligned val (Table 3, and whether unaligned training buys less robustness);
+4. writes ``reports/detect/metrics.json`` (models -> evaluation sets -> metrics with frame-bootstrap intervals and
+   RA = NDS_weather / NDS_clean), paired-bootstrap differences, ``table_alignment.md`` and ``table_finetune.md``
+   (the paper's figures beside ours, labelled), ``learning_curve.png`` and ``predictions_bev.png``.
+
+Every training and evaluation is an MLflow child run tagged ``model``, ``weather``, ``alignment``. Finished models
+(``<paths.data>/detect/models/<model>.pt``) and evaluations (``<paths.data>/detect/evals/``) are kept with the
+fingerprint of the code, params and input datasets: an interrupted run resumes after the last finished one.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+from prefect import flow  # noqa: E402
+
+from flows.common import parse_stage_args, run_stage  # noqa: E402
+from tasks.tracking import StageTracker  # noqa: E402
+from weatheralign import atomic  # noqa: E402
+from weatheralign.conditions import CONDITIONS, condition_named, variant_name  # noqa: E402
+from weatheralign.config import Params  # noqa: E402
+from weatheralign.data.errors import DataFormatError  # noqa: E402
+from weatheralign.data.nuscenes import open_nuscenes  # noqa: E402
+from weatheralign.detect import protocol  # noqa: E402
+from weatheralign.detect.data import (Augmentation, DetectionDataset, build_cache, load_cached_sample,  # noqa: E402
+                                      scene_split)
+from weatheralign.detect.evaluate import (ego_positions, ground_truth, paired_difference,  # noqa: E402
+                                          resistance_ability)
+from weatheralign.detect.figures import detections_bev_figure, learning_curve_figure  # noqa: E402
+from weatheralign.detect.model import BEVFusionDetector, count_parameters  # noqa: E402
+from weatheralign.manifest import manifest_path, read_manifest  # noqa: E402
+from weatheralign.provenance import stage_fingerprint  # noqa: E402
+
+CLEAN = "clean"
+SUMMARY_KEYS = ("map", "nds", "map_present", "map_ci", "nds_ci", "map_present_ci", "mate", "mase", "maoe", "mave",
+                "maae", "per_class_ap", "classes_present")
+
+
+def weather_roots(params: Params, version: str) -> dict[str, Path]:
+    """Every weather copy of the simulate matrix, by variant name; a missing one is an error naming its stage."""
+    roots = {}
+    for condition in CONDITIONS:
+        for aligned in (True, False):
+            name = variant_name(condition, aligned)
+            root = params.paths.data / "simulate" / name
+            if not (root / version / "sample.json").is_file():
+                raise DataFormatError(f"{root}: no weather copy (run the stage simulate@{name} first: "
+                                      f"dvc repro simulate@{name})")
+            roots[name] = root
+    return roots
+
+
+class DetectRun:
+    """What one run of the stage shares: params, device, caches, evaluation sets, resume folders, tracker."""
+
+    def __init__(self, params: Params, tracker: StageTracker) -> None:
+        cfg = params.detect
+        self.params, self.cfg, self.tracker = params, cfg, tracker
+        for name in cfg.finetune_conditions:
+            condition_named(name)
+        self.device = protocol.resolve_device(cfg.device)
+        torch.set_num_threads(params.run.torch_threads)
+        world = read_manifest(manifest_path(params.paths.data, "world"))
+        self.version = world.version
+        self.clean_root = Path(world.dataroot)
+        self.roots = {CLEAN: self.clean_root, **weather_roots(params, self.version)}
+        self.nusc = open_nuscenes(self.clean_root, self.version)
+        self.tokens = {split: scene_split(self.nusc, self.clean_root, self.version, split) for split in ("train", "val")}
+        self.out = params.paths.data / "detect"
+        self.fingerprint = stage_fingerprint("detect", params, world.content_digest)
+        self.model_config = protocol.detector_config(cfg)
+        self.caches: dict[tuple[str, str], Path] = {}
+        self.evalsets: dict[str, protocol.EvalSet] = {}
+        self.gt = ground_truth(self.nusc, self.tokens["val"])
+        self.ego = ego_positions(self.nusc, self.tokens["val"])
+        self.curves: dict[str, list[dict[str, float]]] = {}
+        self.train_seconds: dict[str, float] = {}
+        self.losses: dict[str, list[float]] = {}
+        self.detections: dict[str, list] = {}
+
+    # -------------------------------------------------------------------------------------------- data
+
+    def cache(self, dataroot: str, split: str) -> Path:
+        """The cache folder of ``split`` of dataroot ``dataroot`` (`CLEAN` or a weather variant), built if needed."""
+        key = (dataroot, split)
+        if key not in self.caches:
+            self.caches[key] = build_cache(self.roots[dataroot], self.version, self.tokens[split],
+                                           self.out / "cache", self.cfg.image_size, self.params.simulate.sweeps,
+                                           self.params.run.show_progress, self.params.run.max_workers)
+        return self.caches[key]
+
+    def training_set(self, dataroot: str) -> DetectionDataset:
+        return DetectionDataset(self.cache(dataroot, "train"), Augmentation(), seed=self.cfg.seed,
+                                point_range=protocol.point_range(self.cfg))
+
+    def evalset(self, dataroot: str) -> protocol.EvalSet:
+        if dataroot not in self.evalsets:
+            folder = self.cache(dataroot, "val")
+            ds = DetectionDataset(folder, None, point_range=protocol.point_range(self.cfg), min_lidar_pts=0)
+            T = {t: load_cached_sample(folder, t)["T_global_lidar"] for t in ds.tokens}
+            self.evalsets[dataroot] = protocol.EvalSet(dataroot, ds, self.gt, T, self.ego)
+        return self.evalsets[dataroot]
+
+    # -------------------------------------------------------------------------------------------- models
+
+    def model(self, name: str, train_on: str | tuple[str, str], init: str | None, steps: int, lr: float,
+              tags: dict[str, str], learning_curve: bool = False) -> BEVFusionDetector:
+        """The trained model ``name`` (resumed from its checkpoint when its fingerprint matches): ``train_on`` one
+        dataroot's train split, or ``(weather, CLEAN)`` mixed at ``detect.mix_weather_fraction``; starting from
+        model ``init`` (None: from scratch)."""
+        path = self.out / "models" / f"{name}.pt"
+        fingerprint = f"{self.fingerprint}:{name}:{train_on}:{init}:{steps}:{lr}"
+        if path.is_file():
+            model, meta = protocol.load_checkpoint(path, self.model_config)
+            if meta.get("fingerprint") == fingerprint:
+                self.curves[name], self.losses[name] = meta.get("curve", []), meta.get("losses", [])
+                self.train_seconds[name] = meta.get("seconds", 0.0)
+                return model.to(self.device)
+        model = (protocol.load_checkpoint(self.out / "models" / f"{init}.pt", self.model_config)[0] if init
+                 else BEVFusionDetector(self.model_config))
+        if isinstance(train_on, tuple):
+            dataset, sampler = protocol.mixed_training_set(self.training_set(train_on[0]),
+                                                           self.training_set(train_on[1]),
+                                                           self.cfg.mix_weather_fraction, self.cfg.seed)
+        else:
+            dataset, sampler = self.training_set(train_on), None
+        curve: list[dict[str, float]] = []
+        t0 = time.time()
+        with self.tracker.child(f"train {name}", {**tags, "model": name, "kind": "train"}) as run:
+            run.log_params({"train_on": str(train_on), "init": str(init), "steps": steps, "lr": lr,
+                            "parameters": count_parameters(model)})
+
+            def on_step(step: int, record: dict[str, float]) -> None:
+                if step % 10 == 0 or step == steps:
+                    run.log_metrics({f"loss.{k}": v for k, v in record.items()}, step)
+                if curve_every and (step % curve_every == 0 or step == steps):
+                    m = self.score(model, CLEAN, num_bootstrap=0)
+                    point = {"step": step, "map": m["map"], "nds": m["nds"], "map_present": m["map_present"],
+                             "seconds": round(time.time() - t0, 1)}
+                    curve.append(point)
+                    run.log_metrics({"val.map": m["map"], "val.nds": m["nds"]}, step)
+
+            curve_every = (self.cfg.eval_every or steps) if learning_curve else 0
+            history = protocol.train(model, dataset, steps, lr, self.cfg.weight_decay, self.cfg.batch_size,
+                                     self.cfg.seed, self.device, sampler, f"detect: train {name}",
+                                     self.params.run.show_progress, on_step)
+            seconds = time.time() - t0
+            losses = [round(h["total"], 5) for h in history]
+            protocol.save_checkpoint(path, model, {"fingerprint": fingerprint, "curve": curve, "losses": losses,
+                                                   "seconds": seconds, "steps": steps})
+            run.log_metrics({"train_seconds": seconds, "seconds_per_step": seconds / max(steps, 1)})
+            run.log_artifact(path, "checkpoint")
+        self.curves[name], self.losses[name], self.train_seconds[name] = curve, losses, seconds
+        return model
+
+    # -------------------------------------------------------------------------------------------- evaluation
+
+    def score(self, model: BEVFusionDetector, dataroot: str, num_bootstrap: int | None = None,
+              modality: str = "fused") -> dict[str, Any]:
+        evalset = self.evalset(dataroot)
+        detections = protocol.predict(model, evalset.dataset, self.cfg.batch_size, self.device,
+                                      self.cfg.score_threshold, self.cfg.max_detections, modality)
+        n = self.cfg.num_bootstrap if num_bootstrap is None else num_bootstrap
+        result = protocol.evaluate(detections, evalset, n, self.cfg.seed, self.cfg.confidence)
+        result["_detections"] = detections
+        return result
+
+    def evaluation(self, model_name: str, model: BEVFusionDetector, dataroot: str, modality: str = "fused"
+                   ) -> dict[str, Any]:
+        """Metrics of ``model`` on ``dataroot``'s val split (resumed from its record when finished), with its
+        detections kept for paired differences."""
+        key = f"{model_name}/{dataroot}" + ("" if modality == "fused" else f"-{modality}")
+        record_path = self.out / "evals" / f"{key}.json"
+        det_path = self.out / "evals" / f"{key}.npz"
+        fingerprint = f"{self.fingerprint}:{model_name}:{modality}"
+        if record_path.is_file() and det_path.is_file():
+            record = json.loads(record_path.read_text())
+            if record.get("fingerprint") == fingerprint:
+                with np.load(det_path) as z:
+                    self.detections[key] = protocol.detections_from_arrays(dict(z))
+                return record["metrics"]
+        result = self.score(model, dataroot, modality=modality)
+        detections = result.pop("_detections")
+        atomic.save_npz_compressed(det_path, protocol.detections_to_arrays(detections))
+        atomic.write_json(record_path, {"fingerprint": fingerprint, "metrics": result})
+        self.detections[key] = detections
+        weather, alignment = split_variant(dataroot)
+        with self.tracker.child(f"eval {key}", {"model": model_name, "weather": weather, "alignment": alignment,
+                                                "modality": modality, "kind": "eval"}) as run:
+            run.log_metrics({k: v for k, v in result.items() if k in ("map", "nds", "map_present", "mate", "mase",
+                                                                       "maoe", "mave", "maae")})
+            run.log_metrics({f"ap.{c}": v for c, v in result["per_class_ap"].items()})
+        return result
+
+    def paired(self, key_a: str, key_b: str, metric: str) -> dict[str, Any]:
+        """``metric(a) - metric(b)`` on the same val samples with a paired frame-bootstrap interval, and whether
+        the interval excludes 0."""
+        ea = self.evalset(key_a.split("/")[1])
+        diff, ci = paired_difference(self.gt, protocol.eval_boxes(self.detections[key_a], ea),
+                                     protocol.eval_boxes(self.detections[key_b], ea), metric,
+                                     self.cfg.num_bootstrap, self.cfg.seed, self.cfg.confidence)
+        return {"a": key_a, "b": key_b, "metric": metric, "difference": diff, "ci": ci,
+                "exceeds_noise": bool(ci[0] > 0 or ci[1] < 0)}
+
+
+def split_variant(dataroot: str) -> tuple[str, str]:
+    """``snow-aligned`` -> (``snow``, ``aligned``); `CLEAN` -> (``clean``, ``none``)."""
+    if dataroot == CLEAN:
+        return CLEAN, "none"
+    condition, _, alignment = dataroot.rpartition("-")
+    return condition, alignment
+
+
+def _fmt(m: dict[str, Any], key: str) -> str:
+    ci = m.get(f"{key}_ci")
+    return f"{m[key]:.3f}" + (f" [{ci[0]:.3f}, {ci[1]:.3f}]" if ci else "")
+
+
+def table_alignment(metrics: dict[str, Any], conditions: list[str]) -> str:
+    """Table 2: the pretrained model on every weather, aligned vs unaligned (ours with intervals; the paper's
+    BEVFusion figures beside, labelled)."""
+    pre = metrics["models"]["pretrained"]
+    lines = ["# Pretrained detector on aligned vs unaligned weather (the paper's Table 2)", "",
+             f"Clean val: mAP {_fmt(pre[CLEAN], 'map')}, NDS {_fmt(pre[CLEAN], 'nds')}; intervals: "
+             f"{metrics['confidence']:.0%} frame bootstrap. The paper's figures are BEVFusion on real nuScenes-mini "
+             "with the paper's simulations, for comparison only.", "",
+             "| weather | unaligned mAP | unaligned NDS | aligned mAP | aligned NDS | unaligned - aligned mAP "
+             "| RA aligned | paper unaligned (mAP, NDS) | paper aligned (mAP, NDS) |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for c in conditions:
+        u, a = pre[f"{c}-unaligned"], pre[f"{c}-aligned"]
+        d = metrics["differences"].get(f"pretrained:{c}:unaligned-aligned:map")
+        dtxt = f"{d['difference']:+.3f} [{d['ci'][0]:+.3f}, {d['ci'][1]:+.3f}]" if d else "—"
+        paper = protocol.PAPER_TABLE2.get(c)
+        ptxt = (f"{paper['unaligned'][0]:.4f}, {paper['unaligned'][1]:.4f}",
+                f"{paper['aligned'][0]:.4f}, {paper['aligned'][1]:.4f}") if paper else ("—", "—")
+        lines.append(f"| {c} | {_fmt(u, 'map')} | {_fmt(u, 'nds')} | {_fmt(a, 'map')} | {_fmt(a, 'nds')} | {dtxt} "
+                     f"| {'—' if a['ra'] is None else format(a['ra'], '.3f')} | {ptxt[0]} | {ptxt[1]} |")
+    return "\n".join(lines) + "\n"
+
+
+def table_finetune(metrics: dict[str, Any], conditions: list[str]) -> str:
+    """Table 3: pretrained / finetuned / finetuned-mix / finetuned-unaligned on clean and on the weather."""
+    lines = ["# Finetuning on simulated weather (the paper's Table 3)", "",
+             f"mAP and NDS with {metrics['confidence']:.0%} frame-bootstrap intervals. `paper` columns: BEVFusion on "
+             "real nuScenes-mini (the paper's figures; its fog column beside our fog conditions).", ""]
+    for c in conditions:
+        paper = protocol.PAPER_TABLE3.get(protocol.PAPER_WEATHER_OF.get(c, ""), {})
+        lines += [f"## {c}", "",
+                  f"| model | clean mAP | clean NDS | {c} aligned mAP | {c} aligned NDS | {c} unaligned mAP "
+                  "| paper clean (mAP, NDS) | paper weather (mAP, NDS) |",
+                  "| --- | --- | --- | --- | --- | --- | --- | --- |"]
+        for model, paper_key in (("pretrained", "pretrained"), (f"finetuned-{c}", "finetuned"),
+                                 (f"finetuned-{c}-mix", "finetuned-mix"), (f"finetuned-{c}-unaligned", None)):
+            m = metrics["models"][model]
+            p = paper.get(paper_key) if paper_key else None
+            ptxt = (f"{p[0][0]:.4f}, {p[0][1]:.4f}", f"{p[1][0]:.4f}, {p[1][1]:.4f}") if p else ("—", "—")
+            lines.append(f"| {model} | {_fmt(m[CLEAN], 'map')} | {_fmt(m[CLEAN], 'nds')} "
+                         f"| {_fmt(m[f'{c}-aligned'], 'map')} | {_fmt(m[f'{c}-aligned'], 'nds')} "
+                         f"| {_fmt(m[f'{c}-unaligned'], 'map')} | {ptxt[0]} | {ptxt[1]} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+@flow(name="detect", log_prints=True)
+def detect_flow(params: Params) -> dict:
+    """Train and evaluate every model of the protocol; returns the metrics written to reports/detect/."""
+    cfg = params.detect
+    t_stage = time.time()
+    with StageTracker(params, "detect") as tracker:
+        tracker.log_params({"detect": cfg.model_dump(mode="json"), "simulate.sweeps": params.simulate.sweeps})
+        run = DetectRun(params, tracker)
+        conditions = list(cfg.finetune_conditions)
+        variants = [v for v in run.roots if v != CLEAN]
+        models: dict[str, dict[str, Any]] = {}
+
+        pretrained = run.model("pretrained", CLEAN, None, cfg.pretrain_steps, cfg.lr,
+                               {"weather": CLEAN, "alignment": "none"}, learning_curve=True)
+        models["pretrained"] = {d: run.evaluation("pretrained", pretrained, d) for d in [CLEAN, *variants]}
+        ablation = {m: run.evaluation("pretrained", pretrained, CLEAN, m) for m in ("lidar", "camera")}
+        ablation["fused"] = models["pretrained"][CLEAN]
+        for c in conditions:
+            sets = [CLEAN, f"{c}-aligned", f"{c}-unaligned"]
+            for suffix, train_on, alignment in (("", f"{c}-aligned", "aligned"),
+                                                ("-unaligned", f"{c}-unaligned", "unaligned"),
+                                                ("-mix", (f"{c}-aligned", CLEAN), "aligned")):
+                name = f"finetuned-{c}{suffix}"
+                model = run.model(name, train_on, "pretrained", cfg.finetune_steps, cfg.finetune_lr,
+                                  {"weather": c, "alignment": alignment})
+                models[name] = {d: run.evaluation(name, model, d) for d in sets}
+
+        for name, evals in models.items():
+            for d, m in evals.items():
+                m["ra"] = resistance_ability(m["nds"], evals[CLEAN]["nds"]) if evals[CLEAN]["nds"] > 0 else None
+        differences: dict[str, Any] = {}
+        for c in [v.rsplit("-", 1)[0] for v in variants if v.endswith("-aligned")]:
+            for metric in ("map", "nds"):
+                differences[f"pretrained:{c}:unaligned-aligned:{metric}"] = run.paired(
+                    f"pretrained/{c}-unaligned", f"pretrained/{c}-aligned", metric)
+        for c in conditions:
+            for metric in ("map", "nds"):
+                differences[f"finetuned-{c}-vs-pretrained:{c}-aligned:{metric}"] = run.paired(
+                    f"finetuned-{c}/{c}-aligned", f"pretrained/{c}-aligned", metric)
+                differences[f"finetuned-{c}-mix-vs-pretrained:clean:{metric}"] = run.paired(
+                    f"finetuned-{c}-mix/{CLEAN}", f"pretrained/{CLEAN}", metric)
+                differences[f"finetuned-{c}-aligned-vs-unaligned:{c}-aligned:{metric}"] = run.paired(
+                    f"finetuned-{c}/{c}-aligned", f"finetuned-{c}-unaligned/{c}-aligned", metric)
+
+        metrics = {
+            "models": {n: {d: {k: m.get(k) for k in (*SUMMARY_KEYS, "ra")} for d, m in e.items()}
+                       for n, e in models.items()},
+            "modality_ablation": {m: {"map": v["map"], "nds": v["nds"], "map_ci": v.get("map_ci"),
+                                      "nds_ci": v.get("nds_ci")} for m, v in ablation.items()},
+            "differences": differences, "confidence": cfg.confidence, "num_bootstrap": cfg.num_bootstrap,
+            "learning_curve": run.curves.get("pretrained", []),
+            "train_seconds": {k: round(v, 1) for k, v in run.train_seconds.items()},
+            "parameters": count_parameters(pretrained), "device": str(run.device),
+            "val_samples": len(run.tokens["val"]), "train_samples": len(run.tokens["train"]),
+            "sweeps": params.simulate.sweeps, "seconds": round(time.time() - t_stage, 1)}
+        reports = tracker.reports
+        atomic.write_text(reports / "table_alignment.md", table_alignment(metrics, [
+            v.rsplit("-", 1)[0] for v in variants if v.endswith("-aligned")]))
+        atomic.write_text(reports / "table_finetune.md", table_finetune(metrics, conditions))
+        fig = learning_curve_figure(run.curves.get("pretrained", []), run.losses.get("pretrained", []))
+        fig.savefig(reports / "learning_curve.png", dpi=110)
+        plt.close(fig)
+        first = conditions[0] if conditions else variants[0].rsplit("-", 1)[0]
+        fig = detections_bev_figure([run.evalset(CLEAN), run.evalset(f"{first}-aligned")],
+                                    [run.detections[f"pretrained/{CLEAN}"],
+                                     run.detections[f"pretrained/{first}-aligned"]], cfg.bev_range_m)
+        fig.savefig(reports / "predictions_bev.png", dpi=110)
+        plt.close(fig)
+        for name in ("table_alignment.md", "table_finetune.md", "learning_curve.png", "predictions_bev.png"):
+            tracker.log_artifact(reports / name, "detect")
+        tracker.finish(metrics)
+    return metrics
+
+
+def main(argv: list[str] | None = None) -> dict:
+    return run_stage(detect_flow, parse_stage_args("detect", argv), runner=None)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,504 @@
+"""A small BEVFusion-style (Liu et al. 2023, MIT) LiDAR-camera 3-D detector in plain PyTorch, trainable on CPU.
+
+Structure (every step runs on whatever device the model and batch are on; no custom operators):
+
+1. LiDAR branch (`LidarBranch`): PointPillars-style pillar encoder on the BEV grid (`DetectorConfig.bev_grid`, default
+   [-51.2, 51.2) m, 0.8 m cells -> 128 x 128): per point x, y, z, intensity, time lag, offsets to the pillar's mean
+   and to the pillar's centre -> Linear + BN + ReLU -> max per pillar (``scatter_reduce(amax)``) -> two conv blocks,
+   the first at stride 2 -> (B, bev_channels, 64, 64).
+2. Camera branch (`CameraBranch`, BEVFusion's ``DepthLSSTransform``): a small CNN at stride 8 on all C cameras
+   (ImageNet normalisation inside); a depth hint from the batch's LiDAR points projected into each camera (per
+   feature cell the histogram of point depths over the depth bins + an occupancy channel), encoded by a conv and fed
+   with the image features to the depth net -> per cell a softmax over D depth bins and context features; frustum
+   points (u, v, d) unprojected into the LiDAR frame; depth prob x context sum-pooled into the BEV grid with
+   ``index_add_`` (points outside the grid or the z range dropped); a stride-2 conv block -> (B, bev_channels, 64, 64).
+3. `ConvFuser`: concat(camera BEV, LiDAR BEV) -> 3x3 conv + BN + ReLU. ``modality`` ("fused" | "lidar" | "camera")
+   zeroes the other branch (camera-only also drops the LiDAR depth hint); in training, ``modality_dropout`` zeroes
+   one branch of a sample with that probability.
+4. `BevEncoder`: two scales (stride 2 and 4 of the BEV grid), each brought to the head's stride and concatenated.
+5. `CenterHead` (`weatheralign.detect.head`): CenterPoint heatmap + box regression + attribute logits at stride
+   ``head_stride`` of the BEV grid (default 2: 1.6 m cells, 64 x 64).
+
+Depths of the camera branch are camera z [m] (not ray lengths); depth bin i covers
+``[depth_min + i * step, depth_min + (i + 1) * step)`` and its frustum points lie at the bin's centre. Image pixel
+centres are at integer (u, v) (OpenCV); feature cell (row, col) at stride s covers pixels ``[s col, s col + s)`` and
+its rays go through pixel ``(s col + (s - 1) / 2, s row + (s - 1) / 2)``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from weatheralign.detect.head import (BevGrid, CenterHead, HeadOutputs, LossWeights, center_head_loss, conv_bn_relu,
+                                      decode_detections, encode_targets)
+from weatheralign.detect.types import DetectionBatch, SampleDetections
+
+Modality = Literal["fused", "lidar", "camera"]
+MODALITIES: tuple[str, ...] = ("fused", "lidar", "camera")
+IMAGE_STRIDE = 8
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+PILLAR_POINT_FEATURES = 10  # x, y, z, intensity, time lag, 3 offsets to the pillar mean, 2 offsets to its centre
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    """Sizes of the detector. Lengths in metres; ``head_stride`` (1 or 2) is relative to the BEV grid's cells."""
+
+    bev_range_m: float = 51.2
+    bev_cell_m: float = 0.8
+    z_range_m: tuple[float, float] = (-5.0, 3.0)
+    pillar_channels: int = 32
+    image_channels: int = 64
+    hint_channels: int = 16
+    depth_min_m: float = 1.0
+    depth_max_m: float = 60.0
+    depth_bins: int = 48
+    camera_context_channels: int = 32
+    bev_channels: int = 64
+    head_stride: int = 2
+    head_channels: int = 64
+    #: training only: probability that a sample loses one branch (camera or LiDAR, equally likely)
+    modality_dropout: float = 0.2
+    min_radius: int = 2
+    gaussian_overlap: float = 0.1
+    loss_weights: LossWeights = field(default_factory=LossWeights)
+
+    def __post_init__(self) -> None:
+        if self.head_stride not in (1, 2):
+            raise ValueError(f"head_stride must be 1 or 2, got {self.head_stride}")
+        if not 0.0 <= self.modality_dropout <= 1.0:
+            raise ValueError(f"modality_dropout must be a probability, got {self.modality_dropout}")
+        self.bev_grid  # validates range / cell
+
+    @property
+    def bev_grid(self) -> BevGrid:
+        return BevGrid(self.bev_range_m, self.bev_cell_m)
+
+    @property
+    def head_grid(self) -> BevGrid:
+        return self.bev_grid.coarsened(self.head_stride)
+
+    @property
+    def depth(self) -> "DepthBins":
+        return DepthBins(self.depth_min_m, self.depth_max_m, self.depth_bins)
+
+
+@dataclass(frozen=True)
+class DepthBins:
+    """``count`` uniform camera-depth bins over ``[min_m, max_m)``."""
+
+    min_m: float
+    max_m: float
+    count: int
+
+    @property
+    def step_m(self) -> float:
+        return (self.max_m - self.min_m) / self.count
+
+    def centres(self, device: torch.device | str | None = None) -> Tensor:
+        """(count,) bin centres [m]."""
+        return self.min_m + (torch.arange(self.count, device=device, dtype=torch.float32) + 0.5) * self.step_m
+
+    def index_of(self, depth: Tensor) -> Tensor:
+        """Bin index (int64, same shape) of depths [m]; only meaningful inside ``[min_m, max_m)``."""
+        return torch.floor((depth - self.min_m) / self.step_m).long().clamp(0, self.count - 1)
+
+
+# --- geometry ----------------------------------------------------------------------------------------------------
+
+
+def bev_cell_indices(xyz: Tensor, batch_index: Tensor, grid: BevGrid, z_range_m: tuple[float, float]) -> Tensor:
+    """Flat BEV cell indices ``b * H * W + row * W + col`` (int64, shape of ``batch_index``) of points ``xyz`` (..., 3)
+    [m] in the LiDAR frame; -1 for points outside the grid or outside ``[z_min, z_max)``."""
+    cells = grid.cell_of(xyz[..., :2])
+    inside = grid.contains(cells) & (xyz[..., 2] >= z_range_m[0]) & (xyz[..., 2] < z_range_m[1])
+    size = grid.size
+    flat = batch_index * (size * size) + cells[..., 1] * size + cells[..., 0]
+    return torch.where(inside, flat, torch.full_like(flat, -1))
+
+
+def bev_sum_pool(features: Tensor, flat_cells: Tensor, batch_size: int, grid: BevGrid) -> Tensor:
+    """Sum of (N, F) ``features`` per flat cell index (N,) (-1: dropped) with ``index_add_`` -> (B, F, H, W)."""
+    size = grid.size
+    dump = batch_size * size * size
+    index = torch.where(flat_cells >= 0, flat_cells, torch.full_like(flat_cells, dump))
+    pooled = features.new_zeros(dump + 1, features.shape[1]).index_add_(0, index, features)
+    return pooled[:dump].view(batch_size, size, size, -1).permute(0, 3, 1, 2).contiguous()
+
+
+def bev_max_pool(features: Tensor, flat_cells: Tensor, batch_size: int, grid: BevGrid) -> Tensor:
+    """Max of non-negative (N, F) ``features`` per flat cell index (N,) (-1: dropped) with ``scatter_reduce(amax)``
+    -> (B, F, H, W); empty cells are 0."""
+    size = grid.size
+    dump = batch_size * size * size
+    index = torch.where(flat_cells >= 0, flat_cells, torch.full_like(flat_cells, dump))
+    pooled = features.new_zeros(dump + 1, features.shape[1])
+    pooled = pooled.scatter_reduce(0, index[:, None].expand_as(features), features, reduce="amax", include_self=True)
+    return pooled[:dump].view(batch_size, size, size, -1).permute(0, 3, 1, 2).contiguous()
+
+
+def lidar_to_camera(cam_to_lidar: Tensor) -> Tensor:
+    """(..., 4, 4) rigid camera -> LiDAR transforms -> (..., 3, 4) ``[R^T | -R^T t]`` (LiDAR -> camera)."""
+    rotation_t = cam_to_lidar[..., :3, :3].transpose(-1, -2)
+    return torch.cat([rotation_t, -rotation_t @ cam_to_lidar[..., :3, 3:4]], dim=-1)
+
+
+def project_points(xyz: Tensor, batch_index: Tensor, intrinsics: Tensor, cam_to_lidar: Tensor) -> Tensor:
+    """Points (P, 3) [m] in their sample's LiDAR frame into every camera of that sample: (P, C, 3) (u, v [px],
+    camera depth z [m]); u, v are meaningless where z <= 0."""
+    batch_size, cameras = intrinsics.shape[:2]
+    projection = intrinsics.float() @ lidar_to_camera(cam_to_lidar.float())  # (B, C, 3, 4)
+    homogeneous = torch.cat([xyz, torch.ones_like(xyz[:, :1])], dim=1)
+    projected = (homogeneous @ projection.reshape(-1, 4).T).view(-1, batch_size, cameras, 3)
+    projected = projected[torch.arange(len(xyz), device=xyz.device), batch_index]  # (P, C, 3)
+    depth = projected[..., 2]
+    uv = projected[..., :2] / depth.clamp_min(1e-6)[..., None]
+    return torch.cat([uv, depth[..., None]], dim=-1)
+
+
+def project_depth_hint(points: Tensor, intrinsics: Tensor, cam_to_lidar: Tensor, image_hw: tuple[int, int],
+                       feature_hw: tuple[int, int], depth: DepthBins) -> Tensor:
+    """The projected-LiDAR depth hint at the image-feature resolution: (B, C, D + 1, h, w) with channel i < D the
+    fraction of the points falling into feature cell (row, col) whose camera depth lies in bin i, channel D 1 where
+    the cell has any point. ``points`` (P, 6) as in `DetectionBatch`; the image is ``image_hw`` pixels, the feature map
+    ``feature_hw`` cells of `IMAGE_STRIDE` pixels."""
+    batch_size, cameras = intrinsics.shape[:2]
+    (height, width), (h, w), bins = image_hw, feature_hw, depth.count
+    with torch.no_grad():
+        batch_index = points[:, 0].long()
+        projected = project_points(points[:, 1:4].float(), batch_index, intrinsics, cam_to_lidar)
+        u, v, z = projected.unbind(-1)
+        valid = ((z >= depth.min_m) & (z < depth.max_m) & (u >= -0.5) & (u < width - 0.5) & (v >= -0.5)
+                 & (v < height - 0.5))
+        col = torch.floor((u.clamp(-1.0, width) + 0.5) / IMAGE_STRIDE).long().clamp(0, w - 1)
+        row = torch.floor((v.clamp(-1.0, height) + 0.5) / IMAGE_STRIDE).long().clamp(0, h - 1)
+        camera = batch_index[:, None] * cameras + torch.arange(cameras, device=points.device)[None, :]
+        flat = ((camera * bins + depth.index_of(z)) * h + row) * w + col
+        dump = batch_size * cameras * bins * h * w
+        flat = torch.where(valid, flat, torch.full_like(flat, dump)).reshape(-1)
+        ones = torch.ones_like(flat, dtype=torch.float32)
+        counts = torch.zeros(dump + 1, device=points.device).index_add_(0, flat, ones)
+        counts = counts[:dump].view(batch_size, cameras, bins, h, w)
+        total = counts.sum(dim=2, keepdim=True)
+        return torch.cat([counts / total.clamp_min(1.0), (total > 0).float()], dim=2)
+
+
+def frustum_points(intrinsics: Tensor, cam_to_lidar: Tensor, feature_hw: tuple[int, int], depth_centres: Tensor
+                   ) -> Tensor:
+    """LSS frustum in the LiDAR frame: (B, C, D, h, w, 3) [m], the point at camera depth ``depth_centres[d]`` on the
+    ray through the centre pixel of feature cell (row, col)."""
+    h, w = feature_hw
+    device = intrinsics.device
+    half = (IMAGE_STRIDE - 1) / 2
+    v = torch.arange(h, device=device, dtype=torch.float32) * IMAGE_STRIDE + half
+    u = torch.arange(w, device=device, dtype=torch.float32) * IMAGE_STRIDE + half
+    pixels = torch.stack([u[None, :].expand(h, w), v[:, None].expand(h, w), torch.ones(h, w, device=device)], dim=-1)
+    rays = torch.einsum("bcij,hwj->bchwi", torch.linalg.inv(intrinsics.float()), pixels)  # camera, z = 1
+    directions = torch.einsum("bcij,bchwj->bchwi", cam_to_lidar[..., :3, :3].float(), rays)
+    origins = cam_to_lidar[..., :3, 3].float()[:, :, None, None, None, :]
+    return depth_centres.view(1, 1, -1, 1, 1, 1) * directions[:, :, None] + origins
+
+
+def lift_splat(depth_prob: Tensor, context: Tensor, geometry: Tensor, grid: BevGrid, z_range_m: tuple[float, float]
+               ) -> Tensor:
+    """LSS lift and splat: depth_prob (B, C, D, h, w) x context (B, C, F, h, w) at the frustum points geometry
+    (B, C, D, h, w, 3) [m], sum-pooled into the BEV grid (points outside dropped) -> (B, F, H, W)."""
+    batch_size, cameras, bins, h, w = depth_prob.shape
+    channels = context.shape[2]
+    context_last = context.permute(0, 1, 3, 4, 2).contiguous()  # so that the product below is contiguous
+    features = depth_prob[:, :, :, :, :, None] * context_last[:, :, None]  # (B, C, D, h, w, F)
+    batch_index = torch.arange(batch_size, device=geometry.device).view(-1, 1, 1, 1, 1).expand(geometry.shape[:-1])
+    with torch.no_grad():
+        cells = bev_cell_indices(geometry, batch_index, grid, z_range_m)
+    return bev_sum_pool(features.reshape(-1, channels), cells.reshape(-1), batch_size, grid)
+
+
+# --- branches ----------------------------------------------------------------------------------------------------
+
+
+class PillarEncoder(nn.Module):
+    """Points (P, 6) -> pillar features (B, channels, H, W) on ``grid``: per point the 10 `PILLAR_POINT_FEATURES`
+    (positions scaled by the grid's range, offsets by the cell size), Linear + BatchNorm + ReLU, max per pillar.
+    Points outside the grid or ``z_range_m`` are dropped."""
+
+    def __init__(self, grid: BevGrid, z_range_m: tuple[float, float], channels: int = 32) -> None:
+        super().__init__()
+        self.grid, self.z_range_m = grid, z_range_m
+        self.linear = nn.Linear(PILLAR_POINT_FEATURES, channels, bias=False)
+        self.norm = nn.BatchNorm1d(channels)
+
+    def point_features(self, points: Tensor, flat_cells: Tensor, batch_size: int) -> Tensor:
+        """(P, 10) features of in-grid points (P, 6) in their (P,) cells."""
+        grid = self.grid
+        xyz = points[:, 1:4]
+        num_cells = batch_size * grid.size * grid.size
+        counts = xyz.new_zeros(num_cells).index_add_(0, flat_cells, torch.ones_like(xyz[:, 0]))
+        sums = xyz.new_zeros(num_cells, 3).index_add_(0, flat_cells, xyz)
+        mean = sums[flat_cells] / counts[flat_cells, None]
+        cell = flat_cells % (grid.size * grid.size)
+        centre = (torch.stack([cell % grid.size, cell // grid.size], dim=1).to(xyz.dtype) + 0.5) * grid.cell_m
+        z_scale = max(abs(self.z_range_m[0]), abs(self.z_range_m[1]))
+        return torch.cat([xyz[:, :2] / grid.range_m, xyz[:, 2:3] / z_scale, points[:, 4:6],
+                          (xyz - mean) / grid.cell_m, (xyz[:, :2] - (centre - grid.range_m)) / grid.cell_m], dim=1)
+
+    def forward(self, points: Tensor, batch_size: int) -> Tensor:
+        points = points.float()
+        flat = bev_cell_indices(points[:, 1:4], points[:, 0].long(), self.grid, self.z_range_m)
+        keep = flat >= 0
+        points, flat = points[keep], flat[keep]
+        if len(points) < 2:  # BatchNorm needs two values in training; a (nearly) empty cloud gives an empty BEV
+            size = self.grid.size
+            return points.new_zeros(batch_size, self.linear.out_features, size, size)
+        features = F.relu(self.norm(self.linear(self.point_features(points, flat, batch_size))))
+        return bev_max_pool(features, flat, batch_size, self.grid)
+
+
+class LidarBranch(nn.Module):
+    """Pillars -> conv block at stride 2 -> conv block: (P, 6) points -> (B, out_channels, ceil(H/2), ceil(W/2))."""
+
+    def __init__(self, config: DetectorConfig) -> None:
+        super().__init__()
+        self.pillars = PillarEncoder(config.bev_grid, config.z_range_m, config.pillar_channels)
+        self.convs = nn.Sequential(conv_bn_relu(config.pillar_channels, config.bev_channels, stride=2),
+                                   conv_bn_relu(config.bev_channels, config.bev_channels))
+
+    def forward(self, points: Tensor, batch_size: int) -> Tensor:
+        return self.convs(self.pillars(points, batch_size))
+
+
+class ImageBackbone(nn.Module):
+    """(N, 3, H, W) RGB in [0, 1] -> (N, channels, ceil(H/8), ceil(W/8)): ImageNet normalisation, five conv-BN-ReLU
+    blocks (three at stride 2)."""
+
+    def __init__(self, channels: int = 64) -> None:
+        super().__init__()
+        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
+        self.layers = nn.Sequential(conv_bn_relu(3, 16, stride=2), conv_bn_relu(16, 32, stride=2),
+                                    conv_bn_relu(32, 32), conv_bn_relu(32, channels, stride=2),
+                                    conv_bn_relu(channels, channels))
+
+    def forward(self, images: Tensor) -> Tensor:
+        return self.layers((images - self.mean) / self.std)
+
+
+class CameraBranch(nn.Module):
+    """BEVFusion's ``DepthLSSTransform``, small: images (B, C, 3, H, W) + LiDAR depth hint -> camera BEV
+    (B, bev_channels, ceil(H_bev/2), ceil(W_bev/2))."""
+
+    def __init__(self, config: DetectorConfig) -> None:
+        super().__init__()
+        self.grid, self.z_range_m, self.depth = config.bev_grid, config.z_range_m, config.depth
+        self.context_channels = config.camera_context_channels
+        self.backbone = ImageBackbone(config.image_channels)
+        self.hint_encoder = conv_bn_relu(config.depth_bins + 1, config.hint_channels)
+        self.depth_net = nn.Sequential(conv_bn_relu(config.image_channels + config.hint_channels,
+                                                    config.image_channels),
+                                       nn.Conv2d(config.image_channels, config.depth_bins + self.context_channels, 1))
+        self.downsample = conv_bn_relu(self.context_channels, config.bev_channels, stride=2)
+
+    def depth_and_context(self, images: Tensor, hint: Tensor) -> tuple[Tensor, Tensor]:
+        """images (B, C, 3, H, W), hint (B, C, D + 1, h, w) -> depth probabilities (B, C, D, h, w) and context
+        (B, C, F, h, w)."""
+        batch_size, cameras = images.shape[:2]
+        features = self.backbone(images.flatten(0, 1))
+        hint_features = self.hint_encoder(hint.flatten(0, 1))
+        out = self.depth_net(torch.cat([features, hint_features], dim=1))
+        bins = self.depth.count
+        depth_prob = out[:, :bins].softmax(dim=1)
+        context = out[:, bins:]
+        return (depth_prob.view(batch_size, cameras, bins, *out.shape[2:]),
+                context.reshape(batch_size, cameras, self.context_channels, *out.shape[2:]))
+
+    def forward(self, images: Tensor, intrinsics: Tensor, cam_to_lidar: Tensor, hint_points: Tensor) -> Tensor:
+        """``hint_points`` (P, 6): the points allowed into the depth hint (none for camera-only samples)."""
+        image_hw = (images.shape[-2], images.shape[-1])
+        feature_hw = (-(-image_hw[0] // IMAGE_STRIDE), -(-image_hw[1] // IMAGE_STRIDE))
+        hint = project_depth_hint(hint_points, intrinsics, cam_to_lidar, image_hw, feature_hw, self.depth)
+        depth_prob, context = self.depth_and_context(images, hint)
+        with torch.no_grad():
+            geometry = frustum_points(intrinsics, cam_to_lidar, feature_hw, self.depth.centres(images.device))
+        bev = lift_splat(depth_prob, context, geometry, self.grid, self.z_range_m)
+        return self.downsample(bev)
+
+
+class ConvFuser(nn.Module):
+    """BEVFusion's ConvFuser: concat(camera BEV, LiDAR BEV) on channels -> 3x3 conv + BN + ReLU."""
+
+    def __init__(self, camera_channels: int, lidar_channels: int, out_channels: int) -> None:
+        super().__init__()
+        self.fuse = conv_bn_relu(camera_channels + lidar_channels, out_channels)
+
+    def forward(self, camera_bev: Tensor, lidar_bev: Tensor) -> Tensor:
+        return self.fuse(torch.cat([camera_bev, lidar_bev], dim=1))
+
+
+class BevEncoder(nn.Module):
+    """Two-scale BEV encoder + FPN (SECOND / SECONDFPN-like): (B, C, h, w) at stride 2 of the BEV grid -> a block at
+    stride 2 (C channels) and a block at stride 4 (2 C), each brought to ``head_stride`` with C / 2 channels
+    (transposed conv, or 1x1 conv at scale 1), concatenated -> (B, C, H / head_stride, W / head_stride)."""
+
+    def __init__(self, channels: int, head_stride: int) -> None:
+        super().__init__()
+        self.block1 = conv_bn_relu(channels, channels)
+        self.block2 = nn.Sequential(conv_bn_relu(channels, 2 * channels, stride=2),
+                                    conv_bn_relu(2 * channels, 2 * channels))
+        self.up1 = self._upsample(channels, channels // 2, 2 // head_stride)
+        self.up2 = self._upsample(2 * channels, channels - channels // 2, 4 // head_stride)
+
+    @staticmethod
+    def _upsample(in_channels: int, out_channels: int, scale: int) -> nn.Sequential:
+        conv = (nn.ConvTranspose2d(in_channels, out_channels, scale, stride=scale, bias=False) if scale > 1
+                else nn.Conv2d(in_channels, out_channels, 1, bias=False))
+        return nn.Sequential(conv, nn.BatchNorm2d(out_channels), nn.ReLU(inplace=True))
+
+    def forward(self, bev: Tensor) -> Tensor:
+        x1 = self.block1(bev)
+        x2 = self.block2(x1)
+        up1, up2 = self.up1(x1), self.up2(x2)
+        h, w = up1.shape[-2:]
+        return torch.cat([up1, up2[..., :h, :w]], dim=1)
+
+
+# --- the detector ------------------------------------------------------------------------------------------------
+
+
+def modality_masks(modality: Modality, batch_size: int, dropout: float, training: bool,
+                   device: torch.device | str) -> tuple[Tensor, Tensor]:
+    """(B,) bool masks (use LiDAR, use camera) for ``modality``; when ``training`` and fused, each sample loses one
+    branch (camera or LiDAR, equally likely) with probability ``dropout`` (torch's RNG on ``device``)."""
+    if modality not in MODALITIES:
+        raise ValueError(f"modality must be one of {MODALITIES}, got {modality!r}")
+    use_lidar = torch.full((batch_size,), modality != "camera", dtype=torch.bool, device=device)
+    use_camera = torch.full((batch_size,), modality != "lidar", dtype=torch.bool, device=device)
+    if training and modality == "fused" and dropout > 0:
+        drop = torch.rand(batch_size, device=device) < dropout
+        drop_camera = torch.rand(batch_size, device=device) < 0.5
+        use_camera &= ~(drop & drop_camera)
+        use_lidar &= ~(drop & ~drop_camera)
+    return use_lidar, use_camera
+
+
+class BEVFusionDetector(nn.Module):
+    """The detector: `DetectionBatch` -> `HeadOutputs` (forward), named losses (`loss`), `SampleDetections`
+    (`detect`). See the module docstring."""
+
+    def __init__(self, config: DetectorConfig | None = None) -> None:
+        super().__init__()
+        self.config = config = config or DetectorConfig()
+        self.lidar = LidarBranch(config)
+        self.camera = CameraBranch(config)
+        self.fuser = ConvFuser(config.bev_channels, config.bev_channels, config.bev_channels)
+        self.encoder = BevEncoder(config.bev_channels, config.head_stride)
+        self.head = CenterHead(config.bev_channels, config.head_channels)
+
+    @property
+    def head_grid(self) -> BevGrid:
+        return self.config.head_grid
+
+    def fused_bev(self, batch: DetectionBatch, modality: Modality = "fused") -> Tensor:
+        """The fused BEV features (B, bev_channels, ceil(H/2), ceil(W/2)); the branch a sample does not use is zero
+        (and not computed at all for "lidar" / "camera")."""
+        batch_size, device = batch.batch_size, batch.images.device
+        use_lidar, use_camera = modality_masks(modality, batch_size, self.config.modality_dropout, self.training,
+                                               device)
+        half = (self.config.bev_grid.size + 1) // 2
+        zeros = torch.zeros(batch_size, self.config.bev_channels, half, half, device=device)
+        lidar_bev = zeros if modality == "camera" else self.lidar(batch.points, batch_size)
+        if modality == "lidar":
+            camera_bev = zeros
+        else:
+            hint_points = batch.points[use_lidar[batch.points[:, 0].long()]]
+            camera_bev = self.camera(batch.images.float(), batch.intrinsics, batch.cam_to_lidar, hint_points)
+        lidar_bev = lidar_bev * use_lidar.view(-1, 1, 1, 1).to(lidar_bev.dtype)
+        camera_bev = camera_bev * use_camera.view(-1, 1, 1, 1).to(camera_bev.dtype)
+        return self.fuser(camera_bev, lidar_bev)
+
+    def forward(self, batch: DetectionBatch, modality: Modality = "fused") -> HeadOutputs:
+        return self.head(self.encoder(self.fused_bev(batch, modality)))
+
+    def loss(self, batch: DetectionBatch, outputs: HeadOutputs) -> dict[str, Tensor]:
+        """Named losses of ``outputs`` against the batch's boxes (`center_head_loss`), ``total`` included."""
+        targets = encode_targets(batch.boxes, batch.labels, batch.attributes, self.head_grid, self.config.min_radius,
+                                 self.config.gaussian_overlap)
+        return center_head_loss(outputs, targets, self.config.loss_weights)
+
+    @torch.no_grad()
+    def detect(self, batch: DetectionBatch, score_threshold: float = 0.1, max_per_sample: int = 300,
+               modality: Modality = "fused") -> list[SampleDetections]:
+        """Detections per sample (in eval mode; the module's mode is restored afterwards)."""
+        was_training = self.training
+        self.eval()
+        try:
+            outputs = self(batch, modality)
+        finally:
+            self.train(was_training)
+        decoded = decode_detections(outputs, self.head_grid, score_threshold, max_per_sample)
+        return [SampleDetections(token, d.boxes.double().cpu().numpy(), d.scores.double().cpu().numpy(),
+                                 d.labels.cpu().numpy().astype("int64"), d.attributes.cpu().numpy().astype("int64"))
+                for token, d in zip(batch.tokens, decoded)]
+
+
+def count_parameters(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters() if p.requires_grad)
+
+
+# --- training ----------------------------------------------------------------------------------------------------
+
+
+def train_step(model: BEVFusionDetector, batch: DetectionBatch, optimizer: torch.optim.Optimizer,
+               scheduler: torch.optim.lr_scheduler.LRScheduler | None = None, max_grad_norm: float = 35.0,
+               modality: Modality = "fused") -> dict[str, float]:
+    """One optimisation step in train mode: forward, loss, backward, gradient clipping, step (and the scheduler's).
+    Returns the losses and ``grad_norm`` (before clipping) as floats."""
+    model.train()
+    optimizer.zero_grad(set_to_none=True)
+    losses = model.loss(batch, model(batch, modality))
+    losses["total"].backward()
+    grad_norm = torch.nn.utils.clip_grad_norm_(model.parameters(), max_grad_norm)
+    optimizer.step()
+    if scheduler is not None:
+        scheduler.step()
+    return {**{name: float(value.detach()) for name, value in losses.items()}, "grad_norm": float(grad_norm)}
+
+
+def _repeat(batches: Iterable[DetectionBatch]) -> Iterator[DetectionBatch]:
+    """``batches`` over and over (re-iterated each pass); ValueError if a pass yields nothing."""
+    while True:
+        empty = True
+        for batch in batches:
+            empty = False
+            yield batch
+        if empty:
+            raise ValueError("no batches to train on (an exhausted iterator cannot be re-iterated)")
+
+
+def fit(model: BEVFusionDetector, batches: Iterable[DetectionBatch], steps: int, lr: float = 2e-3,
+        weight_decay: float = 0.01, max_grad_norm: float = 35.0, device: torch.device | str | None = None,
+        on_step: Callable[[int, dict[str, float]], None] | None = None) -> list[dict[str, float]]:
+    """Train ``steps`` steps with AdamW and a one-cycle LR (peak ``lr``, 30 % warm-up, cosine down), re-iterating
+    ``batches`` (e.g. a DataLoader) as often as needed; batches are moved to ``device`` (default: the model's).
+    Returns each step's `train_step` record; ``on_step(step, record)`` is called after each step."""
+    device = device or next(model.parameters()).device
+    optimizer = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=weight_decay)
+    scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=lr, total_steps=steps, pct_start=0.3)
+    history: list[dict[str, float]] = []
+    for step, batch in zip(range(steps), _repeat(batches)):
+        record = train_step(model, batch.to(device), optimizer, scheduler, max_grad_norm)
+        history.append(record)
+        if on_step is not None:
+            on_step(step, record)
+    return history
+
+
+__all__ = ["BEVFusionDetector", "BevEncoder", "CameraBranch", "ConvFuser", "DepthBins", "DetectorConfig",
+           "IMAGE_STRIDE", "ImageBackbone", "LidarBranch", "MODALITIES", "Modality", "PillarEncoder",
+           "bev_cell_indices", "bev_max_pool", "bev_sum_pool", "count_parameters", "fit", "frustum_points",
+           "lift_splat", "modality_masks", "project_depth_hint", "project_points", "train_step"]

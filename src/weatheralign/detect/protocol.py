@@ -1,0 +1,206 @@
+"""The paper's detection protocol, library side of the `detect` stage: train the detector on a cached dataroot (or
+a 30/70 weather/clean mix of two), predict a val split, score it with intervals, keep checkpoints.
+
+Nothing here knows about Prefect, DVC or MLflow; the stage (`flows/detect.py`) decides what to train and evaluate,
+resumes finished work and reports. The paper's own figures (BEVFusion on real nuScenes-mini weather) are kept here,
+labelled as the paper's, only to be printed beside ours.
+"""
+
+from __future__ import annotations
+
+import io
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from nuscenes.eval.common.data_classes import EvalBoxes
+from torch.utils.data import DataLoader, Dataset, Sampler
+from tqdm import tqdm
+
+from weatheralign import atomic
+from weatheralign.config import DetectConfig
+from weatheralign.detect.data import DetectionDataset, MixedSampler, collate, mixed_dataset
+from weatheralign.detect.evaluate import bootstrap_intervals, predictions_to_eval_boxes, score
+from weatheralign.detect.model import BEVFusionDetector, DetectorConfig, Modality, train_step
+from weatheralign.detect.types import SampleDetections
+
+#: The paper's Table 2, BEV-F (BEVFusion) rows: (mAP, NDS) of the pretrained model on real nuScenes-mini with the
+#: paper's simulated weather, unaligned vs aligned. The paper's figures, for comparison only.
+PAPER_TABLE2: dict[str, dict[str, tuple[float, float]]] = {
+    "snow": {"unaligned": (0.4034, 0.4828), "aligned": (0.3943, 0.4752)},
+    "rain": {"unaligned": (0.4933, 0.4384), "aligned": (0.4649, 0.5192)},
+}
+#: The paper's Table 3: (mAP, NDS) on clean nuScenes-mini and on its weather copy, per model. The paper's figures.
+PAPER_TABLE3: dict[str, dict[str, tuple[tuple[float, float], tuple[float, float]]]] = {
+    "snow": {"pretrained": ((0.5758, 0.5835), (0.3943, 0.4752)), "finetuned": ((0.5394, 0.5618), (0.5161, 0.5471)),
+             "finetuned-mix": ((0.5606, 0.5756), (0.5103, 0.5472))},
+    "rain": {"pretrained": ((0.5758, 0.5835), (0.4646, 0.5192)), "finetuned": ((0.5468, 0.5685), (0.4909, 0.5287)),
+             "finetuned-mix": ((0.5590, 0.5765), (0.4710, 0.5201))},
+    "fog": {"pretrained": ((0.5758, 0.5835), (0.4314, 0.4991)), "finetuned": ((0.4448, 0.5129), (0.5018, 0.5407)),
+            "finetuned-mix": ((0.5515, 0.5725), (0.4861, 0.5301))},
+}
+#: Our condition beside each of the paper's weather columns (the paper simulates one fog level).
+PAPER_WEATHER_OF: dict[str, str] = {"snow": "snow", "rain": "rain", "fog_dense": "fog", "fog_light": "fog"}
+
+
+def detector_config(cfg: DetectConfig) -> DetectorConfig:
+    """The detector's sizes from the stage's params (grid, modality dropout); the rest are `DetectorConfig`'s."""
+    return DetectorConfig(bev_range_m=cfg.bev_range_m, bev_cell_m=cfg.bev_cell_m,
+                          modality_dropout=cfg.modality_dropout)
+
+
+def point_range(cfg: DetectConfig) -> tuple[float, ...]:
+    """(x_min, y_min, z_min, x_max, y_max, z_max) [m] of the points and box centres the detector sees."""
+    z0, z1 = DetectorConfig().z_range_m
+    r = cfg.bev_range_m
+    return (-r, -r, z0, r, r, z1)
+
+
+def resolve_device(name: str) -> torch.device:
+    """``name`` as a torch device, or a ValueError saying it is not present here."""
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"detect.device = {name!r}, but torch sees no CUDA device here (use cpu)")
+    if device.type == "cuda" and device.index is not None and device.index >= torch.cuda.device_count():
+        raise ValueError(f"detect.device = {name!r}, but torch sees {torch.cuda.device_count()} CUDA device(s)")
+    if device.type == "mps" and not torch.backends.mps.is_available():
+        raise ValueError(f"detect.device = {name!r}, but MPS is not available here (use cpu)")
+    return device
+
+
+# ------------------------------------------------------------------------------------------------------ training
+
+
+def _epochs(dataset: Dataset, batch_size: int, seed: int, sampler: Sampler | None) -> Iterator[Any]:
+    """Batches of ``dataset`` epoch after epoch: shuffled with a seeded generator (or drawn by ``sampler``), the
+    augmentation draws of each epoch selected with ``set_epoch``."""
+    epoch = 0
+    while True:
+        for obj in (dataset, sampler):
+            if hasattr(obj, "set_epoch"):
+                obj.set_epoch(epoch)
+        generator = torch.Generator().manual_seed(seed * 100_003 + epoch)
+        loader = DataLoader(dataset, batch_size=batch_size, shuffle=sampler is None, sampler=sampler,
+                            generator=generator if sampler is None else None, collate_fn=collate, drop_last=True)
+        empty = True
+        for batch in loader:
+            empty = False
+            yield batch
+        if empty:
+            raise ValueError(f"no full batch of {batch_size} in a dataset of {len(dataset)} samples")
+        epoch += 1
+
+
+def train(model: BEVFusionDetector, dataset: Dataset, steps: int, lr: float, weight_decay: float, batch_size: int,
+          seed: int, device: torch.device, sampler: Sampler | None = None, desc: str = "train",
+          show_progress: bool = True, on_step: Callable[[int, dict[str, float]], None] | None = None
+          ) -> list[dict[str, float]]:
+    """``steps`` steps of AdamW with a one-cycle LR (peak ``lr``, 30 % warm-up) on ``dataset`` (or the draws of
+    ``sampler``), with a progress bar. Deterministic for a seed on the CPU. Returns each step's losses;
+    ``on_step(step, record)`` after each step (1-based)."""
+    torch.manual_seed(seed)
+    model.to(device)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=weight_decay)
+    scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=lr, total_steps=max(steps, 2), pct_start=0.3)
+    history: list[dict[str, float]] = []
+    batches = _epochs(dataset, batch_size, seed, sampler)
+    with tqdm(total=steps, desc=desc, disable=not show_progress, unit="step") as bar:
+        for step in range(1, steps + 1):
+            record = train_step(model, next(batches).to(device), optimizer, scheduler)
+            history.append(record)
+            bar.update()
+            bar.set_postfix(loss=f"{record['total']:.3f}")
+            if on_step is not None:
+                on_step(step, record)
+    return history
+
+
+def mixed_training_set(weather: DetectionDataset, clean: DetectionDataset, weather_fraction: float,
+                       seed: int) -> tuple[Dataset, MixedSampler]:
+    """The paper's finetune mix (``weather_fraction`` weather samples, the rest clean), drawn by the loader."""
+    return mixed_dataset(weather, clean, weather_fraction, None, seed)
+
+
+def save_checkpoint(path: Path, model: BEVFusionDetector, meta: dict[str, Any]) -> None:
+    """The model's weights and ``meta`` (fingerprint, history...) in one file, written atomically."""
+    buf = io.BytesIO()
+    torch.save({"state_dict": {k: v.detach().cpu() for k, v in model.state_dict().items()}, "meta": meta}, buf)
+    atomic.write_bytes(path, buf.getvalue())
+
+
+def load_checkpoint(path: Path, config: DetectorConfig) -> tuple[BEVFusionDetector, dict[str, Any]]:
+    """A detector of ``config`` with the weights of ``path``, and the checkpoint's meta."""
+    blob = torch.load(path, map_location="cpu", weights_only=False)
+    model = BEVFusionDetector(config)
+    model.load_state_dict(blob["state_dict"])
+    return model, blob["meta"]
+
+
+# ---------------------------------------------------------------------------------------------------- evaluation
+
+
+@dataclass(frozen=True)
+class EvalSet:
+    """One val split to evaluate on: its cached samples and the ground truth they are scored against (the same
+    annotations in every weather copy: the copies hard-link the clean tables)."""
+
+    name: str
+    dataset: DetectionDataset
+    gt: EvalBoxes
+    T_global_lidar: dict[str, np.ndarray]
+    ego_position: dict[str, np.ndarray]
+
+
+@torch.no_grad()
+def predict(model: BEVFusionDetector, dataset: DetectionDataset, batch_size: int, device: torch.device,
+            score_threshold: float, max_detections: int, modality: Modality = "fused") -> list[SampleDetections]:
+    """Detections of every sample of ``dataset`` (no augmentation), in order."""
+    model.to(device)
+    loader = DataLoader(dataset, batch_size=batch_size, shuffle=False, collate_fn=collate)
+    out: list[SampleDetections] = []
+    for batch in loader:
+        out.extend(model.detect(batch.to(device), score_threshold, max_detections, modality))
+    return out
+
+
+def evaluate(detections: Sequence[SampleDetections], evalset: EvalSet, num_bootstrap: int, seed: int,
+             confidence: float) -> dict[str, Any]:
+    """nuScenes metrics of ``detections`` on ``evalset`` (`weatheralign.detect.evaluate.score`), with frame-bootstrap
+    intervals ``map_ci``, ``nds_ci``, ``map_present_ci``; 0 resamples: point estimates only."""
+    pred = eval_boxes(detections, evalset)
+    result = score(evalset.gt, pred).as_dict()
+    if num_bootstrap > 0:
+        map_ci, nds_ci, present_ci = bootstrap_intervals(evalset.gt, pred, num_bootstrap, seed, confidence)
+        result.update(map_ci=map_ci, nds_ci=nds_ci, map_present_ci=present_ci)
+    return result
+
+
+def eval_boxes(detections: Sequence[SampleDetections], evalset: EvalSet) -> EvalBoxes:
+    """``detections`` as global-frame devkit boxes, ranges measured from the ego as the devkit does."""
+    return predictions_to_eval_boxes(detections, evalset.T_global_lidar, evalset.ego_position)
+
+
+def detections_to_arrays(detections: Sequence[SampleDetections]) -> dict[str, np.ndarray]:
+    """Detections as flat arrays (``token``, ``boxes``, ``scores``, ``labels``, ``attributes``) for an .npz file."""
+    counts = np.array([len(d.scores) for d in detections], np.int64)
+    return {"tokens": np.array([d.token for d in detections]), "counts": counts,
+            "boxes": np.concatenate([d.boxes for d in detections]) if detections else np.zeros((0, 9)),
+            "scores": np.concatenate([d.scores for d in detections]) if detections else np.zeros(0),
+            "labels": np.concatenate([d.labels for d in detections]) if detections else np.zeros(0, np.int64),
+            "attributes": np.concatenate([d.attributes for d in detections]) if detections else np.zeros(0, np.int64)}
+
+
+def detections_from_arrays(arrays: dict[str, np.ndarray]) -> list[SampleDetections]:
+    """The inverse of `detections_to_arrays`."""
+    ends = np.cumsum(arrays["counts"])
+    starts = ends - arrays["counts"]
+    return [SampleDetections(str(t), arrays["boxes"][a:b], arrays["scores"][a:b], arrays["labels"][a:b],
+                             arrays["attributes"][a:b]) for t, a, b in zip(arrays["tokens"], starts, ends)]
+
+
+__all__ = ["EvalSet", "PAPER_TABLE2", "PAPER_TABLE3", "PAPER_WEATHER_OF", "detections_from_arrays",
+           "detections_to_arrays", "detector_config", "eval_boxes", "evaluate", "load_checkpoint",
+           "mixed_training_set", "point_range", "predict", "resolve_device", "save_checkpoint", "train"]

@@ -1,0 +1,387 @@
+"""The small BEVFusion-style detector (weatheralign.detect.model / head) on synthetic tensors: target encoding round
+trip, LSS geometry and pooling, pillar scatter, modality switches, overfitting one batch, device placement."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from weatheralign.detect.head import (BevGrid, HeadOutputs, NUM_ATTRIBUTES, decode_detections, encode_targets,
+                                      valid_attribute_mask)
+from weatheralign.detect.model import (BEVFusionDetector, DepthBins, DetectorConfig, PillarEncoder, bev_cell_indices,
+                                       bev_max_pool, count_parameters, frustum_points, lift_splat, modality_masks,
+                                       fit, project_depth_hint, train_step)
+from weatheralign.detect.types import ATTRIBUTES, DETECTION_CLASSES, DetectionBatch, SampleDetections
+
+CLS = {name: k for k, name in enumerate(DETECTION_CLASSES)}
+ATTR = {name: a for a, name in enumerate(ATTRIBUTES)}
+SMALL = DetectorConfig(bev_range_m=16.0, bev_cell_m=0.8, depth_bins=16, depth_max_m=33.0, image_channels=32,
+                       pillar_channels=16, camera_context_channels=16, bev_channels=32, head_channels=32,
+                       modality_dropout=0.0)
+
+
+def yaw_rotation(yaw: float) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def camera_pose(yaw: float, position: tuple[float, float, float], pitch_down: float = 0.0) -> np.ndarray:
+    """(4, 4) camera (OpenCV: x right, y down, z forward) -> LiDAR, the camera looking along LiDAR azimuth ``yaw``."""
+    forward = np.array([1.0, 0.0, 0.0])
+    right = np.array([0.0, -1.0, 0.0])
+    down = np.array([0.0, 0.0, -1.0])
+    c, s = math.cos(pitch_down), math.sin(pitch_down)
+    forward, down = c * forward + s * down, c * down - s * forward
+    T = np.eye(4)
+    T[:3, :3] = yaw_rotation(yaw) @ np.stack([right, down, forward], axis=1)
+    T[:3, 3] = position
+    return T
+
+
+def pinhole(height: int, width: int, focal: float) -> np.ndarray:
+    return np.array([[focal, 0.0, (width - 1) / 2], [0.0, focal, (height - 1) / 2], [0.0, 0.0, 1.0]])
+
+
+def camera_rig(batch_size: int, cameras: int, height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(B, C, 3, 3) intrinsics and (B, C, 4, 4) cam_to_lidar of cameras evenly around the car at 1.5 m."""
+    K = pinhole(height, width, width / 2 / math.tan(math.radians(60)))
+    poses = np.stack([camera_pose(2 * math.pi * c / cameras, (0.0, 0.0, 1.5)) for c in range(cameras)])
+    return (torch.tensor(K, dtype=torch.float32).expand(batch_size, cameras, 3, 3).clone(),
+            torch.tensor(poses, dtype=torch.float32).expand(batch_size, cameras, 4, 4).clone())
+
+
+def box_points(box: np.ndarray, count: int, rng: np.random.Generator) -> np.ndarray:
+    """(count, 3) points on the four vertical faces of a box row (x, y, z, w, l, h, yaw, ...)."""
+    w, l, h = box[3:6]
+    face = rng.integers(0, 4, count)
+    t = rng.uniform(-0.5, 0.5, count)
+    along_l = np.where(face < 2, t * l, np.where(face == 2, l / 2, -l / 2))
+    along_w = np.where(face < 2, np.where(face == 0, w / 2, -w / 2), t * w)
+    z = rng.uniform(-h / 2, h / 2, count)
+    local = np.stack([along_l, along_w, z], axis=1)
+    return local @ yaw_rotation(box[6]).T + box[:3]
+
+
+def synthetic_batch(boxes: list[np.ndarray], labels: list[list[int]], attributes: list[list[int]], cameras: int = 2,
+                    image_hw: tuple[int, int] = (32, 64), points_per_box: int = 150, ground_points: int = 600,
+                    seed: int = 0) -> DetectionBatch:
+    """Points on the boxes' sides and on the ground (z = -1.8), uniform random images."""
+    rng = np.random.default_rng(seed)
+    batch_size = len(boxes)
+    rows = []
+    for b, sample_boxes in enumerate(boxes):
+        xyz = [box_points(box, points_per_box, rng) for box in sample_boxes]
+        ground = np.column_stack([rng.uniform(-15, 15, (ground_points, 2)), np.full(ground_points, -1.8)])
+        xyz = np.concatenate(xyz + [ground])
+        rows.append(np.column_stack([np.full(len(xyz), b), xyz, rng.uniform(0, 1, len(xyz)),
+                                     rng.uniform(0, 0.5, len(xyz))]))
+    intrinsics, cam_to_lidar = camera_rig(batch_size, cameras, *image_hw)
+    generator = torch.Generator().manual_seed(seed)
+    return DetectionBatch(points=torch.tensor(np.concatenate(rows), dtype=torch.float32),
+                          images=torch.rand(batch_size, cameras, 3, *image_hw, generator=generator),
+                          intrinsics=intrinsics, cam_to_lidar=cam_to_lidar,
+                          boxes=[torch.tensor(np.asarray(bx), dtype=torch.float32).reshape(-1, 9) for bx in boxes],
+                          labels=[torch.tensor(lb, dtype=torch.int64) for lb in labels],
+                          attributes=[torch.tensor(at, dtype=torch.int64) for at in attributes],
+                          tokens=[f"sample{b}" for b in range(batch_size)])
+
+
+def wrap_angle(a: np.ndarray) -> np.ndarray:
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+# --- targets ---------------------------------------------------------------------------------------------------
+
+
+def test_target_encoding_round_trip() -> None:
+    grid = BevGrid(25.6, 0.8).coarsened(2)  # 1.6 m cells, 32 x 32
+    boxes = [np.array([[3.3, -7.1, -0.9, 1.9, 4.6, 1.7, 3.5, 2.0, -1.0],  # yaw beyond pi: wraps
+                       [-12.05, 10.4, -1.2, 0.7, 0.8, 1.8, -3.0, 0.3, 0.2],
+                       [20.0, 20.0, -1.5, 0.4, 0.4, 0.9, 0.2, 0.0, 0.0],
+                       [-25.0, -25.59, -0.5, 2.5, 10.0, 3.5, 1.2, -5.0, 0.5],  # centre in the first cell
+                       [30.0, 0.0, -1.0, 1.9, 4.6, 1.7, 0.0, 0.0, 0.0]]),  # outside the grid: dropped
+             np.array([[0.0, 0.0, -1.0, 0.6, 1.7, 1.4, -1.5, 4.0, 3.0]])]  # on cell corner 0, 0
+    labels = [[CLS["car"], CLS["pedestrian"], CLS["traffic_cone"], CLS["bus"], CLS["car"]], [CLS["bicycle"]]]
+    attributes = [[ATTR["vehicle.moving"], ATTR["pedestrian.standing"], -1, ATTR["vehicle.parked"], -1],
+                  [ATTR["cycle.with_rider"]]]
+    targets = encode_targets([torch.tensor(b, dtype=torch.float32) for b in boxes],
+                             [torch.tensor(x) for x in labels], [torch.tensor(x) for x in attributes], grid)
+    assert targets.heatmap.shape == (2, 10, 32, 32)
+    assert len(targets.indices) == 5 and targets.heatmap.eq(1).sum() == 5
+    offsets = targets.regression[:, :2]
+    assert bool(((offsets >= 0) & (offsets < 1)).all())
+
+    # the targets, written as if predicted
+    b, k, h, w = targets.heatmap.shape
+    heat_logits = torch.logit(targets.heatmap.clamp(1e-6, 1 - 1e-6))
+    regression = torch.zeros(b * h * w, 10)
+    regression[targets.indices] = targets.regression
+    attr_logits = torch.zeros(b * h * w, NUM_ATTRIBUTES)
+    has = targets.attributes >= 0
+    attr_logits[targets.indices[has], targets.attributes[has]] = 5.0
+    not_pedestrian = targets.indices[targets.labels != CLS["pedestrian"]]
+    attr_logits[not_pedestrian, ATTR["pedestrian.moving"]] = 8.0  # the highest logit, but invalid for the class
+    as_maps = lambda x: x.view(b, h, w, -1).permute(0, 3, 1, 2)  # noqa: E731
+    outputs = HeadOutputs(heat_logits, as_maps(regression), as_maps(attr_logits))
+    decoded = decode_detections(outputs, grid, score_threshold=0.9, max_per_sample=50)
+
+    for sample, (gt_boxes, gt_labels, gt_attrs) in enumerate(zip(boxes, labels, attributes)):
+        in_grid = np.abs(gt_boxes[:, :2]).max(axis=1) < 25.6
+        gt_boxes, gt_labels = gt_boxes[in_grid], np.asarray(gt_labels)[in_grid]
+        gt_attrs = np.asarray(gt_attrs)[in_grid]
+        det = decoded[sample]
+        assert sorted(det.labels.tolist()) == sorted(gt_labels.tolist())
+        for label, box, attr in zip(det.labels.numpy(), det.boxes.numpy(), det.attributes.numpy()):
+            i = int(np.flatnonzero(gt_labels == label)[0])
+            gt = gt_boxes[i]
+            np.testing.assert_allclose(box[[0, 1, 2, 3, 4, 5, 7, 8]], gt[[0, 1, 2, 3, 4, 5, 7, 8]], atol=1e-4)
+            assert abs(wrap_angle(box[6] - gt[6])) < 1e-5 and -np.pi <= box[6] <= np.pi
+            if DETECTION_CLASSES[label] == "traffic_cone":
+                assert attr == -1
+            else:
+                assert attr == gt_attrs[i]
+    assert decoded[0].scores.min() > 0.99
+
+
+def test_invalid_attribute_targets_are_dropped() -> None:
+    mask = valid_attribute_mask()
+    assert mask[CLS["car"]].tolist() == [a.startswith("vehicle.") for a in ATTRIBUTES]
+    assert mask[CLS["bicycle"]].sum() == 2 and mask[CLS["barrier"]].sum() == 0
+    targets = encode_targets([torch.tensor([[1.0, 1.0, 0.0, 1.0, 1.0, 1.0, 0.0, 0.0, 0.0]] * 2)],
+                             [torch.tensor([CLS["car"], CLS["barrier"]])],
+                             [torch.tensor([ATTR["pedestrian.moving"], ATTR["vehicle.parked"]])], BevGrid(8.0, 1.0))
+    assert targets.attributes.tolist() == [-1, -1]
+
+
+# --- LSS -------------------------------------------------------------------------------------------------------
+
+
+def lss_camera() -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
+    """One camera looking 30 deg left of LiDAR x, pitched 5 deg down, 1.6 m up; 64 x 96 image."""
+    return pinhole(64, 96, 40.0), camera_pose(math.radians(30), (1.0, 0.5, 1.6), math.radians(5)), (64, 96)
+
+
+def test_lss_bright_pixel_lands_in_the_cell_of_its_hinted_depth() -> None:
+    K, T, image_hw = lss_camera()
+    feature_hw = (8, 12)
+    depth = DepthBins(1.0, 41.0, 20)  # 2 m bins, centres 2, 4, ..., 40
+    grid = BevGrid(25.6, 0.8)
+    row, col, bin_index = 3, 7, 6
+    d = 1.0 + (bin_index + 0.5) * 2.0
+    pixel = np.array([col * 8 + 3.5, row * 8 + 3.5, 1.0])
+    point = T[:3, :3] @ (d * np.linalg.solve(K, pixel)) + T[:3, 3]
+    points = torch.tensor([[0.0, *point, 0.5, 0.0]], dtype=torch.float32)
+    Kt, Tt = (torch.tensor(x, dtype=torch.float32)[None, None] for x in (K, T))
+
+    hint = project_depth_hint(points, Kt, Tt, image_hw, feature_hw, depth)
+    assert hint.shape == (1, 1, 21, 8, 12)
+    assert hint[0, 0, bin_index, row, col] == 1 and hint[0, 0, 20, row, col] == 1 and hint.sum() == 2
+
+    geometry = frustum_points(Kt, Tt, feature_hw, depth.centres())
+    np.testing.assert_allclose(geometry[0, 0, bin_index, row, col].numpy(), point, atol=1e-4)
+    depth_prob = hint[:, :, :20]
+    context = torch.full((1, 1, 3, 8, 12), 7.0)
+    bev = lift_splat(depth_prob, context, geometry, grid, (-5.0, 3.0))
+    assert bev.shape == (1, 3, 64, 64)
+    expected_col, expected_row = np.floor((point[:2] + 25.6) / 0.8).astype(int)
+    occupied = torch.nonzero(bev[0, 0]).tolist()
+    assert occupied == [[expected_row, expected_col]]
+    assert torch.allclose(bev[0, :, expected_row, expected_col], torch.full((3,), 7.0))
+
+
+def test_lss_pooling_drops_outside_points_and_conserves_mass() -> None:
+    K, T, image_hw = lss_camera()
+    feature_hw = (8, 12)
+    depth = DepthBins(1.0, 41.0, 20)
+    grid = BevGrid(12.8, 0.8)  # far bins leave the grid
+    z_range = (-2.0, 3.0)  # and the 5 deg downward pitch takes rays below -2 m
+    generator = torch.Generator().manual_seed(0)
+    depth_prob = torch.rand(2, 1, 20, *feature_hw, generator=generator).softmax(dim=2)
+    context = torch.rand(2, 1, 4, *feature_hw, generator=generator)
+    Kt = torch.tensor(K, dtype=torch.float32).expand(2, 1, 3, 3)
+    Tt = torch.tensor(T, dtype=torch.float32).expand(2, 1, 4, 4)
+    geometry = frustum_points(Kt, Tt, feature_hw, depth.centres())
+    bev = lift_splat(depth_prob, context, geometry, grid, z_range).numpy()
+
+    # independently: numpy frustum and np.add.at
+    centres = 1.0 + (np.arange(20) + 0.5) * 2.0
+    v, u = np.meshgrid(np.arange(8) * 8 + 3.5, np.arange(12) * 8 + 3.5, indexing="ij")
+    rays = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(K).T  # (h, w, 3)
+    pts = centres[:, None, None, None] * rays[None] @ T[:3, :3].T + T[:3, 3]  # (D, h, w, 3)
+    cells = np.floor((pts[..., :2] + 12.8) / 0.8).astype(int)
+    in_grid = (cells >= 0).all(-1) & (cells < 32).all(-1)
+    in_z = (pts[..., 2] >= -2.0) & (pts[..., 2] < 3.0)
+    inside = in_grid & in_z
+    assert 0.1 < inside.mean() < 0.9 and (in_grid & ~in_z).any() and (in_z & ~in_grid).any()
+    expected = np.zeros((2, 4, 32, 32))
+    features = depth_prob.numpy()[:, 0, :, None] * context.numpy()[:, 0, None]  # (B, D, F, h, w)
+    for b in range(2):
+        for f in range(4):
+            np.add.at(expected[b, f], (cells[..., 1][inside], cells[..., 0][inside]), features[b, :, f][inside])
+    np.testing.assert_allclose(bev, expected, rtol=1e-4, atol=1e-5)
+    in_grid_mass = (features * inside[None, :, None]).sum(axis=(1, 3, 4))
+    np.testing.assert_allclose(bev.sum(axis=(2, 3)), in_grid_mass, rtol=1e-5)
+    assert in_grid_mass.sum() < features.sum() * 0.95
+
+
+def test_depth_hint_ignores_points_behind_or_outside_the_image_and_respects_the_batch() -> None:
+    K, T, image_hw = lss_camera()
+    Kt = torch.tensor(K, dtype=torch.float32).expand(2, 1, 3, 3)
+    Tt = torch.tensor(T, dtype=torch.float32).expand(2, 1, 4, 4)
+    forward = T[:3, 2]
+    in_view = T[:3, 3] + 10.0 * forward
+    behind = T[:3, 3] - 10.0 * forward
+    points = torch.tensor([[1.0, *in_view, 0, 0], [0.0, *behind, 0, 0]], dtype=torch.float32)
+    hint = project_depth_hint(points, Kt, Tt, image_hw, (8, 12), DepthBins(1.0, 41.0, 20))
+    assert hint[0].sum() == 0 and hint[1, 0, 20].sum() == 1 and hint[1, 0, 4].sum() == 1  # 10 m: bin 4 of 2 m bins
+
+
+# --- pillars ---------------------------------------------------------------------------------------------------
+
+
+def test_pillar_cells_and_max_scatter_respect_cells_and_batch() -> None:
+    grid = BevGrid(4.0, 1.0)  # 8 x 8
+    xyz = torch.tensor([[0.5, -3.5, 0.0],  # col 4, row 0
+                        [0.9, -3.1, 1.0],  # same cell
+                        [-4.0, 3.99, 0.0],  # col 0, row 7
+                        [4.0, 0.0, 0.0],  # x = R: outside
+                        [0.0, 0.0, 3.5]])  # above the z range
+    batch_index = torch.tensor([0, 0, 1, 0, 1])
+    flat = bev_cell_indices(xyz, batch_index, grid, (-5.0, 3.0))
+    assert flat.tolist() == [0 * 64 + 0 * 8 + 4, 4, 64 + 7 * 8 + 0, -1, -1]
+    features = torch.tensor([[1.0, 5.0], [3.0, 2.0], [4.0, 4.0], [9.0, 9.0], [9.0, 9.0]])
+    bev = bev_max_pool(features, flat, 2, grid)
+    assert bev.shape == (2, 2, 8, 8)
+    assert bev[0, :, 0, 4].tolist() == [3.0, 5.0] and bev[1, :, 7, 0].tolist() == [4.0, 4.0]
+    assert bev.sum() == 3 + 5 + 4 + 4
+
+
+def test_pillar_encoder_fills_exactly_the_occupied_pillars() -> None:
+    torch.manual_seed(0)
+    grid = BevGrid(4.0, 1.0)
+    encoder = PillarEncoder(grid, (-5.0, 3.0), channels=16).eval()
+    points = torch.tensor([[0, 0.5, -3.5, 0.0, 0.2, 0.0], [0, 0.7, -3.3, -1.0, 0.9, 0.1], [1, -3.5, 3.5, 0.5, 0.4, 0.0],
+                           [1, 2.2, 1.7, -2.0, 0.1, 0.3], [0, 9.0, 0.0, 0.0, 0.5, 0.0]])
+    bev = encoder(points, batch_size=2)
+    occupied = sorted(map(tuple, torch.nonzero(bev.abs().sum(dim=1)).tolist()))
+    assert occupied == [(0, 0, 4), (1, 5, 6), (1, 7, 0)]
+    flat = bev_cell_indices(points[:4, 1:4], points[:4, 0].long(), grid, (-5.0, 3.0))
+    features = encoder.point_features(points[:4], flat, 2)
+    # offsets to the pillar mean [cells]: the two points of pillar (0, 0, 4) sit symmetric around their mean
+    np.testing.assert_allclose(features[0, 5:8].numpy(), [-0.1, -0.1, 0.5], atol=1e-6)
+    np.testing.assert_allclose(features[2, 5:8].numpy(), [0.0, 0.0, 0.0], atol=1e-6)
+    # offsets to the pillar centre [cells]
+    np.testing.assert_allclose(features[3, 8:10].numpy(), [2.2 - 2.5, 1.7 - 1.5], atol=1e-6)
+
+
+# --- the model -------------------------------------------------------------------------------------------------
+
+
+def two_sample_batch(seed: int = 0) -> DetectionBatch:
+    return synthetic_batch([np.array([[5.0, 3.0, -1.0, 1.9, 4.5, 1.6, 0.3, 1.0, 0.0]]),
+                            np.array([[-6.0, -4.0, -0.9, 0.7, 0.7, 1.8, 0.0, 0.5, 0.5]])],
+                           [[CLS["car"]], [CLS["pedestrian"]]], [[ATTR["vehicle.moving"]], [ATTR["pedestrian.moving"]]],
+                           seed=seed)
+
+
+def outputs_equal(a: HeadOutputs, b: HeadOutputs) -> bool:
+    return all(torch.equal(x, y) for x, y in ((a.heatmap, b.heatmap), (a.regression, b.regression),
+                                              (a.attributes, b.attributes)))
+
+
+def test_modality_switches_each_branch_off() -> None:
+    torch.manual_seed(0)
+    model = BEVFusionDetector(SMALL).eval()
+    batch = two_sample_batch()
+    other_images = replace(batch, images=torch.rand_like(batch.images))
+    shifted = batch.points.clone()
+    shifted[:, 1] += 1.5
+    other_points = replace(batch, points=shifted)
+    with torch.no_grad():
+        run = {m: (model(batch, m), model(other_images, m), model(other_points, m))
+               for m in ("fused", "lidar", "camera")}
+    assert outputs_equal(run["lidar"][0], run["lidar"][1]) and not outputs_equal(run["lidar"][0], run["lidar"][2])
+    assert outputs_equal(run["camera"][0], run["camera"][2]) and not outputs_equal(run["camera"][0], run["camera"][1])
+    assert not outputs_equal(run["fused"][0], run["fused"][1]) and not outputs_equal(run["fused"][0], run["fused"][2])
+    with pytest.raises(ValueError):
+        model(batch, "radar")
+
+
+def test_modality_dropout_drops_one_branch_per_sample_in_training_only() -> None:
+    torch.manual_seed(0)
+    lidar, camera = modality_masks("fused", 1000, 1.0, True, "cpu")
+    assert bool((lidar ^ camera).all()) and 400 < int(lidar.sum()) < 600
+    lidar, camera = modality_masks("fused", 1000, 0.3, True, "cpu")
+    assert 200 < int((~(lidar & camera)).sum()) < 400 and bool((lidar | camera).all())
+    lidar, camera = modality_masks("fused", 10, 1.0, False, "cpu")
+    assert bool(lidar.all() and camera.all())
+    lidar, camera = modality_masks("camera", 10, 1.0, True, "cpu")
+    assert not bool(lidar.any()) and bool(camera.all())
+
+
+def test_default_model_size_and_output_shapes() -> None:
+    model = BEVFusionDetector()
+    assert 0.4e6 < count_parameters(model) < 1.5e6
+    batch = synthetic_batch([np.zeros((0, 9))], [[]], [[]], cameras=6, image_hw=(96, 176))
+    with torch.no_grad():
+        outputs = model.eval()(batch)
+    assert outputs.heatmap.shape == (1, 10, 64, 64) and outputs.regression.shape == (1, 10, 64, 64)
+    assert outputs.attributes.shape == (1, 8, 64, 64)
+    losses = model.loss(batch, outputs)  # no objects: finite, heatmap only
+    assert all(torch.isfinite(v) for v in losses.values()) and float(losses["offset"]) == 0.0
+
+
+def test_overfits_one_small_batch_and_decodes_its_boxes() -> None:
+    torch.manual_seed(0)
+    boxes = [np.array([[5.0, 3.0, -1.0, 1.9, 4.5, 1.6, 0.3, 1.0, 0.0],
+                       [-6.0, -4.0, -0.9, 0.7, 0.7, 1.8, 2.0, 0.5, 0.5],
+                       [2.0, -9.0, -1.3, 2.5, 0.5, 1.0, -1.2, 0.0, 0.0]])]
+    labels = [[CLS["car"], CLS["pedestrian"], CLS["barrier"]]]
+    attributes = [[ATTR["vehicle.moving"], ATTR["pedestrian.moving"], -1]]
+    batch = synthetic_batch(boxes, labels, attributes)
+    batch = replace(batch, images=torch.zeros_like(batch.images))  # blank images
+    model = BEVFusionDetector(SMALL)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=4e-3, weight_decay=0.0)
+    history = [train_step(model, batch, optimizer) for _ in range(150)]  # ~45 ms each on 2 idle CPU threads
+    first, last = history[0]["total"], np.mean([h["total"] for h in history[-5:]])
+    assert last < first / 10, (first, last)
+
+    (detections,) = model.detect(batch, score_threshold=0.3, max_per_sample=20)
+    assert isinstance(detections, SampleDetections) and detections.boxes.dtype == np.float64
+    assert len(detections.scores) == 3, detections.scores
+    for gt, label, attribute in zip(boxes[0], labels[0], attributes[0]):
+        match = np.flatnonzero(detections.labels == label)
+        assert len(match) == 1, (DETECTION_CLASSES[label], detections.labels)
+        box = detections.boxes[match[0]]
+        assert np.linalg.norm(box[:2] - gt[:2]) < 0.5
+        np.testing.assert_allclose(box[3:6], gt[3:6], rtol=0.15)
+        assert abs(wrap_angle(box[6] - gt[6])) < 0.2
+        assert detections.attributes[match[0]] == attribute
+
+
+def test_fit_cycles_through_batches_and_handles_empty_clouds() -> None:
+    torch.manual_seed(0)
+    model = BEVFusionDetector(replace(SMALL, modality_dropout=0.5))
+    batch = two_sample_batch()
+    empty = replace(batch, points=batch.points[:0])
+    seen: list[int] = []
+    history = fit(model, [batch, empty], steps=3, lr=1e-3, on_step=lambda step, record: seen.append(step))
+    assert seen == [0, 1, 2] and all(math.isfinite(h["total"]) for h in history)
+    with pytest.raises(ValueError):
+        fit(model, iter([batch]), steps=2)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_forward_backward_on_cuda() -> None:
+    device = torch.device("cuda")
+    model = BEVFusionDetector(SMALL).to(device)
+    batch = two_sample_batch().to(device)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=1e-3)
+    record = train_step(model, batch, optimizer)
+    assert math.isfinite(record["total"])
+    detections = model.detect(batch, score_threshold=0.0, max_per_sample=5)
+    assert len(detections) == 2 and detections[0].boxes.shape == (5, 9)

@@ -1,0 +1,115 @@
+"""The `detect` stage end to end on the tiny world, with every weather copy a hard-linked replica of the clean
+world (so that each evaluation on a copy must equal the clean one exactly): metrics layout, tables, figures, MLflow
+child runs with their tags, and a resumed rerun that trains and evaluates nothing again."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from weatheralign.conditions import CONDITIONS, variant_name
+from weatheralign.data.nuscenes import load_frame, open_nuscenes
+from weatheralign.manifest import DatasetManifest, dataset_digest, manifest_path, write_manifest
+from weatheralign.sensors import SensorRig, camera_models, lidar_model_from_params
+
+from .conftest import REPO, write_params_file
+
+DETECT = {"finetune_conditions": ["snow"], "image_size": [32, 64], "batch_size": 1, "pretrain_steps": 4,
+          "finetune_steps": 2, "eval_every": 2, "num_bootstrap": 10, "score_threshold": 0.0, "max_detections": 50}
+
+
+@pytest.fixture(scope="module")
+def stage_run(tiny_world, tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("detect")
+    data, reports = tmp / "data", tmp / "reports"
+    version = tiny_world.params.world.version
+    nusc = open_nuscenes(tiny_world.dataroot, version)
+    frame = load_frame(nusc, nusc.scene[0]["first_sample_token"])
+    sensors = SensorRig(lidar_model_from_params(tiny_world.params.world.lidar),
+                        camera_models(frame.cameras, tiny_world.params.world.camera.exposure_s))
+    write_manifest(manifest_path(data, "world"), DatasetManifest(
+        str(tiny_world.dataroot), version, "synthetic", sensors, dataset_digest(tiny_world.dataroot, version),
+        tuple(s["name"] for s in nusc.scene)))
+    for condition in CONDITIONS:
+        for aligned in (True, False):
+            shutil.copytree(tiny_world.dataroot, data / "simulate" / variant_name(condition, aligned),
+                            copy_function=os.link)
+    params = write_params_file(tmp / "params.yaml", {
+        "paths": {"data": str(data), "reports": str(reports)},
+        "tracking": {"enabled": True, "mlflow_uri": f"sqlite:///{tmp / 'mlflow.db'}"},
+        "run": {"show_progress": False, "max_workers": 1},
+        "world": tiny_world.params.world.model_dump(mode="json"), "simulate": {"sweeps": 1}, "detect": DETECT})
+    env = {**os.environ, "PYTHONPATH": str(REPO), "PREFECT_LOGGING_LEVEL": "WARNING"}
+
+    def run() -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "flows.detect", "--params", str(params)], cwd=REPO,
+                              capture_output=True, text=True, timeout=900, env=env)
+
+    first = run()
+    assert first.returncode == 0, first.stderr[-4000:]
+    metrics = json.loads((reports / "detect" / "metrics.json").read_text())
+    return tmp, data, reports, metrics, run
+
+
+def test_metrics_layout_and_reports(stage_run):
+    _, _, reports, metrics, _ = stage_run
+    variants = [variant_name(c, a) for c in CONDITIONS for a in (True, False)]
+    assert set(metrics["models"]) == {"pretrained", "finetuned-snow", "finetuned-snow-mix", "finetuned-snow-unaligned"}
+    assert set(metrics["models"]["pretrained"]) == {"clean", *variants}
+    assert set(metrics["models"]["finetuned-snow"]) == {"clean", "snow-aligned", "snow-unaligned"}
+    for evals in metrics["models"].values():
+        for m in evals.values():
+            assert 0.0 <= m["map"] <= 1.0 and 0.0 <= m["nds"] <= 1.0
+            assert m["map_ci"][0] <= m["map"] + 1e-12 and m["map"] <= m["map_ci"][1] + 1e-12
+            assert set(m["per_class_ap"]) == {"car", "truck", "bus", "trailer", "construction_vehicle", "pedestrian",
+                                              "motorcycle", "bicycle", "traffic_cone", "barrier"}
+    assert set(metrics["modality_ablation"]) == {"fused", "lidar", "camera"}
+    assert [p["step"] for p in metrics["learning_curve"]] == [2, 4]
+    for name in ("table_alignment.md", "table_finetune.md", "learning_curve.png", "predictions_bev.png"):
+        assert (reports / "detect" / name).stat().st_size > 0
+    assert "paper" in (reports / "detect" / "table_alignment.md").read_text()
+
+
+def test_identical_copies_score_identically(stage_run):
+    """Every weather copy here is the clean world: same detections, same scores, RA 1, paired difference 0."""
+    _, _, _, metrics, _ = stage_run
+    pre = metrics["models"]["pretrained"]
+    for name, m in pre.items():
+        assert (m["map"], m["nds"], m["per_class_ap"]) == (pre["clean"]["map"], pre["clean"]["nds"],
+                                                          pre["clean"]["per_class_ap"]), name
+        assert m["ra"] == pytest.approx(1.0) or pre["clean"]["nds"] == 0.0
+    d = metrics["differences"]["pretrained:snow:unaligned-aligned:map"]
+    assert d["difference"] == 0.0 and d["ci"] == [0.0, 0.0] and not d["exceeds_noise"]
+
+
+def test_mlflow_runs_are_tagged_for_the_ablation(stage_run):
+    from mlflow.tracking import MlflowClient
+
+    tmp = stage_run[0]
+    client = MlflowClient(tracking_uri=f"sqlite:///{tmp / 'mlflow.db'}")
+    exp = client.get_experiment_by_name("weatheralign")
+    runs = client.search_runs([exp.experiment_id], "tags.kind = 'eval' AND tags.alignment = 'unaligned'")
+    assert {r.data.tags["weather"] for r in runs} == set(CONDITIONS)
+    assert all("map" in r.data.metrics and "nds" in r.data.metrics for r in runs)
+    trains = client.search_runs([exp.experiment_id], "tags.kind = 'train'")
+    assert {r.data.tags["model"] for r in trains} == {"pretrained", "finetuned-snow", "finetuned-snow-mix",
+                                                      "finetuned-snow-unaligned"}
+
+
+def test_rerun_resumes_without_training_or_evaluating(stage_run):
+    _, data, reports, metrics, run = stage_run
+    checkpoints = {p: p.stat().st_mtime_ns for p in (data / "detect" / "models").glob("*.pt")}
+    evals = {p: p.stat().st_mtime_ns for p in (data / "detect" / "evals").rglob("*.json")}
+    assert len(checkpoints) == 4 and len(evals) == 11 + 2 + 3 * 3
+    again = run()
+    assert again.returncode == 0, again.stderr[-4000:]
+    assert {p: p.stat().st_mtime_ns for p in checkpoints} == checkpoints
+    assert {p: p.stat().st_mtime_ns for p in evals} == evals
+    rerun = json.loads((reports / "detect" / "metrics.json").read_text())
+    assert rerun["models"] == metrics["models"] and rerun["learning_curve"] == metrics["learning_curve"]
