@@ -19,6 +19,12 @@ Structure (every step runs on whatever device the model and batch are on; no cus
 5. `CenterHead` (`weatheralign.detect.head`): CenterPoint heatmap + box regression + attribute logits at stride
    ``head_stride`` of the BEV grid (default 2: 1.6 m cells, 64 x 64).
 
+Cost (default config, 0.61 M parameters; batch 2, 6 cameras of 96 x 176, 70k points, torch.set_num_threads(2) on
+two idle cores of an AMD EPYC): ~0.20 s per training step (wall; 0.39 s CPU): forward 0.08 s (LiDAR 0.02, camera
+0.03, fuser + encoder + head 0.025), backward 0.12 s; ``detect`` ~0.065 s. ``head_stride=1`` (0.8 m head cells):
+~0.27 s; ``bev_channels=80``: ~0.24 s. When the cores are shared with other busy processes, two OpenMP threads stall
+each other (seconds per step); one thread then runs a step in ~0.35 s.
+
 Depths of the camera branch are camera z [m] (not ray lengths); depth bin i covers
 ``[depth_min + i * step, depth_min + (i + 1) * step)`` and its frustum points lie at the bin's centre. Image pixel
 centres are at integer (u, v) (OpenCV); feature cell (row, col) at stride s covers pixels ``[s col, s col + s)`` and
@@ -488,7 +494,8 @@ def fit(model: BEVFusionDetector, batches: Iterable[DetectionBatch], steps: int,
     Returns each step's `train_step` record; ``on_step(step, record)`` is called after each step."""
     device = device or next(model.parameters()).device
     optimizer = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=weight_decay)
-    scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=lr, total_steps=steps, pct_start=0.3)
+    scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=lr, total_steps=max(steps, 2),
+                                                    pct_start=0.3)
     history: list[dict[str, float]] = []
     for step, batch in zip(range(steps), _repeat(batches)):
         record = train_step(model, batch.to(device), optimizer, scheduler, max_grad_norm)
