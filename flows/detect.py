@@ -43,7 +43,7 @@ from weatheralign.data.errors import DataFormatError  # noqa: E402
 from weatheralign.data.nuscenes import open_nuscenes  # noqa: E402
 from weatheralign.detect import protocol  # noqa: E402
 from weatheralign.detect.data import (Augmentation, DetectionDataset, build_cache, load_cached_sample,  # noqa: E402
-                                      scene_split)
+                                      mixed_dataset, scene_split)
 from weatheralign.detect.evaluate import (ego_positions, ground_truth, paired_difference,  # noqa: E402
                                           resistance_ability)
 from weatheralign.detect.figures import detections_bev_figure, learning_curve_figure  # noqa: E402
@@ -139,9 +139,8 @@ class DetectRun:
         model = (protocol.load_checkpoint(self.out / "models" / f"{init}.pt", self.model_config)[0] if init
                  else BEVFusionDetector(self.model_config))
         if isinstance(train_on, tuple):
-            dataset, sampler = protocol.mixed_training_set(self.training_set(train_on[0]),
-                                                           self.training_set(train_on[1]),
-                                                           self.cfg.mix_weather_fraction, self.cfg.seed)
+            dataset, sampler = mixed_dataset(self.training_set(train_on[0]), self.training_set(train_on[1]),
+                                             self.cfg.mix_weather_fraction, None, self.cfg.seed)
         else:
             dataset, sampler = self.training_set(train_on), None
         curve: list[dict[str, float]] = []

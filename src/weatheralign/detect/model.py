@@ -33,7 +33,6 @@ its rays go through pixel ``(s col + (s - 1) / 2, s row + (s - 1) / 2)``.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -475,37 +474,7 @@ def train_step(model: BEVFusionDetector, batch: DetectionBatch, optimizer: torch
     return {**{name: float(value.detach()) for name, value in losses.items()}, "grad_norm": float(grad_norm)}
 
 
-def _repeat(batches: Iterable[DetectionBatch]) -> Iterator[DetectionBatch]:
-    """``batches`` over and over (re-iterated each pass); ValueError if a pass yields nothing."""
-    while True:
-        empty = True
-        for batch in batches:
-            empty = False
-            yield batch
-        if empty:
-            raise ValueError("no batches to train on (an exhausted iterator cannot be re-iterated)")
-
-
-def fit(model: BEVFusionDetector, batches: Iterable[DetectionBatch], steps: int, lr: float = 2e-3,
-        weight_decay: float = 0.01, max_grad_norm: float = 35.0, device: torch.device | str | None = None,
-        on_step: Callable[[int, dict[str, float]], None] | None = None) -> list[dict[str, float]]:
-    """Train ``steps`` steps with AdamW and a one-cycle LR (peak ``lr``, 30 % warm-up, cosine down), re-iterating
-    ``batches`` (e.g. a DataLoader) as often as needed; batches are moved to ``device`` (default: the model's).
-    Returns each step's `train_step` record; ``on_step(step, record)`` is called after each step."""
-    device = device or next(model.parameters()).device
-    optimizer = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=weight_decay)
-    scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=lr, total_steps=max(steps, 2),
-                                                    pct_start=0.3)
-    history: list[dict[str, float]] = []
-    for step, batch in zip(range(steps), _repeat(batches)):
-        record = train_step(model, batch.to(device), optimizer, scheduler, max_grad_norm)
-        history.append(record)
-        if on_step is not None:
-            on_step(step, record)
-    return history
-
-
 __all__ = ["BEVFusionDetector", "BevEncoder", "CameraBranch", "ConvFuser", "DepthBins", "DetectorConfig",
            "IMAGE_STRIDE", "ImageBackbone", "LidarBranch", "MODALITIES", "Modality", "PillarEncoder",
-           "bev_cell_indices", "bev_max_pool", "bev_sum_pool", "count_parameters", "fit", "frustum_points",
+           "bev_cell_indices", "bev_max_pool", "bev_sum_pool", "count_parameters", "frustum_points",
            "lift_splat", "modality_masks", "project_depth_hint", "project_points", "train_step"]

@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from weatheralign import atomic
 from weatheralign.config import DetectConfig
-from weatheralign.detect.data import DetectionDataset, MixedSampler, collate, mixed_dataset
+from weatheralign.detect.data import DetectionDataset, collate
 from weatheralign.detect.evaluate import bootstrap_intervals, predictions_to_eval_boxes, score
 from weatheralign.detect.model import BEVFusionDetector, DetectorConfig, Modality, train_step
 from weatheralign.detect.types import SampleDetections
@@ -118,12 +118,6 @@ def train(model: BEVFusionDetector, dataset: Dataset, steps: int, lr: float, wei
     return history
 
 
-def mixed_training_set(weather: DetectionDataset, clean: DetectionDataset, weather_fraction: float,
-                       seed: int) -> tuple[Dataset, MixedSampler]:
-    """The paper's finetune mix (``weather_fraction`` weather samples, the rest clean), drawn by the loader."""
-    return mixed_dataset(weather, clean, weather_fraction, None, seed)
-
-
 def save_checkpoint(path: Path, model: BEVFusionDetector, meta: dict[str, Any]) -> None:
     """The model's weights and ``meta`` (fingerprint, history...) in one file, written atomically."""
     buf = io.BytesIO()
@@ -203,4 +197,4 @@ def detections_from_arrays(arrays: dict[str, np.ndarray]) -> list[SampleDetectio
 
 __all__ = ["EvalSet", "PAPER_TABLE2", "PAPER_TABLE3", "PAPER_WEATHER_OF", "detections_from_arrays",
            "detections_to_arrays", "detector_config", "eval_boxes", "evaluate", "load_checkpoint",
-           "mixed_training_set", "point_range", "predict", "resolve_device", "save_checkpoint", "train"]
+           "point_range", "predict", "resolve_device", "save_checkpoint", "train"]
