@@ -4,7 +4,9 @@
 (dataroot, sensors, content digest) and the condition's media (``<paths.data>/media/<condition>.json``, the media
 stage); plans the jobs (`weatheralign.simulate.plan`), maps one task per chunk of ``run.samples_per_task`` samples of a scene
 (`weatheralign.simulate.weather_copy.run_chunk` around the pure core `weatheralign.simulate.observe`) onto the Dask
-workers, completes the copy with hard links and tracks. Writes
+workers, completes the copy with hard links and tracks. An unaligned copy hard-links the LiDAR files of its aligned twin
+(``<condition>-aligned``, run first by dvc.yaml's matrix order) where the twin finished a sample with the same LiDAR
+fingerprint, and computes them otherwise: the LiDAR sees the condition's own media in both copies. Writes
 ``<paths.data>/simulate/<condition>-<aligned|unaligned>/`` (a complete nuScenes dataroot) and
 ``reports/simulate/<condition>-<aligned|unaligned>/metrics.json`` plus a side-by-side figure (clean vs weather: LiDAR
 BEV coloured by label, CAM_FRONT), also logged to an MLflow child run.
@@ -100,8 +102,9 @@ def simulate_flow(params: Params) -> dict:
         dataset = DatasetRef(str(src_root), world.version, world.content_digest)
         chunks = chunk_jobs(jobs, params.run.samples_per_task)
         t0 = time.time()
+        twin = None if cfg.aligned else params.paths.data / "simulate" / variant_name(cfg.condition, True)
         futures = [simulate_chunk_task.submit(dataset, out_root, chunk, world.sensors, options, run_digest,
-                                              cfg.jpeg_quality, cfg.sweeps) for chunk in chunks]
+                                              cfg.jpeg_quality, cfg.sweeps, twin) for chunk in chunks]
         outcomes = [o for chunk in gather(futures, f"simulate {name}: samples", params.run.show_progress,
                                           weights=[len(c) for c in chunks]) for o in chunk]
         elapsed = time.time() - t0

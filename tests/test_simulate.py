@@ -329,6 +329,54 @@ def test_the_nearest_sweeps_through_the_same_medium(world, tmp_path):
     assert not (tmp_path / compressed_extras_relpath(sweeps[-1]["filename"])).exists()
 
 
+def test_smallest_int_dtype_is_exact() -> None:
+    """Particle ids are 64-bit hashes: with -1 (no particle) beside them the dtype must stay an exact integer type
+    (numpy promotes int8 with uint64 to float64, which rounds ids above 2**53)."""
+    ids = np.array([-1, 4614232489362325784, 4614223693260915629], dtype=np.int64)
+    dtype = smallest_int_dtype(ids)
+    assert dtype.kind == "i" and np.array_equal(ids.astype(dtype).astype(np.int64), ids)
+    for values in ([-1, 5], [0, 300], [-1, 70000], [0, 2**40]):
+        a = np.array(values, dtype=np.int64)
+        dtype = smallest_int_dtype(a)
+        assert dtype.kind in "iu" and dtype.itemsize <= 8 and np.array_equal(a.astype(dtype).astype(np.int64), a)
+    assert smallest_int_dtype(np.array([0, 300])).itemsize == 2
+
+
+def test_unaligned_copy_takes_its_aligned_twins_lidar(world, tmp_path):
+    """The LiDAR sees the condition's own media in both copies: the unaligned copy hard-links its aligned twin's LiDAR
+    files (keyframe and sweep) and gets exactly what computing them gives (files, counts, re-projection errors,
+    images); a twin of another LiDAR fingerprint, or with a damaged file, is not used."""
+    tw, nusc, _, frame, airlight, sensors, _ = world
+    twin, alone, linked = tmp_path / "snow-aligned", tmp_path / "alone", tmp_path / "snow-unaligned"
+    run_sample(nusc, tw.dataroot, twin, _job(world, "snow", True), sensors, OPTIONS, RUN, sweeps=1)
+    job = _job(world, "snow", False)
+    rec_alone, _ = run_sample(nusc, tw.dataroot, alone, job, sensors, OPTIONS, RUN, sweeps=1)
+    rec_linked, _ = run_sample(nusc, tw.dataroot, linked, job, sensors, OPTIONS, RUN, sweeps=1, lidar_twin=twin)
+    assert rec_linked["lidar_from_twin"] and not rec_alone["lidar_from_twin"]
+    lidar_rels = [r for r in rec_alone["files"] if "LIDAR_TOP" in r]
+    assert len(lidar_rels) == 6  # keyframe and one sweep: scan, extras, weather record each
+    for rel in rec_alone["files"]:
+        assert (linked / rel).read_bytes() == (alone / rel).read_bytes(), rel
+    for rel in lidar_rels:
+        assert (linked / rel).samefile(twin / rel), rel
+    for key in ("counts", "sweep_counts", "reprojection_px", "reprojection_channels", "particles_rendered"):
+        assert rec_linked[key] == rec_alone[key], key
+    assert len(rec_alone["reprojection_px"]) >= 10
+    # another run fingerprint: the twin is not used
+    rec_other, _ = run_sample(nusc, tw.dataroot, tmp_path / "other", job, sensors, OPTIONS, "another-run", sweeps=1,
+                              lidar_twin=twin)
+    assert not rec_other["lidar_from_twin"]
+    # a damaged twin file: not used either, and the result is still the computed one
+    sweep_rel = next(r for r in lidar_rels if r.startswith("sweeps/") and r.endswith(".pcd.bin"))
+    damaged = (twin / sweep_rel).read_bytes()
+    (twin / sweep_rel).unlink()
+    (twin / sweep_rel).write_bytes(damaged[:-20])
+    again = tmp_path / "again"
+    rec_again, _ = run_sample(nusc, tw.dataroot, again, job, sensors, OPTIONS, RUN, sweeps=1, lidar_twin=twin)
+    assert not rec_again["lidar_from_twin"]
+    assert (again / sweep_rel).read_bytes() == (alone / sweep_rel).read_bytes()
+
+
 # ------------------------------------------------------------------------------------------------ mixed weather
 def test_fog_snow_lidar_is_the_composition_of_its_media(world):
     """fog_snow's LiDAR: fog's attenuation and backscatter plus the flakes' echoes in one response. With the field

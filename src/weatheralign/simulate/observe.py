@@ -11,7 +11,8 @@ How media compose (see `weatheralign.conditions`):
   fog) through `weatheralign.lidar.simulate_particles`, which adds the fog's extinction to every echo and lets the
   fog's backscatter compete with the strongest echo of each beam. The sensor is the dataset's `LidarModel`.
 - Cameras (`observe_camera`), each at its own timestamp and ego pose: one transmission per pixel, the fog's
-  ``exp(-α ℓ)`` times the unresolved particles' ``exp(-τ_u(ℓ))``, guided-filtered and composited with the scene's
+  ``exp(-α ℓ)`` times the unresolved particles' ``exp(-τ_u(ℓ))``, guided-filtered where the ray lengths are estimated
+  (real cameras' dense depth; an exact range map is used as it is) and composited with the scene's
   airlight in linear light in one compiled pass (`weatheralign.camera.fog.composite_image`); then the field's
   resolvable particles splatted with exposure streaks (`weatheralign.camera.splat`), pre-fogged by the same fog.
   Unaligned cameras see the media's twins (`SceneMedia.camera_alpha`, ``field.field(aligned=False)``).
@@ -45,7 +46,8 @@ COUNT_KEYS: tuple[str, ...] = (*(label.name for label in POINT_LABELS), "CLUTTER
 @dataclass(frozen=True)
 class ObserveOptions:
     """Rendering choices that are neither sensor nor medium: ``near_clip_m`` (no particle nearer to a camera [m]),
-    ``refine_transmission`` (guided-filter the camera transmission), ``threads`` (cameras in parallel)."""
+    ``refine_transmission`` (guided-filter the transmission of cameras whose ray lengths are estimated from the LiDAR;
+    an exact range map, as the synthetic world's, is used as it is), ``threads`` (cameras in parallel)."""
 
     near_clip_m: float = 0.5
     refine_transmission: bool = True
@@ -55,7 +57,9 @@ class ObserveOptions:
 @dataclass(frozen=True, eq=False)
 class LidarWeather:
     """A weather scan: ``scan`` (new points), per output point ``labels`` (`WeatherLabel`), ``particle_id`` (-1: none),
-    ``source_index`` (input row, -1: clutter), ``times`` (firing time [s]); ``counts`` per `COUNT_KEYS`."""
+    ``source_index`` (input row, -1: clutter), ``times`` (firing time [s]); ``counts`` per `COUNT_KEYS`;
+    ``stored_offsets``: the (N,) float32 firing times relative to ``scan.timestamp`` as a weather copy stores them,
+    where the scan was read back from one (None: computed here)."""
 
     scan: LidarScan
     labels: NDArray[np.uint8]
@@ -63,6 +67,14 @@ class LidarWeather:
     source_index: NDArray[np.int64]
     times: NDArray[np.float64]
     counts: dict[str, int]
+    stored_offsets: NDArray[np.float32] | None = None
+
+    def fire_times(self) -> NDArray[np.float64]:
+        """(N,) firing time [s] at the precision a weather copy stores it (a float32 offset from the scan's
+        timestamp), so a scan computed here and the same scan read back from a copy give the same times."""
+        ts = self.scan.timestamp
+        offsets = self.stored_offsets if self.stored_offsets is not None else (self.times - ts).astype(np.float32)
+        return ts + offsets.astype(np.float64)
 
 
 @dataclass(frozen=True, eq=False)
@@ -146,9 +158,10 @@ def observe_camera(image: NDArray[np.uint8], range_map: NDArray[np.float32], vie
         t_particles = profile.transmission(range_map)
         t = t_particles if t is None else t * t_particles
     a_lin = srgb_to_linear(np.asarray(airlight, dtype=np.float64))
+    refine = options.refine_transmission and view.range_path is None  # exact depth needs no edge-aware smoothing
     if fld is None:
-        return CameraWeather(composite_image(image, t, a_lin, options.refine_transmission), None, 0)
-    background = composite_image(image, t, a_lin, options.refine_transmission, encode=False)
+        return CameraWeather(composite_image(image, t, a_lin, refine), None, 0)
+    background = composite_image(image, t, a_lin, refine, encode=False)
     T_global_cam = view.T_global_cam
     v_rel = fld.velocity_array - np.asarray(ego_vel, dtype=np.float64)
     parts = materialize_for_camera(fld, view.K, view.width, view.height, T_global_cam, view.timestamp, look,
@@ -166,10 +179,12 @@ def observe_camera(image: NDArray[np.uint8], range_map: NDArray[np.float32], vie
 
 def observe(frame: Frame, images: dict[str, NDArray[np.uint8]], ranges: dict[str, NDArray[np.float32]],
             media: SceneMedia, sensors: SensorRig, airlight: NDArray,
-            options: ObserveOptions = ObserveOptions()) -> FrameWeather:
+            options: ObserveOptions = ObserveOptions(), lidar: LidarWeather | None = None) -> FrameWeather:
     """``frame`` through ``media``: its LiDAR scan and the cameras in ``images`` (decoded clear images, with their
     ray-length maps in ``ranges``), each through the media it sees; with particles, also the re-projection errors
-    [px] of the particles the LiDAR saw in every camera. Pure: reads and writes no file."""
+    [px] of the particles the LiDAR saw in every camera. ``lidar``: the LiDAR's weather scan when it is already known
+    (an unaligned copy's LiDAR is its aligned twin's: the LiDAR sees the condition's own media either way); computed
+    here when None. Pure: reads and writes no file."""
     missing = sorted(set(images) - set(sensors.cameras))
     if missing:
         raise ValueError(f"observe: no camera model for {missing} (the dataset's sensors have "
@@ -181,12 +196,12 @@ def observe(frame: Frame, images: dict[str, NDArray[np.uint8]], ranges: dict[str
                               sensors.cameras[channel], airlight, vel, options)
 
     with ThreadPoolExecutor(max_workers=max(1, options.threads)) as pool:
-        lidar_future = pool.submit(observe_lidar, frame.lidar, media, sensors.lidar)
+        lidar_future = pool.submit(observe_lidar, frame.lidar, media, sensors.lidar) if lidar is None else None
         cams = dict(zip(images, pool.map(one_camera, images)))
-        lidar = lidar_future.result()
+        lidar = lidar_future.result() if lidar_future is not None else lidar
     errors, channels = np.zeros(0), []
     if media.has_particles:
-        ids, times = lidar_particles(lidar.particle_id, lidar.times, lidar.labels, WeatherLabel.SCATTERED)
+        ids, times = lidar_particles(lidar.particle_id, lidar.fire_times(), lidar.labels, WeatherLabel.SCATTERED)
         rendered = [c.particles for c in cams.values() if c.particles is not None]
         check = reprojection_check(media.field.field(), ids, times, rendered, media.aligned, options.near_clip_m)
         errors, channels = check.error_px, check.channel

@@ -33,7 +33,7 @@ import json
 import os
 import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -42,12 +42,12 @@ from PIL import Image
 
 from weatheralign import atomic
 from weatheralign.camera.depth import camera_range_map
-from weatheralign.data.frame import Frame
+from weatheralign.data.frame import Frame, LidarScan
 from weatheralign.data.nuscenes import (compressed_extras_relpath, extras_relpath, load_frame, load_lidar,
                                         open_nuscenes_cached, read_point_extras, read_record_file)
 from weatheralign.data.errors import DataFormatError
 from weatheralign.lidar.labels import WeatherLabel
-from weatheralign.provenance import file_stamps, read_resume_record, write_resume_record
+from weatheralign.provenance import file_stamps, files_intact, read_resume_record, write_resume_record
 from weatheralign.sensors import SensorRig
 from weatheralign.simulate.media import SceneMedia
 from weatheralign.simulate.observe import COUNT_KEYS, FrameWeather, LidarWeather, ObserveOptions, observe, observe_lidar
@@ -72,7 +72,10 @@ def smallest_int_dtype(values: NDArray) -> np.dtype:
     """The smallest integer dtype holding every value of ``values`` exactly (int8 for an empty array)."""
     if values.size == 0:
         return np.dtype(np.int8)
-    return np.promote_types(np.min_scalar_type(int(values.min())), np.min_scalar_type(int(values.max())))
+    dtype = np.promote_types(np.min_scalar_type(int(values.min())), np.min_scalar_type(int(values.max())))
+    # a negative minimum with a maximum beyond int32 promotes (int8, uint64) to float64, which would round ids above
+    # 2**53: int64 holds every value of an int64 array exactly
+    return dtype if dtype.kind in "iu" else np.dtype(np.int64)
 
 
 def read_weather_record(root: Path, filename: str, num_points: int) -> NDArray:
@@ -112,6 +115,20 @@ def copy_fingerprint(run_digest: str, media: SceneMedia, sensors: SensorRig, air
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
 
+def lidar_fingerprint(run_digest: str, media: SceneMedia, sensors: SensorRig) -> str:
+    """16 hex digits over what changes a scene's LiDAR weather files: ``run_digest``, the media the LiDAR sees (the
+    condition, its fog level, the field the LiDAR observes, the particles' reflectivity) and the LiDAR model. Equal for
+    a condition's aligned and unaligned copies (the LiDAR sees the condition's own media in both), which is what lets
+    the unaligned copy take its twin's LiDAR files (`reusable_lidar`)."""
+    particles = media.condition.particles
+    blob = json.dumps({"run": run_digest, "condition": media.condition.name,
+                       "fog": [media.lidar_alpha, media.lidar_beta],
+                       "field": None if media.field is None else media.field.to_dict(),
+                       "reflectivity": None if particles is None else particles.lidar_reflectivity,
+                       "lidar": sensors.lidar.to_dict()}, sort_keys=True)
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
 def _sample_files(nusc, sample_token: str) -> tuple[str, list[str]]:
     sample = nusc.get("sample", sample_token)
     lidar = nusc.get("sample_data", sample["data"]["LIDAR_TOP"])["filename"]
@@ -137,10 +154,20 @@ def weather_sweeps(nusc, sample_token: str, sweeps: int) -> list[dict]:
     return sweep_records(nusc, sample_token)[-sweeps:] if sweeps > 0 else []
 
 
+def _weather_scans(nusc, sample_token: str, sweeps: int) -> list[str]:
+    """The scans the weather reaches: the keyframe's, then the ``sweeps`` nearest sweeps (oldest first)."""
+    lidar, _ = _sample_files(nusc, sample_token)
+    return [lidar] + [sd["filename"] for sd in weather_sweeps(nusc, sample_token, sweeps)]
+
+
+def _lidar_outputs(nusc, sample_token: str, sweeps: int = 0) -> list[str]:
+    """Per weather scan: the ``.pcd.bin``, its compressed per-point extras and its weather record."""
+    return [rel for f in _weather_scans(nusc, sample_token, sweeps)
+            for rel in (f, compressed_extras_relpath(f), weather_relpath(f))]
+
+
 def _outputs(nusc, sample_token: str, sweeps: int = 0) -> list[str]:
-    lidar, cams = _sample_files(nusc, sample_token)
-    scans = [lidar] + [sd["filename"] for sd in weather_sweeps(nusc, sample_token, sweeps)]
-    return [rel for f in scans for rel in (f, compressed_extras_relpath(f), weather_relpath(f))] + cams
+    return _lidar_outputs(nusc, sample_token, sweeps) + _sample_files(nusc, sample_token)[1]
 
 
 def progress_dir(out_root: Path) -> Path:
@@ -204,11 +231,53 @@ def write_scan(src_root: Path, out_root: Path, rel: str, lw: LidarWeather, times
         "source_index": lw.source_index.astype(smallest_int_dtype(lw.source_index))})
 
 
+def reusable_lidar(twin_root: Path, sample_token: str, fingerprint: str, relpaths: list[str]) -> dict | None:
+    """The resume record of ``sample_token`` in the weather copy at ``twin_root`` (the aligned twin of an unaligned
+    copy) if its LiDAR files were made with the LiDAR ``fingerprint`` (`lidar_fingerprint` + input stamps) and every
+    one of ``relpaths`` is there with its recorded size and SHA-256; None otherwise (the LiDAR is then computed)."""
+    path = _progress_file(twin_root, sample_token)
+    if not path.is_file():
+        return None
+    try:
+        record = json.loads(path.read_text())
+    except (json.JSONDecodeError, OSError):
+        return None
+    if not isinstance(record, dict) or record.get("lidar_fingerprint") != fingerprint:
+        return None
+    files = record.get("files")
+    if not isinstance(files, dict) or any(rel not in files for rel in relpaths):
+        return None
+    return record if files_intact(twin_root, {rel: files[rel] for rel in relpaths}) else None
+
+
+def read_lidar_weather(root: Path, rel: str, scan: LidarScan, counts: dict[str, int]) -> LidarWeather:
+    """The weather scan ``rel`` of the copy at ``root`` as `LidarWeather` (points, labels, particle ids, source rows
+    and the stored firing-time offsets), ``scan`` being its clear input (timestamp, poses) and ``counts`` its record's."""
+    path = Path(root) / rel
+    points = np.fromfile(path, dtype="<f4")
+    if points.size % 5:
+        raise DataFormatError(f"{path}: {points.size} float32 values; expected N x 5 (x, y, z, intensity, ring)")
+    points = points.reshape(-1, 5)
+    record = read_weather_record(root, rel, len(points))
+    extras = read_point_extras(root, rel)
+    if extras is None or "time_offset" not in (extras.dtype.names or ()) or len(extras) != len(points):
+        raise DataFormatError(f"{Path(root) / compressed_extras_relpath(rel)}: expected a time_offset per point of "
+                              f"{path}")
+    offsets = np.ascontiguousarray(extras["time_offset"], dtype=np.float32)
+    weather_scan = replace(scan, points=points, time_offsets=offsets if scan.time_offsets is not None else None,
+                           sweep_index=None if scan.sweep_index is None else np.zeros(len(points), np.int16))
+    return LidarWeather(weather_scan, record["label"].astype(np.uint8), record["particle_id"].astype(np.int64),
+                        record["source_index"].astype(np.int64), scan.timestamp + offsets.astype(np.float64),
+                        {k: int(counts.get(k, 0)) for k in COUNT_KEYS}, stored_offsets=offsets)
+
+
 def write_sample(src_root: Path, out_root: Path, nusc, sample_token: str, fw: FrameWeather, frame: Frame,
-                 jpeg_quality: int) -> None:
-    """Write one sample's weather files (atomically) at the input's relative paths."""
+                 jpeg_quality: int, lidar_written: bool = False) -> None:
+    """Write one sample's weather files (atomically) at the input's relative paths (the keyframe scan unless
+    ``lidar_written``)."""
     lidar_rel, _ = _sample_files(nusc, sample_token)
-    write_scan(src_root, out_root, lidar_rel, fw.lidar, frame.lidar.timestamp)
+    if not lidar_written:
+        write_scan(src_root, out_root, lidar_rel, fw.lidar, frame.lidar.timestamp)
     sample = nusc.get("sample", sample_token)
     for ch, view in frame.cameras.items():
         rel = nusc.get("sample_data", sample["data"][ch])["filename"]
@@ -222,12 +291,17 @@ def write_sample(src_root: Path, out_root: Path, nusc, sample_token: str, fw: Fr
 
 
 def run_sample(nusc, src_root: Path, out_root: Path, job: SampleJob, sensors: SensorRig, options: ObserveOptions,
-               run_digest: str, jpeg_quality: int = 92, sweeps: int = 0) -> tuple[dict, bool]:
+               run_digest: str, jpeg_quality: int = 92, sweeps: int = 0,
+               lidar_twin: Path | None = None) -> tuple[dict, bool]:
     """Simulate and write one sample (its keyframe, cameras and the ``sweeps`` nearest sweeps) unless an identical
     earlier run finished it. Returns (record, done_now).
 
+    ``lidar_twin``: for an unaligned copy, its aligned twin's root. The LiDAR sees the condition's own media in both
+    copies, so where the twin finished this sample with the same LiDAR fingerprint (`reusable_lidar`), its LiDAR files
+    are hard-linked instead of computed again (byte-identical to computing them; the cameras are rendered as always).
+
     The record holds the LiDAR counts (keyframe and sweeps apart), the particles rendered, the re-projection errors,
-    the bytes written and the wall and CPU seconds taken.
+    the bytes written, the wall and CPU seconds taken and the LiDAR fingerprint.
     """
     src_root, out_root = Path(src_root), Path(out_root)
     if src_root.resolve() == out_root.resolve():
@@ -239,25 +313,39 @@ def run_sample(nusc, src_root: Path, out_root: Path, job: SampleJob, sensors: Se
     if done is not None:
         return done, False
     t0, cpu0 = time.time(), time.process_time()
+    lidar_files = _lidar_outputs(nusc, token, sweeps)
+    lidar_fp = lidar_fingerprint(run_digest, job.media, sensors) + file_stamps(src_root, lidar_files)
+    twin = None
+    if lidar_twin is not None and not job.media.aligned:
+        twin = reusable_lidar(Path(lidar_twin), token, lidar_fp, lidar_files)
     frame = load_frame(nusc, token)
     exact = all(v.range_path is not None for v in frame.cameras.values())
     depth_lidar = frame.lidar if exact else load_lidar(nusc, nusc.get("sample", token)["data"]["LIDAR_TOP"],
                                                        DEPTH_SWEEPS)
     images = {ch: v.load_image() for ch, v in frame.cameras.items()}
     ranges = {ch: camera_range_map(v, depth_lidar, images[ch]) for ch, v in frame.cameras.items()}
-    fw = observe(frame, images, ranges, job.media, sensors, np.asarray(job.airlight), options)
-    write_sample(src_root, out_root, nusc, token, fw, frame, jpeg_quality)
-    sweep_counts = {k: 0 for k in COUNT_KEYS}
     sweep_list = weather_sweeps(nusc, token, sweeps)
-    for sd in sweep_list:  # the same media at each sweep's own time (LiDAR only)
-        scan = load_lidar(nusc, sd["token"])
-        lw = observe_lidar(scan, job.media, sensors.lidar)
-        write_scan(src_root, out_root, sd["filename"], lw, scan.timestamp)
-        for k, v in lw.counts.items():
-            sweep_counts[k] += v
+    if twin is not None:
+        keyframe = read_lidar_weather(Path(lidar_twin), _sample_files(nusc, token)[0], frame.lidar, twin["counts"])
+        for rel in lidar_files:  # an earlier run's file there is replaced atomically
+            link_or_copy(Path(lidar_twin) / rel, out_root / rel)
+        fw = observe(frame, images, ranges, job.media, sensors, np.asarray(job.airlight), options, lidar=keyframe)
+        write_sample(src_root, out_root, nusc, token, fw, frame, jpeg_quality, lidar_written=True)
+        sweep_counts = {k: int(twin["sweep_counts"].get(k, 0)) for k in COUNT_KEYS}
+    else:
+        fw = observe(frame, images, ranges, job.media, sensors, np.asarray(job.airlight), options)
+        write_sample(src_root, out_root, nusc, token, fw, frame, jpeg_quality)
+        sweep_counts = {k: 0 for k in COUNT_KEYS}
+        for sd in sweep_list:  # the same media at each sweep's own time (LiDAR only)
+            scan = load_lidar(nusc, sd["token"])
+            lw = observe_lidar(scan, job.media, sensors.lidar)
+            write_scan(src_root, out_root, sd["filename"], lw, scan.timestamp)
+            for k, v in lw.counts.items():
+                sweep_counts[k] += v
     outputs = _outputs(nusc, token, sweeps)
     record = write_resume_record(_progress_file(out_root, token), digest, out_root, outputs, {
-        "sample": token, "counts": fw.lidar.counts, "sweep_counts": sweep_counts,
+        "sample": token, "lidar_fingerprint": lidar_fp, "lidar_from_twin": twin is not None,
+        "counts": fw.lidar.counts, "sweep_counts": sweep_counts,
         "sweeps_simulated": len(sweep_list), "particles_rendered": fw.particles_rendered,
         "reprojection_px": [float(e) for e in fw.reprojection_px], "reprojection_channels": list(fw.reprojection_channels), "bytes_written": _bytes_written(out_root, outputs),
         "seconds": round(time.time() - t0, 3), "cpu_seconds": round(time.process_time() - cpu0, 3)})
@@ -285,12 +373,12 @@ class DatasetRef:
 
 def run_chunk(dataset: DatasetRef, out_root: Path, jobs: list[SampleJob], sensors: SensorRig,
               options: ObserveOptions, run_digest: str, jpeg_quality: int = 92, sweeps: int = 0,
-              ) -> list[tuple[dict, bool]]:
+              lidar_twin: Path | None = None) -> list[tuple[dict, bool]]:
     """`run_sample` for consecutive samples, the dataset opened once per process. Returns one (record, done_now)
     per job, in order."""
     nusc = open_nuscenes_cached(dataset.dataroot, dataset.version, dataset.content_digest)
     return [run_sample(nusc, Path(dataset.dataroot), out_root, job, sensors, options, run_digest, jpeg_quality,
-                       sweeps) for job in jobs]
+                       sweeps, lidar_twin) for job in jobs]
 
 
 def copy_outputs(nusc, sample_tokens: list[str], sweeps: int) -> set[str]:
@@ -370,6 +458,7 @@ def summarise(records: list[dict]) -> dict:
                                       + r.get("sweep_counts", {}).get("CLUTTER", 0) for r in records),
         "sweep_points_lost": sum(r.get("sweep_counts", {}).get("LOST", 0) for r in records),
         "sweeps_simulated": max((r.get("sweeps_simulated", 0) for r in records), default=0),
+        "lidar_samples_from_twin": sum(1 for r in records if r.get("lidar_from_twin")),
         "seconds_per_sample": round(float(np.mean([r["seconds"] for r in records])), 3) if records else None,
         "cpu_seconds_per_sample": round(float(np.mean([r.get("cpu_seconds", np.nan) for r in records])), 3)
         if records else None,
@@ -379,5 +468,6 @@ def summarise(records: list[dict]) -> dict:
 
 
 __all__ = ["DEPTH_SWEEPS", "JPEG_SUBSAMPLING", "WEATHER_MATERIAL", "DatasetRef", "copy_fingerprint", "copy_outputs",
-           "finalize_copy", "link_or_copy", "read_weather_record", "run_chunk", "run_sample", "smallest_int_dtype",
+           "finalize_copy", "lidar_fingerprint", "link_or_copy", "read_lidar_weather", "read_weather_record",
+           "reusable_lidar", "run_chunk", "run_sample", "smallest_int_dtype",
            "summarise", "sweep_records", "weather_relpath", "weather_sweeps", "write_sample", "write_scan"]
