@@ -366,6 +366,26 @@ def test_bootstrap_replicate_is_rescoring_renamed_samples():
         assert present_ci == pytest.approx([ref.map_present] * 2, abs=1e-12)
 
 
+def test_replicate_summary_equals_the_devkit_objects_path():
+    """`_summary` (the bootstrap's scorer, no devkit objects) gives exactly `_scores`' mAP, NDS and mAP-present (the
+    devkit's calc_ap / calc_tp / DetectionMetrics) on resampled draws, on draws missing classes, and on a model that
+    finds nothing."""
+    from weatheralign.detect.evaluate import _prepare, _scores, _summary, detection_config
+
+    rng = np.random.default_rng(21)
+    gt, T = random_world(rng, 30)
+    cfg = detection_config()
+    for pred in (noisy_predictions(gt, T, 4), noisy_predictions(gt, T, 5, noise=2.0),
+                 boxes_of({t: [] for t in gt.sample_tokens})):
+        prep = _prepare(gt, pred, cfg)
+        draws = [prep.pred_order, *np.random.default_rng(0).integers(0, 30, size=(25, 30)), np.array([0, 0, 1])]
+        for d in draws:
+            full = _scores(prep, d)
+            fast = _summary(prep, d)
+            assert fast[:2] == (full.map, full.nds)
+            assert fast[2] == full.map_present or (math.isnan(fast[2]) and math.isnan(full.map_present))
+
+
 def test_bootstrap_intervals_contain_estimate_are_seeded_and_shrink():
     rng = np.random.default_rng(4)
     small, T_small = random_world(rng, 20, prefix="a")
