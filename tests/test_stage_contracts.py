@@ -157,3 +157,50 @@ def test_noop_rerun_leaves_downstream_up_to_date(tmp_path: Path) -> None:
     (repo / "params.yaml").write_text(yaml.safe_dump(params))
     assert _dvc(repo, "repro", "-s", "world").returncode != 0
     assert not (repo / "data" / "manifests" / "world.json").exists()
+
+
+@pytest.mark.flow
+def test_your_own_dataset_through_dvc_repro_and_exp_run(tiny_world, tmp_path: Path) -> None:
+    """``world.source: nuscenes`` goes through the same stage graph: `dvc repro` and `dvc exp run -S ...` run the world
+    stage on a real-layout nuScenes dataroot (the tiny world without its extras, as a real dataset has none), its
+    output folder names the dataset instead of copying it, particles runs on the manifest, the dataset is untouched."""
+    import hashlib
+    import json
+
+    real = tmp_path / "my_nuscenes"
+    shutil.copytree(tiny_world.dataroot, real, ignore=shutil.ignore_patterns("extras", ".progress", ".weatheralign*"))
+    before = {str(p.relative_to(real)): hashlib.sha256(p.read_bytes()).hexdigest() for p in real.rglob("*")
+              if p.is_file()}
+    repo = tmp_path / "repo"
+    repo.mkdir()
+    for name in ("src", "flows", "tasks"):
+        shutil.copytree(REPO / name, repo / name, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
+    shutil.copy(REPO / "dvc.yaml", repo / "dvc.yaml")
+    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    params["tracking"]["enabled"] = False
+    params["run"]["show_progress"] = False
+    params["world"]["version"] = tiny_world.params.world.version
+    (repo / "params.yaml").write_text(yaml.safe_dump(params))
+    (repo / ".gitignore").write_text("/data\n/reports\n/mlflow.db\n/mlartifacts\n/.prefect\n")
+    for cmd in (["git", "init", "-q"], ["git", "config", "user.email", "t@t"], ["git", "config", "user.name", "t"]):
+        subprocess.run(cmd, cwd=repo, check=True)
+    assert _dvc(repo, "init", "-q").returncode == 0
+    subprocess.run(["git", "add", "-A"], cwd=repo, check=True)
+    subprocess.run(["git", "commit", "-q", "-m", "init"], cwd=repo, check=True)
+    own = ["-S", "world.source=nuscenes", "-S", f"world.nuscenes_dataroot={real}"]
+    run = _dvc(repo, "exp", "run", "-s", "world", *own)  # the README's route for a user's dataset
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-3000:]
+    manifest = json.loads((repo / "data" / "manifests" / "world.json").read_text())
+    assert Path(manifest["dataroot"]).resolve() == real.resolve() and manifest["source"] == "nuscenes"
+    pointer = json.loads((repo / "data" / "world" / "real-dataset.json").read_text())
+    assert Path(pointer["dataroot"]) == real.resolve()
+    assert not (repo / "data" / "world" / "samples").exists()  # pointed at, not copied
+    run = _dvc(repo, "repro", "-s", "particles")
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-3000:]
+    fields = json.loads((repo / "data" / "particles" / "fields.json").read_text())
+    assert sorted(f["scene"] for f in fields["snow"]) == sorted(manifest["scenes"])
+    status = _dvc(repo, "status", "world", "particles")
+    assert status.returncode == 0 and "changed" not in status.stdout, status.stdout
+    after = {str(p.relative_to(real)): hashlib.sha256(p.read_bytes()).hexdigest() for p in real.rglob("*")
+             if p.is_file()}
+    assert after == before
