@@ -119,25 +119,31 @@ def _dvc(repo: Path, *args: str) -> subprocess.CompletedProcess:
                           text=True, timeout=900, env=env)
 
 
+def _project_repo(repo: Path, params: dict) -> None:
+    """A git + DVC project at ``repo``: the code, dvc.yaml and ``params`` (tracking and progress bars off)."""
+    repo.mkdir()
+    for name in ("src", "flows", "tasks"):
+        shutil.copytree(REPO / name, repo / name, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
+    shutil.copy(REPO / "dvc.yaml", repo / "dvc.yaml")
+    params["tracking"]["enabled"] = False
+    params["run"]["show_progress"] = False
+    (repo / "params.yaml").write_text(yaml.safe_dump(params))
+    (repo / ".gitignore").write_text("/data\n/reports\n/mlflow.db\n/mlartifacts\n/.prefect\n")
+    for cmd in (["git", "init", "-q"], ["git", "config", "user.email", "t@t"], ["git", "config", "user.name", "t"]):
+        subprocess.run(cmd, cwd=repo, check=True)
+    assert _dvc(repo, "init", "-q").returncode == 0
+
+
 @pytest.mark.flow
 def test_noop_rerun_leaves_downstream_up_to_date(tmp_path: Path) -> None:
     """A forced rerun of `world` that renders nothing rewrites an identical manifest: `dvc status` stays clean for
     the stages after it (they read the manifest, not the world's run-time metrics). A changed world does not."""
     repo = tmp_path / "repo"
-    repo.mkdir()
-    for name in ("src", "flows", "tasks"):
-        shutil.copytree(REPO / name, repo / name, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
-    shutil.copy(REPO / "dvc.yaml", repo / "dvc.yaml")
     params = yaml.safe_load((REPO / "params.yaml").read_text())
-    params["tracking"]["enabled"] = False
-    params["run"]["show_progress"] = False
     params["world"].update({"num_train_scenes": 1, "num_val_scenes": 1, "samples_per_scene": 2,
                             "sweeps_per_sample": 0})
     params["world"]["camera"]["image_scale"] = 0.1
-    (repo / "params.yaml").write_text(yaml.safe_dump(params))
-    for cmd in (["git", "init", "-q"], ["git", "config", "user.email", "t@t"], ["git", "config", "user.name", "t"]):
-        subprocess.run(cmd, cwd=repo, check=True)
-    assert _dvc(repo, "init", "-q").returncode == 0
+    _project_repo(repo, params)
     run = _dvc(repo, "repro", "particles")
     assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-3000:]
     manifest = (repo / "data" / "manifests" / "world.json").read_bytes()
@@ -172,19 +178,9 @@ def test_your_own_dataset_through_dvc_repro_and_exp_run(tiny_world, tmp_path: Pa
     before = {str(p.relative_to(real)): hashlib.sha256(p.read_bytes()).hexdigest() for p in real.rglob("*")
               if p.is_file()}
     repo = tmp_path / "repo"
-    repo.mkdir()
-    for name in ("src", "flows", "tasks"):
-        shutil.copytree(REPO / name, repo / name, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
-    shutil.copy(REPO / "dvc.yaml", repo / "dvc.yaml")
     params = yaml.safe_load((REPO / "params.yaml").read_text())
-    params["tracking"]["enabled"] = False
-    params["run"]["show_progress"] = False
     params["world"]["version"] = tiny_world.params.world.version
-    (repo / "params.yaml").write_text(yaml.safe_dump(params))
-    (repo / ".gitignore").write_text("/data\n/reports\n/mlflow.db\n/mlartifacts\n/.prefect\n")
-    for cmd in (["git", "init", "-q"], ["git", "config", "user.email", "t@t"], ["git", "config", "user.name", "t"]):
-        subprocess.run(cmd, cwd=repo, check=True)
-    assert _dvc(repo, "init", "-q").returncode == 0
+    _project_repo(repo, params)
     subprocess.run(["git", "add", "-A"], cwd=repo, check=True)
     subprocess.run(["git", "commit", "-q", "-m", "init"], cwd=repo, check=True)
     own = ["-S", "world.source=nuscenes", "-S", f"world.nuscenes_dataroot={real}"]
