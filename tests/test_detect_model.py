@@ -393,3 +393,31 @@ def test_forward_backward_on_cuda() -> None:
     assert math.isfinite(record["total"])
     detections = model.detect(batch, score_threshold=0.0, max_per_sample=5)
     assert len(detections) == 2 and detections[0].boxes.shape == (5, 9)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_cuda_forward_equals_cpu() -> None:
+    """The GPU path computes the CPU model: the same weights and batch give the same head maps (TF32 off) in eval mode
+    and after one identical training step on each device."""
+    torch.backends.cuda.matmul.allow_tf32 = False
+    torch.backends.cudnn.allow_tf32 = False
+    torch.manual_seed(0)
+    cpu_model = BEVFusionDetector(SMALL)
+    gpu_model = BEVFusionDetector(SMALL)
+    gpu_model.load_state_dict(cpu_model.state_dict())
+    gpu_model = gpu_model.to("cuda")
+    batch = two_sample_batch()
+    for model in (cpu_model, gpu_model):
+        model.eval()
+    with torch.no_grad():
+        a, b = cpu_model(batch), gpu_model(batch.to(torch.device("cuda")))
+    for name in ("heatmap", "regression", "attributes"):
+        torch.testing.assert_close(getattr(b, name).cpu(), getattr(a, name), rtol=1e-4, atol=1e-4)
+    for model in (cpu_model, gpu_model):
+        model.train()
+    losses = []
+    for model, device in ((cpu_model, torch.device("cpu")), (gpu_model, torch.device("cuda"))):
+        optimizer = torch.optim.SGD(model.parameters(), lr=1e-3)
+        torch.manual_seed(1)  # the same modality-dropout draws on both devices
+        losses.append(train_step(model, batch.to(device), optimizer)["total"])
+    assert losses[0] == pytest.approx(losses[1], rel=1e-4)
