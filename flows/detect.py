@@ -16,11 +16,14 @@ matrix (``<paths.data>/simulate/<condition>-<aligned|unaligned>``), caches each 
 
 Every training and evaluation is an MLflow child run tagged ``model``, ``weather``, ``alignment``. Finished models
 (``<paths.data>/detect/models/<model>.pt``) and evaluations (``<paths.data>/detect/evals/``) are kept with the
-fingerprint of the code, params and input datasets: an interrupted run resumes after the last finished one.
+fingerprint of the code, params and the data each was made from (the cache keys of its training or evaluation split,
+which change with any file of it, and the model it started from): an interrupted run resumes after the last finished
+one, and a weather copy simulated again retrains and re-evaluates what used it.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 import time
 from pathlib import Path
@@ -42,8 +45,8 @@ from weatheralign.config import Params  # noqa: E402
 from weatheralign.data.errors import DataFormatError  # noqa: E402
 from weatheralign.data.nuscenes import open_nuscenes  # noqa: E402
 from weatheralign.detect import protocol  # noqa: E402
-from weatheralign.detect.data import (Augmentation, DetectionDataset, build_cache, load_cached_sample,  # noqa: E402
-                                      mixed_dataset, scene_split)
+from weatheralign.detect.data import (Augmentation, DetectionDataset, build_cache, cache_path,  # noqa: E402
+                                      load_cached_sample, mixed_dataset, scene_split)
 from weatheralign.detect.evaluate import (ego_positions, ground_truth, paired_difference,  # noqa: E402
                                           resistance_ability)
 from weatheralign.detect.figures import detections_bev_figure, learning_curve_figure  # noqa: E402
@@ -93,6 +96,7 @@ class DetectRun:
         self.evalsets: dict[str, protocol.EvalSet] = {}
         self.gt = ground_truth(self.nusc, self.tokens["val"])
         self.ego = ego_positions(self.nusc, self.tokens["val"])
+        self.model_fingerprints: dict[str, str] = {}
         self.curves: dict[str, list[dict[str, float]]] = {}
         self.train_seconds: dict[str, float] = {}
         self.losses: dict[str, list[float]] = {}
@@ -108,6 +112,13 @@ class DetectRun:
                                            self.out / "cache", self.cfg.image_size, self.params.simulate.sweeps,
                                            self.params.run.show_progress, self.params.run.max_workers)
         return self.caches[key]
+
+    def data_key(self, dataroot: str, split: str) -> str:
+        """The cache folder name of ``split`` of ``dataroot`` (`cache_path`: a digest over the size and mtime of every
+        file the samples read), computed without building the cache: what a finished model or evaluation was made
+        from, so that a weather copy simulated again is not mistaken for the one a checkpoint was trained on."""
+        return cache_path(self.roots[dataroot], self.version, self.tokens[split], self.out / "cache",
+                          self.cfg.image_size, self.params.simulate.sweeps).name
 
     def training_set(self, dataroot: str) -> DetectionDataset:
         return DetectionDataset(self.cache(dataroot, "train"), Augmentation(), seed=self.cfg.seed,
@@ -129,7 +140,11 @@ class DetectRun:
         dataroot's train split, or ``(weather, CLEAN)`` mixed at ``detect.mix_weather_fraction``; starting from
         model ``init`` (None: from scratch)."""
         path = self.out / "models" / f"{name}.pt"
-        fingerprint = f"{self.fingerprint}:{name}:{train_on}:{init}:{steps}:{lr}"
+        sources = train_on if isinstance(train_on, tuple) else (train_on,)
+        fingerprint = hashlib.sha256(json.dumps([
+            self.fingerprint, name, list(sources), [self.data_key(d, "train") for d in sources],
+            init, self.model_fingerprints.get(init) if init else None, steps, lr]).encode()).hexdigest()[:16]
+        self.model_fingerprints[name] = fingerprint
         if path.is_file():
             model, meta = protocol.load_checkpoint(path, self.model_config)
             if meta.get("fingerprint") == fingerprint:
@@ -191,7 +206,7 @@ class DetectRun:
         key = f"{model_name}/{dataroot}" + ("" if modality == "fused" else f"-{modality}")
         record_path = self.out / "evals" / f"{key}.json"
         det_path = self.out / "evals" / f"{key}.npz"
-        fingerprint = f"{self.fingerprint}:{model_name}:{modality}"
+        fingerprint = f"{self.model_fingerprints[model_name]}:{self.data_key(dataroot, 'val')}:{modality}"
         if record_path.is_file() and det_path.is_file():
             record = json.loads(record_path.read_text())
             if record.get("fingerprint") == fingerprint:

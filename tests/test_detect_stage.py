@@ -113,3 +113,27 @@ def test_rerun_resumes_without_training_or_evaluating(stage_run):
     assert {p: p.stat().st_mtime_ns for p in evals} == evals
     rerun = json.loads((reports / "detect" / "metrics.json").read_text())
     assert rerun["models"] == metrics["models"] and rerun["learning_curve"] == metrics["learning_curve"]
+
+
+def test_a_changed_weather_copy_retrains_what_used_it(stage_run):
+    """A weather copy simulated again (one train-split scan rewritten: new mtime) is not the data the finished models
+    were trained on: the models trained on it (and their evaluations) are redone; the pretrained model and the
+    finetune on the untouched unaligned copy are resumed."""
+    from weatheralign.detect.data import scene_split
+
+    _, data, _, _, run = stage_run
+    root = data / "simulate" / "snow-aligned"
+    version = next(p.name for p in root.iterdir() if p.is_dir() and (p / "sample.json").is_file())
+    nusc = open_nuscenes(root, version)
+    token = scene_split(nusc, root, version, "train")[0]
+    scan = root / nusc.get("sample_data", nusc.get("sample", token)["data"]["LIDAR_TOP"])["filename"]
+    models = data / "detect" / "models"
+    before = {p.name: p.stat().st_mtime_ns for p in models.glob("*.pt")}
+    content = scan.read_bytes()
+    scan.unlink()  # a hard link to the world's file: replace it by a file of its own, not the world's
+    scan.write_bytes(content)
+    again = run()
+    assert again.returncode == 0, again.stderr[-4000:]
+    after = {p.name: p.stat().st_mtime_ns for p in models.glob("*.pt")}
+    changed = {name for name in before if after[name] != before[name]}
+    assert changed == {"finetuned-snow.pt", "finetuned-snow-mix.pt"}
