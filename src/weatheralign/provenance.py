@@ -156,13 +156,19 @@ def read_resume_record(path: Path, fingerprint: str, root: Path) -> dict | None:
     """The record at ``path`` (`write_resume_record`) if it carries ``fingerprint`` and every file it lists is still
     under ``root`` with its recorded size and SHA-256; None otherwise (absent, unreadable, another fingerprint, a
     missing, truncated or replaced file): the job is done again."""
+    record = read_record_json(path)
+    if record is None or record.get("config") != fingerprint or not isinstance(record.get("files"), dict):
+        return None
+    return record if files_intact(root, record["files"]) else None
+
+
+def read_record_json(path: Path) -> dict | None:
+    """The JSON object of a resume record at ``path``; None if absent, unreadable or not an object."""
     path = Path(path)
     if not path.is_file():
         return None
     try:
         record = json.loads(path.read_text())
-    except json.JSONDecodeError:
+    except (json.JSONDecodeError, OSError):
         return None
-    if not isinstance(record, dict) or record.get("config") != fingerprint or not isinstance(record.get("files"), dict):
-        return None
-    return record if files_intact(root, record["files"]) else None
+    return record if isinstance(record, dict) else None

@@ -45,9 +45,10 @@ from weatheralign.camera.depth import camera_range_map
 from weatheralign.data.frame import Frame, LidarScan
 from weatheralign.data.nuscenes import (compressed_extras_relpath, extras_relpath, load_frame, load_lidar,
                                         open_nuscenes_cached, read_point_extras, read_record_file)
-from weatheralign.data.errors import DataFormatError
+from weatheralign.data.errors import DataFormatError, read_float32_records
 from weatheralign.lidar.labels import WeatherLabel
-from weatheralign.provenance import file_stamps, files_intact, read_resume_record, write_resume_record
+from weatheralign.provenance import (file_stamps, files_intact, read_record_json, read_resume_record,
+                                     write_resume_record)
 from weatheralign.sensors import SensorRig
 from weatheralign.simulate.media import SceneMedia
 from weatheralign.simulate.observe import COUNT_KEYS, FrameWeather, LidarWeather, ObserveOptions, observe, observe_lidar
@@ -235,14 +236,8 @@ def reusable_lidar(twin_root: Path, sample_token: str, fingerprint: str, relpath
     """The resume record of ``sample_token`` in the weather copy at ``twin_root`` (the aligned twin of an unaligned
     copy) if its LiDAR files were made with the LiDAR ``fingerprint`` (`lidar_fingerprint` + input stamps) and every
     one of ``relpaths`` is there with its recorded size and SHA-256; None otherwise (the LiDAR is then computed)."""
-    path = _progress_file(twin_root, sample_token)
-    if not path.is_file():
-        return None
-    try:
-        record = json.loads(path.read_text())
-    except (json.JSONDecodeError, OSError):
-        return None
-    if not isinstance(record, dict) or record.get("lidar_fingerprint") != fingerprint:
+    record = read_record_json(_progress_file(twin_root, sample_token))
+    if record is None or record.get("lidar_fingerprint") != fingerprint:
         return None
     files = record.get("files")
     if not isinstance(files, dict) or any(rel not in files for rel in relpaths):
@@ -254,10 +249,7 @@ def read_lidar_weather(root: Path, rel: str, scan: LidarScan, counts: dict[str, 
     """The weather scan ``rel`` of the copy at ``root`` as `LidarWeather` (points, labels, particle ids, source rows
     and the stored firing-time offsets), ``scan`` being its clear input (timestamp, poses) and ``counts`` its record's."""
     path = Path(root) / rel
-    points = np.fromfile(path, dtype="<f4")
-    if points.size % 5:
-        raise DataFormatError(f"{path}: {points.size} float32 values; expected N x 5 (x, y, z, intensity, ring)")
-    points = points.reshape(-1, 5)
+    points = read_float32_records(path, 5, "weather scan")
     record = read_weather_record(root, rel, len(points))
     extras = read_point_extras(root, rel)
     if extras is None or "time_offset" not in (extras.dtype.names or ()) or len(extras) != len(points):
