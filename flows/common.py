@@ -126,10 +126,11 @@ def threads_per_task(params: Params) -> int:
     return max(1, (os.cpu_count() or 2) // params.run.max_workers)
 
 
-def gather(futures: Iterable[PrefectFuture], desc: str, show: bool, on_result: Callable[[Any], None] | None = None,
-           weights: Sequence[int] | None = None) -> list[Any]:
+def gather(futures: Iterable[PrefectFuture], desc: str, show: bool,
+           on_result: Callable[[int, Any], None] | None = None, weights: Sequence[int] | None = None) -> list[Any]:
     """Results of mapped task futures in submission order, with a progress bar as they complete (advancing by each
-    task's ``weights`` entry, e.g. the samples of a chunk; 1 per task by default)."""
+    task's ``weights`` entry, e.g. the samples of a chunk; 1 per task by default); ``on_result(i, result)`` as the
+    i-th future completes."""
     futures = list(futures)
     order = {id(f): i for i, f in enumerate(futures)}
     results: list[Any] = [None] * len(futures)
@@ -140,6 +141,6 @@ def gather(futures: Iterable[PrefectFuture], desc: str, show: bool, on_result: C
             i = order[id(fut)]
             results[i] = value
             if on_result is not None:
-                on_result(value)
+                on_result(i, value)
             bar.update(steps[i])
     return results

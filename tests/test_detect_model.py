@@ -321,6 +321,29 @@ def test_modality_switches_each_branch_off() -> None:
         model(batch, "radar")
 
 
+def test_an_evaluation_during_training_leaves_the_training_unchanged() -> None:
+    """`protocol.train` runs ``on_step`` (the learning curve's evaluations) under a fork of the random generators:
+    random draws there (a data loader's base seed, say) must not change the trained weights."""
+    from weatheralign.detect import protocol
+
+    batch = two_sample_batch()
+    samples = [{"points": batch.points[batch.points[:, 0] == b, 1:], "images": (batch.images[b] * 255).to(torch.uint8),
+                "intrinsics": batch.intrinsics[b], "cam_to_lidar": batch.cam_to_lidar[b], "boxes": batch.boxes[b],
+                "labels": batch.labels[b], "attributes": batch.attributes[b], "token": batch.tokens[b],
+                "T_global_lidar": torch.eye(4, dtype=torch.float64)} for b in range(2)]
+
+    def trained(on_step) -> dict[str, torch.Tensor]:
+        torch.manual_seed(0)
+        model = BEVFusionDetector(replace(SMALL, modality_dropout=0.5))
+        protocol.train(model, samples, 4, 1e-3, 0.01, 1, 0, torch.device("cpu"), show_progress=False,
+                       on_step=on_step)
+        return model.state_dict()
+
+    quiet, drawing = trained(None), trained(lambda step, record: torch.rand(100))
+    assert all(torch.equal(quiet[k], drawing[k]) for k in quiet)
+    assert not all(torch.equal(quiet[k], v) for k, v in BEVFusionDetector(SMALL).state_dict().items())
+
+
 def test_modality_dropout_drops_one_branch_per_sample_in_training_only() -> None:
     torch.manual_seed(0)
     lidar, camera = modality_masks("fused", 1000, 1.0, True, "cpu")

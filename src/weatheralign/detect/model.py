@@ -155,17 +155,12 @@ def lidar_to_camera(cam_to_lidar: Tensor) -> Tensor:
     return torch.cat([rotation_t, -rotation_t @ cam_to_lidar[..., :3, 3:4]], dim=-1)
 
 
-def project_points(xyz: Tensor, batch_index: Tensor, intrinsics: Tensor, cam_to_lidar: Tensor) -> Tensor:
-    """Points (P, 3) [m] in their sample's LiDAR frame into every camera of that sample: (P, C, 3) (u, v [px],
-    camera depth z [m]); u, v are meaningless where z <= 0."""
-    batch_size, cameras = intrinsics.shape[:2]
-    projection = intrinsics.float() @ lidar_to_camera(cam_to_lidar.float())  # (B, C, 3, 4)
+def project_points(xyz: Tensor, intrinsics: Tensor, cam_to_lidar: Tensor) -> Tensor:
+    """Points (P, 3) [m] in one sample's LiDAR frame into each of its C cameras (intrinsics (C, 3, 3), camera ->
+    LiDAR (C, 4, 4)): (P, C, 3) homogeneous image coordinates (u z, v z, camera depth z [m])."""
+    projection = intrinsics.float() @ lidar_to_camera(cam_to_lidar.float())  # (C, 3, 4)
     homogeneous = torch.cat([xyz, torch.ones_like(xyz[:, :1])], dim=1)
-    projected = (homogeneous @ projection.reshape(-1, 4).T).view(-1, batch_size, cameras, 3)
-    projected = projected[torch.arange(len(xyz), device=xyz.device), batch_index]  # (P, C, 3)
-    depth = projected[..., 2]
-    uv = projected[..., :2] / depth.clamp_min(1e-6)[..., None]
-    return torch.cat([uv, depth[..., None]], dim=-1)
+    return (homogeneous @ projection.reshape(-1, 4).T).view(len(xyz), len(intrinsics), 3)
 
 
 def project_depth_hint(points: Tensor, intrinsics: Tensor, cam_to_lidar: Tensor, image_hw: tuple[int, int],
@@ -173,24 +168,28 @@ def project_depth_hint(points: Tensor, intrinsics: Tensor, cam_to_lidar: Tensor,
     """The projected-LiDAR depth hint at the image-feature resolution: (B, C, D + 1, h, w) with channel i < D the
     fraction of the points falling into feature cell (row, col) whose camera depth lies in bin i, channel D 1 where
     the cell has any point. ``points`` (P, 6) as in `DetectionBatch`; the image is ``image_hw`` pixels, the feature map
-    ``feature_hw`` cells of `IMAGE_STRIDE` pixels."""
+    ``feature_hw`` cells of `IMAGE_STRIDE` pixels. Each sample's points are projected into its own cameras only, and
+    only the (point, camera) pairs in the depth range go on (a point lies in front of one or two of six cameras)."""
     batch_size, cameras = intrinsics.shape[:2]
     (height, width), (h, w), bins = image_hw, feature_hw, depth.count
     with torch.no_grad():
         batch_index = points[:, 0].long()
-        projected = project_points(points[:, 1:4].float(), batch_index, intrinsics, cam_to_lidar)
-        u, v, z = projected.unbind(-1)
-        valid = ((z >= depth.min_m) & (z < depth.max_m) & (u >= -0.5) & (u < width - 0.5) & (v >= -0.5)
-                 & (v < height - 0.5))
-        col = torch.floor((u.clamp(-1.0, width) + 0.5) / IMAGE_STRIDE).long().clamp(0, w - 1)
-        row = torch.floor((v.clamp(-1.0, height) + 0.5) / IMAGE_STRIDE).long().clamp(0, h - 1)
-        camera = batch_index[:, None] * cameras + torch.arange(cameras, device=points.device)[None, :]
-        flat = ((camera * bins + depth.index_of(z)) * h + row) * w + col
-        dump = batch_size * cameras * bins * h * w
-        flat = torch.where(valid, flat, torch.full_like(flat, dump)).reshape(-1)
-        ones = torch.ones_like(flat, dtype=torch.float32)
-        counts = torch.zeros(dump + 1, device=points.device).index_add_(0, flat, ones)
-        counts = counts[:dump].view(batch_size, cameras, bins, h, w)
+        counts = torch.zeros(batch_size * cameras * bins * h * w, device=points.device)
+        for sample in range(batch_size):
+            rows = torch.nonzero(batch_index == sample).squeeze(1)
+            projected = project_points(points[rows, 1:4].float(), intrinsics[sample], cam_to_lidar[sample])
+            z = projected[..., 2]
+            point, camera = torch.nonzero((z >= depth.min_m) & (z < depth.max_m), as_tuple=True)
+            projected = projected[point, camera]
+            z = projected[:, 2]
+            u, v = projected[:, 0] / z, projected[:, 1] / z
+            valid = (u >= -0.5) & (u < width - 0.5) & (v >= -0.5) & (v < height - 0.5)
+            u, v, z, camera = u[valid], v[valid], z[valid], camera[valid]
+            col = torch.floor((u + 0.5) / IMAGE_STRIDE).long().clamp(0, w - 1)
+            row = torch.floor((v + 0.5) / IMAGE_STRIDE).long().clamp(0, h - 1)
+            flat = (((sample * cameras + camera) * bins + depth.index_of(z)) * h + row) * w + col
+            counts.index_add_(0, flat, torch.ones_like(z))
+        counts = counts.view(batch_size, cameras, bins, h, w)
         total = counts.sum(dim=2, keepdim=True)
         return torch.cat([counts / total.clamp_min(1.0), (total > 0).float()], dim=2)
 

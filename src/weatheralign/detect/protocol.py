@@ -9,6 +9,7 @@ labelled as the paper's, only to be printed beside ours.
 from __future__ import annotations
 
 import io
+import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,7 +23,7 @@ from tqdm import tqdm
 
 from weatheralign import atomic
 from weatheralign.config import DetectConfig
-from weatheralign.detect.data import DetectionDataset, collate
+from weatheralign.detect.data import Augmentation, DetectionDataset, collate, mixed_dataset
 from weatheralign.detect.evaluate import bootstrap_intervals, predictions_to_eval_boxes, score
 from weatheralign.detect.model import BEVFusionDetector, DetectorConfig, Modality, train_step
 from weatheralign.detect.types import SampleDetections
@@ -100,7 +101,8 @@ def train(model: BEVFusionDetector, dataset: Dataset, steps: int, lr: float, wei
           ) -> list[dict[str, float]]:
     """``steps`` steps of AdamW with a one-cycle LR (peak ``lr``, 30 % warm-up) on ``dataset`` (or the draws of
     ``sampler``), with a progress bar. Deterministic for a seed on the CPU. Returns each step's losses;
-    ``on_step(step, record)`` after each step (1-based)."""
+    ``on_step(step, record)`` after each step (1-based), under a fork of the random generators: what it draws (a
+    data loader's base seed, say) leaves the training unchanged, so a learning curve does not change the model."""
     torch.manual_seed(seed)
     model.to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=weight_decay)
@@ -113,8 +115,9 @@ def train(model: BEVFusionDetector, dataset: Dataset, steps: int, lr: float, wei
             history.append(record)
             bar.update()
             bar.set_postfix(loss=f"{record['total']:.3f}")
-            if on_step is not None:
-                on_step(step, record)
+            if on_step is not None:  # an evaluation there must not shift the training's random draws
+                with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
+                    on_step(step, record)
     return history
 
 
@@ -131,6 +134,72 @@ def load_checkpoint(path: Path, config: DetectorConfig) -> tuple[BEVFusionDetect
     model = BEVFusionDetector(config)
     model.load_state_dict(blob["state_dict"])
     return model, blob["meta"]
+
+
+@dataclass(frozen=True)
+class TrainJob:
+    """One training run that a worker process can do on its own (everything in it pickles): ``steps`` steps at peak
+    ``lr`` from the checkpoint ``init`` (None: from scratch, seeded) on the train cache ``caches[0]``, or on the
+    weather cache ``caches[0]`` mixed with the clean cache ``caches[1]`` at ``cfg.mix_weather_fraction``; the result
+    is written to ``out`` with ``fingerprint`` in its meta."""
+
+    name: str
+    caches: tuple[Path, ...]
+    init: Path | None
+    steps: int
+    lr: float
+    out: Path
+    fingerprint: str
+    cfg: DetectConfig
+    device: str = "cpu"
+    threads: int = 1
+
+
+def training_dataset(caches: Sequence[Path], cfg: DetectConfig) -> tuple[Dataset, Sampler | None]:
+    """The augmented train set of one cache folder, or of a weather cache mixed with a clean one (and its
+    sampler)."""
+    sets = [DetectionDataset(c, Augmentation(), seed=cfg.seed, point_range=point_range(cfg)) for c in caches]
+    if len(sets) == 1:
+        return sets[0], None
+    return mixed_dataset(sets[0], sets[1], cfg.mix_weather_fraction, None, cfg.seed)
+
+
+def run_train_job(job: TrainJob, show_progress: bool = False) -> dict[str, Any]:
+    """Do ``job`` (`TrainJob`) with ``job.threads`` torch threads; returns the checkpoint's meta (``fingerprint``,
+    ``losses`` per step, ``seconds``, ``steps``)."""
+    torch.set_num_threads(job.threads)
+    config = detector_config(job.cfg)
+    torch.manual_seed(job.cfg.seed)  # the initial weights: a function of the seed alone
+    model = load_checkpoint(job.init, config)[0] if job.init else BEVFusionDetector(config)
+    dataset, sampler = training_dataset(job.caches, job.cfg)
+    t0 = time.time()
+    history = train(model, dataset, job.steps, job.lr, job.cfg.weight_decay, job.cfg.batch_size, job.cfg.seed,
+                    resolve_device(job.device), sampler, f"detect: train {job.name}", show_progress)
+    meta = {"fingerprint": job.fingerprint, "curve": [], "losses": [round(h["total"], 5) for h in history],
+            "seconds": time.time() - t0, "steps": job.steps}
+    save_checkpoint(job.out, model, meta)
+    return meta
+
+
+@dataclass(frozen=True)
+class PredictJob:
+    """Detections of the model in ``checkpoint`` on the val cache ``cache`` with ``modality`` (pickles)."""
+
+    checkpoint: Path
+    cache: Path
+    modality: str
+    cfg: DetectConfig
+    device: str = "cpu"
+    threads: int = 1
+
+
+def run_predict_job(job: PredictJob) -> list[SampleDetections]:
+    """Do ``job`` (`PredictJob`) with ``job.threads`` torch threads."""
+    torch.set_num_threads(job.threads)
+    model = load_checkpoint(job.checkpoint, detector_config(job.cfg))[0]
+    dataset = DetectionDataset(job.cache, None, point_range=point_range(job.cfg), min_lidar_pts=0)
+    return predict(model, dataset, job.cfg.batch_size, resolve_device(job.device), job.cfg.score_threshold,
+                   job.cfg.max_detections, job.modality)
 
 
 # ---------------------------------------------------------------------------------------------------- evaluation
@@ -195,6 +264,7 @@ def detections_from_arrays(arrays: dict[str, np.ndarray]) -> list[SampleDetectio
                              arrays["attributes"][a:b]) for t, a, b in zip(arrays["tokens"], starts, ends)]
 
 
-__all__ = ["EvalSet", "PAPER_TABLE2", "PAPER_TABLE3", "PAPER_WEATHER_OF", "detections_from_arrays",
-           "detections_to_arrays", "detector_config", "eval_boxes", "evaluate", "load_checkpoint",
-           "point_range", "predict", "resolve_device", "save_checkpoint", "train"]
+__all__ = ["EvalSet", "PAPER_TABLE2", "PAPER_TABLE3", "PAPER_WEATHER_OF", "PredictJob", "TrainJob",
+           "detections_from_arrays", "detections_to_arrays", "detector_config", "eval_boxes", "evaluate",
+           "load_checkpoint", "point_range", "predict", "resolve_device", "run_predict_job", "run_train_job",
+           "save_checkpoint", "train", "training_dataset"]
