@@ -361,7 +361,7 @@ def modality_lines(metrics: dict[str, Any]) -> list[str]:
     """The modality ablation of the pretrained model on clean val, and what each sensor adds to the other (paired
     frame-bootstrap differences of mAP)."""
     ablation, differences = metrics["modality_ablation"], metrics["differences"]
-    parts = [f"{m} {_fmt(ablation[m], 'map')}" for m in ("fused", "lidar", "camera") if m in ablation]
+    parts = [f"{m} {_fmt(ablation[m], 'map')}" for m in ("fused", "lidar_only", "camera_only") if m in ablation]
     adds = []
     for other, sensor in (("lidar", "camera"), ("camera", "LiDAR")):
         d = differences.get(f"pretrained:clean:fused-{other}:map")
@@ -421,7 +421,7 @@ def detect_flow(params: Params) -> dict:
         for name, dataroot, modality in evaluations:
             if modality == "fused":
                 models.setdefault(name, {})[dataroot] = results[(name, dataroot, modality)]
-        ablation = {m: results[("pretrained", CLEAN, m)] for m in ("lidar", "camera")}
+        ablation = {f"{m}_only": results[("pretrained", CLEAN, m)] for m in ("lidar", "camera")}
         ablation["fused"] = models["pretrained"][CLEAN]
 
         for name, evals in models.items():

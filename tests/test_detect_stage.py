@@ -69,11 +69,11 @@ def test_metrics_layout_and_reports(stage_run):
             assert m["map_ci"][0] <= m["map"] + 1e-12 and m["map"] <= m["map_ci"][1] + 1e-12
             assert set(m["per_class_ap"]) == {"car", "truck", "bus", "trailer", "construction_vehicle", "pedestrian",
                                               "motorcycle", "bicycle", "traffic_cone", "barrier"}
-    assert set(metrics["modality_ablation"]) == {"fused", "lidar", "camera"}
+    assert set(metrics["modality_ablation"]) == {"fused", "lidar_only", "camera_only"}
     for other in ("lidar", "camera"):  # what each sensor adds: fused minus the other sensor alone, on clean val
         d = metrics["differences"][f"pretrained:clean:fused-{other}:map"]
         assert d["difference"] == pytest.approx(metrics["modality_ablation"]["fused"]["map"]
-                                                - metrics["modality_ablation"][other]["map"], abs=1e-12)
+                                                - metrics["modality_ablation"][f"{other}_only"]["map"], abs=1e-12)
     assert "Modality ablation" in (reports / "detect" / "table_alignment.md").read_text()
     assert [p["step"] for p in metrics["learning_curve"]] == [2, 4]
     for name in ("table_alignment.md", "table_finetune.md", "learning_curve.png", "predictions_bev.png"):

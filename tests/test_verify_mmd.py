@@ -1,0 +1,83 @@
+"""The MMD statistics of `verify` (weatheralign.verify.mmd): the unbiased estimator against a slow double loop and
+against the closed-form population MMD of two Gaussians, the median heuristic, permutation p-values that are
+calibrated under the null and small under a shift, and the paired difference test."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from weatheralign.verify.mmd import (gaussian_kernel, median_bandwidth, mmd2_unbiased, mmd_test,
+                                     paired_mmd_difference, standardise)
+
+
+def slow_mmd2(x: np.ndarray, y: np.ndarray, bandwidth: float) -> float:
+    def k(a, b):
+        return math.exp(-float(np.sum((a - b) ** 2)) / (2 * bandwidth ** 2))
+    m, n = len(x), len(y)
+    xx = sum(k(x[i], x[j]) for i in range(m) for j in range(m) if i != j) / (m * (m - 1))
+    yy = sum(k(y[i], y[j]) for i in range(n) for j in range(n) if i != j) / (n * (n - 1))
+    xy = sum(k(x[i], y[j]) for i in range(m) for j in range(n)) / (m * n)
+    return xx + yy - 2 * xy
+
+
+def test_unbiased_estimator_equals_the_double_loop() -> None:
+    rng = np.random.default_rng(0)
+    x, y = rng.normal(size=(9, 3)), rng.normal(0.5, 1.0, size=(12, 3))
+    K = gaussian_kernel(np.concatenate([x, y]), 1.3)
+    assert mmd2_unbiased(K, 9) == pytest.approx(slow_mmd2(x, y, 1.3), rel=1e-12)
+
+
+def test_estimator_mean_matches_the_closed_form_for_two_gaussians() -> None:
+    """X ~ N(0, s^2 I), Y ~ N(mu, s^2 I), kernel length l: MMD^2 = 2 c (1 - exp(-|mu|^2 / (2 (l^2 + 2 s^2)))) with
+    c = (l^2 / (l^2 + 2 s^2))^(d/2)."""
+    d, s, ell = 2, 1.0, 1.5
+    mu = np.array([0.8, 0.0])
+    c = (ell ** 2 / (ell ** 2 + 2 * s ** 2)) ** (d / 2)
+    exact = 2 * c * (1 - math.exp(-float(mu @ mu) / (2 * (ell ** 2 + 2 * s ** 2))))
+    rng = np.random.default_rng(1)
+    estimates = []
+    for _ in range(40):
+        x, y = rng.normal(0, s, (150, d)), rng.normal(mu, s, (150, d))
+        estimates.append(mmd2_unbiased(gaussian_kernel(np.concatenate([x, y]), ell), 150))
+    assert np.mean(estimates) == pytest.approx(exact, abs=3 * np.std(estimates) / math.sqrt(40))
+
+
+def test_median_heuristic_and_pooled_standardisation() -> None:
+    rng = np.random.default_rng(2)
+    z = rng.normal(size=(30, 4))
+    d = [np.linalg.norm(z[i] - z[j]) for i in range(30) for j in range(i + 1, 30)]
+    assert median_bandwidth(z) == pytest.approx(float(np.median(d)), rel=1e-12)
+    a, b = standardise(np.column_stack([np.arange(4.0), np.ones(4)]), np.column_stack([np.arange(4.0, 8.0), np.ones(4)]))
+    pooled = np.concatenate([a, b])
+    assert pooled[:, 0].mean() == pytest.approx(0.0) and pooled[:, 0].std() == pytest.approx(1.0)
+    assert (pooled[:, 1] == 0).all()  # a constant dimension stays 0
+    with pytest.raises(ValueError, match="NaN"):
+        standardise(np.array([[np.nan]]), np.zeros((2, 1)))
+
+
+def test_permutation_p_values_are_calibrated_under_the_null_and_small_under_a_shift() -> None:
+    rng = np.random.default_rng(3)
+    p_null = [mmd_test(rng.normal(size=(20, 3)), rng.normal(size=(20, 3)), permutations=200, resamples=0,
+                       seed=k).p_value for k in range(60)]
+    assert 0.0 <= np.mean(np.array(p_null) < 0.05) <= 0.15 and 0.35 < np.mean(p_null) < 0.65
+    shifted = mmd_test(rng.normal(size=(40, 3)), rng.normal(1.0, 1.0, (40, 3)), permutations=500, resamples=200)
+    assert shifted.p_value == pytest.approx(1 / 501) and shifted.ci[0] > 0 and shifted.ci[0] <= shifted.mmd2
+    x, y = rng.normal(size=(10, 2)), rng.normal(size=(10, 2))
+    assert mmd_test(x, y, 50, 20, seed=7) == mmd_test(x, y, 50, 20, seed=7)  # seeded: same result
+
+
+def test_paired_difference_finds_the_closer_set() -> None:
+    rng = np.random.default_rng(4)
+    reference = rng.normal(size=(40, 3))
+    close, far = rng.normal(size=(40, 3)), rng.normal(0.9, 1.0, (40, 3))
+    result = paired_mmd_difference(reference, close, far, permutations=300, resamples=200)
+    assert result.difference < 0 and result.mmd2_a < result.mmd2_b and result.p_value < 0.01
+    assert result.ci[1] < 0
+    twins = paired_mmd_difference(reference, rng.normal(size=(40, 3)), rng.normal(size=(40, 3)), permutations=300,
+                                  resamples=0)
+    assert twins.p_value > 0.05
+    with pytest.raises(ValueError, match="paired"):
+        paired_mmd_difference(reference, close, far[:-1])
