@@ -1,0 +1,114 @@
+"""Training the auxiliary weather classifier on fused inputs, its held-out accuracy and confusion matrix, the fused
+features it gives, and the sensitivity control's broken pairs (`verify`).
+
+Inputs are (N, 6, h, w) float32 stacks of `weatheralign.verify.features.fused_input`, one per frame and camera,
+labelled with class indices. The held-out frames are drawn per class (scikit-learn's stratified split) and never
+trained on; horizontal flips (all six channels together, so that the sensors stay registered) are the only
+augmentation. Deterministic for a seed on the CPU.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from numpy.typing import NDArray
+from sklearn.metrics import confusion_matrix
+from sklearn.model_selection import train_test_split
+
+from weatheralign.verify.features import FUSED_CHANNELS, LIDAR_CHANNELS, WeatherClassifier
+
+
+@dataclass(frozen=True)
+class ClassifierReport:
+    """Held-out ``accuracy``, ``confusion`` (C, C) counts (rows: true class, columns: predicted, in ``classes``
+    order), the held-out frame indices, and the last training loss."""
+
+    classes: tuple[str, ...]
+    accuracy: float
+    confusion: NDArray[np.int64]
+    held_out: NDArray[np.int64]
+    final_loss: float
+
+
+def _check(inputs: NDArray, labels: NDArray, classes: Sequence[str]) -> None:
+    if inputs.ndim != 4 or inputs.shape[1] != FUSED_CHANNELS:
+        raise ValueError(f"inputs must be (N, {FUSED_CHANNELS}, h, w) fused stacks, got {inputs.shape}")
+    if len(labels) != len(inputs) or labels.min(initial=0) < 0 or labels.max(initial=0) >= len(classes):
+        raise ValueError(f"labels must be {len(inputs)} class indices in 0..{len(classes) - 1}")
+
+
+def train_weather_classifier(inputs: NDArray, labels: NDArray, classes: Sequence[str], held_out_fraction: float = 0.25,
+                             steps: int = 300, batch_size: int = 32, lr: float = 3e-3, seed: int = 0,
+                             device: str = "cpu", width: int = 16, embedding: int = 64
+                             ) -> tuple[WeatherClassifier, ClassifierReport]:
+    """Train a `WeatherClassifier` on all frames but a stratified held-out share, report on the held-out ones."""
+    inputs, labels = np.asarray(inputs, dtype=np.float32), np.asarray(labels, dtype=np.int64)
+    _check(inputs, labels, classes)
+    index = np.arange(len(inputs))
+    train_idx, test_idx = train_test_split(index, test_size=held_out_fraction, random_state=seed, stratify=labels)
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    model = WeatherClassifier(len(classes), width, embedding).to(device)
+    optimizer = torch.optim.Adam(model.parameters(), lr=lr)
+    x = torch.from_numpy(inputs)
+    y = torch.from_numpy(labels)
+    loss = torch.zeros(())
+    model.train()
+    for _ in range(steps):
+        pick = torch.from_numpy(rng.choice(train_idx, size=min(batch_size, len(train_idx)), replace=False))
+        xb = x[pick]
+        flip = torch.from_numpy(rng.random(len(pick)) < 0.5)
+        xb = torch.where(flip[:, None, None, None], xb.flip(-1), xb)
+        loss = F.cross_entropy(model(xb.to(device)), y[pick].to(device))
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+    predicted = predict_classes(model, inputs[test_idx], device=device)
+    confusion = confusion_matrix(labels[test_idx], predicted, labels=np.arange(len(classes))).astype(np.int64)
+    accuracy = float(np.trace(confusion) / max(confusion.sum(), 1))
+    return model, ClassifierReport(tuple(classes), accuracy, confusion, np.sort(test_idx).astype(np.int64),
+                                   float(loss.detach()))
+
+
+@torch.no_grad()
+def _batches(model: WeatherClassifier, inputs: NDArray, fn: str, batch_size: int, device: str) -> NDArray:
+    model.eval()
+    out = [getattr(model, fn)(torch.from_numpy(np.asarray(inputs[i:i + batch_size], dtype=np.float32)).to(device))
+           for i in range(0, len(inputs), batch_size)]
+    return torch.cat(out).cpu().numpy()
+
+
+def predict_classes(model: WeatherClassifier, inputs: NDArray, batch_size: int = 64, device: str = "cpu"
+                    ) -> NDArray[np.int64]:
+    """(N,) predicted class indices of (N, 6, h, w) fused inputs."""
+    return _batches(model, inputs, "forward", batch_size, device).argmax(axis=1).astype(np.int64)
+
+
+def fused_features(model: WeatherClassifier, inputs: NDArray, batch_size: int = 64, device: str = "cpu"
+                   ) -> NDArray[np.float64]:
+    """(N, embedding) fused features (the classifier's penultimate layer) of (N, 6, h, w) fused inputs."""
+    return _batches(model, inputs, "embed", batch_size, device).astype(np.float64)
+
+
+def broken_pairs(inputs: NDArray, seed: int = 0) -> NDArray[np.float32]:
+    """The sensitivity control: every frame's camera channels with the LiDAR channels of another frame (a random
+    derangement), so each sensor's marginal is unchanged and only their alignment is broken. (N >= 2.)"""
+    n = len(inputs)
+    if n < 2:
+        raise ValueError("broken pairs need two frames or more")
+    rng = np.random.default_rng(seed)
+    partner = (np.arange(n) + rng.integers(1, n)) % n if n == 2 else rng.permutation(n)
+    while n > 2 and (partner == np.arange(n)).any():  # a derangement: nobody keeps its own LiDAR
+        fixed = np.flatnonzero(partner == np.arange(n))
+        other = rng.integers(0, n, len(fixed))
+        partner[fixed], partner[other] = partner[other], partner[fixed]
+    out = np.array(inputs, dtype=np.float32, copy=True)
+    out[:, FUSED_CHANNELS - LIDAR_CHANNELS:] = np.asarray(inputs)[partner, FUSED_CHANNELS - LIDAR_CHANNELS:]
+    return out
+
+
+__all__ = ["ClassifierReport", "broken_pairs", "fused_features", "predict_classes", "train_weather_classifier"]

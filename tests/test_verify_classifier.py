@@ -1,0 +1,57 @@
+"""Training the weather classifier on fused inputs (weatheralign.verify.classifier): held-out accuracy and confusion
+matrix on separable toy weather, seeded determinism, the fused features, and the control's broken pairs."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from weatheralign.verify.classifier import broken_pairs, fused_features, train_weather_classifier
+from weatheralign.verify.features import FUSED_CHANNELS
+
+
+def toy_weather(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Clear: a textured scene seen by both sensors; fog: its image washed towards grey and the far LiDAR returns gone;
+    snow: bright flakes in the image with LiDAR echoes on the same cells."""
+    rng = np.random.default_rng(seed)
+    x = np.zeros((n, FUSED_CHANNELS, 16, 16), np.float32)
+    labels = np.arange(n) % 3
+    for i in range(n):
+        scene = rng.uniform(0.1, 0.6, (3, 16, 16))
+        depth = rng.uniform(0.02, 0.5, (16, 16))
+        x[i, :3], x[i, 3], x[i, 5] = scene, depth, 1.0
+        if labels[i] == 1:
+            x[i, :3] = 0.3 * scene + 0.7 * 0.8
+            x[i, 3] = np.where(depth < 0.1, 0.0, depth)
+        elif labels[i] == 2:
+            for _ in range(6):
+                r, c = rng.integers(0, 16, 2)
+                x[i, :3, r, c], x[i, 3, r, c], x[i, 4, r, c] = 1.0, 0.8, 0.9
+    return x, labels
+
+
+def test_classifier_learns_toy_weather_and_reports_held_out_frames() -> None:
+    torch.set_num_threads(1)
+    x, y = toy_weather(240)
+    model, report = train_weather_classifier(x, y, ("clear", "fog", "snow"), steps=150, width=8, embedding=16)
+    assert report.accuracy > 0.9, report
+    assert report.confusion.shape == (3, 3) and report.confusion.sum() == len(report.held_out) == 60
+    assert (report.confusion.sum(axis=1) == 20).all()  # stratified: a quarter of every class held out
+    assert fused_features(model, x[:5]).shape == (5, 16)
+    _, again = train_weather_classifier(x, y, ("clear", "fog", "snow"), steps=150, width=8, embedding=16)
+    assert again.accuracy == report.accuracy and (again.confusion == report.confusion).all()
+    with pytest.raises(ValueError, match="labels"):
+        train_weather_classifier(x, y + 5, ("clear", "fog", "snow"), steps=1)
+
+
+def test_broken_pairs_keep_both_marginals_and_move_every_lidar() -> None:
+    x, _ = toy_weather(30, seed=1)
+    broken = broken_pairs(x, seed=3)
+    assert np.array_equal(broken[:, :3], x[:, :3])
+    lidar_rows = {x[i, 3:].tobytes(): i for i in range(len(x))}
+    partners = [lidar_rows[broken[i, 3:].tobytes()] for i in range(len(x))]
+    assert sorted(partners) == list(range(len(x))) and all(p != i for i, p in enumerate(partners))
+    assert np.array_equal(broken_pairs(x, seed=3), broken)
+    two = broken_pairs(x[:2])
+    assert np.array_equal(two[0, 3:], x[1, 3:]) and np.array_equal(two[1, 3:], x[0, 3:])
