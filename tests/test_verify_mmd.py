@@ -81,3 +81,16 @@ def test_paired_difference_finds_the_closer_set() -> None:
     assert twins.p_value > 0.05
     with pytest.raises(ValueError, match="paired"):
         paired_mmd_difference(reference, close, far[:-1])
+
+
+def test_figures_render(tmp_path) -> None:
+    from weatheralign.verify.figures import embedding_figure, permutation_figure
+
+    rng = np.random.default_rng(5)
+    sets = {"reference": rng.normal(size=(30, 5)), "aligned": rng.normal(size=(30, 5)),
+            "unaligned": rng.normal(0.8, 1.0, (30, 5))}
+    embedding_figure(sets, "snow: fused features").savefig(tmp_path / "pca.png")
+    tests = {k: mmd_test(sets["reference"], sets[k], permutations=200, resamples=0) for k in ("aligned", "unaligned")}
+    assert tests["unaligned"].p_value < tests["aligned"].p_value and len(tests["aligned"].null) == 200
+    permutation_figure(tests, "snow: MMD² against the reference").savefig(tmp_path / "perm.png")
+    assert (tmp_path / "pca.png").stat().st_size > 10_000 and (tmp_path / "perm.png").stat().st_size > 10_000

@@ -85,16 +85,20 @@ def mmd2_unbiased(K: NDArray, m: int) -> float:
     return float(_mmd2(np.asarray(K, dtype=np.float64), member)[0])
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class MmdTest:
-    """MMD^2 of x against y with its permutation p-value, frame-bootstrap interval and the kernel's length scale
-    (in standardised units)."""
+    """MMD^2 of x against y with its permutation p-value, frame-bootstrap interval, the kernel's length scale (in
+    standardised units) and the permuted statistics ``null`` (permutations,)."""
 
     mmd2: float
     p_value: float
     ci: tuple[float, float]
     bandwidth: float
-    permutations: int
+    null: NDArray[np.float64]
+
+    def __eq__(self, other: object) -> bool:
+        return (isinstance(other, MmdTest) and (self.mmd2, self.p_value, self.ci, self.bandwidth)
+                == (other.mmd2, other.p_value, other.ci, other.bandwidth) and np.array_equal(self.null, other.null))
 
 
 def mmd_test(x: NDArray, y: NDArray, permutations: int = 1000, resamples: int = 1000, seed: int = 0,
@@ -107,20 +111,21 @@ def mmd_test(x: NDArray, y: NDArray, permutations: int = 1000, resamples: int = 
     m, n = len(xs), len(ys)
     observed = mmd2_unbiased(K, m)
     rng = np.random.default_rng(seed)
-    exceed = 0
+    null = np.empty(permutations)
     for start in range(0, permutations, batch):
         rows = min(batch, permutations - start)
         member = np.zeros((rows, m + n))
         picks = np.argsort(rng.random((rows, m + n)), axis=1)[:, :m]
         np.put_along_axis(member, picks, 1.0, axis=1)
-        exceed += int((_mmd2(K, member) >= observed - 1e-15).sum())
+        null[start:start + rows] = _mmd2(K, member)
+    exceed = int((null >= observed - 1e-15).sum())
     stats = np.empty(resamples)
     for r in range(resamples):
         idx = np.concatenate([rng.integers(0, m, m), m + rng.integers(0, n, n)])
         stats[r] = mmd2_unbiased(K[np.ix_(idx, idx)], m)
     tail = (1.0 - confidence) / 2.0
     ci = (float(np.quantile(stats, tail)), float(np.quantile(stats, 1.0 - tail))) if resamples else (observed, observed)
-    return MmdTest(observed, (1 + exceed) / (1 + permutations), ci, bandwidth, permutations)
+    return MmdTest(observed, (1 + exceed) / (1 + permutations), ci, bandwidth, null)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,54 @@
+"""Figures of the fused-feature check (`verify`): the embeddings of reference / aligned / unaligned frames in a
+common 2-D PCA (scikit-learn), and a permutation histogram with the observed MMD^2."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
+from numpy.typing import NDArray  # noqa: E402
+from sklearn.decomposition import PCA  # noqa: E402
+
+from weatheralign.verify.mmd import MmdTest, standardise  # noqa: E402
+
+SET_COLOURS = {"reference": "black", "aligned": "tab:blue", "unaligned": "tab:orange", "control": "tab:red"}
+
+
+def embedding_figure(features: Mapping[str, NDArray], title: str) -> Figure:
+    """The feature sets (name -> (n, d)), standardised together, projected on the first two principal components of
+    their pool; one colour per set (`SET_COLOURS` where named)."""
+    names = list(features)
+    scaled = standardise(*[features[k] for k in names])
+    pca = PCA(n_components=2, random_state=0).fit(np.concatenate(scaled))
+    fig, ax = plt.subplots(figsize=(6, 5))
+    for name, z in zip(names, scaled):
+        xy = pca.transform(z)
+        ax.scatter(xy[:, 0], xy[:, 1], s=14, alpha=0.7, color=SET_COLOURS.get(name), label=f"{name} ({len(z)})",
+                   linewidths=0)
+    ratio = pca.explained_variance_ratio_
+    ax.set(xlabel=f"PC 1 ({ratio[0]:.0%} of the variance)", ylabel=f"PC 2 ({ratio[1]:.0%})", title=title)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def permutation_figure(tests: Mapping[str, MmdTest], title: str) -> Figure:
+    """One panel per test (name -> `MmdTest`): the permuted MMD^2 histogram and the observed value with its p-value."""
+    fig, axes = plt.subplots(1, len(tests), figsize=(4.5 * len(tests), 3.6), squeeze=False)
+    for ax, (name, test) in zip(axes[0], tests.items()):
+        ax.hist(test.null, bins=40, color="0.6", label=f"{len(test.null)} permutations")
+        ax.axvline(test.mmd2, color=SET_COLOURS.get(name, "tab:blue"), lw=2,
+                   label=f"observed {test.mmd2:.4f} (p = {test.p_value:.3g})")
+        ax.set(xlabel="MMD² (unbiased)", ylabel="count", title=name)
+        ax.legend(fontsize=7)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+__all__ = ["SET_COLOURS", "embedding_figure", "permutation_figure"]
