@@ -100,12 +100,9 @@ def broken_pairs(inputs: NDArray, seed: int = 0) -> NDArray[np.float32]:
     n = len(inputs)
     if n < 2:
         raise ValueError("broken pairs need two frames or more")
-    rng = np.random.default_rng(seed)
-    partner = (np.arange(n) + rng.integers(1, n)) % n if n == 2 else rng.permutation(n)
-    while n > 2 and (partner == np.arange(n)).any():  # a derangement: nobody keeps its own LiDAR
-        fixed = np.flatnonzero(partner == np.arange(n))
-        other = rng.integers(0, n, len(fixed))
-        partner[fixed], partner[other] = partner[other], partner[fixed]
+    order = np.random.default_rng(seed).permutation(n)
+    partner = np.empty(n, dtype=np.int64)
+    partner[order] = np.roll(order, -1)  # one random cycle through all frames: nobody keeps its own LiDAR
     out = np.array(inputs, dtype=np.float32, copy=True)
     out[:, FUSED_CHANNELS - LIDAR_CHANNELS:] = np.asarray(inputs)[partner, FUSED_CHANNELS - LIDAR_CHANNELS:]
     return out

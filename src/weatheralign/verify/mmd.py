@@ -85,6 +85,14 @@ def mmd2_unbiased(K: NDArray, m: int) -> float:
     return float(_mmd2(np.asarray(K, dtype=np.float64), member)[0])
 
 
+def percentile_interval(stats: NDArray, confidence: float, estimate: float) -> tuple[float, float]:
+    """The central ``confidence`` percentile interval of bootstrap ``stats``; ``(estimate, estimate)`` without any."""
+    if len(stats) == 0:
+        return estimate, estimate
+    tail = (1.0 - confidence) / 2.0
+    return float(np.quantile(stats, tail)), float(np.quantile(stats, 1.0 - tail))
+
+
 @dataclass(frozen=True, eq=False)
 class MmdTest:
     """MMD^2 of x against y with its permutation p-value, frame-bootstrap interval, the kernel's length scale (in
@@ -123,8 +131,7 @@ def mmd_test(x: NDArray, y: NDArray, permutations: int = 1000, resamples: int = 
     for r in range(resamples):
         idx = np.concatenate([rng.integers(0, m, m), m + rng.integers(0, n, n)])
         stats[r] = mmd2_unbiased(K[np.ix_(idx, idx)], m)
-    tail = (1.0 - confidence) / 2.0
-    ci = (float(np.quantile(stats, tail)), float(np.quantile(stats, 1.0 - tail))) if resamples else (observed, observed)
+    ci = percentile_interval(stats, confidence, observed)
     return MmdTest(observed, (1 + exceed) / (1 + permutations), ci, bandwidth, null)
 
 
@@ -154,13 +161,15 @@ def paired_mmd_difference(reference: NDArray, a: NDArray, b: NDArray, permutatio
     r, n = len(rs), len(as_)
     ref_idx = np.arange(r)
 
+    def to_reference(rows: NDArray, ref: NDArray = ref_idx) -> float:
+        pool = np.concatenate([ref, rows])
+        return mmd2_unbiased(K[np.ix_(pool, pool)], len(ref))
+
     def difference(a_idx: NDArray, b_idx: NDArray, ref: NDArray = ref_idx) -> float:
-        ia, ib = np.concatenate([ref, a_idx]), np.concatenate([ref, b_idx])
-        return (mmd2_unbiased(K[np.ix_(ia, ia)], len(ref)) - mmd2_unbiased(K[np.ix_(ib, ib)], len(ref)))
+        return to_reference(a_idx, ref) - to_reference(b_idx, ref)
 
     a_rows, b_rows = r + np.arange(n), r + n + np.arange(n)
-    mmd_a = mmd2_unbiased(K[np.ix_(np.r_[ref_idx, a_rows], np.r_[ref_idx, a_rows])], r)
-    mmd_b = mmd2_unbiased(K[np.ix_(np.r_[ref_idx, b_rows], np.r_[ref_idx, b_rows])], r)
+    mmd_a, mmd_b = to_reference(a_rows), to_reference(b_rows)
     observed = mmd_a - mmd_b
     rng = np.random.default_rng(seed)
     exceed = 0
@@ -172,10 +181,9 @@ def paired_mmd_difference(reference: NDArray, a: NDArray, b: NDArray, permutatio
     for k in range(resamples):
         pick, ref = rng.integers(0, n, n), rng.integers(0, r, r)
         stats[k] = difference(a_rows[pick], b_rows[pick], ref)
-    tail = (1.0 - confidence) / 2.0
-    ci = (float(np.quantile(stats, tail)), float(np.quantile(stats, 1.0 - tail))) if resamples else (observed, observed)
+    ci = percentile_interval(stats, confidence, observed)
     return PairedMmdDifference(mmd_a, mmd_b, observed, (1 + exceed) / (1 + permutations), ci, bandwidth)
 
 
 __all__ = ["MmdTest", "PairedMmdDifference", "gaussian_kernel", "median_bandwidth", "mmd2_unbiased", "mmd_test",
-           "paired_mmd_difference", "standardise"]
+           "paired_mmd_difference", "percentile_interval", "standardise"]
