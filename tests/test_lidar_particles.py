@@ -32,9 +32,11 @@ from weatheralign.lidar.particles import (
     ParticleLabel,
     auto_ratio_threshold,
     simulate_particle_list,
+    simulate_particle_scans,
     simulate_particles,
 )
 from weatheralign.lidar.pulse import hard_target_power
+from weatheralign.medium.fog import FogMedium
 from weatheralign.medium import (
     ExponentialSizeDistribution,
     ParticleField,
@@ -409,6 +411,64 @@ def test_thresholded_field_keeps_exactly_the_particles_above_each_shell_threshol
     dia = fld.materialize(pos.min(0) - 1e-6, pos.max(0) + 1e-6, res.stats["t_ref"])
     dmap = dict(zip(dia.ids.tolist(), dia.diameters.tolist()))
     assert all(dmap[i] < thr[k] for i, k in zip(ids.tolist(), shell.tolist()))
+
+
+
+def _later_scans(beams: Beams, n: int, dt: float = 0.05, speed: float = 10.0) -> list[Beams]:
+    """``beams`` and ``n - 1`` copies fired ``dt`` [s] apart each by a sensor moving at ``speed`` [m/s] along x."""
+    return [replace(beams, times=beams.times + k * dt, origins=beams.origins + [k * dt * speed, 0.0, 0.0])
+            for k in range(n)]
+
+
+@pytest.mark.parametrize("fog", [None, FogMedium(0.02, 0.002)])
+def test_joint_scans_equal_separate_runs_when_every_particle_is_resolved(fog):
+    beams, fld = _random_scene(3)
+    scans = _later_scans(beams, 3)
+    kw = dict(lidar=LIDAR, reflectivity=SNOW_REFLECTIVITY, ratio_threshold=0.0, attenuation=False, fog=fog)
+    joint = simulate_particle_scans(scans, fld, **kw)
+    assert len(joint) == 3
+    for scan, res in zip(scans, joint):
+        alone = simulate_particles(scan, fld, **kw)
+        np.testing.assert_array_equal(res.hits.beam, alone.hits.beam)
+        np.testing.assert_array_equal(res.hits.particle_id, alone.hits.particle_id)
+        np.testing.assert_allclose(res.hits.range, alone.hits.range, atol=1e-9)
+        np.testing.assert_array_equal(res.beam_label, alone.beam_label)
+        np.testing.assert_array_equal(res.beam_particle, alone.beam_particle)
+        np.testing.assert_array_equal(res.source_index, alone.source_index)
+        np.testing.assert_allclose(res.points, alone.points, atol=1e-5)
+        assert res.counts == alone.counts and res.stats["scans_joined"] == 3
+    # the scans saw different particles at their own times, and something happened in each
+    assert all(r.counts["SCATTERED"] + r.counts["CLUTTER"] > 0 for r in joint)
+    assert joint[0].hits.particle_id.tolist() != joint[2].hits.particle_id.tolist()
+
+
+def test_joint_scans_with_thresholds_resolve_each_scan_like_a_run_of_its_own():
+    beams, fld = _random_scene(4, n_beams=400)
+    scans = _later_scans(beams, 3)
+    kw = dict(lidar=LIDAR, reflectivity=SNOW_REFLECTIVITY, ratio_threshold=0.01)
+    joint = simulate_particle_scans(scans, fld, **kw)
+    for scan, res in zip(scans, joint):
+        alone = simulate_particles(scan, fld, **kw)
+        # the same particles on the same beams, but the joint run's shells (centred on all scans' origins, with
+        # thresholds for their wider spread) resolve more of the small ones, which the single run folds into the
+        # bulk extinction: the echoes agree, the faint attenuation of the other beams differs slightly
+        pairs = set(zip(res.hits.beam.tolist(), res.hits.particle_id.tolist()))
+        alone_pairs = set(zip(alone.hits.beam.tolist(), alone.hits.particle_id.tolist()))
+        assert len(pairs & alone_pairs) > 0.95 * len(alone_pairs) and len(pairs) >= len(alone_pairs)
+        scattered = res.beam_label == ParticleLabel.SCATTERED
+        assert scattered.sum() >= 40 and np.mean(scattered == (alone.beam_label == ParticleLabel.SCATTERED)) > 0.98
+        kept = (res.beam_label != ParticleLabel.NO_ECHO) & (alone.beam_label != ParticleLabel.NO_ECHO)
+        i_joint, i_alone = res.beam_intensity[kept & ~scattered], alone.beam_intensity[kept & ~scattered]
+        assert np.mean(np.abs(i_joint / i_alone - 1.0) > 0.05) < 0.02
+
+
+def test_joint_scans_must_come_from_one_sensor():
+    beams, fld = _random_scene(0, n_beams=20)
+    other = replace(beams, divergence=2 * beams.divergence)
+    with pytest.raises(ValueError, match="scan 1: beams of divergence"):
+        simulate_particle_scans([beams, other], fld, lidar=LIDAR, reflectivity=SNOW_REFLECTIVITY)
+    with pytest.raises(ValueError, match="no scans"):
+        simulate_particle_scans([], fld, lidar=LIDAR, reflectivity=SNOW_REFLECTIVITY)
 
 
 # ---------------------------------------------------------------------------------------------------- motion

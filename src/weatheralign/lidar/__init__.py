@@ -1,5 +1,5 @@
 """LiDAR observation of the weather medium: the shared pulse model, fog (`simulate_fog`) and snow / rain (alone or
-inside fog: `simulate_particles`), each one call on a `LidarScan` with the sensor's `weatheralign.sensors.LidarModel`
+inside fog: `simulate_particles`; a keyframe and its sweeps together: `simulate_particle_scans`), each one call on a `LidarScan` with the sensor's `weatheralign.sensors.LidarModel`
 (its description, `PulseSensor` and `IntensityModel` included, lives in `weatheralign.sensors`)."""
 
 from weatheralign.lidar.beams import Beams, beam_origins, beams_from_scan
@@ -14,7 +14,7 @@ from weatheralign.lidar.fog import (
     soft_target_response,
 )
 from weatheralign.lidar.labels import WeatherLabel
-from weatheralign.lidar.particles import ParticleLabel, ParticleResult, simulate_particles
+from weatheralign.lidar.particles import ParticleLabel, ParticleResult, simulate_particle_scans, simulate_particles
 from weatheralign.lidar.pulse import c_a_p0_from_intensity, hard_target_power, overlap
 
 __all__ = [
@@ -22,6 +22,7 @@ __all__ = [
     "ParticleLabel",
     "ParticleResult",
     "beams_from_scan",
+    "simulate_particle_scans",
     "simulate_particles",
     "REFERENCE_CODE_BETA",
     "FogLabel",

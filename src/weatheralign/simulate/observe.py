@@ -7,9 +7,10 @@ images, ray-length maps from `weatheralign.camera.depth.camera_range_map`) and w
 
 How media compose (see `weatheralign.conditions`):
 
-- LiDAR (`observe_lidar`): fog alone through `weatheralign.lidar.simulate_fog`; a particle field (with or without
-  fog) through `weatheralign.lidar.simulate_particles`, which adds the fog's extinction to every echo and lets the
-  fog's backscatter compete with the strongest echo of each beam. The sensor is the dataset's `LidarModel`.
+- LiDAR (`observe_lidar`, `observe_lidar_scans` for a keyframe and its sweeps): fog alone through
+  `weatheralign.lidar.simulate_fog`; a particle field (with or without fog) through
+  `weatheralign.lidar.simulate_particle_scans` (all scans at once), which adds the fog's extinction to every echo
+  and lets the fog's backscatter compete with the strongest echo of each beam. The sensor is the dataset's `LidarModel`.
 - Cameras (`observe_camera`), each at its own timestamp and ego pose: one transmission per pixel, the fog's
   ``exp(-α ℓ)`` times the unresolved particles' ``exp(-τ_u(ℓ))``, guided-filtered where the ray lengths are estimated
   (real cameras' dense depth; an exact range map is used as it is) and composited with the scene's
@@ -32,7 +33,7 @@ from weatheralign.camera.splat import (APPEARANCES, focal_px, materialize_for_ca
                                        unresolved_extinction_profile)
 from weatheralign.data.frame import CameraView, Frame, LidarScan
 from weatheralign.geometry import invert
-from weatheralign.lidar import simulate_fog, simulate_particles
+from weatheralign.lidar import simulate_fog, simulate_particle_scans
 from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel
 from weatheralign.medium.fog import FogMedium
 from weatheralign.metrics.reprojection import CameraParticles, lidar_particles, reprojection_check
@@ -107,19 +108,32 @@ class FrameWeather:
 
 def observe_lidar(scan: LidarScan, media: SceneMedia, lidar: LidarModel) -> LidarWeather:
     """``scan`` through the media the LiDAR sees (its fog level and/or the LiDAR's field ``field.field()``)."""
+    return observe_lidar_scans([scan], media, lidar)[0]
+
+
+def observe_lidar_scans(scans: list[LidarScan], media: SceneMedia, lidar: LidarModel) -> list[LidarWeather]:
+    """Several scans of the LiDAR (a keyframe and the sweeps before it, each at its own times) through the media it
+    sees: fog alone scan by scan; a particle field for all scans at once (`simulate_particle_scans`: each field cell
+    generated once for all of them)."""
     fog = FogMedium(media.lidar_alpha, media.lidar_beta) if media.lidar_alpha > 0.0 else None
     if media.field is None:
-        res = simulate_fog(scan, media.lidar_alpha, media.lidar_beta, lidar=lidar)
-        times = scan.point_times()[res.source_index]
-        counts = {k: int(res.counts.get(k, 0)) for k in COUNT_KEYS}
-        return LidarWeather(res.apply_to(scan), res.labels.astype(np.uint8), np.full(len(res.labels), -1, np.int64),
-                            res.source_index.astype(np.int64), times, counts)
+        return [_fog_weather(scan, media, lidar) for scan in scans]
     fld = media.field.field() if media.has_particles else None
-    res = simulate_particles(scan, fld, lidar=lidar, reflectivity=media.condition.particles.lidar_reflectivity,
-                             fog=fog)
+    results = simulate_particle_scans(scans, fld, lidar=lidar,
+                                      reflectivity=media.condition.particles.lidar_reflectivity, fog=fog)
+    return [LidarWeather(res.apply_to(scan), res.labels.astype(np.uint8), res.particle_id.astype(np.int64),
+                         res.source_index.astype(np.int64), res.times.astype(np.float64),
+                         {k: int(res.counts.get(k, 0)) for k in COUNT_KEYS})
+            for scan, res in zip(scans, results)]
+
+
+def _fog_weather(scan: LidarScan, media: SceneMedia, lidar: LidarModel) -> LidarWeather:
+    """``scan`` through the fog alone (`simulate_fog`)."""
+    res = simulate_fog(scan, media.lidar_alpha, media.lidar_beta, lidar=lidar)
+    times = scan.point_times()[res.source_index]
     counts = {k: int(res.counts.get(k, 0)) for k in COUNT_KEYS}
-    return LidarWeather(res.apply_to(scan), res.labels.astype(np.uint8), res.particle_id.astype(np.int64),
-                        res.source_index.astype(np.int64), res.times.astype(np.float64), counts)
+    return LidarWeather(res.apply_to(scan), res.labels.astype(np.uint8), np.full(len(res.labels), -1, np.int64),
+                        res.source_index.astype(np.int64), times, counts)
 
 
 # ------------------------------------------------------------------------------------------------ cameras

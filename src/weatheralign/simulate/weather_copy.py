@@ -51,7 +51,7 @@ from weatheralign.provenance import (file_stamps, files_intact, read_record_json
                                      write_resume_record)
 from weatheralign.sensors import SensorRig
 from weatheralign.simulate.media import SceneMedia
-from weatheralign.simulate.observe import COUNT_KEYS, FrameWeather, LidarWeather, ObserveOptions, observe, observe_lidar
+from weatheralign.simulate.observe import COUNT_KEYS, FrameWeather, LidarWeather, ObserveOptions, observe, observe_lidar_scans
 from weatheralign.simulate.plan import SampleJob
 
 WEATHER_MATERIAL = 255
@@ -324,13 +324,13 @@ def run_sample(nusc, src_root: Path, out_root: Path, job: SampleJob, sensors: Se
         fw = observe(frame, images, ranges, job.media, sensors, np.asarray(job.airlight), options, lidar=keyframe)
         write_sample(src_root, out_root, nusc, token, fw, frame, jpeg_quality, lidar_written=True)
         sweep_counts = {k: int(twin["sweep_counts"].get(k, 0)) for k in COUNT_KEYS}
-    else:
-        fw = observe(frame, images, ranges, job.media, sensors, np.asarray(job.airlight), options)
+    else:  # the keyframe and the sweeps through the same media at their own times, in one LiDAR run
+        sweep_scans = [load_lidar(nusc, sd["token"]) for sd in sweep_list]
+        keyframe, *sweep_weather = observe_lidar_scans([frame.lidar, *sweep_scans], job.media, sensors.lidar)
+        fw = observe(frame, images, ranges, job.media, sensors, np.asarray(job.airlight), options, lidar=keyframe)
         write_sample(src_root, out_root, nusc, token, fw, frame, jpeg_quality)
         sweep_counts = {k: 0 for k in COUNT_KEYS}
-        for sd in sweep_list:  # the same media at each sweep's own time (LiDAR only)
-            scan = load_lidar(nusc, sd["token"])
-            lw = observe_lidar(scan, job.media, sensors.lidar)
+        for sd, scan, lw in zip(sweep_list, sweep_scans, sweep_weather):
             write_scan(src_root, out_root, sd["filename"], lw, scan.timestamp)
             for k, v in lw.counts.items():
                 sweep_counts[k] += v

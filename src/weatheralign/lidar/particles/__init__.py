@@ -58,7 +58,8 @@ Labels: `weatheralign.lidar.labels.WeatherLabel` (``ParticleLabel`` here, ``FogL
 ATTENUATED, SCATTERED, LOST per point, and NO_ECHO for a beam without return that stays empty.
 
 Modules: `api` (this package's public names: `ParticleResult`, `simulate_particles` (with the optional fog),
-`simulate_particle_list`), `beam_index` (beam geometry set up once per scan: time slices, sorted beams, reach map;
+`simulate_particle_list`, `simulate_particle_scans`: several scans of one sensor through the field at once, each
+cell generated once for all of them), `beam_index` (beam geometry set up once per scan: time slices, sorted beams, reach map;
 range shells, reachable field cells; the drivers of the hit kernels), `kernels` (the numba kernels that index the
 beams and find the hits), `response` (the numba kernel of the per-beam response) and `records` (the typed records
 the kernels take).
@@ -79,6 +80,7 @@ from weatheralign.lidar.particles.api import (
     ParticleResult,
     auto_ratio_threshold,
     simulate_particle_list,
+    simulate_particle_scans,
     simulate_particles,
 )
 
@@ -98,5 +100,6 @@ __all__ = [
     "WeatherLabel",
     "auto_ratio_threshold",
     "simulate_particle_list",
+    "simulate_particle_scans",
     "simulate_particles",
 ]

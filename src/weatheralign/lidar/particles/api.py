@@ -166,7 +166,7 @@ class _Response(NamedTuple):
 
     outcome: BeamOutcome  # per beam (B,)
     ratios: F64  # (H,) occlusion ratio of each hit
-    n_sampled: int  # hits whose ratio was counted on the SAMPLE_GRID grid
+    n_sampled: int  # hits whose ratio was counted on the SAMPLE_GRID grid (of all scans of a joint run)
 
 
 def _respond(beams: Beams, hits: HitArrays, edges: F64, alphas: F64, opt: _Options) -> _Response:
@@ -428,8 +428,79 @@ def simulate_particles(
     Returns:
         `ParticleResult` in the scan's frame and intensity scale.
     """
-    beams, points, T_out, imax = _inputs(scan, lidar=lidar, T_global_lidar=T_global_lidar,
-                                         intensity_max=intensity_max, columns=columns, reconstruct=reconstruct)
+    return simulate_particle_scans(
+        [scan], field, lidar=lidar, reflectivity=reflectivity, fog=fog, ratio_threshold=ratio_threshold,
+        attenuation=attenuation, keep_tolerance=keep_tolerance, T_global_lidar=T_global_lidar,
+        intensity_max=intensity_max, columns=columns, reconstruct=reconstruct,
+        unresolved_extinction_factor=unresolved_extinction_factor, shell_ratio=shell_ratio, first_shell=first_shell,
+        max_particles_per_shell=max_particles_per_shell)[0]
+
+
+def _joined_beams(parts: list[Beams]) -> tuple[Beams, I64]:
+    """The beams of several scans of one sensor as one `Beams` (``point_index`` kept per scan) and the first beam of
+    each scan (S+1,)."""
+    first = parts[0]
+    for k, b in enumerate(parts[1:], start=1):
+        if b.divergence != first.divergence or b.max_range != first.max_range:
+            raise ValueError(f"scan {k}: beams of divergence {b.divergence} rad / max_range {b.max_range} m, but scan "
+                             f"0 has {first.divergence} rad / {first.max_range} m (one sensor expected)")
+    offsets = np.zeros(len(parts) + 1, dtype=np.int64)
+    np.cumsum([len(b) for b in parts], out=offsets[1:])
+    if len(parts) == 1:
+        return first, offsets
+
+    def cat(name: str) -> NDArray:
+        return np.concatenate([getattr(b, name) for b in parts])
+
+    return Beams(cat("origins"), cat("directions"), cat("times"), cat("lengths"), cat("has_return"),
+                 cat("intensity0"), cat("ring"), cat("point_index"), first.divergence, first.max_range), offsets
+
+
+def _scan_part(beams: Beams, b0: int, hits: HitArrays, response: _Response) -> tuple[HitArrays, _Response]:
+    """The hits and per-beam response of the beams ``b0 .. b0 + len(beams)`` of a joined run, re-indexed to them
+    (``n_sampled`` stays the joint run's)."""
+    h0, h1 = np.searchsorted(hits.beam, [b0, b0 + len(beams)])
+    part = HitArrays(hits.beam[h0:h1] - b0, *(a[h0:h1] for a in hits[1:]))
+    out = response.outcome
+    sl = slice(b0, b0 + len(beams))
+    dom = out.dom[sl]
+    outcome = BeamOutcome(out.state[sl], out.range[sl], out.intensity[sl], np.where(dom >= 0, dom - h0, -1))
+    return part, _Response(outcome, response.ratios[h0:h1], response.n_sampled)
+
+
+def simulate_particle_scans(
+    scans: list[LidarScan | Beams],
+    field: ParticleField | None,
+    *,
+    lidar: LidarModel,
+    reflectivity: float,
+    fog: FogMedium | None = None,
+    ratio_threshold: float | None = None,
+    attenuation: bool = True,
+    keep_tolerance: float = KEEP_TOLERANCE,
+    T_global_lidar: F64 | None = None,
+    intensity_max: float | None = None,
+    columns: object = "auto",
+    reconstruct: bool = True,
+    unresolved_extinction_factor: float = 0.25,
+    shell_ratio: float = SHELL_RATIO,
+    first_shell: float = FIRST_SHELL,
+    max_particles_per_shell: int = DEFAULT_MAX_PARTICLES,
+) -> list[ParticleResult]:
+    """`simulate_particles` on several scans of one sensor at once (a keyframe and the sweeps before it): the beams of
+    all scans are matched against the one ``field`` together, so each field cell is generated once for all of them
+    (the scans of a 20 Hz LiDAR 50 ms apart reach nearly the same cells). Each beam still meets the particles at its
+    own firing time, so a scan's result differs from `simulate_particles` on it alone only through the range shells'
+    resolution thresholds, which are set for the joint spread of beam origins (a little lower: more of the field is
+    resolved; with ``ratio_threshold=0`` the results are the same). One result per scan, in that scan's own frame
+    (``T_global_lidar``: one output frame for all) and intensity scale; ``stats`` are the joint run's, with the scan's
+    own beam counts. Arguments as in `simulate_particles`.
+    """
+    if not scans:
+        raise ValueError("simulate_particle_scans: no scans given")
+    inputs = [_inputs(s, lidar=lidar, T_global_lidar=T_global_lidar, intensity_max=intensity_max, columns=columns,
+                      reconstruct=reconstruct) for s in scans]
+    beams, offsets = _joined_beams([i[0] for i in inputs])
     opt = _Options.of(lidar, reflectivity, keep_tolerance)
     if ratio_threshold is None:
         ratio_threshold = auto_ratio_threshold(reflectivity)
@@ -439,18 +510,38 @@ def simulate_particles(
         raise ValueError(f"unresolved_extinction_factor = {unresolved_extinction_factor!r}; expected a value >= 0")
     if not (shell_ratio > 1.0 and first_shell > 0.0):
         raise ValueError(f"shell_ratio = {shell_ratio!r} must exceed 1 and first_shell = {first_shell!r} be > 0")
-    stats: dict = {"num_beams": len(beams), "num_beams_without_return": len(beams) - beams.num_returns,
-                   "ratio_threshold": float(ratio_threshold)}
+
+    def scan_stats(b: Beams) -> dict:
+        return {"num_beams": len(b), "num_beams_without_return": len(b) - b.num_returns,
+                "ratio_threshold": float(ratio_threshold), "scans_joined": len(scans)}
+
     fog_alpha = 0.0 if fog is None else fog.alpha
     empty = field is None or field.number_density() <= 0.0
     if len(beams) == 0 or (empty and fog_alpha <= 0.0):
-        return _identity(beams, points, imax, stats)
+        return [_identity(b, pts, imax, scan_stats(b)) for b, pts, _, imax in inputs]
     if empty:  # fog alone, through the same response: no hits, the fog's extinction everywhere
         hits = empty_hits()
         response = _respond(beams, hits, np.array([0.0, 1e300]), np.array([fog_alpha]), opt)
         _fog_backscatter(beams, response, fog, opt)
-        return _assemble(beams, points, T_out, imax, hits, response, stats)
+        joint: dict = {}
+    else:
+        hits, response, joint = _field_response(beams, field, opt, fog, float(ratio_threshold), attenuation,
+                                                unresolved_extinction_factor, shell_ratio, first_shell,
+                                                max_particles_per_shell)
+    results = []
+    for (b, pts, T_out, imax), b0 in zip(inputs, offsets[:-1]):
+        part_hits, part_response = _scan_part(b, int(b0), hits, response)
+        results.append(_assemble(b, pts, T_out, imax, part_hits, part_response, {**scan_stats(b), **joint}))
+    return results
 
+
+def _field_response(beams: Beams, field: ParticleField, opt: _Options, fog: FogMedium | None, ratio_threshold: float,
+                    attenuation: bool, unresolved_extinction_factor: float, shell_ratio: float, first_shell: float,
+                    max_particles_per_shell: int) -> tuple[HitArrays, _Response, dict]:
+    """The hits of the resolved particles of ``field`` on ``beams``, sorted by beam then range, the per-beam response
+    (with the unresolved particles' and the fog's extinction, and the fog's backscatter) and the run's diagnostics
+    (range shells, reference time, particles, origin spread)."""
+    fog_alpha = 0.0 if fog is None else fog.alpha
     index = index_beams(beams)
     vel = field.velocity_array
     speed = float(np.linalg.norm(vel))
@@ -484,9 +575,8 @@ def simulate_particles(
     response = _respond(beams, hits, edges, alphas, opt)
     if fog is not None and fog_alpha > 0.0:
         _fog_backscatter(beams, response, fog, opt)
-    stats.update({"shells": shells, "t_ref": index.t_ref, "particles": sum(s["particles"] for s in shells),
-                  "origin_spread": index.e_origin})
-    return _assemble(beams, points, T_out, imax, hits, response, stats)
+    return hits, response, {"shells": shells, "t_ref": index.t_ref, "particles": sum(x["particles"] for x in shells),
+                            "origin_spread": index.e_origin}
 
 
 def simulate_particle_list(
