@@ -35,10 +35,18 @@ def camera_mosaic(frame: Frame, width: int = 1800) -> NDArray[np.uint8]:
     return np.concatenate(rows, axis=0)
 
 
+def ego_forward_in_lidar(T_ego_lidar: NDArray) -> NDArray:
+    """(2,) unit direction in the LiDAR's x-y plane of the ego's forward axis (ego x) for the LiDAR -> ego transform
+    ``T_ego_lidar`` (4, 4): (1, 0) for an x-forward mount, (0, 1) for nuScenes' LIDAR_TOP (x right, y forward)."""
+    direction = np.asarray(T_ego_lidar, dtype=np.float64)[:3, :3].T @ np.array([1.0, 0.0, 0.0])
+    return direction[:2] / max(float(np.linalg.norm(direction[:2])), 1e-12)
+
+
 def bev_figure(frame: Frame, extent_m: float = 60.0, title: str = "",
                point_colour: NDArray | None = None, cmap: str = "viridis") -> Figure:
     """Bird's-eye view of the scan in the LiDAR frame (coloured by intensity unless ``point_colour`` (N,) is given)
-    with the annotation boxes outlined by class."""
+    with the annotation boxes outlined by class and an arrow along the ego's forward axis (the axes are the LiDAR's:
+    a real nuScenes LIDAR_TOP has x to the right and y forward)."""
     scan = frame.lidar
     p = scan.points
     colour = np.log1p(scan.intensity_255()) if point_colour is None else point_colour
@@ -55,12 +63,16 @@ def bev_figure(frame: Frame, extent_m: float = 60.0, title: str = "",
         ax.plot(local[:, 0], local[:, 1], color=CLASS_COLOURS.get(box.category, "k"), lw=1.2)
     for name, col in CLASS_COLOURS.items():
         ax.plot([], [], color=col, label=name.split(".", 1)[-1])
-    ax.legend(loc="upper right", fontsize=7)
     ax.set_xlim(-extent_m, extent_m)
     ax.set_ylim(-extent_m, extent_m)
     ax.set_aspect("equal")
-    ax.set_xlabel("x forward [m]")
-    ax.set_ylabel("y left [m]")
+    forward = ego_forward_in_lidar(scan.T_ego_lidar)
+    ax.annotate("", xy=tuple(0.25 * extent_m * forward), xytext=(0.0, 0.0),
+                arrowprops={"arrowstyle": "->", "color": "red", "lw": 2.0})
+    ax.plot([], [], color="red", lw=2.0, label="ego forward")
+    ax.legend(loc="upper right", fontsize=7)
+    ax.set_xlabel("x of LIDAR_TOP [m]")
+    ax.set_ylabel("y of LIDAR_TOP [m]")
     ax.set_title(title or f"LIDAR_TOP, {len(p):,} points")
     fig.tight_layout()
     return fig
