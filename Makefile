@@ -17,7 +17,7 @@ export PREFECT_LOGGING_LEVEL ?= WARNING
 export MLFLOW_TRACKING_URI ?= sqlite:///$(CURDIR)/mlflow.db
 export OMP_NUM_THREADS ?= 2
 
-.PHONY: setup reproduce test bench prefect-ui mlflow-ui clean-venv
+.PHONY: setup reproduce test bench prefect-ui serve mlflow-ui clean-venv
 
 setup: $(STAMP)
 
@@ -48,6 +48,10 @@ bench: setup
 
 prefect-ui: setup
 	$(VENV)/bin/prefect server start
+
+# deployments of the pipeline and of every stage, run from the UI of `make prefect-ui` (flows/serve.py)
+serve: setup
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(PY) -m flows.serve
 
 mlflow-ui: setup
 	$(VENV)/bin/mlflow ui --backend-store-uri "$(MLFLOW_TRACKING_URI)" --port 5000

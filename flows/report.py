@@ -1,0 +1,134 @@
+"""`report` stage: ``reports/summary.md`` and ``reports/summary.html`` (the same, one self-contained page).
+
+``python -m flows.report`` reads the stages' ``reports/<stage>/metrics.json`` (world, calibrate_fog, simulate,
+detect), the detect stage's Tables 2 and 3, the reference's sealed truth where the reference is synthetic, the
+figures the stages drew, and what each stage cost (wall time of its latest tracked MLflow run, disk of its outputs),
+and writes the summary (`weatheralign.report`). ``reports/report/metrics.json`` holds the findings with their
+intervals. A stage whose metrics are missing is an error naming the stage to run.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+from prefect import flow
+
+from flows.common import parse_stage_args, run_stage
+from tasks.tracking import STAGE_TAG, StageTracker, tracking_uri
+from weatheralign import atomic
+from weatheralign.config import Params
+from weatheralign.data.errors import read_json_file
+from weatheralign.report import StageCost, findings, markdown_to_html, summary_markdown
+
+STAGES_READ = ("world", "calibrate_fog", "simulate", "detect")
+"""Stages whose ``reports/<stage>/metrics.json`` the summary reads."""
+
+COST_STAGES: tuple[tuple[str, str | None], ...] = (
+    ("world", "world"), ("reference", "reference"), ("calibrate_fog", None), ("particles", None), ("media", None),
+    ("simulate", "simulate"), ("detect", "detect"))
+"""(stage, its folder under ``paths.data`` or None) in pipeline order, for the cost table."""
+
+FIGURES: tuple[tuple[str, str], ...] = (
+    ("A world sample: LiDAR BEV with boxes", "world/sample_bev.png"),
+    ("LiDAR intensity ECDFs: reference vs tuned simulation (dense fog)", "calibrate_fog/ecdf_dense.png"),
+    ("Every condition: LiDAR point labels and re-projection error", "simulate/summary.png"),
+    ("Snow, aligned: LiDAR BEV and CAM_FRONT", "simulate/snow-aligned/side_by_side.png"),
+    ("Fog (dense), aligned: LiDAR BEV and CAM_FRONT", "simulate/fog_dense-aligned/side_by_side.png"),
+    ("Detector learning curve (clean val)", "detect/learning_curve.png"),
+    ("Detector predictions in BEV", "detect/predictions_bev.png"),
+)
+"""(caption, path under ``paths.reports``) of the figures shown when present."""
+
+
+def disk_bytes(folder: Path, seen: set[tuple[int, int]]) -> int:
+    """Bytes of the regular files under ``folder`` not counted before (by device and inode, so hard links to files
+    of an earlier stage cost nothing); 0 for a missing folder."""
+    total = 0
+    for root, _, files in os.walk(folder):
+        for name in files:
+            st = os.lstat(os.path.join(root, name))
+            key = (st.st_dev, st.st_ino)
+            if key not in seen:
+                seen.add(key)
+                total += st.st_size
+    return total
+
+
+def stage_seconds(params: Params) -> dict[str, float]:
+    """Per stage tag, the wall seconds of its latest finished MLflow run (the simulate variants summed into
+    ``simulate``); empty when tracking is off or nothing was tracked."""
+    if not params.tracking.enabled:
+        return {}
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(tracking_uri=tracking_uri(params, Path.cwd()))
+    exp = client.get_experiment_by_name(params.tracking.experiment)
+    if exp is None:
+        return {}
+    latest: dict[str, float] = {}
+    for run in client.search_runs([exp.experiment_id], "attributes.status = 'FINISHED'", max_results=5000,
+                                  order_by=["attributes.start_time ASC"]):
+        stage = run.data.tags.get(STAGE_TAG)
+        if stage and "stage_seconds" in run.data.metrics:
+            latest[stage] = run.data.metrics["stage_seconds"]
+    out: dict[str, float] = {}
+    for stage, seconds in latest.items():
+        base = stage.split("/", 1)[0]
+        if stage == "simulate" and any(s.startswith("simulate/") for s in latest):
+            base = "simulate_summary"
+        out[base] = out.get(base, 0.0) + seconds
+    return out
+
+
+def run_costs(params: Params) -> list[StageCost]:
+    """Wall time and disk use per stage."""
+    seconds = stage_seconds(params)
+    seen: set[tuple[int, int]] = set()
+    costs = []
+    for stage, folder in COST_STAGES:
+        disk = disk_bytes(params.paths.data / folder, seen) if folder else None
+        costs.append(StageCost(stage, seconds.get(stage), disk))
+    return costs
+
+
+def read_inputs(params: Params) -> tuple[dict[str, dict[str, Any]], dict[str, Any] | None, list[str]]:
+    """The stages' metrics, the sealed truth (None unless the reference is synthetic) and the detect tables."""
+    reports = params.paths.reports
+    metrics = {s: read_json_file(reports / s / "metrics.json", f"run the stage {s} first (dvc repro {s})")
+               for s in STAGES_READ}
+    truth_path = params.paths.data / "reference" / "sealed_truth.json"
+    truth = read_json_file(truth_path, "") if truth_path.is_file() else None
+    tables = [(reports / "detect" / name).read_text() for name in ("table_alignment.md", "table_finetune.md")
+              if (reports / "detect" / name).is_file()]
+    return metrics, truth, tables
+
+
+@flow(name="report", log_prints=True)
+def report_flow(params: Params) -> dict:
+    """Write reports/summary.md, reports/summary.html and reports/report/metrics.json; returns the metrics."""
+    with StageTracker(params, "report") as tracker:
+        metrics, truth, tables = read_inputs(params)
+        reports = params.paths.reports
+        figures = {caption: path for caption, path in FIGURES if (reports / path).is_file()}
+        text = summary_markdown(metrics, truth, tables, figures, run_costs(params))
+        atomic.write_text(reports / "summary.md", text)
+        page = markdown_to_html(text, reports, "weatheralign: run summary")
+        atomic.write_text(reports / "summary.html", page)
+        found = findings(metrics["detect"])
+        out = {"findings": found, "findings_total": len(found),
+               "findings_exceeding_noise": sum("(exceeds the noise)" in f for f in found),
+               "figures": len(figures), "html_bytes": len(page.encode())}
+        tracker.log_artifact(reports / "summary.md")
+        tracker.log_artifact(reports / "summary.html")
+        tracker.finish(out)
+    return out
+
+
+def main(argv: list[str] | None = None) -> dict:
+    return run_stage(report_flow, parse_stage_args("report", argv), runner=None)
+
+
+if __name__ == "__main__":
+    main()

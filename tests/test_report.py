@@ -1,0 +1,113 @@
+"""The report: findings generated from the paired intervals, Table 1 / ReDAM tables from the metrics, a self-contained
+HTML page, and the stage end to end on the repository's committed reports."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+from pathlib import Path
+
+import pytest
+
+from weatheralign.data.errors import DataFormatError
+from weatheralign.report import (PAPER_TABLE1, StageCost, cost_table, findings, markdown_to_html, redam_table,
+                                 reprojection_table)
+
+REPO = Path(__file__).resolve().parents[1]
+REPORTS = REPO / "reports"
+
+
+def _diff(a: str, b: str, metric: str, d: float, lo: float, hi: float) -> dict:
+    return {"a": a, "b": b, "metric": metric, "difference": d, "ci": [lo, hi], "exceeds_noise": lo > 0 or hi < 0}
+
+
+def test_findings_are_generated_from_the_intervals_noise_exceeding_first():
+    detect = {"differences": {
+        "pretrained:snow:unaligned-aligned:map": _diff("pretrained/snow-unaligned", "pretrained/snow-aligned", "map",
+                                                       0.001, -0.002, 0.004),
+        "pretrained:clean:fused-lidar:map": _diff("pretrained/clean", "pretrained/clean-lidar", "map",
+                                                  0.049, 0.032, 0.067),
+        "finetuned-rain-mix-vs-pretrained:clean:nds": _diff("finetuned-rain-mix/clean", "pretrained/clean", "nds",
+                                                            -0.03, -0.05, -0.01),
+        "something:new": _diff("m/x", "m/y", "map", 0.5, 0.4, 0.6)}}
+    out = findings(detect)
+    assert out[0] == "The camera adds to the LiDAR-only detector's clean mAP +0.049 [+0.032, +0.067] (exceeds the noise)"
+    assert out[1] == "Finetuning on the rain mix changes the clean NDS by -0.030 [-0.050, -0.010] (exceeds the noise)"
+    assert out[2] == "Map of m/x minus m/y: +0.500 [+0.400, +0.600] (exceeds the noise)"  # unknown key: generic
+    assert out[3].startswith("Evaluating the pretrained detector on unaligned instead of aligned snow changes its mAP "
+                             "by +0.001") and out[3].endswith("(within the noise)")
+    assert findings({}) == []
+
+
+def test_redam_table_reports_the_error_against_the_hidden_truth():
+    level = {"alpha": 0.011, "beta": 1e-4, "ks": 0.02, "ks_ci_low": 0.01, "ks_ci_high": 0.05, "kid": 0.03,
+             "camera_visibility_ratio": 0.9}
+    table = redam_table({"light": level, "kid_backbone": "x"}, {"light": {"alpha": 0.010, "beta": 2e-4}})
+    row = table.splitlines()[2]
+    assert row.startswith("| light | 0.011 | 0.01 | +10.0% |") and "0.0200 [0.0100, 0.0500]" in row
+    assert len(table.splitlines()) == 3  # the non-level entry is skipped
+    assert "| — |" in redam_table({"light": level}, None)  # real data: no hidden truth
+
+
+def test_reprojection_table_shows_the_papers_figures_beside_aligned_snow_and_rain():
+    m = {"points_unchanged": 10, "points_attenuated": 80, "points_scattered": 8, "points_lost": 2,
+         "reprojection_mean_px": 0.0003, "reprojection_max_px": 0.009, "reprojection_pairs": 5}
+    table = reprojection_table({"snow-aligned": m, "snow-unaligned": m, "fog_light-aligned": {**m,
+                                                                                              "reprojection_pairs": 0}})
+    rows = table.splitlines()[2:]
+    assert rows[0] == (f"| snow-aligned | 0.0003 | 0.0090 | 5 | 2.00% | 8.00% | "
+                       f"{PAPER_TABLE1['reprojection_mean_px']['snow']} / {PAPER_TABLE1['reprojection_max_px']['snow']} |")
+    assert rows[1].endswith("| — |") and rows[2].startswith("| fog_light-aligned | — | — | 0 |")
+
+
+def test_cost_table_totals():
+    table = cost_table([StageCost("world", 360.0, 11_000_000_000), StageCost("media", None, None)])
+    assert "| world | 6.0 min | 11.00 GB |" in table and "| media | — | — |" in table
+    assert table.splitlines()[-1] == "| **total** | 6.0 min | 11.00 GB |"
+
+
+def test_html_page_is_self_contained(tmp_path: Path):
+    png = REPORTS / "detect" / "learning_curve.png"
+    if not png.is_file():
+        pytest.skip("no committed figure")
+    shutil.copy(png, tmp_path / "curve.png")
+    text = "# T\n\n| a | b |\n| --- | ---: |\n| x | 1 |\n\n![curve](curve.png)\n\n![gone](missing.png)\n"
+    page = markdown_to_html(text, tmp_path, "t")
+    assert "<table>" in page and "<td>x</td>" in page
+    assert page.count("data:image/png;base64,") == 1 and "[figure missing: missing.png]" in page
+    assert not re.search(r"""(src|href)=["']?(https?:)?//""", page)  # nothing from the network
+    assert "<script" not in page
+
+
+@pytest.mark.skipif(not (REPORTS / "detect" / "metrics.json").is_file(), reason="no committed reports")
+def test_report_stage_on_the_committed_reports(tmp_path: Path):
+    from tests.conftest import tiny_params
+    from flows.report import report_flow
+
+    reports = tmp_path / "reports"
+    for stage in ("world", "calibrate_fog", "simulate", "detect"):
+        shutil.copytree(REPORTS / stage, reports / stage)
+    data = tmp_path / "data"
+    (data / "reference").mkdir(parents=True)
+    (data / "reference" / "sealed_truth.json").write_text(json.dumps({"dense": {"alpha": 0.05, "beta": 5e-4}}))
+    (data / "world").mkdir()
+    (data / "world" / "a.bin").write_bytes(b"x" * 1000)
+    (data / "simulate").mkdir()
+    (data / "simulate" / "a.bin").hardlink_to(data / "world" / "a.bin")  # a hard link costs nothing twice
+    params = tiny_params(data).model_copy(update={"paths": tiny_params(data).paths.model_copy(
+        update={"reports": reports})})
+    out = report_flow.fn(params)
+    text = (reports / "summary.md").read_text()
+    for heading in ("## Findings", "## Table 1", "## ReDAM", "Table 2", "Table 3", "## What the run cost"):
+        assert heading in text
+    assert out["findings_total"] == len(json.loads((REPORTS / "detect" / "metrics.json").read_text())["differences"])
+    assert "| world | — | 0.00 GB |" in text and "| simulate | — | 0.00 GB |" in text  # 1000 bytes, counted once
+    dense = json.loads((REPORTS / "calibrate_fog" / "metrics.json").read_text())["dense"]["alpha"]
+    assert f"{dense / 0.05 - 1:+.1%}" in text
+    page = (reports / "summary.html").read_text()
+    assert page.count("data:image/png;base64,") == out["figures"] >= 4
+    assert json.loads((reports / "report" / "metrics.json").read_text())["findings"] == out["findings"]
+    shutil.rmtree(reports / "detect")
+    with pytest.raises(DataFormatError, match=r"detect/metrics.json: missing; run the stage detect first"):
+        report_flow.fn(params)
