@@ -149,7 +149,7 @@ def summary_markdown(metrics: dict[str, dict[str, Any]], truth: dict[str, Any] |
               "the synthetic reference, the hidden levels it was tuned blind to are beside.", "",
               redam_table(metrics.get("calibrate_fog", {}), truth), ""]
     for table in detect_tables:
-        parts += [table.replace("\n# ", "\n## ").replace("# ", "## ", 1) if table.startswith("# ") else table, ""]
+        parts += [re.sub(r"^(#+) ", r"#\1 ", table, flags=re.MULTILINE), ""]  # one level below the summary
     parts += ["## Figures", ""]
     parts += [f"![{caption}]({path})\n\n*{caption}*\n" for caption, path in figures.items()]
     parts += ["## What the run cost", "", "Wall time of each stage's latest tracked run (MLflow) and the disk its "
