@@ -41,6 +41,13 @@ reproduce: setup
 	  $(PY) -m flows.api_server dvc repro
 
 test: setup
+	@# the report's HTML page is checked in a real headless browser: Debian's chromium
+	@if ! command -v chromium >/dev/null 2>&1; then \
+	  echo "[test] installing Debian chromium (the report page's browser test)"; \
+	  if [ "$$(id -u)" = 0 ]; then apt-get update -qq && apt-get install -y -qq chromium >/dev/null; \
+	  else sudo apt-get update -qq && sudo apt-get install -y -qq chromium >/dev/null; fi \
+	  || echo "[test] chromium could not be installed: the browser test will be skipped"; \
+	fi
 	$(PY) -m pytest -q $(PYTEST_ARGS)
 
 bench: setup

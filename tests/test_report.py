@@ -111,3 +111,38 @@ def test_report_stage_on_the_committed_reports(tmp_path: Path):
     shutil.rmtree(reports / "detect")
     with pytest.raises(DataFormatError, match=r"detect/metrics.json: missing; run the stage detect first"):
         report_flow.fn(params)
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="no Chromium (make test installs Debian's chromium)")
+def test_a_real_browser_renders_the_page_with_everything_embedded(tmp_path: Path):
+    """Headless Chromium with every network request sent to a dead proxy: the page it parsed has the tables and
+    every figure as an embedded image, and its screenshot shows them (not a blank page)."""
+    import subprocess
+
+    import numpy as np
+    from PIL import Image
+
+    figures = [p for p in (REPORTS / "detect" / "learning_curve.png", REPORTS / "simulate" / "summary.png")
+               if p.is_file()]
+    if not figures:
+        pytest.skip("no committed figures")
+    for p in figures:
+        shutil.copy(p, tmp_path / p.name)
+    text = "# Summary\n\n| a | b |\n| --- | ---: |\n| x | 1 |\n\n" + "".join(f"![{p.stem}]({p.name})\n\n"
+                                                                       for p in figures)
+    page = tmp_path / "summary.html"
+    page.write_text(markdown_to_html(text, tmp_path, "t"))
+    base = [CHROMIUM, "--headless", "--no-sandbox", "--disable-gpu", "--proxy-server=http://127.0.0.1:9",
+            "--user-data-dir=" + str(tmp_path / "profile")]
+    dom = subprocess.run([*base, "--dump-dom", page.as_uri()], capture_output=True, text=True, timeout=120).stdout
+    srcs = re.findall(r'<img[^>]*src="([^"]{0,30})', dom)
+    assert len(srcs) == len(figures) and all(s.startswith("data:image/png;base64,") for s in srcs)
+    assert "<table>" in dom and "<td>x</td>" in dom
+    shot = tmp_path / "shot.png"
+    subprocess.run([*base, "--window-size=1000,1600", f"--screenshot={shot}", page.as_uri()], capture_output=True,
+                   timeout=120, check=True)
+    pixels = np.asarray(Image.open(shot).convert("L"), dtype=np.float64)
+    assert (pixels < 128).mean() > 0.02  # text, table lines and the figures are drawn
