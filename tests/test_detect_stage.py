@@ -24,22 +24,20 @@ DETECT = {"finetune_conditions": ["snow"], "image_size": [32, 64], "batch_size":
           "finetune_steps": 2, "eval_every": 2, "num_bootstrap": 10, "score_threshold": 0.0, "max_detections": 50}
 
 
-@pytest.fixture(scope="module")
-def stage_run(tiny_world, tmp_path_factory):
-    tmp = tmp_path_factory.mktemp("detect")
+def _stage_env(tiny_world, tmp: Path, root: Path, source: str):
+    """A detect stage set up in ``tmp`` on the nuScenes dataroot ``root`` (its manifest says ``source``), every
+    weather copy a hard-linked replica of it; returns (data, reports, run), ``run()`` running the stage."""
     data, reports = tmp / "data", tmp / "reports"
     version = tiny_world.params.world.version
-    nusc = open_nuscenes(tiny_world.dataroot, version)
+    nusc = open_nuscenes(root, version)
     frame = load_frame(nusc, nusc.scene[0]["first_sample_token"])
     sensors = SensorRig(lidar_model_from_params(tiny_world.params.world.lidar),
                         camera_models(frame.cameras, tiny_world.params.world.camera.exposure_s))
     write_manifest(manifest_path(data, "world"), DatasetManifest(
-        str(tiny_world.dataroot), version, "synthetic", sensors, dataset_digest(tiny_world.dataroot, version),
-        tuple(s["name"] for s in nusc.scene)))
+        str(root), version, source, sensors, dataset_digest(root, version), tuple(s["name"] for s in nusc.scene)))
     for condition in CONDITIONS:
         for aligned in (True, False):
-            shutil.copytree(tiny_world.dataroot, data / "simulate" / variant_name(condition, aligned),
-                            copy_function=os.link)
+            shutil.copytree(root, data / "simulate" / variant_name(condition, aligned), copy_function=os.link)
     params = write_params_file(tmp / "params.yaml", {
         "paths": {"data": str(data), "reports": str(reports)},
         "tracking": {"enabled": True, "mlflow_uri": f"sqlite:///{tmp / 'mlflow.db'}"},
@@ -51,10 +49,33 @@ def stage_run(tiny_world, tmp_path_factory):
         return subprocess.run([sys.executable, "-m", "flows.detect", "--params", str(params)], cwd=REPO,
                               capture_output=True, text=True, timeout=900, env=env)
 
+    return data, reports, run
+
+
+@pytest.fixture(scope="module")
+def stage_run(tiny_world, tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("detect")
+    data, reports, run = _stage_env(tiny_world, tmp, tiny_world.dataroot, "synthetic")
     first = run()
     assert first.returncode == 0, first.stderr[-4000:]
     metrics = json.loads((reports / "detect" / "metrics.json").read_text())
     return tmp, data, reports, metrics, run
+
+
+def test_a_real_layout_dataroot_goes_through_the_same_stage(tiny_world, tmp_path):
+    """``world.source: nuscenes``: a dataroot with nuScenes' files only (no extras: no exact depth, no per-point
+    records) trains and evaluates like the world."""
+    real = tmp_path / "my_nuscenes"
+    shutil.copytree(tiny_world.dataroot, real, ignore=shutil.ignore_patterns("extras", ".progress", ".weatheralign*"),
+                    copy_function=os.link)
+    _, reports, run = _stage_env(tiny_world, tmp_path / "stage", real, "nuscenes")
+    done = run()
+    assert done.returncode == 0, done.stderr[-4000:]
+    metrics = json.loads((reports / "detect" / "metrics.json").read_text())
+    assert set(metrics["models"]["pretrained"]) == {"clean", *(variant_name(c, a) for c in CONDITIONS
+                                                               for a in (True, False))}
+    assert 0.0 <= metrics["models"]["pretrained"]["clean"]["map"] <= 1.0
+    assert not (real / "extras").exists()
 
 
 def test_metrics_layout_and_reports(stage_run):
