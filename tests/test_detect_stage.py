@@ -128,6 +128,23 @@ def test_mlflow_runs_are_tagged_for_the_ablation(stage_run):
                                                       "finetuned-snow-unaligned"}
 
 
+def test_compare_reads_the_same_numbers_back_from_mlflow(stage_run, capsys):
+    """``python -m flows.compare``: the aligned-vs-unaligned table from ``search_runs`` equals the stage's metrics."""
+    from flows.compare import main
+
+    tmp, _, _, metrics, _ = stage_run
+    assert main(["--tracking-uri", f"sqlite:///{tmp / 'mlflow.db'}"]) == 0
+    rows = [line.split(" | ") for line in capsys.readouterr().out.splitlines()[2:]]
+    pre = {r[1]: (float(r[2]), float(r[3])) for r in rows if r[0] == "| pretrained"}
+    assert set(pre) == set(CONDITIONS)
+    for weather, (aligned, unaligned) in pre.items():
+        models = metrics["models"]["pretrained"]
+        assert aligned == pytest.approx(models[f"{weather}-aligned"]["map"], abs=5e-4)
+        assert unaligned == pytest.approx(models[f"{weather}-unaligned"]["map"], abs=5e-4)
+    assert main(["--tracking-uri", f"sqlite:///{tmp / 'nothing.db'}"]) == 2
+    assert "no MLflow experiment 'weatheralign'" in capsys.readouterr().err
+
+
 def test_rerun_resumes_without_training_or_evaluating(stage_run):
     _, data, reports, metrics, run = stage_run
     checkpoints = {p: p.stat().st_mtime_ns for p in (data / "detect" / "models").glob("*.pt")}
