@@ -11,6 +11,9 @@ reference_seconds, ...}`` are merged into
 average before and after it (other processes on this 2-core machine slow the timings down).
 
 Workloads:
+- ``snow_2mmh_keyframe_2sweeps_joint``, ``rain_50mmh_keyframe_2sweeps_joint``: the first sample's keyframe and its two
+  sweeps (as `simulate` runs them) in one `simulate_particle_scans` run, against `simulate_particles` on each scan
+  (``separate_*``), same field;
 - ``snow_2mmh_35k`` (Hahner's published code: 27–34 s on this machine: reference 30 s), ``rain_50mmh_35k`` (LISA:
   3.3–5.2 s at 25 mm/h: reference 4.2 s; the published rain figure is at half our rate), the same on the 109k STF
   scan (snow reference: 88 s for a 120k HDL-64 scan);
@@ -62,15 +65,15 @@ NOISE_FLOOR = 0.5
 
 
 def _render_world(base: Path) -> tuple[LidarScan, np.ndarray]:
-    """A tiny synthetic world (one rendered sample with its preceding sweep, small cameras) -> its first LIDAR_TOP
-    keyframe scan and the per-point firing columns."""
+    """A tiny synthetic world (one rendered sample with its two preceding sweeps, small cameras) -> its first
+    LIDAR_TOP keyframe scan and the per-point firing columns."""
     from weatheralign.config import params_from_dict
     from weatheralign.world.dataset import finalize, render_or_resume, sample_jobs
 
     params = params_from_dict({"paths": {"data": str(base), "reports": str(base / "reports")},
                                "tracking": {"enabled": False},
                                "world": {"num_train_scenes": 1, "num_val_scenes": 1, "samples_per_scene": 2,
-                                         "sweeps_per_sample": 1, "camera": {"image_scale": 0.1}}})
+                                         "sweeps_per_sample": 2, "camera": {"image_scale": 0.1}}})
     root = base / "world"
     results = [render_or_resume(spec, k, params.world, root)[0] for spec, k in sample_jobs(params.world)]
     finalize(params.world, root, results)
@@ -145,9 +148,64 @@ def _lidar(spec: dict, columns_stored: bool):
         "pulse_half_width_s": PULSE_HALF_WIDTH_S, "intensity": model, "firing_columns_stored": columns_stored})
 
 
+def _keyframe_and_sweeps(dataroot: str, version: str, sweeps: int) -> list[LidarScan]:
+    """The first sample's LIDAR_TOP keyframe scan and the ``sweeps`` sweeps before it (newest first), read from the
+    dataroot (so that their stored firing columns are found)."""
+    from weatheralign.data.nuscenes import load_lidar, open_nuscenes
+
+    nusc = open_nuscenes(dataroot, version)
+    sd = nusc.get("sample_data", nusc.sample[0]["data"]["LIDAR_TOP"])
+    scans = [load_lidar(nusc, sd["token"])]
+    while len(scans) <= sweeps and sd["prev"]:
+        sd = nusc.get("sample_data", sd["prev"])
+        scans.append(load_lidar(nusc, sd["token"]))
+    if len(scans) <= sweeps:
+        raise RuntimeError(f"{dataroot}: the first sample has {len(scans) - 1} sweeps before it, {sweeps} needed")
+    return scans
+
+
+def _joint_worker(spec: dict) -> dict:
+    """A keyframe and its sweeps: `simulate_particle_scans` (one run) against `simulate_particles` per scan."""
+    from weatheralign.lidar.particles import (RAIN_REFLECTIVITY, SNOW_REFLECTIVITY, simulate_particle_scans,
+                                              simulate_particles)
+
+    scans = _keyframe_and_sweeps(spec["dataroot"], spec["version"], spec["sweeps"])
+    fld = _field(spec, scans[0].timestamp)
+    kwargs = dict(lidar=_lidar(spec, True), reflectivity=SNOW_REFLECTIVITY if spec["medium"] == "snow"
+                  else RAIN_REFLECTIVITY, ratio_threshold=spec.get("ratio_threshold"))
+    joint = simulate_particle_scans(scans, fld, **kwargs)  # warm-up
+    seconds, cpu_seconds, sep_seconds, sep_cpu = [], [], [], []
+    for _ in range(spec["runs"]):
+        t0, c0 = time.perf_counter(), time.process_time()
+        joint = simulate_particle_scans(scans, fld, **kwargs)
+        seconds.append(time.perf_counter() - t0)
+        cpu_seconds.append(time.process_time() - c0)
+        t0, c0 = time.perf_counter(), time.process_time()
+        alone = [simulate_particles(scan, fld, **kwargs) for scan in scans]
+        sep_seconds.append(time.perf_counter() - t0)
+        sep_cpu.append(time.process_time() - c0)
+    return {
+        "num_points": int(sum(len(s.points) for s in scans)),
+        "num_beams": int(sum(r.stats["num_beams"] for r in joint)),
+        "seconds": seconds, "cpu_seconds": cpu_seconds,
+        "separate_seconds": sep_seconds, "separate_cpu_seconds": sep_cpu,
+        "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0,
+        "counts": {k: sum(r.counts[k] for r in joint) for k in joint[0].counts},
+        "separate_counts": {k: sum(r.counts[k] for r in alone) for k in alone[0].counts},
+        "particles_materialized": int(joint[0].stats["particles"]),
+        "separate_particles_materialized": int(sum(r.stats["particles"] for r in alone)),
+        "resolved_hits": int(sum(len(r.hits) for r in joint)),
+        "ratio_threshold": float(joint[0].stats["ratio_threshold"]),
+        "mean_intensity_ratio_kept": None, "fraction_kept_dropped_10pct": None,
+    }
+
+
 def _worker(spec: dict) -> dict:
     """Run one workload in this process and return its measurements."""
     from weatheralign.lidar.particles import RAIN_REFLECTIVITY, SNOW_REFLECTIVITY, simulate_particles
+
+    if "sweeps" in spec:
+        return _joint_worker(spec)
 
     scan, columns = _load_scan(spec["scan"])
     if spec.get("rings"):
@@ -192,9 +250,16 @@ def _worker(spec: dict) -> dict:
 
 
 
-def _specs(world_npz: Path, stf_npz: Path | None, runs: int, quick: bool) -> list[dict]:
+def _specs(world_npz: Path, stf_npz: Path | None, runs: int, quick: bool, world: tuple[str, str]) -> list[dict]:
     base_w = {"scan": str(world_npz), "max_range": 100.0, "intensity_model": "synthetic", "runs": runs}
+    base_j = {"dataroot": world[0], "version": world[1], "sweeps": 2, "max_range": 100.0,
+              "intensity_model": "synthetic", "runs": runs, "reference_seconds": None}
     specs = [
+        {**base_j, "workload": "snow_2mmh_keyframe_2sweeps_joint", "medium": "snow", "rate": 2.0,
+         "note": "a keyframe and its 2 sweeps in one simulate_particle_scans run; separate_*: simulate_particles "
+                 "on each scan"},
+        {**base_j, "workload": "rain_50mmh_keyframe_2sweeps_joint", "medium": "rain", "rate": 50.0,
+         "note": "as the snow workload"},
         {**base_w, "workload": "snow_2mmh_35k", "medium": "snow", "rate": 2.0, "reference_seconds": SNOW_REFERENCE_35K,
          "source": "synthetic world, HDL-32E sweep (32 x 1085 beams incl. no-return), ego moving"},
         {**base_w, "workload": "rain_50mmh_35k", "medium": "rain", "rate": 50.0,
@@ -250,8 +315,10 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
         tmp_path = Path(tmp)
         if (WORLD_ROOT / "v1.0-mini" / "sample_data.json").is_file():
             scan, cols = _first_world_scan(WORLD_ROOT)
+            world = (str(WORLD_ROOT), "v1.0-mini")
         else:
             scan, cols = _render_world(tmp_path / "render")
+            world = (str(tmp_path / "render" / "world"), "v1.0-mini")
         world_npz = tmp_path / "world.npz"
         _save_scan(world_npz, scan, cols)
         stf_npz = None
@@ -260,7 +327,7 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
 
             stf_npz = tmp_path / "stf.npz"
             _save_scan(stf_npz, load_stf_frame(STF_ROOT, STF_ID, camera_folder=None).lidar, None)
-        specs = _specs(world_npz, stf_npz, runs, args.quick)
+        specs = _specs(world_npz, stf_npz, runs, args.quick, world)
         if args.only:
             keys = [k for k in args.only.split(",") if k]
             specs = [sp for sp in specs if any(k in sp["workload"] for k in keys)]
@@ -279,9 +346,14 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
                                           "fraction_kept_dropped_10pct")},
                      "intensity_model": spec["intensity_model"],
                      "load_avg_1min": [round(load_before, 2), round(os.getloadavg()[0], 2)]}
-            for key in ("source", "note", "rings"):
+            for key in ("source", "note", "rings", "sweeps"):
                 if key in spec:
                     entry[key] = spec[key]
+            if "separate_seconds" in m:
+                entry.update({"separate_seconds_median": statistics.median(m["separate_seconds"]),
+                              "separate_cpu_seconds_median": statistics.median(m["separate_cpu_seconds"]),
+                              "separate_counts": m["separate_counts"],
+                              "separate_particles_materialized": m["separate_particles_materialized"]})
             entries.append(entry)
             speed = "" if ref is None else f" ({ref / median:5.0f}x vs {ref} s)"
             print(f"{entry['workload']:34s} {entry['num_points']:7d} pts  median {median:6.3f} s "
