@@ -57,8 +57,8 @@ def disk_bytes(folder: Path, seen: set[tuple[int, int]]) -> int:
 
 
 def stage_seconds(params: Params) -> dict[str, float]:
-    """Per stage tag, the wall seconds of its latest finished MLflow run (the simulate variants summed into
-    ``simulate``); empty when tracking is off or nothing was tracked."""
+    """Per stage tag, the wall seconds of its latest finished MLflow run (the simulate variants and their summary,
+    which tracks as ``simulate``, summed into ``simulate``); empty when tracking is off or nothing was tracked."""
     if not params.tracking.enabled:
         return {}
     from mlflow.tracking import MlflowClient
@@ -76,8 +76,6 @@ def stage_seconds(params: Params) -> dict[str, float]:
     out: dict[str, float] = {}
     for stage, seconds in latest.items():
         base = stage.split("/", 1)[0]
-        if stage == "simulate" and any(s.startswith("simulate/") for s in latest):
-            base = "simulate_summary"
         out[base] = out.get(base, 0.0) + seconds
     return out
 
