@@ -21,6 +21,7 @@ sealed truth is never read here.
 
 from __future__ import annotations
 
+import hashlib
 import time
 from pathlib import Path
 
@@ -99,6 +100,12 @@ def camera_figure(ref: list[np.ndarray], sim: list[np.ndarray], level: str, alph
     plt.close(fig)
 
 
+def reference_digest(ds: ReferenceDataset) -> str:
+    """16 hex digits over the reference's split lists (which frames of which recordings it holds)."""
+    text = "\n".join(f"{split}:{','.join(map(str, ds.ids(split)))}" for split in ("clear", *FOG_LEVELS))
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
 @flow(name="calibrate_fog", log_prints=True)
 def calibrate_fog_flow(params: Params) -> dict:
     """ReDAM per fog level; returns the metrics written to reports/calibrate_fog/metrics.json."""
@@ -147,7 +154,9 @@ def calibrate_fog_flow(params: Params) -> dict:
                           {**levels, "reference_root": str(ds.root), "reference_source": params.reference.source},
                           indent=2)
         metrics["seconds"] = round(time.time() - t0, 2)
-        tracker.finish(metrics)
+        tracker.log_dataset(f"reference-{params.reference.source}", reference_digest(ds), str(ds.root), "reference")
+        tracker.finish(metrics, logged={"seconds": metrics["seconds"]}, children={
+            level: ({"weather": "fog", "severity": level}, metrics[level]) for level in FOG_LEVELS})
     return metrics
 
 

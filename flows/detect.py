@@ -39,9 +39,9 @@ from prefect import flow  # noqa: E402
 
 from flows.common import gather, parse_stage_args, run_stage, threads_per_task  # noqa: E402
 from tasks.detect import predict_task, train_task  # noqa: E402
-from tasks.tracking import StageTracker  # noqa: E402
+from tasks.tracking import REGISTERED_MODEL_PREFIX, ChildRun, StageTracker  # noqa: E402
 from weatheralign import atomic  # noqa: E402
-from weatheralign.conditions import CONDITIONS, condition_named, variant_name  # noqa: E402
+from weatheralign.conditions import CONDITIONS, condition_named, condition_tags, variant_name  # noqa: E402
 from weatheralign.config import Params  # noqa: E402
 from weatheralign.data.errors import DataFormatError  # noqa: E402
 from weatheralign.data.nuscenes import open_nuscenes  # noqa: E402
@@ -104,6 +104,7 @@ class DetectRun:
         self.train_seconds: dict[str, float] = {}
         self.losses: dict[str, list[float]] = {}
         self.detections: dict[str, list] = {}
+        self.model_versions: dict[str, str] = {}  # registry versions of the models trained by this run
 
     # -------------------------------------------------------------------------------------------- data
 
@@ -197,8 +198,18 @@ class DetectRun:
                 "fingerprint": fingerprint, "curve": curve, "losses": losses, "seconds": seconds, "steps": steps})
             run.log_metrics({"train_seconds": seconds, "seconds_per_step": seconds / max(steps, 1)})
             run.log_artifact(self.checkpoint(name), "checkpoint")
+            self.register(run, name, model)
         self.curves[name], self.losses[name], self.train_seconds[name] = curve, losses, seconds
         return model
+
+    def register(self, run: ChildRun, name: str, model: BEVFusionDetector) -> None:
+        """Log trained model ``name`` to its training run as an MLflow PyTorch model and register it (a new version
+        of ``weatheralign-detector-<name>``); its evaluations tag that version with their mAP / NDS."""
+        version = run.log_model(model.cpu() if self.device.type != "cpu" else model, REGISTERED_MODEL_PREFIX + name)
+        if self.device.type != "cpu":
+            model.to(self.device)
+        if version is not None:
+            self.model_versions[name] = version
 
     def train_job(self, name: str, train_on: str | tuple[str, str], init: str, steps: int, lr: float
                   ) -> protocol.TrainJob | None:
@@ -222,6 +233,7 @@ class DetectRun:
                     run.log_metrics({"loss.total": loss}, step)
             run.log_metrics({"train_seconds": meta["seconds"], "seconds_per_step": meta["seconds"] / max(job.steps, 1)})
             run.log_artifact(job.out, "checkpoint")
+            self.register(run, job.name, protocol.load_checkpoint(job.out, self.model_config)[0])
         self.curves[job.name], self.losses[job.name] = [], meta["losses"]
         self.train_seconds[job.name] = meta["seconds"]
 
@@ -271,13 +283,33 @@ class DetectRun:
         atomic.save_npz_compressed(det_path, protocol.detections_to_arrays(detections))
         atomic.write_json(record_path, {"fingerprint": fingerprint, "metrics": result})
         self.detections[key] = detections
-        weather, alignment = split_variant(dataroot)
-        with self.tracker.child(f"eval {key}", {"model": model_name, "weather": weather, "alignment": alignment,
+        with self.tracker.child(f"eval {key}", {**self.dataroot_tags(dataroot), "model": model_name,
                                                 "modality": modality, "kind": "eval"}) as run:
-            run.log_metrics({k: v for k, v in result.items() if k in ("map", "nds", "map_present", "mate", "mase",
-                                                                       "maoe", "mave", "maae")})
+            headline = {k: v for k, v in result.items() if k in ("map", "nds", "map_present", "mate", "mase", "maoe",
+                                                                 "mave", "maae")}
+            run.log_metrics(headline)
             run.log_metrics({f"ap.{c}": v for c, v in result["per_class_ap"].items()})
+        if model_name in self.model_versions and modality == "fused":
+            self.tracker.tag_model_version(REGISTERED_MODEL_PREFIX + model_name, self.model_versions[model_name],
+                                           {f"{k}.{dataroot}": f"{v:.4f}" for k, v in headline.items()
+                                            if k in ("map", "nds")})
         return result
+
+    def dataroot_tags(self, dataroot: str) -> dict[str, str]:
+        """``weather``, ``alignment`` and ``severity`` tags of a dataroot (`CLEAN` or a weather variant)."""
+        weather, alignment = split_variant(dataroot)
+        if dataroot == CLEAN:
+            return {"weather": weather, "alignment": alignment, "severity": "none"}
+        return condition_tags(weather, alignment == "aligned", self.params.particles.snow.rate_mm_h,
+                              self.params.particles.rain.rate_mm_h)
+
+    def log_inputs(self, evaluated: list[str], trained_on: list[str]) -> None:
+        """The datasets this run reads as MLflow dataset inputs: each dataroot's val split (``evaluation``) and
+        train split (``training``), digests over their files' sizes and times (`data_key`)."""
+        for context, split, dataroots in (("evaluation", "val", evaluated), ("training", "train", trained_on)):
+            for d in dict.fromkeys(dataroots):
+                digest = self.data_key(d, split).rsplit("-", 1)[-1]
+                self.tracker.log_dataset(f"{d}/{split}", digest, str(self.roots[d]), context)
 
     def run_jobs(self, trainings: list[tuple[str, str | tuple[str, str], dict[str, str]]],
                  evaluations: list[tuple[str, str, str]]) -> dict[tuple[str, str, str], dict[str, Any]]:
@@ -318,6 +350,24 @@ class DetectRun:
                                      self.cfg.num_bootstrap, self.cfg.seed, self.cfg.confidence)
         return {"a": key_a, "b": key_b, "metric": metric, "difference": diff, "ci": ci,
                 "exceeds_noise": bool(ci[0] > 0 or ci[1] < 0)}
+
+
+def difference_run(key: str, d: dict[str, Any]) -> tuple[dict[str, str], dict[str, float]]:
+    """The tags and metrics of a paired difference's MLflow run: ``model``, ``weather``, ``alignment`` (of the
+    dataroot it is measured on), ``comparison`` and ``metric`` tags; ``difference``, ``ci_low``, ``ci_high`` and
+    ``exceeds_noise`` (0 / 1), named the same in every difference's run."""
+    parts = key.split(":")
+    if len(parts) == 4:  # model:condition:comparison:metric (measured on the condition's weather copies or clean)
+        model, weather, comparison, metric = parts
+        alignment = "none"
+    else:  # comparison:dataroot:metric
+        comparison, dataroot, metric = parts
+        model = comparison.split("-vs-")[0].removesuffix("-aligned")
+        weather, alignment = split_variant(dataroot)
+    tags = {"kind": "difference", "model": model, "weather": weather, "alignment": alignment,
+            "comparison": comparison, "metric": metric}
+    return tags, {"difference": d["difference"], "ci_low": d["ci"][0], "ci_high": d["ci"][1],
+                  "exceeds_noise": float(d["exceeds_noise"])}
 
 
 def split_variant(dataroot: str) -> tuple[str, str]:
@@ -405,7 +455,7 @@ def detect_flow(params: Params) -> dict:
         conditions = list(cfg.finetune_conditions)
         variants = [v for v in run.roots if v != CLEAN]
         pretrained = run.model("pretrained", CLEAN, None, cfg.pretrain_steps, cfg.lr,
-                               {"weather": CLEAN, "alignment": "none"}, learning_curve=True)
+                               run.dataroot_tags(CLEAN), learning_curve=True)
         trainings: list[tuple[str, str | tuple[str, str], dict[str, str]]] = []
         evaluations = [("pretrained", d, "fused") for d in [CLEAN, *variants]]
         evaluations += [("pretrained", CLEAN, m) for m in ("lidar", "camera")]
@@ -413,9 +463,11 @@ def detect_flow(params: Params) -> dict:
             for suffix, train_on, alignment in (("", f"{c}-aligned", "aligned"),
                                                 ("-unaligned", f"{c}-unaligned", "unaligned"),
                                                 ("-mix", (f"{c}-aligned", CLEAN), "aligned")):
-                trainings.append((f"finetuned-{c}{suffix}", train_on, {"weather": c, "alignment": alignment}))
+                trainings.append((f"finetuned-{c}{suffix}", train_on, run.dataroot_tags(f"{c}-{alignment}")))
                 evaluations += [(f"finetuned-{c}{suffix}", d, "fused") for d in (CLEAN, f"{c}-aligned",
                                                                                  f"{c}-unaligned")]
+        run.log_inputs([d for _, d, _ in evaluations], [CLEAN] + [d for _, t, _ in trainings
+                                                                  for d in ((t,) if isinstance(t, str) else t)])
         results = run.run_jobs(trainings, evaluations)
         models: dict[str, dict[str, Any]] = {}
         for name, dataroot, modality in evaluations:
@@ -471,7 +523,9 @@ def detect_flow(params: Params) -> dict:
         plt.close(fig)
         for name in ("table_alignment.md", "table_finetune.md", "learning_curve.png", "predictions_bev.png"):
             tracker.log_artifact(reports / name, "detect")
-        tracker.finish(metrics)
+        tracker.finish(metrics, logged={k: v for k, v in metrics.items() if k in (
+            "parameters", "val_samples", "train_samples", "sweeps", "seconds")}, children={
+            key: difference_run(key, d) for key, d in differences.items()})
     return metrics
 
 

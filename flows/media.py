@@ -15,7 +15,7 @@ from prefect import flow
 from flows.common import parse_stage_args, run_stage
 from tasks.tracking import StageTracker
 from weatheralign import atomic
-from weatheralign.conditions import CONDITIONS
+from weatheralign.conditions import CONDITIONS, condition_tags
 from weatheralign.config import Params
 from weatheralign.manifest import FIELDS_FILE, manifest_path, read_manifest
 from weatheralign.simulate.media import configured_fog_levels, load_fields, media_path, resolve_media
@@ -27,6 +27,7 @@ def media_flow(params: Params) -> dict:
     cfg = params.simulate
     with StageTracker(params, "media") as tracker:
         world = read_manifest(manifest_path(params.paths.data, "world"))
+        tracker.log_dataset("world", world.content_digest, world.dataroot, "source")
         scenes = list(world.scenes)
         needs = {m for c in CONDITIONS.values() for m in c.media}
         fog_levels = configured_fog_levels(cfg, params.paths.data) if "fog_levels" in needs else None
@@ -39,7 +40,9 @@ def media_flow(params: Params) -> dict:
                 "fog_alpha": None if media.fog is None else media.fog["alpha"],
                 "fog_beta": None if media.fog is None else media.fog["beta"],
                 "fields": 0 if media.fields is None else len(media.fields)}
-        tracker.finish(metrics)
+        rates = (params.particles.snow.rate_mm_h, params.particles.rain.rate_mm_h)
+        tracker.finish(metrics, logged={}, children={
+            name: (condition_tags(name, None, *rates), values) for name, values in metrics["conditions"].items()})
     return metrics
 
 

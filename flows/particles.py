@@ -137,7 +137,9 @@ def particles_flow(params: Params) -> dict:
             _side_view(specs[c][0], anchors[0], side)
             tracker.log_artifact(side, "figures")
         metrics = {"fields_file": str(out), "num_scenes": len(anchors), **results}
-        tracker.finish(metrics)
+        tracker.finish(metrics, logged={"num_scenes": len(anchors)}, children={
+            c: ({"weather": c, "severity": f"{getattr(params.particles, c).rate_mm_h:g} mm/h"}, results[c])
+            for c in PRECIPITATION})
     return metrics
 
 

@@ -102,7 +102,13 @@ def reference_flow(params: Params) -> dict:
         overview_figure(ds, figure)
         tracker.log_artifact(figure, "figures")
         metrics["seconds"] = round(time.time() - t0, 2)
-        tracker.finish(metrics)
+        returns = metrics.get("fog_returns_per_scan", {})
+        tracker.finish(metrics, logged={k: v for k, v in metrics.items() if isinstance(v, (int, float))
+                                        and not isinstance(v, bool)}, children={
+            split: ({"weather": "clear" if split == "clear" else "fog",
+                     "severity": "none" if split == "clear" else split},
+                    {**values, **({"fog_returns_per_scan": returns[split]} if split in returns else {})})
+            for split, values in metrics["splits"].items()})
     return metrics
 
 

@@ -16,7 +16,7 @@ from typing import Any
 from prefect import flow
 
 from flows.common import parse_stage_args, run_stage
-from tasks.tracking import STAGE_TAG, StageTracker, tracking_uri
+from tasks.tracking import StageTracker, tracking_uri
 from weatheralign import atomic
 from weatheralign.config import Params
 from weatheralign.data.errors import read_json_file
@@ -57,8 +57,9 @@ def disk_bytes(folder: Path, seen: set[tuple[int, int]]) -> int:
 
 
 def stage_seconds(params: Params) -> dict[str, float]:
-    """Per stage tag, the wall seconds of its latest finished MLflow run (the simulate variants and their summary,
-    which tracks as ``simulate``, summed into ``simulate``); empty when tracking is off or nothing was tracked."""
+    """Per stage (the ``stage`` tag; the simulate variants and their summary summed into ``simulate``), the wall
+    seconds of the latest finished MLflow run of each of its runs; empty when tracking is off or nothing was
+    tracked."""
     if not params.tracking.enabled:
         return {}
     from mlflow.tracking import MlflowClient
@@ -67,15 +68,15 @@ def stage_seconds(params: Params) -> dict[str, float]:
     exp = client.get_experiment_by_name(params.tracking.experiment)
     if exp is None:
         return {}
-    latest: dict[str, float] = {}
-    for run in client.search_runs([exp.experiment_id], "attributes.status = 'FINISHED'", max_results=5000,
-                                  order_by=["attributes.start_time ASC"]):
-        stage = run.data.tags.get(STAGE_TAG)
+    latest: dict[tuple[str, str], float] = {}
+    for run in client.search_runs([exp.experiment_id], "attributes.status = 'FINISHED' AND tags.kind = 'stage'",
+                                  max_results=5000, order_by=["attributes.start_time ASC"]):
+        stage, name = run.data.tags.get("stage"), run.data.tags.get("mlflow.runName", "")
         if stage and "stage_seconds" in run.data.metrics:
-            latest[stage] = run.data.metrics["stage_seconds"]
+            latest[(stage, name)] = run.data.metrics["stage_seconds"]
     out: dict[str, float] = {}
-    for stage, seconds in latest.items():
-        base = stage.split("/", 1)[0]
+    for (stage, _), seconds in latest.items():
+        base = "simulate" if stage == "simulate_summary" else stage
         out[base] = out.get(base, 0.0) + seconds
     return out
 

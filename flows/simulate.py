@@ -27,7 +27,7 @@ from prefect import flow
 from flows.common import gather, parse_stage_args, run_stage, threads_per_task
 from tasks.simulate import simulate_chunk_task
 from tasks.tracking import StageTracker
-from weatheralign.conditions import condition_named, variant_name
+from weatheralign.conditions import condition_named, condition_tags, variant_name
 from weatheralign.config import Params
 from weatheralign.data.nuscenes import load_frame, open_nuscenes
 from weatheralign.manifest import display_path, manifest_path, read_manifest
@@ -90,9 +90,12 @@ def simulate_flow(params: Params) -> dict:
     """Write the weather copy of one condition; returns the metrics written to reports/simulate/<name>/."""
     cfg = params.simulate
     name = variant_name(cfg.condition, cfg.aligned)
-    with StageTracker(params, f"simulate/{name}") as tracker:
+    rates = (params.particles.snow.rate_mm_h, params.particles.rain.rate_mm_h)
+    with StageTracker(params, "simulate", name=f"simulate/{name}",
+                      tags=condition_tags(cfg.condition, cfg.aligned, *rates)) as tracker:
         tracker.log_params({"simulate": cfg.model_dump(mode="json")})
         world = read_manifest(manifest_path(params.paths.data, "world"))
+        tracker.log_dataset("world", world.content_digest, world.dataroot, "source")
         media = read_media(media_path(params.paths.data, cfg.condition))
         src_root, out_root = Path(world.dataroot), output_dataroot(params)
         nusc = open_nuscenes(src_root, world.version)

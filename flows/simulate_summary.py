@@ -82,14 +82,14 @@ def summary_figure(summary: dict[str, dict]) -> Figure:
 @flow(name="simulate_summary", log_prints=True)
 def simulate_summary_flow(params: Params) -> dict:
     """Write reports/simulate/metrics.json and summary.png; returns the summary."""
-    with StageTracker(params, "simulate") as tracker:
+    with StageTracker(params, "simulate_summary", name="simulate") as tracker:
         summary = collect(params.paths.reports, condition_names())
         fig = summary_figure(summary)
         fig_path = tracker.reports / "summary.png"
         fig.savefig(fig_path, dpi=110)
         plt.close(fig)
         tracker.log_artifact(fig_path, "figures")
-        tracker.finish(summary)
+        tracker.finish(summary, logged={"conditions": len(summary)})  # per condition: its simulate run
     return summary
 
 

@@ -127,6 +127,9 @@ def world_flow(params: Params) -> dict:
                                    dataset_sensors(params, dataroot), dataset_digest(dataroot, params.world.version),
                                    tuple(s["name"] for s in nusc.scene))
         tracker.log_params({"sensors": manifest.sensors.to_dict()})
+        if params.world.source != "synthetic":  # the user's dataroot, read in place
+            tracker.log_dataset(f"{params.world.source}-{params.world.version}", manifest.content_digest, root_rel,
+                                "source")
         tracker.finish(metrics)
         write_manifest(manifest_file, manifest)
     return metrics

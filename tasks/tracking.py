@@ -1,15 +1,23 @@
-"""One helper that writes a stage's ``reports/<stage>/metrics.json`` (for DVC) and logs the same numbers, params and
-figures to MLflow (one parent run per pipeline run, one child run per stage).
+"""One helper that writes a stage's ``reports/<name>/metrics.json`` (for DVC) and logs the same numbers, params,
+figures, input datasets and models to MLflow.
 
-The parent run is found by the pipeline id: ``WEATHERALIGN_PIPELINE_ID`` (set by ``make reproduce``), else DVC's
-``DVC_EXP_NAME``; a stage run on its own gets a fresh parent. MLflow is used through `MlflowClient` (no active-run
-global state); the store is a sqlite file in the repository unless ``tracking.mlflow_uri`` or
-``MLFLOW_TRACKING_URI`` say otherwise, artifacts go to ``mlartifacts/`` beside it.
+Runs. One parent run per pipeline run (``kind = pipeline``), found by the pipeline id: ``WEATHERALIGN_PIPELINE_ID``
+(set by ``make reproduce``), else DVC's ``DVC_EXP_NAME``; a stage run on its own gets a fresh parent. Under it one run
+per stage run (``kind = stage``; the ten simulate variants are ten of them) and, under those, one child per condition,
+level, model, evaluation or comparison. Every run carries the tags of `TAG_KEYS` (``none`` where one does not apply),
+so the MLflow UI groups and filters the ablations by tag; metric names never contain a condition (the same
+``points_lost`` or ``map`` in every condition's run), so its compare view charts them across runs.
+
+MLflow is used through `MlflowClient` (no active-run global state); the store is a sqlite file in the repository
+unless ``tracking.mlflow_uri`` or ``MLFLOW_TRACKING_URI`` say otherwise, artifacts go to ``mlartifacts/`` beside it.
+Detector checkpoints are saved as MLflow PyTorch models and registered in the model registry (`ChildRun.log_model`).
 """
 
 from __future__ import annotations
 
 import os
+import subprocess
+import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -17,8 +25,11 @@ from typing import Any
 from weatheralign import atomic
 from weatheralign.config import Params
 
-PIPELINE_TAG = "weatheralign.pipeline_id"
-STAGE_TAG = "weatheralign.stage"
+TAG_KEYS = ("stage", "kind", "weather", "alignment", "severity", "model", "pipeline_id", "git_commit",
+            "dvc_experiment")
+"""Tags on every run (``none`` where one does not apply)."""
+NOT_APPLICABLE = "none"
+REGISTERED_MODEL_PREFIX = "weatheralign-detector-"
 
 
 def flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -33,6 +44,25 @@ def flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
     return out
 
 
+def numeric_leaves(tree: dict[str, Any]) -> dict[str, float]:
+    """The int / float leaves of ``tree`` (flattened with dots; booleans and None left out) as floats."""
+    return {k: float(v) for k, v in flatten(tree).items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+
+
+def git_state(repo: Path) -> tuple[str, bool | None]:
+    """(HEAD commit, whether tracked files differ from it) of the git work tree at ``repo``; ``("none", None)``
+    outside one."""
+    try:
+        sha = subprocess.run(["git", "rev-parse", "HEAD"], cwd=repo, capture_output=True, text=True, timeout=10)
+        if sha.returncode != 0:
+            return NOT_APPLICABLE, None
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=repo,
+                               capture_output=True, text=True, timeout=30)
+        return sha.stdout.strip(), bool(dirty.stdout.strip()) if dirty.returncode == 0 else None
+    except (OSError, subprocess.SubprocessError):
+        return NOT_APPLICABLE, None
+
+
 def log_params(client: Any, run_id: str | None, params: dict[str, Any]) -> None:
     """The leaves of ``params`` (nested dicts flattened with dots) as MLflow params of run ``run_id`` (nothing
     without a client)."""
@@ -45,21 +75,43 @@ def log_params(client: Any, run_id: str | None, params: dict[str, Any]) -> None:
         client.log_batch(run_id, params=items[i:i + 100])
 
 
+def log_metrics(client: Any, run_id: str | None, metrics: dict[str, float], step: int = 0) -> None:
+    """``metrics`` (name -> number) at ``step`` (nothing without a client)."""
+    if client is None:
+        return
+    from mlflow.entities import Metric
+
+    now = int(time.time() * 1000)
+    items = [Metric(k, float(v), now, step) for k, v in sorted(metrics.items())]
+    for i in range(0, len(items), 500):
+        client.log_batch(run_id, metrics=items[i:i + 500])
+
+
 def tracking_uri(params: Params, repo: Path) -> str:
     return params.tracking.mlflow_uri or os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{repo / 'mlflow.db'}"
 
 
 class StageTracker:
-    """Context manager around one stage run. ``finish(metrics)`` writes metrics.json and logs to MLflow."""
+    """Context manager around one stage run. ``finish(metrics)`` writes metrics.json and logs to MLflow.
 
-    def __init__(self, params: Params, stage: str, repo: Path | None = None) -> None:
+    Args:
+        stage: the DVC stage (the ``stage`` tag); name: the run's name and its report folder under ``paths.reports``
+            (default: ``stage``); tags: more tags of the stage run and its children (``weather``, ``alignment``, ...).
+    """
+
+    def __init__(self, params: Params, stage: str, repo: Path | None = None, name: str | None = None,
+                 tags: dict[str, str] | None = None) -> None:
         self.params = params
         self.stage = stage
+        self.name = name or stage
         self.repo = (repo or Path.cwd()).resolve()
-        self.reports = params.paths.reports / stage
+        self.reports = params.paths.reports / self.name
+        self.extra_tags = dict(tags or {})
         self.client: Any = None
         self.run_id: str | None = None
         self.parent_id: str | None = None
+        self.experiment_id: str | None = None
+        self.base_tags: dict[str, str] = {}
         self._t0 = time.time()
 
     def __enter__(self) -> "StageTracker":
@@ -69,28 +121,31 @@ class StageTracker:
         from mlflow.tracking import MlflowClient
 
         self.client = MlflowClient(tracking_uri=tracking_uri(self.params, self.repo))
-        name = self.params.tracking.experiment
-        exp = self.client.get_experiment_by_name(name)
-        exp_id = exp.experiment_id if exp else self.client.create_experiment(
-            name, artifact_location=(self.repo / "mlartifacts").as_uri())
-        parent = self._parent_run(exp_id)
-        self.parent_id = parent
-        tags = {"mlflow.parentRunId": parent, STAGE_TAG: self.stage, "mlflow.runName": self.stage,
-                "dvc.stage": os.environ.get("DVC_STAGE", ""), "prefect.flow_run_id": _prefect_flow_run_id()}
-        self.run_id = self.client.create_run(exp_id, tags=tags).info.run_id
+        exp_name = self.params.tracking.experiment
+        exp = self.client.get_experiment_by_name(exp_name)
+        self.experiment_id = exp.experiment_id if exp else self.client.create_experiment(
+            exp_name, artifact_location=(self.repo / "mlartifacts").as_uri())
+        commit, dirty = git_state(self.repo)
+        pipeline = os.environ.get("WEATHERALIGN_PIPELINE_ID") or os.environ.get("DVC_EXP_NAME")
+        pipeline = pipeline or f"standalone-{self.name.replace('/', '-')}-{time.strftime('%Y%m%d-%H%M%S')}"
+        self.base_tags = {k: NOT_APPLICABLE for k in TAG_KEYS}
+        self.base_tags.update({"stage": self.stage, "pipeline_id": pipeline, "git_commit": commit,
+                               "dvc_experiment": os.environ.get("DVC_EXP_NAME") or NOT_APPLICABLE,
+                               "mlflow.source.git.commit": commit, "git_dirty": str(dirty).lower()})
+        self.parent_id = self._parent_run(pipeline)
+        tags = {**self.base_tags, "kind": "stage", **self.extra_tags, "mlflow.parentRunId": self.parent_id,
+                "mlflow.runName": self.name, "dvc.stage": os.environ.get("DVC_STAGE", NOT_APPLICABLE),
+                "prefect.flow_run_id": _prefect_flow_run_id()}
+        self.run_id = self.client.create_run(self.experiment_id, tags=tags).info.run_id
         return self
 
-    def _parent_run(self, exp_id: str) -> str:
-        pipeline = os.environ.get("WEATHERALIGN_PIPELINE_ID") or os.environ.get("DVC_EXP_NAME")
-        if pipeline:
-            found = self.client.search_runs([exp_id], filter_string=f"tags.`{PIPELINE_TAG}` = '{pipeline}'",
-                                            max_results=1)
-            if found:
-                return found[0].info.run_id
-        else:
-            pipeline = f"standalone-{self.stage}-{time.strftime('%Y%m%d-%H%M%S')}"
-        run = self.client.create_run(exp_id, tags={PIPELINE_TAG: pipeline, "mlflow.runName": f"pipeline {pipeline}"})
-        return run.info.run_id
+    def _parent_run(self, pipeline: str) -> str:
+        found = self.client.search_runs([self.experiment_id], filter_string=(
+            f"tags.pipeline_id = '{pipeline}' AND tags.kind = 'pipeline'"), max_results=1)
+        if found:
+            return found[0].info.run_id
+        tags = {**self.base_tags, "stage": "pipeline", "kind": "pipeline", "mlflow.runName": f"pipeline {pipeline}"}
+        return self.client.create_run(self.experiment_id, tags=tags).info.run_id
 
     def log_params(self, section: dict[str, Any]) -> None:
         log_params(self.client, self.run_id, section)
@@ -99,31 +154,48 @@ class StageTracker:
         if self.client is not None:
             self.client.log_artifact(self.run_id, str(path), folder)
 
-    def finish(self, metrics: dict[str, Any]) -> None:
-        """Write ``reports/<stage>/metrics.json`` and log its numeric leaves as MLflow metrics."""
+    def log_dataset(self, name: str, digest: str, source: str, context: str) -> None:
+        """Record a dataset this stage read as an MLflow dataset input of its run (``context``: e.g. ``source``,
+        ``reference``, ``training``, ``evaluation``; ``digest``: the dataset's content digest)."""
+        if self.client is None:
+            return
+        from mlflow.entities import Dataset, DatasetInput, InputTag
+
+        dataset = Dataset(name=name, digest=digest, source_type="local", source=source)
+        self.client.log_inputs(self.run_id, datasets=[DatasetInput(dataset, [InputTag("mlflow.data.context",
+                                                                                      context)])])
+
+    def tag_model_version(self, registered_name: str, version: str, tags: dict[str, str]) -> None:
+        """Set ``tags`` (e.g. an evaluation's ``map.<dataroot>``) on a registered model version."""
+        if self.client is not None:
+            for key, value in tags.items():
+                self.client.set_model_version_tag(registered_name, version, key, value)
+
+    def finish(self, metrics: dict[str, Any], logged: dict[str, float] | None = None,
+               children: dict[str, tuple[dict[str, str], dict[str, Any]]] | None = None) -> None:
+        """Write ``reports/<name>/metrics.json`` = ``metrics`` and log to MLflow: ``logged`` (default: every numeric
+        leaf of ``metrics``) on the stage run, and per entry ``label: (tags, values)`` of ``children`` a child run
+        ``<name>/<label>`` with those tags and the numeric leaves of ``values`` (so a per-condition or per-level
+        figure keeps one name across runs)."""
         atomic.write_json(self.reports / "metrics.json", metrics, indent=2)
         if self.client is None:
             return
-        from mlflow.entities import Metric
-
-        now = int(time.time() * 1000)
-        numeric = {k: float(v) for k, v in flatten(metrics).items()
-                   if isinstance(v, (int, float)) and not isinstance(v, bool)}
+        for label, (tags, values) in (children or {}).items():
+            with self.child(f"{self.name}/{label}", {"kind": "condition", **tags}) as run:
+                run.log_metrics(values)
+        numeric = numeric_leaves(metrics) if logged is None else dict(logged)
         numeric["stage_seconds"] = time.time() - self._t0
-        items = [Metric(k, v, now, 0) for k, v in sorted(numeric.items())]
-        for i in range(0, len(items), 500):
-            self.client.log_batch(self.run_id, metrics=items[i:i + 500])
+        log_metrics(self.client, self.run_id, numeric)
         self.client.log_artifact(self.run_id, str(self.reports / "metrics.json"))
 
     def child(self, name: str, tags: dict[str, str]) -> "ChildRun":
-        """A nested MLflow run under this stage's run (one training or one evaluation), tagged with ``tags`` (e.g.
-        ``model``, ``weather``, ``alignment``) so that the MLflow UI can group and compare them."""
+        """A nested MLflow run under this stage's run (one condition, training, evaluation or comparison) with the
+        stage run's tags overridden by ``tags`` (e.g. ``kind``, ``model``, ``weather``, ``alignment``)."""
         if self.client is None:
             return ChildRun(None, None)
-        exp_id = self.client.get_run(self.run_id).info.experiment_id
-        run_tags = {"mlflow.parentRunId": self.run_id, STAGE_TAG: self.stage, "mlflow.runName": name,
-                    **{k: str(v) for k, v in tags.items()}}
-        return ChildRun(self.client, self.client.create_run(exp_id, tags=run_tags).info.run_id)
+        run_tags = {**self.base_tags, **self.extra_tags, **{k: str(v) for k, v in tags.items()},
+                    "mlflow.parentRunId": self.run_id, "mlflow.runName": name}
+        return ChildRun(self.client, self.client.create_run(self.experiment_id, tags=run_tags).info.run_id)
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
         if self.client is not None and self.run_id is not None:
@@ -143,19 +215,36 @@ class ChildRun:
 
     def log_metrics(self, metrics: dict[str, Any], step: int = 0) -> None:
         """Numeric leaves of ``metrics`` (nested dicts flattened with dots) at ``step``."""
-        if self.client is None:
-            return
-        from mlflow.entities import Metric
-
-        now = int(time.time() * 1000)
-        items = [Metric(k, float(v), now, step) for k, v in sorted(flatten(metrics).items())
-                 if isinstance(v, (int, float)) and not isinstance(v, bool)]
-        for i in range(0, len(items), 500):
-            self.client.log_batch(self.run_id, metrics=items[i:i + 500])
+        log_metrics(self.client, self.run_id, numeric_leaves(metrics), step)
 
     def log_artifact(self, path: Path, folder: str | None = None) -> None:
         if self.client is not None:
             self.client.log_artifact(self.run_id, str(path), folder)
+
+    def log_model(self, model: Any, registered_name: str) -> str | None:
+        """Save the torch module ``model`` as an MLflow PyTorch model under this run's ``model/`` artifacts and
+        register it as a new version of ``registered_name`` (created if new) in the model registry; returns the
+        version (None when tracking is off). Load it back with ``mlflow.pytorch.load_model("models:/<name>/<v>")``
+        (the ``weatheralign`` package must be importable)."""
+        if self.client is None:
+            return None
+        import mlflow.pytorch
+        import torch
+        from mlflow.exceptions import MlflowException
+
+        with tempfile.TemporaryDirectory() as tmp:
+            mlflow.pytorch.save_model(model, f"{tmp}/model", serialization_format="pickle",
+                                      pip_requirements=[f"torch=={torch.__version__.split('+')[0]}", "weatheralign"])
+            self.client.log_artifacts(self.run_id, f"{tmp}/model", "model")
+        try:
+            self.client.create_registered_model(registered_name, description=(
+                "weatheralign's BEVFusion-style detector; versions are pipeline runs (see each version's run)"))
+        except MlflowException as exc:
+            if exc.error_code != "RESOURCE_ALREADY_EXISTS":
+                raise
+        artifact_uri = self.client.get_run(self.run_id).info.artifact_uri
+        version = self.client.create_model_version(registered_name, f"{artifact_uri}/model", run_id=self.run_id)
+        return str(version.version)
 
     def close(self, failed: bool = False) -> None:
         if self.client is not None:

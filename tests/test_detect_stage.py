@@ -123,9 +123,46 @@ def test_mlflow_runs_are_tagged_for_the_ablation(stage_run):
     runs = client.search_runs([exp.experiment_id], "tags.kind = 'eval' AND tags.alignment = 'unaligned'")
     assert {r.data.tags["weather"] for r in runs} == set(CONDITIONS)
     assert all("map" in r.data.metrics and "nds" in r.data.metrics for r in runs)
+    assert {r.data.tags["severity"] for r in runs if r.data.tags["weather"] == "snow"} == {"2 mm/h"}
     trains = client.search_runs([exp.experiment_id], "tags.kind = 'train'")
     assert {r.data.tags["model"] for r in trains} == {"pretrained", "finetuned-snow", "finetuned-snow-mix",
                                                       "finetuned-snow-unaligned"}
+    # one metric name across conditions: the stage run holds no per-condition metric, the differences are runs
+    stage = client.search_runs([exp.experiment_id], "tags.stage = 'detect' AND tags.kind = 'stage'")[0]
+    assert "parameters" in stage.data.metrics and not any("snow" in k or "clean" in k for k in stage.data.metrics)
+    diffs = client.search_runs([exp.experiment_id], "tags.kind = 'difference' AND tags.comparison = "
+                               "'unaligned-aligned' AND tags.metric = 'map'")
+    assert {r.data.tags["weather"] for r in diffs} == set(CONDITIONS)
+    assert all(r.data.metrics["difference"] == 0.0 for r in diffs)  # every copy here is the clean world
+    inputs = {d.dataset.name: d for d in stage.inputs.dataset_inputs}
+    assert {"clean/train", "clean/val", "snow-unaligned/train", "fog_light-aligned/val"} <= set(inputs)
+    assert inputs["clean/val"].tags[0].value == "evaluation" and len(inputs["clean/val"].dataset.digest) == 16
+
+
+def test_detector_checkpoints_are_registered_mlflow_models(stage_run):
+    """Each trained model is a registered MLflow PyTorch model whose version carries its evaluations; loaded from
+    the registry it predicts exactly as the stage's checkpoint."""
+    import mlflow.pytorch
+    import torch
+    from mlflow.tracking import MlflowClient
+
+    tmp, data = stage_run[0], stage_run[1]
+    uri = f"sqlite:///{tmp / 'mlflow.db'}"
+    client = MlflowClient(tracking_uri=uri)
+    names = {m.name for m in client.search_registered_models()}
+    assert {"weatheralign-detector-pretrained", "weatheralign-detector-finetuned-snow-mix"} <= names
+    version = client.search_model_versions("name = 'weatheralign-detector-finetuned-snow'")[0]
+    assert version.tags["map.snow-aligned"] and version.tags["nds.clean"]
+    run = client.get_run(version.run_id)
+    assert run.data.tags["kind"] == "train" and run.data.tags["model"] == "finetuned-snow"
+    mlflow.set_tracking_uri(uri)
+    try:
+        loaded = mlflow.pytorch.load_model(f"models:/weatheralign-detector-finetuned-snow/{version.version}")
+    finally:
+        mlflow.set_tracking_uri(None)
+    blob = torch.load(data / "detect" / "models" / "finetuned-snow.pt", map_location="cpu", weights_only=False)
+    assert loaded.state_dict().keys() == blob["state_dict"].keys()
+    assert all(torch.equal(loaded.state_dict()[k], v) for k, v in blob["state_dict"].items())
 
 
 def test_compare_reads_the_same_numbers_back_from_mlflow(stage_run, capsys):

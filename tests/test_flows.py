@@ -92,12 +92,23 @@ def test_world_flow_thread_pool_and_dask_with_mlflow(tmp_path, prefect_server):
     client = MlflowClient(tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}")
     exp = client.get_experiment_by_name("weatheralign")
     runs = client.search_runs([exp.experiment_id])
-    parents = [r for r in runs if r.data.tags.get("weatheralign.pipeline_id") == "test-pipeline"]
+    parents = [r for r in runs if r.data.tags.get("pipeline_id") == "test-pipeline"
+               and r.data.tags.get("kind") == "pipeline"]
     children = [r for r in runs if r.data.tags.get("mlflow.parentRunId") == parents[0].info.run_id]
     assert len(parents) == 1 and len(children) == 3
-    assert sorted(c.data.tags["weatheralign.stage"] for c in children) == ["particles", "world", "world"]
-    child = next(c for c in children if c.data.tags["weatheralign.stage"] == "world")
-    assert child.data.tags["weatheralign.stage"] == "world" and child.data.tags["prefect.flow_run_id"]
+    assert sorted(c.data.tags["stage"] for c in children) == ["particles", "world", "world"]
+    child = next(c for c in children if c.data.tags["stage"] == "world")
+    assert child.data.tags["prefect.flow_run_id"] and child.data.tags["pipeline_id"] == "test-pipeline"
+    assert {k: child.data.tags[k] for k in ("kind", "weather", "alignment", "severity", "model")} == {
+        "kind": "stage", "weather": "none", "alignment": "none", "severity": "none", "model": "none"}
+    assert len(child.data.tags["git_commit"]) == 40 or child.data.tags["git_commit"] == "none"
+    # the particles stage: one child per kind, the same metric names in both, the kind a tag
+    particles_run = next(c for c in children if c.data.tags["stage"] == "particles")
+    kinds = [r for r in runs if r.data.tags.get("mlflow.parentRunId") == particles_run.info.run_id]
+    assert {r.data.tags["weather"]: r.data.tags["severity"] for r in kinds} == {"snow": "2 mm/h", "rain": "50 mm/h"}
+    assert kinds[0].data.metrics.keys() == kinds[1].data.metrics.keys()
+    assert "number_density_per_m3" in kinds[0].data.metrics
+    assert not any("snow" in k or "rain" in k for k in particles_run.data.metrics)
     assert child.data.metrics["num_samples"] in (4, 6) and "world.lidar.firings_per_ring" in child.data.params
     artifacts = {a.path for a in client.list_artifacts(child.info.run_id, "figures")}
     assert artifacts == {"figures/sample_bev.png", "figures/sample_cameras.jpg"}

@@ -502,9 +502,10 @@ def test_reference_flow_writes_metrics_figure_and_resumes(tmp_path):
     assert (tmp_path / "data" / "reference" / "sealed_truth.json").is_file()
     client = MlflowClient(tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}")
     exp = client.get_experiment_by_name("weatheralign")
-    child = next(r for r in client.search_runs([exp.experiment_id])
-                 if r.data.tags.get("weatheralign.stage") == "reference")
-    assert child.data.metrics["splits.dense.frames"] == 2 and "reference.seed" in child.data.params
+    child = next(r for r in client.search_runs([exp.experiment_id], "tags.stage = 'reference' AND tags.kind = 'stage'"))
+    assert child.data.metrics["frames_total"] == 6 and "reference.seed" in child.data.params
+    dense = client.search_runs([exp.experiment_id], "tags.weather = 'fog' AND tags.severity = 'dense'")
+    assert len(dense) == 1 and dense[0].data.metrics["frames"] == 2
     assert {a.path for a in client.list_artifacts(child.info.run_id, "figures")} == {"figures/overview.png"}
     run = subprocess.run(args, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]

@@ -238,7 +238,8 @@ def test_every_condition_resolves_to_its_media(world):
 
 @pytest.mark.flow
 def test_flow_writes_copy_and_metrics(world, tmp_path):
-    """The media and simulate flows end to end on one fog sample (tables, metrics keys, figure)."""
+    """The media and simulate flows end to end on one fog sample (tables, metrics keys, figure), tracked in MLflow:
+    the runs of the unaligned condition are found by their tags and carry the metrics under their plain names."""
     tw, nusc, fields, frame, _, sensors, scenes = world
     data, reports = tmp_path / "data", tmp_path / "reports"
     version = tw.params.world.version
@@ -247,7 +248,8 @@ def test_flow_writes_copy_and_metrics(world, tmp_path):
     (data / "particles").mkdir(parents=True)
     (data / "particles" / "fields.json").write_text(json.dumps({k: [f.to_dict() for f in v] for k, v in fields.items()}))
     params = write_params_file(tmp_path / "params.yaml", {
-        "paths": {"data": str(data), "reports": str(reports)}, "tracking": {"enabled": False},
+        "paths": {"data": str(data), "reports": str(reports)},
+        "tracking": {"enabled": True, "mlflow_uri": f"sqlite:///{tmp_path / 'mlflow.db'}"},
         "run": {"show_progress": False}, "world": tw.params.world.model_dump(mode="json")})
     levels = data / "calibrate_fog" / "fog_levels.json"
     levels.parent.mkdir(parents=True)
@@ -273,6 +275,21 @@ def test_flow_writes_copy_and_metrics(world, tmp_path):
     assert metrics["points_lost"] + metrics["points_scattered"] > 0 and metrics["reprojection_pairs"] == 0
     assert (reports / "simulate" / "fog_dense-unaligned" / "side_by_side.png").is_file()
     assert len(open_nuscenes(out, version).sample) == len(nusc.sample)
+    from mlflow.tracking import MlflowClient
+
+    client = MlflowClient(tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}")
+    exp = client.get_experiment_by_name("weatheralign")
+    unaligned = client.search_runs([exp.experiment_id], "tags.alignment = 'unaligned'")
+    assert [r.data.tags["mlflow.runName"] for r in unaligned] == ["simulate/fog_dense-unaligned"]
+    tags = unaligned[0].data.tags
+    assert (tags["stage"], tags["kind"], tags["weather"], tags["severity"]) == ("simulate", "stage", "fog_dense", "dense")
+    assert unaligned[0].data.metrics["points_lost"] == metrics["points_lost"]
+    assert unaligned[0].data.metrics["reprojection_pairs"] == 0
+    assert [d.dataset.digest for d in unaligned[0].inputs.dataset_inputs] == [dataset_digest(tw.dataroot, version)]
+    media_runs = client.search_runs([exp.experiment_id], "tags.stage = 'media' AND tags.kind = 'condition'")
+    assert {r.data.tags["weather"]: r.data.tags["severity"] for r in media_runs} == {
+        "fog_light": "light", "fog_dense": "dense", "snow": "2 mm/h", "rain": "50 mm/h", "fog_snow": "light + 2 mm/h"}
+    assert {r.data.metrics.get("fog_alpha") for r in media_runs if r.data.tags["weather"] == "fog_dense"} == {0.05}
     bad = subprocess.run([sys.executable, "-m", "flows.simulate", "--params", str(params), "--set",
                           "simulate.condition=hail"], cwd=REPO, capture_output=True, text=True, timeout=600, env=env)
     assert bad.returncode == 2 and "simulate.condition = 'hail' is invalid" in bad.stderr

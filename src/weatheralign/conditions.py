@@ -122,4 +122,22 @@ def variant_name(condition: str, aligned: bool) -> str:
     return f"{condition}-{ALIGNMENTS[0] if aligned else ALIGNMENTS[1]}"
 
 
-__all__ = ["ALIGNMENTS", "CONDITIONS", "Condition", "FogPart", "ParticlePart", "condition_named", "variant_name"]
+def severity_label(name: str, snow_rate_mm_h: float, rain_rate_mm_h: float) -> str:
+    """Condition ``name``'s severity in words: its fog level and / or its particle rate (``light``, ``2 mm/h``,
+    ``light + 2 mm/h``), from the rates of ``particles.snow`` / ``particles.rain``."""
+    c = condition_named(name)
+    parts = [c.fog.level] if c.fog is not None else []
+    if c.particles is not None:
+        parts.append(f"{snow_rate_mm_h if c.particles.kind == 'snow' else rain_rate_mm_h:g} mm/h")
+    return " + ".join(parts)
+
+
+def condition_tags(name: str, aligned: bool | None, snow_rate_mm_h: float, rain_rate_mm_h: float) -> dict[str, str]:
+    """The ``weather``, ``alignment`` (``none`` for None) and ``severity`` tags of condition ``name``'s runs."""
+    alignment = "none" if aligned is None else variant_name(name, aligned).rsplit("-", 1)[1]
+    return {"weather": name, "alignment": alignment,
+            "severity": severity_label(name, snow_rate_mm_h, rain_rate_mm_h)}
+
+
+__all__ = ["ALIGNMENTS", "CONDITIONS", "Condition", "FogPart", "ParticlePart", "condition_named", "condition_tags",
+           "severity_label", "variant_name"]
