@@ -38,7 +38,7 @@ import torch  # noqa: E402
 from prefect import flow  # noqa: E402
 
 from flows.common import gather, parse_stage_args, run_stage, threads_per_task  # noqa: E402
-from tasks.detect import predict_task, train_task  # noqa: E402
+from tasks.detect import paired_task, predict_task, train_task  # noqa: E402
 from tasks.tracking import REGISTERED_MODEL_PREFIX, ChildRun, StageTracker  # noqa: E402
 from weatheralign import atomic  # noqa: E402
 from weatheralign.conditions import CONDITIONS, condition_named, condition_tags, variant_name  # noqa: E402
@@ -48,8 +48,7 @@ from weatheralign.data.nuscenes import open_nuscenes  # noqa: E402
 from weatheralign.detect import protocol  # noqa: E402
 from weatheralign.detect.data import (DetectionDataset, build_cache, cache_path, load_cached_sample,  # noqa: E402
                                       scene_split)
-from weatheralign.detect.evaluate import (ego_positions, ground_truth, paired_difference,  # noqa: E402
-                                          resistance_ability)
+from weatheralign.detect.evaluate import ego_positions, ground_truth, resistance_ability  # noqa: E402
 from weatheralign.detect.figures import detections_bev_figure, learning_curve_figure  # noqa: E402
 from weatheralign.detect.model import BEVFusionDetector, count_parameters  # noqa: E402
 from weatheralign.manifest import manifest_path, read_manifest  # noqa: E402
@@ -341,15 +340,27 @@ class DetectRun:
                on_result)
         return metrics
 
-    def paired(self, key_a: str, key_b: str, metric: str, dataroot: str | None = None) -> dict[str, Any]:
-        """``metric(a) - metric(b)`` on the same val samples (those of ``dataroot``, by default ``key_a``'s) with a
-        paired frame-bootstrap interval, and whether the interval excludes 0."""
-        ea = self.evalset(dataroot or key_a.split("/")[1])
-        diff, ci = paired_difference(self.gt, protocol.eval_boxes(self.detections[key_a], ea),
-                                     protocol.eval_boxes(self.detections[key_b], ea), metric,
-                                     self.cfg.num_bootstrap, self.cfg.seed, self.cfg.confidence)
-        return {"a": key_a, "b": key_b, "metric": metric, "difference": diff, "ci": ci,
-                "exceeds_noise": bool(ci[0] > 0 or ci[1] < 0)}
+    def paired(self, comparisons: dict[str, tuple[str, str, str, str | None]]) -> dict[str, dict[str, Any]]:
+        """Per ``name: (key_a, key_b, metric, dataroot)``: ``metric(a) - metric(b)`` on the same val samples (those
+        of ``dataroot``, None: ``key_a``'s) with a paired frame-bootstrap interval, and whether the interval excludes
+        0. Each pair of evaluations is bootstrapped once for all its metrics, the pairs as tasks on the stage's task
+        runner."""
+        pairs: dict[tuple[str, str, str], list[str]] = {}
+        for a, b, metric, dataroot in comparisons.values():
+            pairs.setdefault((a, b, dataroot or a.split("/")[1]), []).append(metric)
+        futures = []
+        for (a, b, dataroot), metrics in pairs.items():
+            ea = self.evalset(dataroot)
+            futures.append(paired_task.submit(self.gt, protocol.eval_boxes(self.detections[a], ea),
+                                              protocol.eval_boxes(self.detections[b], ea), tuple(dict.fromkeys(metrics)),
+                                              self.cfg.num_bootstrap, self.cfg.seed, self.cfg.confidence))
+        results = dict(zip(pairs, gather(futures, "detect: paired differences", self.params.run.show_progress)))
+        out = {}
+        for name, (a, b, metric, dataroot) in comparisons.items():
+            diff, ci = results[(a, b, dataroot or a.split("/")[1])][metric]
+            out[name] = {"a": a, "b": b, "metric": metric, "difference": diff, "ci": ci,
+                         "exceeds_noise": bool(ci[0] > 0 or ci[1] < 0)}
+        return out
 
 
 def difference_run(key: str, d: dict[str, Any]) -> tuple[dict[str, str], dict[str, float]]:
@@ -479,23 +490,24 @@ def detect_flow(params: Params) -> dict:
         for name, evals in models.items():
             for d, m in evals.items():
                 m["ra"] = resistance_ability(m["nds"], evals[CLEAN]["nds"]) if evals[CLEAN]["nds"] > 0 else None
-        differences: dict[str, Any] = {}
+        comparisons: dict[str, tuple[str, str, str, str | None]] = {}  # name: (a, b, metric, dataroot)
         for c in [v.rsplit("-", 1)[0] for v in variants if v.endswith("-aligned")]:
             for metric in ("map", "nds"):
-                differences[f"pretrained:{c}:unaligned-aligned:{metric}"] = run.paired(
-                    f"pretrained/{c}-unaligned", f"pretrained/{c}-aligned", metric)
+                comparisons[f"pretrained:{c}:unaligned-aligned:{metric}"] = (
+                    f"pretrained/{c}-unaligned", f"pretrained/{c}-aligned", metric, None)
         for metric in ("map", "nds"):  # does each sensor add to the other?
             for other in ("lidar", "camera"):
-                differences[f"pretrained:clean:fused-{other}:{metric}"] = run.paired(
+                comparisons[f"pretrained:clean:fused-{other}:{metric}"] = (
                     f"pretrained/{CLEAN}", f"pretrained/{CLEAN}-{other}", metric, CLEAN)
         for c in conditions:
             for metric in ("map", "nds"):
-                differences[f"finetuned-{c}-vs-pretrained:{c}-aligned:{metric}"] = run.paired(
-                    f"finetuned-{c}/{c}-aligned", f"pretrained/{c}-aligned", metric)
-                differences[f"finetuned-{c}-mix-vs-pretrained:clean:{metric}"] = run.paired(
-                    f"finetuned-{c}-mix/{CLEAN}", f"pretrained/{CLEAN}", metric)
-                differences[f"finetuned-{c}-aligned-vs-unaligned:{c}-aligned:{metric}"] = run.paired(
-                    f"finetuned-{c}/{c}-aligned", f"finetuned-{c}-unaligned/{c}-aligned", metric)
+                comparisons[f"finetuned-{c}-vs-pretrained:{c}-aligned:{metric}"] = (
+                    f"finetuned-{c}/{c}-aligned", f"pretrained/{c}-aligned", metric, None)
+                comparisons[f"finetuned-{c}-mix-vs-pretrained:clean:{metric}"] = (
+                    f"finetuned-{c}-mix/{CLEAN}", f"pretrained/{CLEAN}", metric, None)
+                comparisons[f"finetuned-{c}-aligned-vs-unaligned:{c}-aligned:{metric}"] = (
+                    f"finetuned-{c}/{c}-aligned", f"finetuned-{c}-unaligned/{c}-aligned", metric, None)
+        differences = run.paired(comparisons)
 
         metrics = {
             "models": {n: {d: {k: m.get(k) for k in (*SUMMARY_KEYS, "ra")} for d, m in e.items()}

@@ -27,6 +27,7 @@ from weatheralign.detect.evaluate import (
     ego_positions,
     ground_truth,
     paired_difference,
+    paired_differences,
     predictions_to_eval_boxes,
     resample,
     resistance_ability,
@@ -415,3 +416,8 @@ def test_paired_difference():
     assert 0 < lo <= diff <= hi
     with pytest.raises(ValueError, match="metric"):
         paired_difference(gt, good, bad, metric="mAP")  # type: ignore[arg-type]
+    # every metric from one set of replicates: each equal to its own paired_difference, bit for bit
+    together = paired_differences(gt, good, bad, ("map", "nds", "map_present"), n_boot=50, seed=3)
+    for metric, result in together.items():
+        assert result == paired_difference(gt, good, bad, metric=metric, n_boot=50, seed=3)
+    assert together["map"] != paired_differences(gt, good, bad, ("map",), n_boot=50, seed=4)["map"]

@@ -727,17 +727,30 @@ def paired_difference(gt: EvalBoxes, pred_a: EvalBoxes, pred_b: EvalBoxes, metri
     Returns:
         (difference, [lo, hi]).
     """
-    if metric not in ("map", "nds", "map_present"):
-        raise ValueError(f"unknown metric {metric!r}; expected 'map', 'nds' or 'map_present'")
+    return paired_differences(gt, pred_a, pred_b, (metric,), n_boot, seed, confidence)[metric]
+
+
+def paired_differences(gt: EvalBoxes, pred_a: EvalBoxes, pred_b: EvalBoxes,
+                       metrics: Sequence[Metric] = ("map", "nds"), n_boot: int = DEFAULT_BOOTSTRAP, seed: int = 0,
+                       confidence: float = 0.95) -> dict[str, tuple[float, list[float]]]:
+    """`paired_difference` for several metrics from one set of bootstrap replicates (each metric's result equals
+    `paired_difference` of that metric alone: the draws depend on the seed only)."""
+    for metric in metrics:
+        if metric not in ("map", "nds", "map_present"):
+            raise ValueError(f"unknown metric {metric!r}; expected 'map', 'nds' or 'map_present'")
     _check_bootstrap(n_boot, confidence)
     cfg = detection_config()
     prep_a, prep_b = _prepare(gt, pred_a, cfg), _prepare(gt, pred_b, cfg)
-    diff = _metric(_scores(prep_a, prep_a.pred_order), metric) - _metric(_scores(prep_b, prep_b.pred_order), metric)
+    scores_a, scores_b = _scores(prep_a, prep_a.pred_order), _scores(prep_b, prep_b.pred_order)
     # replicates enumerate samples in draw order for both models (the point estimate in each model's own order)
-    column = ("map", "nds", "map_present").index(metric)
-    reps = np.array([_summary(prep_a, d)[column] - _summary(prep_b, d)[column]
-                     for d in _draws(len(prep_a.tokens), n_boot, seed)])
-    return float(diff), _percentile_interval(reps, confidence)
+    reps = np.array([np.subtract(_summary(prep_a, d), _summary(prep_b, d))
+                     for d in _draws(len(prep_a.tokens), n_boot, seed)], dtype=np.float64).reshape(n_boot, 3)
+    out = {}
+    for metric in metrics:
+        column = ("map", "nds", "map_present").index(metric)
+        diff = _metric(scores_a, metric) - _metric(scores_b, metric)
+        out[metric] = (float(diff), _percentile_interval(reps[:, column], confidence))
+    return out
 
 
 def resistance_ability(nds_weather: float, nds_clean: float) -> float:
@@ -755,5 +768,5 @@ def resistance_ability(nds_weather: float, nds_clean: float) -> float:
 
 
 __all__ = ["DEFAULT_BOOTSTRAP", "DetectionScores", "accumulate", "bootstrap_intervals", "detection_config",
-           "ego_positions", "ground_truth", "paired_difference", "predictions_to_eval_boxes", "resample",
-           "resistance_ability", "score"]
+           "ego_positions", "ground_truth", "paired_difference", "paired_differences", "predictions_to_eval_boxes",
+           "resample", "resistance_ability", "score"]
