@@ -279,7 +279,7 @@ class DetectRun:
         key, record_path, det_path, fingerprint = self._evaluation_files(model_name, dataroot, modality)
         result = self.scored(detections, dataroot)
         result.pop("_detections")
-        atomic.save_npz_compressed(det_path, protocol.detections_to_arrays(detections))
+        atomic.save_npz(det_path, protocol.detections_to_arrays(detections), compress=True)
         atomic.write_json(record_path, {"fingerprint": fingerprint, "metrics": result})
         self.detections[key] = detections
         with self.tracker.child(f"eval {key}", {**self.dataroot_tags(dataroot), "model": model_name,

@@ -90,3 +90,23 @@ def test_atomic_write_leaves_no_partial_file_and_readable_output(tmp_path):
             tmp.write_bytes(b"partial")
             raise RuntimeError("interrupted")
     assert sorted(p.name for p in (tmp_path / "sub").iterdir()) == ["out.json"]
+
+
+@pytest.mark.parametrize("compress", [True, False])
+def test_save_npz_round_trips_byte_identically(tmp_path, compress):
+    """Both forms load back exactly, are the same bytes when written twice (fixed member dates) and differ in size as
+    their names say."""
+    import time
+
+    from weatheralign import atomic
+
+    arrays = {"a": np.arange(5000, dtype=np.int16) % 7, "b": np.linspace(0, 1, 30).astype(np.float32).reshape(5, 6)}
+    atomic.save_npz(tmp_path / "x.npz", arrays, compress)
+    time.sleep(1.1)  # zip dates have a 2 s resolution: a stamped time could still coincide without the pause
+    atomic.save_npz(tmp_path / "y.npz", arrays, compress)
+    assert (tmp_path / "x.npz").read_bytes() == (tmp_path / "y.npz").read_bytes()
+    with np.load(tmp_path / "x.npz") as z:
+        assert list(z) == ["a", "b"] and all(np.array_equal(z[k], v) and z[k].dtype == v.dtype
+                                             for k, v in arrays.items())
+    stored = sum(v.nbytes for v in arrays.values())
+    assert ((tmp_path / "x.npz").stat().st_size < stored) == compress

@@ -11,7 +11,7 @@ Cache layout (`build_cache`)::
     <cache_dir>/<dataroot name>-<digest>/     digest of CACHE_VERSION, the dataroot path, version, tokens,
                                              image size, sweeps and `file_stamps` of the tables and sensor files read
         index.json                           written last: settings, tokens in order, build statistics
-        <sample token>.npz                   one compressed archive per sample (members: see `SAMPLE_MEMBERS`)
+        <sample token>.npz                   one stored (uncompressed) archive per sample (members: `SAMPLE_MEMBERS`)
 
 A sample's points are stored as (3, N) int16 centimetres (``points_xyz_cm``; points farther than 327 m on any axis are
 dropped), uint8 intensities (0..255, rounded) and uint8 sweep indices with a per-sweep time lag table; images as uint8
@@ -403,7 +403,7 @@ def _cache_one(dataroot: str, version: str, tables_key: str, token: str, out: st
     nusc = open_nuscenes_cached(dataroot, version, tables_key)
     arrays, stats = cache_sample(nusc, token, image_size, sweeps)
     t0 = time.process_time()
-    atomic.save_npz_compressed(out, arrays)
+    atomic.save_npz(out, arrays, compress=False)  # read at every training step
     return {**stats, "write_s": time.process_time() - t0, "bytes": Path(out).stat().st_size}
 
 

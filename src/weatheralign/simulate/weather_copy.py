@@ -225,11 +225,12 @@ def write_scan(src_root: Path, out_root: Path, rel: str, lw: LidarWeather, times
     if extras is None:  # no input extras: per-point firing times alone, so the reader gets exact times
         extras = np.zeros(len(lw.labels), dtype=[("time_offset", "<f4")])
         extras["time_offset"] = (lw.times - timestamp).astype(np.float32)
-    atomic.save_npz_compressed(out_root / compressed_extras_relpath(rel), {n: extras[n] for n in extras.dtype.names})
-    atomic.save_npz_compressed(out_root / weather_relpath(rel), {
+    atomic.save_npz(out_root / compressed_extras_relpath(rel), {n: extras[n] for n in extras.dtype.names},
+                    compress=True)
+    atomic.save_npz(out_root / weather_relpath(rel), {
         "label": lw.labels.astype(np.uint8),
         "particle_id": lw.particle_id.astype(smallest_int_dtype(lw.particle_id)),
-        "source_index": lw.source_index.astype(smallest_int_dtype(lw.source_index))})
+        "source_index": lw.source_index.astype(smallest_int_dtype(lw.source_index))}, compress=True)
 
 
 def reusable_lidar(twin_root: Path, sample_token: str, fingerprint: str, relpaths: list[str]) -> dict | None:
