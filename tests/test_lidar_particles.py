@@ -733,3 +733,38 @@ def test_real_stf_and_kitti_scans_sane_in_either_intensity_scale(scale):
             same = lambda x: np.where(x == ParticleLabel.UNCHANGED, ParticleLabel.ATTENUATED, x)  # noqa: E731
             np.testing.assert_array_equal(same(a.input_labels), same(b.input_labels))
             np.testing.assert_allclose(a.points[:, 3] * 255.0, b.points[:, 3], rtol=1e-5, atol=1e-4)
+
+
+def _slice_table_loop(az0, span, n_bins):
+    """The slice look-up table by its definition, one slice and bin at a time (the slow reference)."""
+    from weatheralign.lidar.particles.beam_index import _CONVEX_SPAN
+
+    d_tb = 2 * math.pi / n_bins
+    lists: list[list[int]] = [[] for _ in range(n_bins)]
+    for k in range(len(az0)):
+        if span[k] > _CONVEX_SPAN:
+            bins = range(n_bins)
+        else:
+            b0 = int(math.floor((az0[k] + math.pi) / d_tb)) - 1
+            b1 = int(math.floor((az0[k] + span[k] + math.pi) / d_tb)) + 1
+            bins = sorted({b % n_bins for b in range(b0, b1 + 1)})
+        for b in bins:
+            lists[b].append(k)
+    offsets = np.zeros(n_bins + 1, dtype=np.int64)
+    np.cumsum([len(x) for x in lists], out=offsets[1:])
+    return offsets, np.array([k for x in lists for k in x], dtype=np.int64)
+
+
+def test_slice_table_equals_its_definition():
+    """The vectorised azimuth look-up table equals the per-slice loop: wrap-around at ±π, wide (convex) slices in
+    every bin, spans covering more bins than there are, slices ascending within each bin."""
+    from weatheralign.lidar.particles.beam_index import _slice_table
+
+    rng = np.random.default_rng(0)
+    for _ in range(100):
+        n, n_bins = int(rng.integers(1, 300)), int(rng.integers(4, 2000))
+        az0 = rng.uniform(-math.pi, math.pi, n)
+        span = rng.choice([0.0, 0.01, 0.5, 3.0, 3.2, 6.0], n) * rng.uniform(0, 1, n)
+        span[rng.uniform(size=n) < 0.05] = 4.0
+        got, want = _slice_table(az0, span, n_bins), _slice_table_loop(az0, span, n_bins)
+        assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])

@@ -81,22 +81,21 @@ def _slices(origins: F64, d: F64, az: F64, times: F64, lengths: F64, order: I64,
 
 
 def _slice_table(az0: F64, span: F64, n_bins: int) -> tuple[I64, I64]:
-    """The slices (CSR ``offsets`` (n_bins+1,), ``slices``) whose azimuth range ``[az0, az0 + span]`` [rad] reaches
-    each of ``n_bins`` azimuth bins over ``[-π, π)``."""
+    """The slices (CSR ``offsets`` (n_bins+1,), ``slices``, ascending within a bin) whose azimuth range
+    ``[az0, az0 + span]`` [rad] reaches each of ``n_bins`` azimuth bins over ``[-π, π)`` (one bin of margin on each
+    side; a slice wider than `_CONVEX_SPAN` reaches every bin)."""
     d_tb = 2 * math.pi / n_bins
-    lists: list[list[int]] = [[] for _ in range(n_bins)]
-    for k in range(len(az0)):
-        if span[k] > _CONVEX_SPAN:
-            bins = range(n_bins)
-        else:
-            b0 = int(math.floor((az0[k] + math.pi) / d_tb)) - 1
-            b1 = int(math.floor((az0[k] + span[k] + math.pi) / d_tb)) + 1
-            bins = sorted({b % n_bins for b in range(b0, b1 + 1)})
-        for b in bins:
-            lists[b].append(k)
+    wide = np.asarray(span) > _CONVEX_SPAN
+    b0 = np.floor((az0 + math.pi) / d_tb).astype(np.int64) - 1
+    b1 = np.floor((az0 + span + math.pi) / d_tb).astype(np.int64) + 1
+    start = np.where(wide, 0, b0)
+    count = np.where(wide, n_bins, np.minimum(b1 - b0 + 1, n_bins))  # consecutive bins, each once (mod n_bins)
+    first = np.cumsum(count) - count
+    slice_of = np.repeat(np.arange(len(az0), dtype=np.int64), count)
+    bins = (np.repeat(start - first, count) + np.arange(int(count.sum()))) % n_bins
     offsets = np.zeros(n_bins + 1, dtype=np.int64)
-    np.cumsum([len(x) for x in lists], out=offsets[1:])
-    return offsets, np.array([k for x in lists for k in x], dtype=np.int64)
+    np.cumsum(np.bincount(bins, minlength=n_bins), out=offsets[1:])
+    return offsets, slice_of[np.lexsort((slice_of, bins))]
 
 
 def index_beams(beams: Beams, t_ref: float | None = None) -> BeamIndex:
