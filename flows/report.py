@@ -104,6 +104,14 @@ def read_inputs(params: Params) -> tuple[dict[str, dict[str, Any]], dict[str, An
     return metrics, truth, tables
 
 
+def severity_figures(reports: Path) -> dict[str, str]:
+    """The severity curves ``python -m flows.severity curve`` drew from ``dvc exp show`` (``reports/severity/*.png``),
+    caption -> path under ``reports``. They are made outside the pipeline, so DVC does not track them as a dependency:
+    ``dvc repro -f report`` after drawing one."""
+    return {f"Severity curve: {p.stem} (experiments from dvc exp show)": f"severity/{p.name}"
+            for p in sorted((reports / "severity").glob("*.png"))}
+
+
 @flow(name="report", log_prints=True)
 def report_flow(params: Params) -> dict:
     """Write reports/summary.md, reports/summary.html and reports/report/metrics.json; returns the metrics."""
@@ -111,6 +119,7 @@ def report_flow(params: Params) -> dict:
         metrics, truth, tables = read_inputs(params)
         reports = params.paths.reports
         figures = {caption: path for caption, path in FIGURES if (reports / path).is_file()}
+        figures.update(severity_figures(reports))
         text = summary_markdown(metrics, truth, tables, figures, run_costs(params))
         atomic.write_text(reports / "summary.md", text)
         page = markdown_to_html(text, reports, "weatheralign: run summary")

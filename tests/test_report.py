@@ -97,8 +97,11 @@ def test_report_stage_on_the_committed_reports(tmp_path: Path):
     (data / "simulate" / "a.bin").hardlink_to(data / "world" / "a.bin")  # a hard link costs nothing twice
     params = tiny_params(data).model_copy(update={"paths": tiny_params(data).paths.model_copy(
         update={"reports": reports})})
+    (reports / "severity").mkdir()
+    shutil.copy(REPORTS / "world" / "sample_bev.png", reports / "severity" / "snow.png")  # a drawn severity curve
     out = report_flow.fn(params)
     text = (reports / "summary.md").read_text()
+    assert "Severity curve: snow (experiments from dvc exp show)" in text
     for heading in ("## Findings", "## Table 1", "## ReDAM", "Table 2", "Table 3", "## What the run cost"):
         assert heading in text
     assert out["findings_total"] == len(json.loads((REPORTS / "detect" / "metrics.json").read_text())["differences"])

@@ -1,0 +1,122 @@
+"""Severity sweeps: the named levels, the queued DVC experiments and the curve read back from ``dvc exp show``."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from flows.severity import LEVELS, curve_rows, named_level, queue_command, severity_value
+from weatheralign.config import load_params
+
+from .test_stage_contracts import _dvc, _project_repo
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def test_named_levels_are_valid_params_and_grow_in_severity(tmp_path):
+    """Every level's overrides load as params (the config validates them) and set the value the level names;
+    heavier levels mean more snow / rain and less visibility."""
+    for weather, levels in LEVELS.items():
+        assert [lv.level for lv in levels] == [1, 2, 3, 4, 5]
+        values = [lv.value for lv in levels]
+        assert values == sorted(values, reverse=weather == "fog")
+        for lv in levels:
+            params = load_params(REPO / "params.yaml", list(lv.overrides))
+            got = severity_value(weather, params.model_dump(mode="json"))
+            assert math.isclose(got, lv.value, rel_tol=1e-5), (weather, lv.level, got)
+    assert named_level("snow", 3).value == 2.0 and named_level("rain", 4).value == 50.0  # the paper's rates
+    assert queue_command(named_level("rain", 2), ("simulate@rain-aligned",)) == [
+        "dvc", "exp", "run", "--queue", "-n", "severity-rain-2", "-S", "particles.rain.rate_mm_h=10",
+        "simulate@rain-aligned"]
+    with pytest.raises(ValueError, match="expected 1..5"):
+        named_level("snow", 6)
+    with pytest.raises(ValueError, match="expected one of"):
+        named_level("hail", 1)
+    assert severity_value("fog", {"simulate": {"fog_levels": "calibrated", "fog_alpha_dense": 0.04}}) is None
+
+
+def _entry(name: str, rev: str, rate: float, lost: int, scattered: int, maps: tuple[float, float] | None) -> dict:
+    metrics = {"reports/simulate/snow-aligned/metrics.json": {"data": {
+        "num_samples": 4, "points_lost": lost, "points_scattered": scattered}}}
+    if maps is not None:
+        metrics["reports/detect/metrics.json"] = {"data": {"models": {"pretrained": {
+            "snow-aligned": {"map": maps[0]}, "snow-unaligned": {"map": maps[1]}}}}}
+    return {"rev": rev, "name": name, "data": {
+        "params": {"params.yaml": {"data": {"particles": {"snow": {"rate_mm_h": rate}}}}}, "metrics": metrics}}
+
+
+def test_curve_rows_from_exp_show_json():
+    """The workspace, the baseline and every experiment with the condition's metrics, sorted by severity; an entry
+    without them (or without the param) is left out."""
+    shown = [
+        _entry("workspace", "workspace", 2.0, 40, 400, None),
+        {**_entry("main", "abc", 2.0, 40, 400, None), "experiments": [
+            {"name": "severity-snow-5", "revs": [_entry("severity-snow-5", "e5", 8.0, 200, 1600, (0.2, 0.25))]},
+            {"name": "severity-snow-1", "revs": [_entry("severity-snow-1", "e1", 0.5, 8, 100, (0.3, 0.3))]},
+            {"name": "broken", "revs": [{"rev": "e9", "name": "broken", "data": {}, "error": {"msg": "failed"}}]},
+        ]},
+    ]
+    rows = curve_rows(shown, "snow")
+    assert [r["experiment"] for r in rows] == ["severity-snow-1", "main", "workspace", "severity-snow-5"]
+    assert [r["severity"] for r in rows] == [0.5, 2.0, 2.0, 8.0]
+    assert rows[0]["points_lost_per_keyframe"] == 2.0 and rows[-1]["points_scattered_per_keyframe"] == 400.0
+    assert rows[-1]["map_unaligned"] == 0.25 and rows[1]["map_aligned"] is None
+    assert curve_rows(shown, "rain") == []
+
+
+@pytest.mark.flow
+def test_queued_severity_experiments_and_their_curve(tmp_path: Path) -> None:
+    """``dvc exp run --queue`` over two snow levels on a tiny world (up to ``simulate@snow-aligned``): both
+    experiments run, ``dvc exp show`` carries their metrics, heavier snow scatters more LiDAR points, and
+    ``dvc metrics diff`` sees the difference."""
+    repo = tmp_path / "repo"
+    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    params["world"].update({"num_train_scenes": 1, "num_val_scenes": 1, "samples_per_scene": 2,
+                            "sweeps_per_sample": 1})
+    params["world"]["camera"]["image_scale"] = 0.1
+    params["reference"].update({"frames_per_split": 2})
+    params["reference"]["lidar"]["firings_per_ring"] = 360
+    params["reference"]["camera"]["image_scale"] = 0.1
+    params["calibrate_fog"].update({"num_bootstrap": 20, "max_nelder_mead": 5, "fine_points": [3, 3],
+                                    "camera_frames": 1})
+    params["particles"].update({"validation_regions": 1, "validation_max_particles": 20000})
+    params["simulate"]["sweeps"] = 1
+    _project_repo(repo, params)
+    # the stages' metrics files are git-tracked (cache: false), so each experiment's commit carries them
+    (repo / ".gitignore").write_text("/data\n/mlflow.db\n/mlartifacts\n/.prefect\n")
+    for cmd in (["git", "add", "-A"], ["git", "commit", "-qm", "project"]):
+        subprocess.run(cmd, cwd=repo, check=True, capture_output=True)
+    env_python = Path(sys.executable).parent
+    for level in (1, 5):
+        cmd = queue_command(named_level("snow", level), ("simulate@snow-aligned",))
+        done = _dvc(repo, *cmd[1:])
+        assert done.returncode == 0, done.stderr[-3000:]
+    done = _dvc(repo, "exp", "run", "--run-all")
+    assert done.returncode == 0, done.stdout[-3000:] + done.stderr[-3000:]
+    run = subprocess.run([str(env_python / "python"), "-m", "flows.severity", "curve", "--weather", "snow"],
+                         cwd=repo, capture_output=True, text=True, timeout=300,
+                         env={**_env(repo), "PATH": f"{env_python}:/usr/bin:/bin"})
+    assert run.returncode == 0, run.stderr[-3000:]
+    curve = json.loads((repo / "reports" / "severity" / "snow.json").read_text())
+    rows = {r["experiment"]: r for r in curve["rows"]}
+    assert {"severity-snow-1", "severity-snow-5"} <= set(rows)
+    light, heavy = rows["severity-snow-1"], rows["severity-snow-5"]
+    assert (light["severity"], heavy["severity"]) == (0.5, 8.0)
+    assert heavy["points_scattered_per_keyframe"] > 2 * light["points_scattered_per_keyframe"] > 0
+    assert (repo / "reports" / "severity" / "snow.png").stat().st_size > 10_000
+    diff = _dvc(repo, "metrics", "diff", "severity-snow-1", "severity-snow-5", "--json")
+    assert diff.returncode == 0, diff.stderr[-2000:]
+    changed = json.loads(diff.stdout)["reports/simulate/snow-aligned/metrics.json"]
+    assert changed["points_scattered"]["diff"] > 0
+
+
+def _env(repo: Path) -> dict[str, str]:
+    import os
+
+    return {**os.environ, "PYTHONPATH": f"{repo / 'src'}:{repo}", "PREFECT_LOGGING_LEVEL": "WARNING"}
