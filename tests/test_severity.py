@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -121,6 +122,4 @@ def test_queued_severity_experiments_and_their_curve(tmp_path: Path) -> None:
 
 
 def _env(repo: Path) -> dict[str, str]:
-    import os
-
     return {**os.environ, "PYTHONPATH": f"{repo / 'src'}:{repo}", "PREFECT_LOGGING_LEVEL": "WARNING"}
