@@ -9,6 +9,7 @@ materialised region with the LiDAR beams and a camera's field of view).
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -20,16 +21,43 @@ from flows.common import gather, parse_stage_args, run_stage
 from tasks.tracking import StageTracker
 from weatheralign import atomic
 from weatheralign.config import Params
-from weatheralign.manifest import manifest_path, read_manifest
-from weatheralign.data.rings import HDL32E_ELEVATIONS_DEG
+from weatheralign.data.nuscenes import load_frame, open_nuscenes
 from weatheralign.geometry import invert, transform_from_quaternion
+from weatheralign.manifest import manifest_path, read_manifest
 from weatheralign.medium.conditions import PRECIPITATION, FieldSpec, field_spec
 from weatheralign.medium.validation import camera_air_volume, check_region, lidar_air_volume
 from weatheralign.viz import particle_side_view, size_histogram_figure
-from weatheralign.world.rig import T_EGO_LIDAR, make_cameras
 
 LIDAR_REACH_M = 80.0
 CAMERA_DEPTH_M = 60.0
+
+
+@dataclass(frozen=True)
+class RigGeometry:
+    """What the expected particle counts and the side view need of the dataset's own sensors (the calibration of its
+    first sample): the LiDAR's mount (ego x, z) [m], ring elevations [deg] and counting reach [m]; the front
+    camera's mount (ego x, z) [m], intrinsics (3, 3) and image size [px]."""
+
+    lidar_xz: tuple[float, float]
+    elevations_deg: tuple[float, ...]
+    lidar_reach_m: float
+    camera_xz: tuple[float, float]
+    camera_K: np.ndarray
+    camera_width: int
+    camera_height: int
+
+
+def rig_geometry(params: Params) -> RigGeometry:
+    """The `RigGeometry` of the `world` output (its manifest's LiDAR model; the calibrated sensors of its first
+    sample; ``CAM_FRONT``, else the first camera)."""
+    world = read_manifest(manifest_path(params.paths.data, "world"))
+    nusc = open_nuscenes(Path(world.dataroot), world.version)
+    frame = load_frame(nusc, nusc.scene[0]["first_sample_token"])
+    cam = frame.cameras.get("CAM_FRONT") or next(iter(frame.cameras.values()))
+    lidar = world.sensors.lidar
+    return RigGeometry((float(frame.lidar.T_ego_lidar[0, 3]), float(frame.lidar.T_ego_lidar[2, 3])),
+                       tuple(lidar.elevations_deg), min(LIDAR_REACH_M, lidar.max_range_m),
+                       (float(cam.T_ego_cam[0, 3]), float(cam.T_ego_cam[2, 3])), cam.K, cam.width, cam.height)
 
 
 def scene_anchors(params: Params) -> list[tuple[str, float, np.ndarray]]:
@@ -53,8 +81,9 @@ def scene_anchors(params: Params) -> list[tuple[str, float, np.ndarray]]:
 
 @task(name="validate-field", cache_policy=NO_CACHE)
 def validate_condition(specs: list[FieldSpec], anchors: list[tuple[str, float, np.ndarray]], regions: int,
-                       max_particles: int) -> dict:
-    """Materialise sample regions of the first scenes' fields and compare them with the size distribution."""
+                       max_particles: int, rig: RigGeometry) -> dict:
+    """Materialise sample regions of the first scenes' fields and compare them with the size distribution; the
+    particles the dataset's LiDAR and front camera can see (``rig``: its own calibration)."""
     checks = []
     for k in range(regions):
         spec = specs[k % len(specs)]
@@ -64,10 +93,10 @@ def validate_condition(specs: list[FieldSpec], anchors: list[tuple[str, float, n
         checks.append(check_region(field, centre, t0, max_particles))
     field = specs[0].field()
     spectrum = field.spectrum
-    lidar_volume = lidar_air_volume(LIDAR_REACH_M, T_EGO_LIDAR[2, 3], field.z_max,
-                                    (float(HDL32E_ELEVATIONS_DEG.min()), float(HDL32E_ELEVATIONS_DEG.max())))
-    cam = make_cameras(1.0)[0]
-    camera_volume = camera_air_volume(cam.K, cam.width, cam.height, cam.T_ego_cam[2, 3], CAMERA_DEPTH_M, field.z_max)
+    lidar_volume = lidar_air_volume(rig.lidar_reach_m, rig.lidar_xz[1], field.z_max,
+                                    (min(rig.elevations_deg), max(rig.elevations_deg)))
+    camera_volume = camera_air_volume(rig.camera_K, rig.camera_width, rig.camera_height, rig.camera_xz[1],
+                                      CAMERA_DEPTH_M, field.z_max)
     n = field.number_density()
     return {
         "number_density_per_m3": n,
@@ -88,7 +117,7 @@ def validate_condition(specs: list[FieldSpec], anchors: list[tuple[str, float, n
     }
 
 
-def _side_view(spec: FieldSpec, anchor: tuple[str, float, np.ndarray], path: Path) -> None:
+def _side_view(spec: FieldSpec, anchor: tuple[str, float, np.ndarray], rig: RigGeometry, path: Path) -> None:
     name, t0, T_global_ego = anchor
     field = spec.field()
     min_d = 6e-3 if spec.condition == "snow" else 2.5e-3  # only the large ones, so that one can see through
@@ -99,10 +128,9 @@ def _side_view(spec: FieldSpec, anchor: tuple[str, float, np.ndarray], path: Pat
     T = invert(T_global_ego)
     local = particles.positions @ T[:3, :3].T + T[:3, 3]
     keep = (np.abs(local[:, 1]) <= 0.5) & (local[:, 0] >= x0) & (local[:, 0] <= x1) & (local[:, 2] >= 0)
-    cam = make_cameras(1.0)[0]
-    fig = particle_side_view(local[keep][:, [0, 2]], particles.diameters[keep], (T_EGO_LIDAR[0, 3], T_EGO_LIDAR[2, 3]),
-                             HDL32E_ELEVATIONS_DEG, (cam.T_ego_cam[0, 3], cam.T_ego_cam[2, 3]),
-                             float(np.degrees(np.arctan(cam.height / 2 / cam.K[1, 1]))), (x0, x1, -0.5, z1),
+    fig = particle_side_view(local[keep][:, [0, 2]], particles.diameters[keep], rig.lidar_xz,
+                             np.asarray(rig.elevations_deg), rig.camera_xz,
+                             float(np.degrees(np.arctan(rig.camera_height / 2 / rig.camera_K[1, 1]))), (x0, x1, -0.5, z1),
                              f"{spec.condition} over {name}: 1 m thick slab along the ego axis, D >= {min_d * 1e3:g} mm")
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -114,9 +142,10 @@ def particles_flow(params: Params) -> dict:
     with StageTracker(params, "particles") as tracker:
         tracker.log_params({"particles": params.particles.model_dump(mode="json")})
         anchors = scene_anchors(params)
+        rig = rig_geometry(params)
         specs = {c: [field_spec(params.particles, c, name, t0) for name, t0, _ in anchors] for c in PRECIPITATION}
         futures = [validate_condition.submit(specs[c], anchors, params.particles.validation_regions,
-                                             params.particles.validation_max_particles) for c in PRECIPITATION]
+                                             params.particles.validation_max_particles, rig) for c in PRECIPITATION]
         results = dict(zip(PRECIPITATION, gather(futures, "particles: validating fields", params.run.show_progress)))
         out = params.paths.data / "particles" / "fields.json"
         atomic.write_json(out, {c: [s.to_dict() for s in specs[c]] for c in PRECIPITATION}, indent=1)
@@ -134,7 +163,7 @@ def particles_flow(params: Params) -> dict:
         tracker.log_artifact(hist, "figures")
         for c in PRECIPITATION:
             side = tracker.reports / f"side_view_{c}.png"
-            _side_view(specs[c][0], anchors[0], side)
+            _side_view(specs[c][0], anchors[0], rig, side)
             tracker.log_artifact(side, "figures")
         metrics = {"fields_file": str(out), "num_scenes": len(anchors), **results}
         tracker.finish(metrics, logged={"num_scenes": len(anchors)}, children={

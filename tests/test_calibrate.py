@@ -5,6 +5,7 @@ features, and the figures.
 
 from __future__ import annotations
 
+import json
 import math
 import pickle
 import time
@@ -395,6 +396,13 @@ def test_camera_severity_orders_fog_levels_and_ratio(streets):
     off = camera_visibility_ratio(dense[:half], ranges[:half], denser_ref, ranges[half:])
     assert off.ratio == pytest.approx(0.06 / 0.04, rel=0.15)
     assert set(off.metrics()) >= {"camera_visibility_ratio", "camera_alpha_sim", "camera_alpha_ref"}
+    assert off.metrics()["camera_check"] == "ok"
+    # not estimable (a flat image has no fog windows): null figures and the reason, never NaN in metrics.json
+    flat = [np.full_like(imgs[0], 128)]
+    blind = camera_visibility_ratio(flat, ranges[:1], denser_ref, ranges[half:]).metrics()
+    assert blind["camera_visibility_ratio"] is None and blind["camera_alpha_sim"] is None
+    assert blind["camera_check"].startswith("not estimable: fog severity from 0 of 1 simulated")
+    json.dumps(blind, allow_nan=False)
 
 
 def test_camera_estimator_without_sky_uses_the_given_airlight_and_checks_inputs(streets):

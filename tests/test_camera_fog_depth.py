@@ -181,6 +181,22 @@ def test_airlight_without_ranges_uses_the_dark_channel_of_the_sky():
     assert np.allclose(estimate_airlight(dark), NEUTRAL_AIRLIGHT)  # nothing bright enough to be sky
 
 
+@pytest.mark.parametrize("with_ranges", [True, False])
+def test_overexposed_clouds_never_make_the_airlight_white(with_ranges):
+    """Real cameras clip bright clouds at 255: those pixels say nothing about the sky's radiance and never vote, so the
+    airlight is the unsaturated sky's colour (range maps: the sky pixels; without: the dark channel); a sky clipped
+    everywhere falls back to the neutral grey."""
+    sky = (170, 176, 182)
+    images, ranges = _scene(sky, cameras_with_sky=(0, 1, 3))
+    for k in (0, 1, 3):  # two thirds of every sky band blown out, more pixels than the grey part
+        images[k][:20] = 255
+    A = estimate_airlight(images, ranges if with_ranges else None, neutral=False)
+    assert np.allclose(A, np.array(sky) / 255.0, atol=2 / 255)
+    for k in (0, 1, 3):
+        images[k][:30] = (255, 255, 254)
+    assert np.allclose(estimate_airlight(images, ranges if with_ranges else None), NEUTRAL_AIRLIGHT)
+
+
 # ------------------------------------------------------------------------------------------------ guided filter
 
 

@@ -478,3 +478,31 @@ def test_reprojection_on_real_frames(name: str) -> None:
     unaligned = observe(frame, images, ranges, replace(media, aligned=False), sensors, airlight,
                         OPTIONS).reprojection_px
     assert unaligned.size >= 10 and unaligned.mean() > max(1.0, 20 * err.mean()), unaligned.mean()
+
+
+def test_ego_velocity_from_every_sensor_pose(tmp_path):
+    """A keyframe without sweeps (no per-firing poses): the seven sensor poses of a nuScenes sample, ~45 ms apart,
+    give the ego's velocity; the scan's per-firing poses join the fit; poses all at one instant give 0."""
+    from weatheralign.data.frame import CameraView, Frame, LidarScan
+    from weatheralign.simulate.observe import ego_velocity
+
+    v = np.array([9.0, -2.0, 0.1])
+
+    def pose(t: float) -> np.ndarray:
+        T = np.eye(4)
+        T[:3, 3] = np.array([100.0, 50.0, 1.0]) + v * t
+        return T
+
+    t0 = 1_700_000_000.0  # seconds of a nuScenes-like clock: the fit must not lose precision to the offset
+    cams = {f"CAM_{k}": CameraView(f"CAM_{k}", tmp_path / f"{k}.jpg", np.eye(3), 16, 9, np.eye(4),
+                                    pose(0.0075 * k - 0.04), t0 + 0.0075 * k - 0.04) for k in range(6)}
+    scan = LidarScan(np.zeros((0, 5), np.float32), t0, np.eye(4), pose(0.0))
+    assert np.allclose(ego_velocity(Frame("s", t0, scan, cams)), v, atol=1e-6)
+    assert np.array_equal(ego_velocity(Frame("s", t0, scan, {})), np.zeros(3))  # one pose: unknown
+    times = t0 + np.linspace(-0.05, 0.0, 11)
+    swept = LidarScan(np.zeros((0, 5), np.float32), t0, np.eye(4), pose(0.0), pose_times=times,
+                      poses=np.stack([pose(t - t0) for t in times]))
+    assert np.allclose(ego_velocity(Frame("s", t0, swept, {})), v, atol=1e-6)
+    still = {k: CameraView(c.channel, c.image_path, c.K, 16, 9, c.T_ego_cam, c.T_global_ego, t0)
+             for k, c in cams.items()}
+    assert np.array_equal(ego_velocity(Frame("s", t0, scan, still)), np.zeros(3))

@@ -375,14 +375,21 @@ class VisibilityComparison:
     simulated: SetSeverity
     reference: SetSeverity
 
-    def metrics(self) -> dict[str, float]:
-        """Flat numbers for metrics.json / MLflow."""
-        return {"camera_visibility_ratio": self.ratio,
-                "camera_alpha_sim": self.simulated.alpha, "camera_alpha_ref": self.reference.alpha,
-                "camera_visibility_sim": self.simulated.visibility,
-                "camera_visibility_ref": self.reference.visibility,
-                "camera_images_sim": float(self.simulated.num_estimated),
-                "camera_images_ref": float(self.reference.num_estimated)}
+    def metrics(self) -> dict[str, float | str | None]:
+        """Flat numbers for metrics.json / MLflow; a figure that could not be estimated is None (JSON null) and
+        ``camera_check`` says why (``ok``, or how many images of each set gave an estimate)."""
+        values = {"camera_visibility_ratio": self.ratio,
+                  "camera_alpha_sim": self.simulated.alpha, "camera_alpha_ref": self.reference.alpha,
+                  "camera_visibility_sim": self.simulated.visibility,
+                  "camera_visibility_ref": self.reference.visibility}
+        out: dict[str, float | str | None] = {k: v if math.isfinite(v) else None for k, v in values.items()}
+        n_sim, n_ref = self.simulated.num_estimated, self.reference.num_estimated
+        out["camera_images_sim"], out["camera_images_ref"] = float(n_sim), float(n_ref)
+        out["camera_check"] = ("ok" if math.isfinite(self.ratio) else
+                               f"not estimable: fog severity from {n_sim} of {len(self.simulated.images)} simulated "
+                               f"and {n_ref} of {len(self.reference.images)} reference images (too few fog windows: "
+                               f"images too small or too little depth range)")
+        return out
 
 
 def compare_severity(simulated: SetSeverity, reference: SetSeverity) -> VisibilityComparison:

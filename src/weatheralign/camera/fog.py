@@ -46,6 +46,10 @@ NEUTRAL_AIRLIGHT = 0.8
 SKY_MIN_PIXELS = 100
 """Fewest sky pixels (pooled over the cameras) for a sky-based airlight; fewer fall back to the neutral grey."""
 
+CLIPPED = 250.0 / 255.0
+"""A pixel with any channel at or above this (sRGB) is saturated: its radiance is unknown, so it never votes for the
+airlight (an overexposed sky would otherwise give a pure-white airlight that whitens everything in fog)."""
+
 DARK_CHANNEL_WINDOW = 15
 """Window [px] of the dark channel's minimum filter (He et al.)."""
 
@@ -160,13 +164,17 @@ def estimate_airlight(
 
     Rules, in order:
       1. Where a range map is known (synthetic world: exact; real data: `weatheralign.camera.depth.dense_depth`),
-         its sky pixels (``+inf``) of **all** cameras are pooled and the airlight is their per-channel median
-         colour, if there are at least `SKY_MIN_PIXELS` of them.
+         its unsaturated sky pixels (``+inf``, every channel below `CLIPPED`) of **all** cameras are pooled and the
+         airlight is their per-channel median colour, if there are at least `SKY_MIN_PIXELS` of them.
       2. Otherwise, over the images without a range map: the dark channel (`dark_channel`) of the upper half of every
-         image (sky is above the horizon of a level camera) is pooled, the top 0.1 % brightest pixels are the
-         candidates and the airlight is their per-channel median colour; if even those are dark (dark channel below
-         `DARK_CHANNEL_MIN_SKY`) the scene shows no sky.
-      3. No sky (range maps without a single sky pixel, or rule 2's dark candidates): neutral grey `NEUTRAL_AIRLIGHT`.
+         image (sky is above the horizon of a level camera) is pooled over its unsaturated pixels, the top 0.1 %
+         brightest are the candidates and the airlight is their per-channel median colour; if even those are dark
+         (dark channel below `DARK_CHANNEL_MIN_SKY`) the scene shows no sky.
+      3. No sky (range maps without enough unsaturated sky pixels, or rule 2's dark candidates): neutral grey
+         `NEUTRAL_AIRLIGHT`.
+
+    Saturated pixels never vote, so the airlight is never clipped white: an overexposed sky (real cameras' clouds)
+    says only that the sky is brighter than the sensor's range, not how bright fog would be.
 
     Args:
         images: the scene's camera images, each (H, W, 3) uint8 sRGB or float sRGB in [0, 1] (sizes may differ).
@@ -192,7 +200,8 @@ def estimate_airlight(
         r = np.asarray(rng)
         if r.shape != rgb.shape[:2]:
             raise ValueError(f"estimate_airlight: range map {k} has shape {r.shape}, image {rgb.shape[:2]}")
-        sky_colours.append(rgb[np.isposinf(r)])
+        sky = rgb[np.isposinf(r)]
+        sky_colours.append(sky[sky.max(axis=1) < CLIPPED])
     sky = np.concatenate(sky_colours) if sky_colours else np.zeros((0, 3), np.float32)
     if len(sky) >= SKY_MIN_PIXELS:
         A = np.median(sky, axis=0).astype(np.float64)
@@ -209,13 +218,17 @@ def estimate_airlight(
 
 
 def _dark_channel_airlight(images: Sequence[F32]) -> NDArray[np.float64] | None:
-    """Median colour of the top 0.1 % dark-channel pixels pooled over the upper halves of ``images``; None = no sky."""
+    """Median colour of the top 0.1 % dark-channel pixels pooled over the unsaturated pixels of the upper halves of
+    ``images``; None = no sky."""
     dcs, cols = [], []
     for rgb in images:
         top = rgb[: max(1, rgb.shape[0] // 2)]
-        dcs.append(dark_channel(top).ravel())
-        cols.append(top.reshape(-1, 3))
+        unsaturated = top.max(axis=2).ravel() < CLIPPED
+        dcs.append(dark_channel(top).ravel()[unsaturated])
+        cols.append(top.reshape(-1, 3)[unsaturated])
     dc, col = np.concatenate(dcs), np.concatenate(cols)
+    if len(dc) == 0:
+        return None
     n = max(1, int(math.ceil(DARK_CHANNEL_TOP_FRACTION * len(dc))))
     top_idx = np.argpartition(-dc, n - 1)[:n]
     if float(np.median(dc[top_idx])) < DARK_CHANNEL_MIN_SKY:

@@ -139,15 +139,27 @@ def _fog_weather(scan: LidarScan, media: SceneMedia, lidar: LidarModel) -> Lidar
 # ------------------------------------------------------------------------------------------------ cameras
 
 
+MIN_POSE_SPAN_S = 1e-3
+"""Ego poses spread over less time than this [s] give no velocity (0)."""
+
+
 def ego_velocity(frame: Frame) -> NDArray[np.float64]:
-    """(3,) ego velocity [m/s] in the global frame from the scan's ego poses (finite difference), 0 if unknown."""
+    """(3,) ego velocity [m/s] in the global frame: the least-squares slope of ego position against time over every
+    ego pose of the frame (the scan's per-firing poses, the scan's own and each camera's at its exposure), so a
+    keyframe without sweeps still moves (nuScenes: seven sensor poses over ~45 ms); 0 when the poses span less than
+    `MIN_POSE_SPAN_S`."""
+    times = [frame.lidar.timestamp, *(v.timestamp for v in frame.cameras.values())]
+    positions = [frame.lidar.T_global_ego[:3, 3], *(v.T_global_ego[:3, 3] for v in frame.cameras.values())]
     scan = frame.lidar
-    if scan.poses is None or scan.pose_times is None or len(scan.pose_times) < 2:
+    if scan.poses is not None and scan.pose_times is not None:
+        times += [float(t) for t in scan.pose_times]
+        positions += [p[:3, 3] for p in scan.poses]
+    t = np.asarray(times, dtype=np.float64)
+    xyz = np.asarray(positions, dtype=np.float64)
+    if len(t) < 2 or float(t.max() - t.min()) < MIN_POSE_SPAN_S:
         return np.zeros(3)
-    dt = float(scan.pose_times[-1] - scan.pose_times[0])
-    if dt <= 0.0:
-        return np.zeros(3)
-    return (scan.poses[-1][:3, 3] - scan.poses[0][:3, 3]) / dt
+    dt = t - t.mean()
+    return (dt @ (xyz - xyz.mean(axis=0))) / float(dt @ dt)
 
 
 def observe_camera(image: NDArray[np.uint8], range_map: NDArray[np.float32], view: CameraView, media: SceneMedia,

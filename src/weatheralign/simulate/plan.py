@@ -13,9 +13,15 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from weatheralign.camera.depth import camera_range_map
 from weatheralign.camera.fog import estimate_airlight
-from weatheralign.data.nuscenes import load_frame
+from weatheralign.data.frame import Frame
+from weatheralign.data.nuscenes import load_frame, load_lidar
 from weatheralign.simulate.media import ConditionMedia, SceneMedia
+
+DEPTH_SWEEPS = 3
+"""Earlier LiDAR sweeps aggregated with the keyframe for the cameras' dense depth where the dataset has no exact
+range maps (real data; nuScenes: 3 HDL-32E sweeps cover ~2 % of an image)."""
 
 
 @dataclass(frozen=True)
@@ -27,11 +33,24 @@ class SampleJob:
     airlight: tuple[float, float, float]
 
 
+def sample_range_maps(nusc, frame: Frame, images: dict[str, NDArray[np.uint8]]) -> dict[str, NDArray[np.float32]]:
+    """Per camera of ``frame`` its (H, W) float32 ray length [m] (inf = sky): the exact range map where the dataset
+    stores one (the synthetic world), else `weatheralign.camera.depth.camera_range_map` from the keyframe and
+    `DEPTH_SWEEPS` earlier sweeps (real data)."""
+    exact = all(v.range_path is not None for v in frame.cameras.values())
+    depth_lidar = frame.lidar if exact else load_lidar(nusc, nusc.get("sample", frame.token)["data"]["LIDAR_TOP"],
+                                                       DEPTH_SWEEPS)
+    return {ch: camera_range_map(v, depth_lidar, images[ch]) for ch, v in frame.cameras.items()}
+
+
 def scene_airlight(nusc, sample_token: str) -> NDArray[np.float64]:
     """One airlight for a scene from the cameras of ``sample_token`` (its first sample): `estimate_airlight` over the
-    images and the exact range maps where the dataset has them (sky pixels), a neutral grey."""
-    views = list(load_frame(nusc, sample_token).cameras.values())
-    return estimate_airlight([v.load_image() for v in views], [v.load_range() if v.range_path else None for v in views])
+    images and their sky pixels (the exact range maps where the dataset has them, else the dense depth from the
+    LiDAR, `sample_range_maps`), a neutral grey."""
+    frame = load_frame(nusc, sample_token)
+    images = {ch: v.load_image() for ch, v in frame.cameras.items()}
+    ranges = sample_range_maps(nusc, frame, images)
+    return estimate_airlight(list(images.values()), [ranges[ch] for ch in images])
 
 
 def plan_jobs(nusc, media: ConditionMedia, aligned: bool, rain_appearance: str = "rain",

@@ -1,10 +1,9 @@
 """The weather copy of a nuScenes-format dataroot: per-sample inputs, outputs, resume records; no physics.
 
-`run_sample` loads one sample's inputs (the frame, decoded images, each camera's ray-length map from
-`weatheralign.camera.depth.camera_range_map` with `DEPTH_SWEEPS` aggregated sweeps where the dataset has no exact
-map), runs the pure core `weatheralign.simulate.observe.observe` on the keyframe and the ``sweeps`` LiDAR sweeps
-nearest before it (each at its own time through the same media: the sweeps a multi-sweep detector aggregates) and
-writes the files; `run_chunk` does it for consecutive samples of one scene (one task: the per-task overhead of the
+`run_sample` loads one sample's inputs (the frame, decoded images, each camera's ray-length map:
+`weatheralign.simulate.plan.sample_range_maps`), runs the pure core `weatheralign.simulate.observe.observe` on the
+keyframe and the ``sweeps`` LiDAR sweeps nearest before it (each at its own time through the same media: the sweeps a
+multi-sweep detector aggregates) and writes the files; `run_chunk` does it for consecutive samples of one scene (one task: the per-task overhead of the
 engine is paid once per chunk); `finalize_copy` completes the copy.
 
 The copy is lean. Every file the weather did not change (the older sweeps, cameras a condition leaves clear, the
@@ -41,7 +40,6 @@ from numpy.typing import NDArray
 from PIL import Image
 
 from weatheralign import atomic
-from weatheralign.camera.depth import camera_range_map
 from weatheralign.data.frame import Frame, LidarScan
 from weatheralign.data.nuscenes import (compressed_extras_relpath, extras_relpath, load_frame, load_lidar,
                                         open_nuscenes_cached, read_point_extras, read_record_file)
@@ -52,15 +50,13 @@ from weatheralign.provenance import (file_stamps, files_intact, read_record_json
 from weatheralign.sensors import SensorRig
 from weatheralign.simulate.media import SceneMedia
 from weatheralign.simulate.observe import COUNT_KEYS, FrameWeather, LidarWeather, ObserveOptions, observe, observe_lidar_scans
-from weatheralign.simulate.plan import SampleJob
+from weatheralign.simulate.plan import SampleJob, sample_range_maps
 
 WEATHER_MATERIAL = 255
 """``material`` of a point that is a weather echo (scattered or clutter) in the copied per-point extras."""
 PROGRESS_DIR = ".progress"
 JPEG_SUBSAMPLING = "4:2:0"
 """Chroma subsampling of the weather JPEGs: nuScenes' own (and the synthetic world's)."""
-DEPTH_SWEEPS = 3
-"""LiDAR sweeps aggregated for a real camera's dense depth (nuScenes: 3 HDL-32E sweeps cover ~2 % of an image)."""
 
 
 def weather_relpath(filename: str) -> str:
@@ -312,11 +308,8 @@ def run_sample(nusc, src_root: Path, out_root: Path, job: SampleJob, sensors: Se
     if lidar_twin is not None and not job.media.aligned:
         twin = reusable_lidar(Path(lidar_twin), token, lidar_fp, lidar_files)
     frame = load_frame(nusc, token)
-    exact = all(v.range_path is not None for v in frame.cameras.values())
-    depth_lidar = frame.lidar if exact else load_lidar(nusc, nusc.get("sample", token)["data"]["LIDAR_TOP"],
-                                                       DEPTH_SWEEPS)
     images = {ch: v.load_image() for ch, v in frame.cameras.items()}
-    ranges = {ch: camera_range_map(v, depth_lidar, images[ch]) for ch, v in frame.cameras.items()}
+    ranges = sample_range_maps(nusc, frame, images)
     sweep_list = weather_sweeps(nusc, token, sweeps)
     if twin is not None:
         keyframe = read_lidar_weather(Path(lidar_twin), _sample_files(nusc, token)[0], frame.lidar, twin["counts"])
@@ -460,7 +453,7 @@ def summarise(records: list[dict]) -> dict:
     }
 
 
-__all__ = ["DEPTH_SWEEPS", "JPEG_SUBSAMPLING", "WEATHER_MATERIAL", "DatasetRef", "copy_fingerprint", "copy_outputs",
+__all__ = ["JPEG_SUBSAMPLING", "WEATHER_MATERIAL", "DatasetRef", "copy_fingerprint", "copy_outputs",
            "finalize_copy", "lidar_fingerprint", "link_or_copy", "read_lidar_weather", "read_weather_record",
            "reusable_lidar", "run_chunk", "run_sample", "smallest_int_dtype",
            "summarise", "sweep_records", "weather_relpath", "weather_sweeps", "write_sample", "write_scan"]
