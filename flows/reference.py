@@ -1,7 +1,8 @@
-"""`reference` stage: the fog reference dataset that ReDAM calibrates against.
+"""`reference` stage: the real-weather reference dataset that ReDAM calibrates against and `verify` compares with.
 
 Default (``reference.source: synthetic``): render the embedded synthetic reference — Seeing Through Fog layout, other
-scenes than the world, clear / light-fog / dense-fog splits through hidden fog levels by exact processes — into
+scenes than the world, clear / light-fog / dense-fog splits through hidden fog levels and snow / rain splits through
+hidden rates, by exact processes — into
 ``<paths.data>/reference/synthetic`` (hidden truth in ``<paths.data>/reference/sealed_truth.json``), one mapped task
 per frame, resumable. With ``reference.source: stf`` the stage checks a real Seeing Through Fog root in place
 (every split file read, every listed frame loaded) and copies nothing.
@@ -46,9 +47,10 @@ def _render_synthetic(params: Params) -> dict:
     summary = finalize(cfg, params.paths.data, [rec for rec, _ in outcomes])
     return {"frames_rendered_this_run": rendered, "render_seconds": round(elapsed, 2),
             "seconds_per_frame": round(elapsed / rendered, 3) if rendered else None,
-            "fog_returns_per_scan": {
-                level: round(float(np.mean([r.stats["fog_returns"] for r, _ in outcomes if r.level == level])), 1)
-                for level in summary["frames"] if summary["frames"][level]}}
+            **{f"{kind}_returns_per_scan": {
+                level: round(float(np.mean([r.stats.get(f"{kind}_returns", 0) for r, _ in outcomes
+                                            if r.level == level])), 1)
+                for level in summary["frames"] if summary["frames"][level]} for kind in ("fog", "particle")}}
 
 
 def overview_figure(ds: ReferenceDataset, path: Path) -> None:
@@ -77,6 +79,13 @@ def overview_figure(ds: ReferenceDataset, path: Path) -> None:
     plt.close(fig)
 
 
+def split_tags(split: str) -> dict[str, str]:
+    """The MLflow ``weather`` / ``severity`` tags of a reference split (severity: the fog level, else none)."""
+    if split in ("light", "dense"):
+        return {"weather": "fog", "severity": split}
+    return {"weather": split, "severity": "none"}
+
+
 def _root_for_report(root: Path) -> str:
     try:
         return str(root.resolve().relative_to(Path.cwd().resolve()))
@@ -86,7 +95,7 @@ def _root_for_report(root: Path) -> str:
 
 @flow(name="reference", log_prints=True)
 def reference_flow(params: Params) -> dict:
-    """Render (synthetic) or check (real STF) the fog reference; returns the metrics written to
+    """Render (synthetic) or check (real STF) the reference; returns the metrics written to
     reports/reference/metrics.json."""
     cfg = params.reference
     t0 = time.time()
@@ -102,12 +111,11 @@ def reference_flow(params: Params) -> dict:
         overview_figure(ds, figure)
         tracker.log_artifact(figure, "figures")
         metrics["seconds"] = round(time.time() - t0, 2)
-        returns = metrics.get("fog_returns_per_scan", {})
+        per_scan = {key: metrics.get(key, {}) for key in ("fog_returns_per_scan", "particle_returns_per_scan")}
         tracker.finish(metrics, logged={k: v for k, v in metrics.items() if isinstance(v, (int, float))
                                         and not isinstance(v, bool)}, children={
-            split: ({"weather": "clear" if split == "clear" else "fog",
-                     "severity": "none" if split == "clear" else split},
-                    {**values, **({"fog_returns_per_scan": returns[split]} if split in returns else {})})
+            split: (split_tags(split),
+                    {**values, **{key: table[split] for key, table in per_scan.items() if split in table}})
             for split, values in metrics["splits"].items()})
     return metrics
 

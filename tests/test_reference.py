@@ -30,7 +30,8 @@ from weatheralign.reference import check_reference, configured_reference, open_r
 from weatheralign.reference.camera_exact import fog_radiance
 from weatheralign.reference.lidar_exact import (FOG, TARGET, Detector, ExactSensor, bistatic_overlap, exact_returns,
                                                 fog_tables, read_out, soft_response, system_constants)
-from weatheralign.reference.synthetic import (ALPHA_GRID, MANIFEST_FILE, camera_calibration, draw_truth, finalize,
+from weatheralign.reference.synthetic import (ALPHA_GRID, MANIFEST_FILE, camera_calibration, draw_precipitation_truth,
+                                              draw_truth, finalize,
                                               frame_specs, render_frame, render_or_resume, sealed_truth_path,
                                               stereo_left_camera, synthetic_root, tf_tree)
 from weatheralign.sensors import PulseSensor
@@ -39,7 +40,9 @@ from .conftest import REPO
 
 STF = REPO.parent / "shared" / "data" / "real" / "stf"
 STF_ID = "2019-09-11_19-13-44_00960"
-SPLITS = {"clear": "splits/clear.txt", "light": "splits/light_fog.txt", "dense": "splits/dense_fog.txt"}
+SPLITS = {"clear": "splits/clear.txt", "light": "splits/light_fog.txt", "dense": "splits/dense_fog.txt",
+          "snow": "splits/snow.txt", "rain": "splits/rain.txt"}
+FOG_SPLITS = {level: SPLITS[level] for level in ("clear", "light", "dense")}
 SENSOR = ExactSensor()
 L = SENSOR.pulse_length
 FAST_SENSOR = PulseSensor(tau_h=SENSOR.tau_h, r1=SENSOR.r1, r2=SENSOR.r2, gamma=SENSOR.gamma,
@@ -85,12 +88,14 @@ LEVEL_IDS = {"clear": ["rec-a_00001", "rec-a_00002"], "light": ["rec-b_00010"], 
 
 @pytest.fixture(scope="module")
 def real_tree(tmp_path_factory) -> Path:
-    """The shared real STF frame copied into a nested real-layout tree under four ids, with split files."""
+    """The shared real STF frame copied into a nested real-layout tree under six ids, with split files for every
+    level (fog, snow and rain)."""
     if not STF.exists():
         pytest.skip(f"real sample not available: {STF}")
     root = tmp_path_factory.mktemp("stf_real_tree")
     levels = {"clear": ["2019-09-11_19-13-44_00960", "2019-09-11_19-13-44_00961"],
-              "light": ["2018-02-12_15-39-23_00100"], "dense": ["2018-02-12_15-39-23_00200"]}
+              "light": ["2018-02-12_15-39-23_00100"], "dense": ["2018-02-12_15-39-23_00200"],
+              "snow": ["2018-02-07_10-40-11_00300"], "rain": ["2018-10-29_14-30-05_00400"]}
     for d in ("lidar_hdl64_strongest", "cam_stereo_left_lut", "calib"):
         (root / d).mkdir()
     for name in ("calib_cam_stereo_left.json", "calib_tf_tree_full.json"):
@@ -106,7 +111,7 @@ def real_tree(tmp_path_factory) -> Path:
 
 def test_real_stf_tree_through_the_reference_reader(real_tree):
     ds = open_reference(real_tree, SPLITS, 255.0)
-    assert ds.levels == ("clear", "light", "dense") and ds.range_folder is None
+    assert ds.levels == ("clear", "light", "dense", "snow", "rain") and ds.range_folder is None
     assert ds.ids("clear") == ("2019-09-11_19-13-44_00960", "2019-09-11_19-13-44_00961")
     frame = ds.load_frame(ds.ids("light")[0])
     assert frame.source == "stf" and frame.token == "2018-02-12_15-39-23_00100"
@@ -119,8 +124,12 @@ def test_real_stf_tree_through_the_reference_reader(real_tree):
     assert summary["clear"].frames == 2 and summary["clear"].points_per_scan == 109_431
     assert 100 < summary["dense"].mean_intensity_255 < 160 and summary["dense"].with_range == 0
     assert len(ds.intensities("clear")) == 2 * 109_431
+    assert summary["snow"].frames == summary["rain"].frames == 1
+    assert ds.load_frame(ds.ids("snow")[0]).token == "2018-02-07_10-40-11_00300"
+    fog_only = open_reference(real_tree, FOG_SPLITS, 255.0)
+    assert fog_only.levels == ("clear", "light", "dense")
     with pytest.raises(KeyError, match="no split 'snow'"):
-        ds.ids("snow")
+        fog_only.ids("snow")
 
 
 def test_real_stf_tree_declared_unit_scale_is_refused(real_tree):
@@ -140,16 +149,27 @@ def test_configured_stf_source(real_tree, tmp_path):
                                "reference": {"source": "stf", "stf_root": str(real_tree)}})
     assert reference_root(params) == real_tree
     ds = configured_reference(params)
-    assert [len(ds.ids(lv)) for lv in ds.levels] == [2, 1, 1]
+    assert [len(ds.ids(lv)) for lv in ds.levels] == [2, 1, 1, 1, 1]
+    fog_only = params_from_dict({"paths": {"data": str(tmp_path)},
+                                 "reference": {"source": "stf", "stf_root": str(real_tree),
+                                               "split_files": {"snow": None, "rain": None}}})
+    assert configured_reference(fog_only).levels == ("clear", "light", "dense")
+    (real_tree / "splits" / "rain.txt").rename(real_tree / "splits" / "rain_moved.txt")
+    try:
+        with pytest.raises(DataFormatError, match=r"split 'rain': split file .*rain\.txt not found.*"
+                                                  r"reference\.split_files\.rain: null"):
+            configured_reference(params)
+    finally:
+        (real_tree / "splits" / "rain_moved.txt").rename(real_tree / "splits" / "rain.txt")
 
 
 def test_small_tree_reads_and_unit_scale_works(tmp_path):
     root = _small_tree(tmp_path / "r255", LEVEL_IDS)
-    ds = open_reference(root, SPLITS, 255)
+    ds = open_reference(root, FOG_SPLITS, 255)
     frame = ds.load_frame("rec-b_00010")
     assert frame.lidar.points.shape == (600, 5) and frame.cameras["cam_stereo_left"].width == 96
     unit = _small_tree(tmp_path / "r1", LEVEL_IDS, scale=1.0)
-    ds1 = open_reference(unit, SPLITS, 1.0)
+    ds1 = open_reference(unit, FOG_SPLITS, 1.0)
     scan = ds1.load_scan("rec-a_00001")
     assert scan.intensity_max == 1.0 and scan.points[:, 3].max() <= 1.0
     np.testing.assert_allclose(ds1.intensities("clear", scale=255.0), 255.0 * ds1.intensities("clear"), rtol=1e-6)
@@ -157,7 +177,7 @@ def test_small_tree_reads_and_unit_scale_works(tmp_path):
     np.testing.assert_array_equal(scan.points, raw)  # kept as stored, scale explicit
     assert check_reference(ds1)["clear"].frames == 2
     # the same 0..1 data declared as 0..255 is the published code's trap: refused for the whole split
-    ds_wrong = open_reference(unit, SPLITS, 255.0)
+    ds_wrong = open_reference(unit, FOG_SPLITS, 255.0)
     with pytest.raises(DataFormatError,
                        match=r"rec-a_00001\.bin: every intensity of the 600 points is <= 1\.0.*declare intensity_max = 1\.0"):
         check_reference(ds_wrong, images=False)
@@ -166,24 +186,24 @@ def test_small_tree_reads_and_unit_scale_works(tmp_path):
 def test_small_tree_errors_name_file_and_form(tmp_path):
     root = _small_tree(tmp_path, LEVEL_IDS)
     with pytest.raises(DataFormatError, match=r"split 'light': split file .*light_fog_missing\.txt not found"):
-        open_reference(root, {**SPLITS, "light": "splits/light_fog_missing.txt"}, 255.0)
+        open_reference(root, {**FOG_SPLITS, "light": "splits/light_fog_missing.txt"}, 255.0)
     (root / "splits" / "empty.txt").write_text("# nothing\n\n")
     with pytest.raises(DataFormatError, match=r"empty\.txt: empty split"):
-        open_reference(root, {**SPLITS, "dense": "splits/empty.txt"}, 255.0)
+        open_reference(root, {**FOG_SPLITS, "dense": "splits/empty.txt"}, 255.0)
     (root / "splits" / "ghost.txt").write_text("rec-z,00007\n")
     with pytest.raises(DataFormatError, match=r"ghost\.txt: split 'dense' lists frame rec-z_00007 but .*missing "
                                               r"sensor file.*rec-z_00007\.bin"):
-        open_reference(root, {**SPLITS, "dense": "splits/ghost.txt"}, 255.0)
+        open_reference(root, {**FOG_SPLITS, "dense": "splits/ghost.txt"}, 255.0)
     (root / "splits" / "twice.txt").write_text("rec-a,00001\n")
     with pytest.raises(DataFormatError, match=r"rec-a_00001 is listed also in split 'clear'"):
-        open_reference(root, {**SPLITS, "dense": "splits/twice.txt"}, 255.0)
+        open_reference(root, {**FOG_SPLITS, "dense": "splits/twice.txt"}, 255.0)
     with pytest.raises(DataFormatError, match=r"unknown split level\(s\) \['fog'\]"):
         open_reference(root, {"fog": "splits/clear.txt"}, 255.0)
     with pytest.raises(DataFormatError, match=r"intensity_max = 100.*255 or 1\.0"):
-        open_reference(root, SPLITS, 100.0)
+        open_reference(root, FOG_SPLITS, 100.0)
     with pytest.raises(DataFormatError, match="does not exist"):
-        open_reference(tmp_path / "nowhere", SPLITS, 255.0)
-    ds = open_reference(root, SPLITS, 255.0)
+        open_reference(tmp_path / "nowhere", FOG_SPLITS, 255.0)
+    ds = open_reference(root, FOG_SPLITS, 255.0)
     scan = root / "lidar_hdl64_strongest" / "rec-a_00002.bin"
     scan.write_bytes(scan.read_bytes()[:-8])
     with pytest.raises(DataFormatError, match=r"rec-a_00002\.bin: 11992 bytes is not a multiple of the record size 20 "
@@ -354,12 +374,13 @@ def _files(root: Path) -> dict[str, bytes]:
 
 def test_synthetic_reference_layout_is_readable(tiny_reference):
     params, outcomes = tiny_reference
-    assert all(now for _, now in outcomes) and len(outcomes) == 6
+    assert all(now for _, now in outcomes) and len(outcomes) == 10
     ds = configured_reference(params)
     assert ds.root == synthetic_root(params.paths.data) and ds.range_folder == "range_cam_stereo_left"
+    assert ds.levels == ("clear", "light", "dense", "snow", "rain")
     ids = {level: ds.ids(level) for level in ds.levels}
-    assert [len(v) for v in ids.values()] == [2, 2, 2]
-    assert len(set(sum(map(list, ids.values()), []))) == 6  # no frame in two levels
+    assert [len(v) for v in ids.values()] == [2, 2, 2, 2, 2]
+    assert len(set(sum(map(list, ids.values()), []))) == 10  # no frame in two levels
     summary = check_reference(ds)
     assert all(s.with_range == 2 for s in summary.values())
     means = [summary[level].mean_intensity_255 for level in ("clear", "light", "dense")]
@@ -397,11 +418,14 @@ def test_sealed_truth_is_outside_the_root_and_off_grid(tiny_reference):
     params, _ = tiny_reference
     path = sealed_truth_path(params.paths.data)
     truth = json.loads(path.read_text())
-    assert set(truth) == {"light", "dense"} and set(truth["light"]) == {"alpha", "beta"}
+    assert set(truth) == {"light", "dense", "snow", "rain"} and set(truth["light"]) == {"alpha", "beta"}
     root = synthetic_root(params.paths.data)
     assert root not in path.parents
-    assert not any(b"alpha" in data for data in _files(root).values())
+    assert not any(b"alpha" in data or b"rate_mm_h" in data for data in _files(root).values())
     cfg = params.reference
+    for level, (lo, hi) in (("snow", cfg.precipitation.snow_rate_mm_h), ("rain", cfg.precipitation.rain_rate_mm_h)):
+        assert set(truth[level]) == {"rate_mm_h"} and lo <= truth[level]["rate_mm_h"] <= hi
+    assert draw_precipitation_truth(cfg)["snow"] == truth["snow"]["rate_mm_h"]
     for level, (lo, hi) in (("light", cfg.alpha_light), ("dense", cfg.alpha_dense)):
         alpha, beta = truth[level]["alpha"], truth[level]["beta"]
         assert lo <= alpha <= hi and min(abs(alpha / g - 1) for g in ALPHA_GRID) >= 0.03
@@ -436,12 +460,16 @@ def test_synthetic_reference_is_deterministic_and_resumes(tiny_reference, tmp_pa
     victim.unlink()
     assert sum(now for _, now in _render_all(again)) == 1 and victim.is_file()
     more = _tiny_params(tmp_path, frames_per_split=3)
-    assert sum(now for _, now in _render_all(more)) == 3  # frame k does not depend on the frame count
-    assert len(list((synthetic_root(tmp_path) / "lidar_hdl64_strongest").iterdir())) == 9
+    assert sum(now for _, now in _render_all(more)) == 5  # frame k does not depend on the frame count
+    assert len(list((synthetic_root(tmp_path) / "lidar_hdl64_strongest").iterdir())) == 15
     assert sum(now for _, now in _render_all(again)) == 0  # back to 2 per split: stale frames removed
+    assert len(list((synthetic_root(tmp_path) / "lidar_hdl64_strongest").iterdir())) == 10
+    fog_only = _tiny_params(tmp_path, split_files={"snow": None, "rain": None})
+    assert sum(now for _, now in _render_all(fog_only)) == 0  # the fog frames do not depend on the weather splits
     assert len(list((synthetic_root(tmp_path) / "lidar_hdl64_strongest").iterdir())) == 6
+    assert set(json.loads(sealed_truth_path(tmp_path).read_text())) == {"light", "dense"}
     changed = _tiny_params(tmp_path, camera={"image_scale": 0.1, "noise_std": 0.02})
-    assert sum(now for _, now in _render_all(changed)) == 6
+    assert sum(now for _, now in _render_all(changed)) == 10
 
 
 def test_render_frame_fog_physics(tiny_reference):
@@ -494,7 +522,8 @@ def test_reference_flow_writes_metrics_figure_and_resumes(tmp_path):
     assert run.returncode == 0, run.stderr[-3000:]
     metrics = json.loads((tmp_path / "reports" / "reference" / "metrics.json").read_text())
     assert metrics["source"] == "synthetic" and metrics["root"] == "data/reference/synthetic"
-    assert metrics["frames_total"] == 6 and metrics["frames_rendered_this_run"] == 6
+    assert metrics["frames_total"] == 10 and metrics["frames_rendered_this_run"] == 10
+    assert metrics["particle_returns_per_scan"]["snow"] > 0 and metrics["particle_returns_per_scan"]["clear"] == 0
     splits = metrics["splits"]
     assert splits["clear"]["mean_intensity"] > splits["light"]["mean_intensity"] > splits["dense"]["mean_intensity"]
     assert all(s["points_per_scan"] > 10_000 for s in splits.values())
@@ -503,7 +532,9 @@ def test_reference_flow_writes_metrics_figure_and_resumes(tmp_path):
     client = MlflowClient(tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}")
     exp = client.get_experiment_by_name("weatheralign")
     child = next(r for r in client.search_runs([exp.experiment_id], "tags.stage = 'reference' AND tags.kind = 'stage'"))
-    assert child.data.metrics["frames_total"] == 6 and "reference.seed" in child.data.params
+    assert child.data.metrics["frames_total"] == 10 and "reference.seed" in child.data.params
+    snow = client.search_runs([exp.experiment_id], "tags.weather = 'snow' AND tags.stage = 'reference'")
+    assert len(snow) == 1 and snow[0].data.metrics["particle_returns_per_scan"] > 0
     dense = client.search_runs([exp.experiment_id], "tags.weather = 'fog' AND tags.severity = 'dense'")
     assert len(dense) == 1 and dense[0].data.metrics["frames"] == 2
     assert {a.path for a in client.list_artifacts(child.info.run_id, "figures")} == {"figures/overview.png"}

@@ -306,11 +306,14 @@ class SimulateConfig(_Section):
 
 
 class ReferenceSplitFiles(_Section):
-    """Split files of the reference (``recording,frame`` lines), relative to the reference root or absolute."""
+    """Split files of the reference (``recording,frame`` lines), relative to the reference root or absolute. The
+    weather splits ``snow`` and ``rain`` may be null (a root without them: only fog is then referenced)."""
 
     clear: str = "splits/clear.txt"
     light: str = "splits/light_fog.txt"
     dense: str = "splits/dense_fog.txt"
+    snow: str | None = "splits/snow.txt"
+    rain: str | None = "splits/rain.txt"
 
 
 class ReferenceLidarConfig(_Section):
@@ -365,13 +368,54 @@ class ReferenceCameraConfig(_Section):
         return self
 
 
+class ReferencePrecipitationConfig(_Section):
+    """The synthetic reference's snow and rain (the "real world" of the ``snow`` and ``rain`` splits).
+
+    One hidden rate per split, drawn uniformly in ``snow_rate_mm_h`` / ``rain_rate_mm_h`` (around the
+    ``particles`` stage's rates) and sealed in ``<paths.data>/reference/sealed_truth.json``. Each frame has its own
+    field (seeded from ``reference.seed``): snow of the ``snow_size_distribution`` falling at
+    ``snow_terminal_velocity_m_s``, Marshall-Palmer rain whose drops fall at their own diameter's terminal speed in the
+    camera's exposure; both over the layer ``[layer_bottom_m, layer_top_m]``. LiDAR: ``lidar_sub_rays`` Monte-Carlo
+    sub-rays per beam (keep it >= 255 ρ / noise floor, so that one sub-ray's share of a flake's echo stays below the
+    floor: with fewer, flakes much smaller than 1/K of the beam are detected at 1/K strength, a sampling artefact that
+    added 25 % of snow points at 64 sub-rays; `weatheralign.reference.lidar_particles_exact`); camera:
+    ``camera_samples`` ray samples per pixel over an exposure of ``exposure_s``
+    (`weatheralign.reference.camera_particles_exact`). Particle
+    reflectivity at 905 nm: ``snow_reflectivity``, ``rain_reflectivity`` (water's Fresnel reflectance)."""
+
+    snow_rate_mm_h: tuple[float, float] = (1.2, 3.2)
+    rain_rate_mm_h: tuple[float, float] = (25.0, 80.0)
+    snow_size_distribution: Literal["gunn_marshall", "sekhon_srivastava"] = "gunn_marshall"
+    snow_terminal_velocity_m_s: Annotated[float, Field(gt=0.1, le=5.0)] = 1.5
+    snow_reflectivity: Annotated[float, Field(gt=0.0, le=1.0)] = 0.9
+    rain_reflectivity: Annotated[float, Field(gt=0.0, le=1.0)] = 0.02
+    layer_bottom_m: float = -2.0
+    layer_top_m: float = 30.0
+    lidar_sub_rays: Annotated[int, Field(ge=4, le=4096)] = 256
+    camera_samples: Annotated[int, Field(ge=1, le=256)] = 16
+    exposure_s: Annotated[float, Field(ge=0.0, le=0.05)] = 0.006
+
+    @model_validator(mode="after")
+    def _check(self) -> "ReferencePrecipitationConfig":
+        for name, lo_ok, hi_ok in (("snow_rate_mm_h", 0.0, 50.0), ("rain_rate_mm_h", 0.0, 500.0)):
+            lo, hi = getattr(self, name)
+            if not (lo_ok < lo < hi <= hi_ok):
+                raise ValueError(f"{name} = [{lo}, {hi}] must satisfy {lo_ok} < low < high <= {hi_ok}")
+        if not self.layer_top_m > self.layer_bottom_m + 1.0:
+            raise ValueError(f"layer_top_m ({self.layer_top_m}) must exceed layer_bottom_m ({self.layer_bottom_m}) "
+                             f"by more than 1 m")
+        return self
+
+
 class ReferenceConfig(_Section):
-    """The `reference` stage: the fog reference dataset ReDAM calibrates against (Seeing Through Fog layout).
+    """The `reference` stage: the real-weather reference ReDAM calibrates against (Seeing Through Fog layout): clear,
+    light and dense fog, and (where ``split_files`` names them) snow and rain.
 
     ``source: synthetic`` (default) renders an embedded reference into ``<paths.data>/reference/synthetic`` from
     scenes derived from ``seed`` (never the world's), with hidden fog levels drawn from ``alpha_light`` /
-    ``alpha_dense`` [1/m] and ``beta = 0.023 * U[beta_factor] / MOR``, written only to
-    ``<paths.data>/reference/sealed_truth.json``. ``source: stf`` checks a real Seeing Through Fog root in place.
+    ``alpha_dense`` [1/m] and ``beta = 0.023 * U[beta_factor] / MOR`` and hidden snow / rain rates
+    (``precipitation``), written only to ``<paths.data>/reference/sealed_truth.json``. ``source: stf`` checks a real
+    Seeing Through Fog root in place.
     ``intensity_max`` declares the reference's LiDAR intensity scale (255 or 1.0).
     """
 
@@ -386,6 +430,7 @@ class ReferenceConfig(_Section):
     beta_factor: tuple[float, float] = (1.0, 2.0)
     lidar: ReferenceLidarConfig = ReferenceLidarConfig()
     camera: ReferenceCameraConfig = ReferenceCameraConfig()
+    precipitation: ReferencePrecipitationConfig = ReferencePrecipitationConfig()
     sensor_overrides: SensorOverrides = SensorOverrides()
 
     @field_validator("intensity_max", mode="before")

@@ -1,10 +1,13 @@
-"""The fog reference of ReDAM: a Seeing Through Fog root (real, or the embedded synthetic one) read per fog level.
+"""The real-weather reference of ReDAM: a Seeing Through Fog root (real, or the embedded synthetic one) read per level
+(clear, light and dense fog, snow, rain).
 
 - `layout`: `open_reference` / `ReferenceDataset` (split files, frames as `weatheralign.data.frame.Frame`, exact range
   maps where the reference has them), `check_reference`.
 - `synthetic`: the embedded synthetic reference (other scenes than the world, HDL-64-like LiDAR, stereo-left camera,
   hidden fog levels in ``<paths.data>/reference/sealed_truth.json``).
 - `lidar_exact`, `camera_exact`: its exact fog processes (full pulse integral per beam; per-pixel integration).
+- `lidar_particles_exact`, `camera_particles_exact`: its exact snow and rain processes (Monte-Carlo sub-rays per beam
+  through the particles; per-pixel ray tracing of the particles with supersampling and exposure-time integration).
 
 `configured_reference(params)` opens the reference that ``params.reference`` names.
 """
@@ -17,14 +20,14 @@ import numpy as np
 from typing import TYPE_CHECKING
 
 from weatheralign.data.errors import DataFormatError
-from weatheralign.reference.layout import (LEVELS, ReferenceDataset, ReferenceSplit, SplitSummary, check_reference,
+from weatheralign.reference.layout import (FOG_LEVELS, LEVELS, PRECIPITATION_LEVELS, ReferenceDataset, ReferenceSplit, SplitSummary, check_reference,
                                            open_reference, split_files_of)
 
 if TYPE_CHECKING:
     from weatheralign.config import Params
     from weatheralign.sensors import LidarModel
 
-__all__ = ["LEVELS", "ReferenceDataset", "ReferenceSplit", "SplitSummary", "check_reference", "configured_reference",
+__all__ = ["FOG_LEVELS", "LEVELS", "PRECIPITATION_LEVELS", "ReferenceDataset", "ReferenceSplit", "SplitSummary", "check_reference", "configured_reference",
            "open_reference", "reference_lidar_model", "reference_root", "split_files_of"]
 
 

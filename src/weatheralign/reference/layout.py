@@ -1,11 +1,12 @@
-"""The reference dataset ReDAM calibrates against, read in the Seeing Through Fog layout.
+"""The real-weather reference ReDAM calibrates against, read in the Seeing Through Fog layout.
 
 A reference root holds (`weatheralign.data.stf` reads each frame):
     ``lidar_hdl64_strongest/<recording>_<frame>.bin``  float32 N x 5: x, y, z [m], intensity (0..intensity_max),
                                                         channel (STF convention: channel 0 = lowest laser);
     ``cam_stereo_left_lut/<recording>_<frame>.png``    the rectified stereo-left image;
     ``calib_cam_stereo_left.json``, ``calib_tf_tree_full.json`` (in the root, ``calib/`` or ``calibs/``);
-    one split file per fog level (``clear``, ``light``, ``dense``) of ``recording,frame`` lines;
+    one split file per level (``clear``, ``light``, ``dense`` fog; ``snow`` and ``rain`` where the root has them) of
+    ``recording,frame`` lines;
     optionally ``range_cam_stereo_left/<recording>_<frame>.npy``: the exact ray length per pixel [m] (float32 H x W,
     ``inf`` = sky) — the synthetic reference has it; a real root has none (use `weatheralign.camera.depth.dense_depth`).
 
@@ -28,8 +29,11 @@ from weatheralign.data.errors import DataFormatError, require_file
 from weatheralign.data.frame import Frame, LidarScan
 from weatheralign.data.stf import CAMERA_CHANNEL, find_sensor_file, load_stf_frame, read_stf_split
 
-LEVELS: tuple[str, ...] = ("clear", "light", "dense")
-"""Fog levels of a reference, clear first."""
+LEVELS: tuple[str, ...] = ("clear", "light", "dense", "snow", "rain")
+"""Levels (splits) of a reference, clear first: the two fog levels, then the precipitation splits."""
+
+FOG_LEVELS: tuple[str, ...] = ("light", "dense")
+PRECIPITATION_LEVELS: tuple[str, ...] = ("snow", "rain")
 
 LIDAR_FOLDER = "lidar_hdl64_strongest"
 CAMERA_FOLDER = "cam_stereo_left_lut"
@@ -41,7 +45,7 @@ UNIT_SCALE_SUSPECT_POINTS = 1000
 
 @dataclass(frozen=True)
 class ReferenceSplit:
-    """One fog level: its split file and sample ids (``<recording>_<frame>``, in file order)."""
+    """One level: its split file and sample ids (``<recording>_<frame>``, in file order)."""
 
     level: str
     split_file: Path
@@ -156,8 +160,7 @@ def open_reference(
 
     Args:
         root: the reference root (Seeing Through Fog layout, nested or flat file names).
-        split_files: level (``clear``, ``light``, ``dense``; any subset) -> split file, relative to ``root`` or
-            absolute.
+        split_files: level (of `LEVELS`; any subset) -> split file, relative to ``root`` or absolute.
         intensity_max: the declared intensity scale of the scans, 255 or 1.0.
         lidar_folder, camera_folder: sensor folders (``camera_folder`` None: LiDAR only).
         range_folder: folder of exact per-pixel range maps (used where present, else None for every frame).
@@ -186,8 +189,10 @@ def open_reference(
             continue
         path = _split_path(root, level, split_files[level])
         if not path.is_file():
+            hint = (f"; a root without {level} recordings: set reference.split_files.{level}: null"
+                    if level in PRECIPITATION_LEVELS else "")
             raise DataFormatError(f"reference split {level!r}: split file {path} not found (expected "
-                                  f"'recording,frame' lines)")
+                                  f"'recording,frame' lines){hint}")
         ids = read_stf_split(path)
         for sample_id in ids:
             if sample_id in owner:
@@ -265,5 +270,6 @@ def check_reference(ds: ReferenceDataset, *, images: bool = True, progress: bool
 
 def split_files_of(cfg_split_files: object) -> dict[str, str]:
     """``{level: relpath}`` from a `weatheralign.config.ReferenceSplitFiles` (or any object with the level
-    attributes)."""
-    return {level: str(getattr(cfg_split_files, level)) for level in LEVELS}
+    attributes); levels whose file is None (or missing) are left out."""
+    files = {level: getattr(cfg_split_files, level, None) for level in LEVELS}
+    return {level: str(rel) for level, rel in files.items() if rel is not None}

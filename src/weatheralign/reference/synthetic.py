@@ -1,11 +1,13 @@
-"""The embedded synthetic fog reference: a Seeing Through Fog-like dataset with hidden fog levels.
+"""The embedded synthetic reference: a Seeing Through Fog-like dataset with hidden fog levels, snow and rain rates.
 
-What it is. ``frames_per_split`` frames in each of three levels (clear, light fog, dense fog), written in the STF
-layout (`weatheralign.reference.layout`) under ``<paths.data>/reference/synthetic``, from procedural streets of the
-synthetic world (`weatheralign.world.layout`) whose seeds derive from ``reference.seed`` with a tag of their own (so
-they are never the simulation world's scenes, whatever the seeds). Frame ``k`` of every level comes from scene ``k``,
-each level at its own time along the drive (3 s apart, slot order drawn per scene): the levels never share a frame,
-and their scene statistics match, as a reference recorded on the same roads in different weather.
+What it is. ``frames_per_split`` frames in each level (clear, light fog, dense fog, and snow and rain where
+``reference.split_files`` names them), written in the STF layout (`weatheralign.reference.layout`) under
+``<paths.data>/reference/synthetic``, from procedural streets of the synthetic world (`weatheralign.world.layout`)
+whose seeds derive from ``reference.seed`` with a tag of their own (so they are never the simulation world's scenes,
+whatever the seeds). Frame ``k`` of the clear and fog levels comes from scene ``k``, each level at its own time along
+the drive (3 s apart, slot order drawn per scene): the levels never share a frame, and their scene statistics match,
+as a reference recorded on the same roads in different weather. Snow and rain frames come from recordings of their
+own (scene ``k`` of ``<level>``, drawn the same way: other days, other streets of the same kind).
 
 Hidden truth. The light and dense levels' extinction α is drawn uniformly in ``alpha_light`` / ``alpha_dense`` and
 the backscatter as ``β = 0.023 f / MOR`` (``f ~ U[beta_factor]``, ``MOR = ln 20 / α``), redrawn while α lies within
@@ -14,18 +16,29 @@ never on a grid point). It is written only to ``<paths.data>/reference/sealed_tr
 ``{level: {alpha, beta}}`` (outside the reference root; per-frame airlights go to ``sealed_details.json``): the
 calibration never reads them, the tests and audits do.
 
-Sensors (one instant per frame: every beam and pixel at the frame time; STF has no per-point times):
+Hidden snow and rain. One rate per split, drawn uniformly in ``precipitation.snow_rate_mm_h`` /
+``rain_rate_mm_h`` and sealed beside the fog levels as ``{snow|rain: {rate_mm_h}}``. Each snow / rain frame has a
+field of its own (`weatheralign.medium.field.ParticleField`, seed from ``reference.seed`` and the frame): the particle
+positions come from the medium, as in the real world, and both sensors see the same particles.
+
+Sensors (one instant per frame: every beam at the frame time, STF has no per-point times; the camera integrates its
+exposure around it):
 - LiDAR: an HDL-64-like sensor (64 lasers at the `weatheralign.data.rings` HDL-64E elevations, ``firings_per_ring``
   azimuths, roof mount 1.95 m above the ground), ray-cast against the scene; a hit's clear intensity is the world's
   ``255 ρ |cos θ| min(1, 10 m / R)`` on the textured reflectivity. Fog by the exact pulse integral of every beam
   (`weatheralign.reference.lidar_exact`: bi-static overlap, summed soft + hard echoes, strongest peak, no-return
   beams included), then the detector (noise floor, intensity noise, integer quantisation, range noise). The clear
-  level goes through the same chain with α = β = 0. Points: float32 N x 5 ``x, y, z, intensity 0..255, channel``
+  level goes through the same chain with α = β = 0. Snow and rain: Monte-Carlo sub-rays across each beam's cone
+  through the frame's particles, the full waveform and its strongest peak
+  (`weatheralign.reference.lidar_particles_exact`), then the same detector. Points: float32 N x 5 ``x, y, z, intensity 0..255, channel``
   in the LiDAR frame, channel = 63 - ring (STF: channel 0 is the lowest laser).
 - Camera: a stereo-left-like pinhole with Seeing Through Fog's rectified intrinsics (f = 2355.7 px on 1920 x 1024)
   scaled by ``image_scale``, 0.7 m ahead of and 0.7 m below the LiDAR, looking forward; the world's shading in linear
   light, fog by per-pixel integration (`weatheralign.reference.camera_exact`) with the level's true α and an sRGB
-  grey airlight drawn per frame in ``[airlight_min, airlight_max]``, sensor noise, PNG. Its exact ray length per pixel
+  grey airlight drawn per frame in ``[airlight_min, airlight_max]``; snow and rain by per-pixel ray tracing of the
+  particles with supersampling over the pixel and the exposure (`weatheralign.reference.camera_particles_exact`:
+  flakes are Lambertian spheres of albedo 0.9 under the scene's sky and sun, drops show the environment they
+  refract); sensor noise, PNG. Its exact ray length per pixel
   goes to ``range_cam_stereo_left/<id>.npy`` (float32, inf = sky). Calibration files in STF's form.
 
 Files are written atomically; a finished frame leaves ``<paths.data>/reference/.progress/<id>.json`` tagged with a
@@ -55,15 +68,20 @@ from weatheralign.data.stf import CAMERA_CALIB_FILE, CAMERA_TF_FRAME, LIDAR_TF_F
 from weatheralign.geometry import camera_rotation_from_yaw, make_transform
 from weatheralign.medium.fog import LN20, PAPER_BETA_FACTORS
 from weatheralign.provenance import read_resume_record, stage_code_digest, write_resume_record
+from weatheralign.medium.distributions import RainSizeDistribution, SnowSizeDistribution
+from weatheralign.medium.field import ParticleField
 from weatheralign.reference.camera_exact import encode_with_noise, fog_radiance
-from weatheralign.reference.layout import CAMERA_FOLDER, LEVELS, LIDAR_FOLDER, RANGE_FOLDER, split_files_of
+from weatheralign.reference.camera_particles_exact import particle_image
+from weatheralign.reference.layout import (CAMERA_FOLDER, FOG_LEVELS, LEVELS, LIDAR_FOLDER, PRECIPITATION_LEVELS,
+                                           RANGE_FOLDER, split_files_of)
 from weatheralign.reference.lidar_exact import (FOG, TARGET, Detector, ExactSensor, exact_returns, fog_tables,
                                                 read_out, system_constants)
+from weatheralign.reference.lidar_particles_exact import PARTICLE, particle_returns
 from weatheralign.world.layout import generate_layout
 from weatheralign.world.raycast import WorldRaycaster
 from weatheralign.world.render import pixel_directions, sun_lit
 from weatheralign.world.rig import Camera
-from weatheralign.world.shading import camera_radiance, lidar_intensity, texture
+from weatheralign.world.shading import SUN_COLOUR, camera_radiance, lidar_intensity, texture
 
 F64 = NDArray[np.float64]
 
@@ -91,6 +109,15 @@ SCENE_DURATION_S = FIRST_FRAME_S + 2 * FRAME_GAP_S + 1.0
 FRAME_RATE_HZ = 10.0
 
 _SCENE_TAG, _TRUTH_TAG, _NOISE_TAG = 0x5EF5CE, 0x5EA1ED, 0x5E4503
+_WEATHER_SCENE_TAG, _RATE_TAG, _FIELD_TAG = 0x5E5C0E, 0x5E7A7E, 0x5EF1E1
+FOG_SCENE_LEVELS = ("clear", *FOG_LEVELS)
+"""Levels that share scene ``k`` (three time slots of one drive)."""
+
+SNOW_CELL_M, RAIN_CELL_M = 2.0, 1.0
+"""Field cell sizes [m] (as the particles stage's defaults)."""
+RAIN_FIELD_FALL_M_S = 4.0
+"""Nominal fall speed [m/s] of the rain field's frame: it only translates the field (positions are taken at the frame
+time); in the camera's exposure each drop falls at its own diameter's terminal speed."""
 
 
 def reference_dir(data: Path) -> Path:
@@ -154,6 +181,14 @@ def draw_truth(cfg: ReferenceConfig) -> dict[str, FogLevel]:
     return out
 
 
+def draw_precipitation_truth(cfg: ReferenceConfig) -> dict[str, float]:
+    """The hidden rates ``{"snow": mm/h water equivalent, "rain": mm/h}``, uniform in
+    ``cfg.precipitation.snow_rate_mm_h`` / ``rain_rate_mm_h``, drawn from ``cfg.seed``; deterministic."""
+    rng = np.random.default_rng([cfg.seed, _RATE_TAG])
+    pc = cfg.precipitation
+    return {"snow": float(rng.uniform(*pc.snow_rate_mm_h)), "rain": float(rng.uniform(*pc.rain_rate_mm_h))}
+
+
 @dataclass(frozen=True)
 class FrameSpec:
     """One reference frame (small, picklable): level, index ``k`` (= scene), time slot along the drive, the scene's
@@ -186,20 +221,28 @@ class FrameSpec:
 
 
 def frame_specs(cfg: ReferenceConfig) -> list[FrameSpec]:
-    """Every frame of the reference, level by level (`LEVELS` order), index ascending. Frame ``k`` of any level
-    depends only on ``cfg.seed`` and ``k`` (not on ``frames_per_split``)."""
+    """Every frame of the reference, level by level (`LEVELS` order; snow and rain only where ``cfg.split_files``
+    names them), index ascending. Frame ``k`` of any level depends only on ``cfg.seed``, the level and ``k`` (not on
+    ``frames_per_split`` or on which other levels exist)."""
     specs = []
+    weather = [level for level in PRECIPITATION_LEVELS if level in split_files_of(cfg.split_files)]
     for k in range(cfg.frames_per_split):
         rng = np.random.default_rng([cfg.seed, _SCENE_TAG, k])
         scene_seed = int(rng.integers(0, 2**31 - 1))
         origin = (float(rng.uniform(-2000.0, 2000.0)), float(rng.uniform(-2000.0, 2000.0)))
         heading = float(rng.uniform(-np.pi, np.pi))
-        slots = rng.permutation(len(LEVELS))
-        airlights = rng.uniform(cfg.camera.airlight_min, cfg.camera.airlight_max, len(LEVELS))
+        slots = rng.permutation(len(FOG_SCENE_LEVELS))
+        airlights = rng.uniform(cfg.camera.airlight_min, cfg.camera.airlight_max, len(FOG_SCENE_LEVELS))
         recording = f"synref-{cfg.seed}-{k:04d}"
-        for j, level in enumerate(LEVELS):
+        for j, level in enumerate(FOG_SCENE_LEVELS):
             specs.append(FrameSpec(level, k, int(slots[j]), recording, scene_seed, origin, heading,
                                    1000.0 + 3600.0 * k, float(airlights[j])))
+        for level in weather:
+            wrng = np.random.default_rng([cfg.seed, _WEATHER_SCENE_TAG, LEVELS.index(level), k])
+            specs.append(FrameSpec(level, k, int(wrng.integers(0, len(FOG_SCENE_LEVELS))),
+                                   f"synref-{cfg.seed}-{level}-{k:04d}", int(wrng.integers(0, 2**31 - 1)),
+                                   (float(wrng.uniform(-2000.0, 2000.0)), float(wrng.uniform(-2000.0, 2000.0))),
+                                   float(wrng.uniform(-np.pi, np.pi)), 1000.0 + 3600.0 * k, 0.0))
     order = {level: i for i, level in enumerate(LEVELS)}
     return sorted(specs, key=lambda s: (order[s.level], s.index))
 
@@ -263,14 +306,87 @@ def _noise_rng(cfg: ReferenceConfig, spec: FrameSpec, sensor: int) -> np.random.
     return np.random.default_rng([cfg.seed, _NOISE_TAG, LEVELS.index(spec.level), spec.index, sensor])
 
 
-def render_frame(spec: FrameSpec, cfg: ReferenceConfig, fog: FogLevel, nthreads: int = 1) -> RenderedFrame:
-    """Render frame ``spec`` through ``fog`` (the level's true medium; `CLEAR` for the clear level)."""
+def frame_field(spec: FrameSpec, cfg: ReferenceConfig) -> ParticleField:
+    """The particle field of a snow or rain frame: the split's hidden rate, a seed of the frame's own, the reference
+    time at the frame (so the field is what the frame sees at its capture time).
+
+    Raises:
+        ValueError: ``spec`` is not a snow or rain frame.
+    """
+    if spec.level not in PRECIPITATION_LEVELS:
+        raise ValueError(f"frame {spec.sample_id} is a {spec.level!r} frame; particle fields exist for "
+                         f"{list(PRECIPITATION_LEVELS)}")
+    pc = cfg.precipitation
+    rate = draw_precipitation_truth(cfg)[spec.level]
+    seed = int(np.random.default_rng([cfg.seed, _FIELD_TAG, LEVELS.index(spec.level), spec.index])
+               .integers(0, 2**62))
+    if spec.level == "snow":
+        dist = SnowSizeDistribution(rate, pc.snow_terminal_velocity_m_s, model=pc.snow_size_distribution)
+        fall, cell = pc.snow_terminal_velocity_m_s, SNOW_CELL_M
+    else:
+        dist, fall, cell = RainSizeDistribution(rate), RAIN_FIELD_FALL_M_S, RAIN_CELL_M
+    return ParticleField(seed=seed, distribution=dist, velocity=(0.0, 0.0, -fall), t_ref=spec.time,
+                         z_min=pc.layer_bottom_m, z_max=pc.layer_top_m, cell_size=cell)
+
+
+def frame_medium(spec: FrameSpec, cfg: ReferenceConfig) -> "FogLevel | ParticleField":
+    """What frame ``spec`` is seen through: its level's `FogLevel` (`CLEAR` for the clear level) or its particle
+    field (`frame_field`)."""
+    return frame_field(spec, cfg) if spec.level in PRECIPITATION_LEVELS else draw_truth(cfg)[spec.level]
+
+
+def _lambert_sphere(view: F64, sun: F64, n: int = 4096) -> float:
+    """Mean ``max(n·sun, 0)`` over the visible half of a Lambertian sphere seen from unit direction ``view`` (towards
+    the camera), weighted by projected area (``n·view``): the sun term of a flake's radiance. Fixed quadrature
+    (``n`` points of a Fibonacci hemisphere)."""
+    k = np.arange(n) + 0.5
+    z = k / n
+    phi = np.pi * (1.0 + 5.0 ** 0.5) * k
+    r = np.sqrt(1.0 - z * z)
+    local = np.stack([r * np.cos(phi), r * np.sin(phi), z], 1)
+    a = np.array([1.0, 0.0, 0.0]) if abs(view[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = np.cross(view, a)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(view, e1)
+    normals = local[:, :1] * e1 + local[:, 1:2] * e2 + local[:, 2:] * view
+    w = normals @ view
+    return float(np.sum(np.maximum(normals @ sun, 0.0) * w) / np.sum(w))
+
+
+def particle_radiance(level: str, layout, J: F64, view: F64) -> F64:
+    """Linear RGB (3,) of a resolved particle seen along ``view`` (unit, world, camera to scene).
+
+    - snow: a Lambertian sphere of albedo 0.9 under the scene's light (`weatheralign.world.shading`: sky ambient
+      ``0.9 (0.55 zenith + 0.45 horizon)`` at a vertical-average normal, and the sun ``2.4 SUN_COLOUR`` times the
+      sun term of the visible hemisphere, `_lambert_sphere`);
+    - rain: a drop refracts a wide cone of its environment (Garg and Nayar 2004): 0.94 of the mean of the frame's
+      clear radiance and the sky's.
+    """
+    zen, hor = np.asarray(layout.sky_zenith, float), np.asarray(layout.sky_horizon, float)
+    if level == "snow":
+        sun = np.asarray(layout.sun_direction, float)
+        lam = _lambert_sphere(-np.asarray(view, float), sun) if sun[2] > 0.0 else 0.0
+        return 0.9 * (0.55 * 0.9 * (0.55 * zen + 0.45 * hor) + 2.4 * lam * np.asarray(SUN_COLOUR))
+    return 0.94 * (0.5 * np.asarray(J, float).reshape(-1, 3).mean(0) + 0.25 * (zen + hor))
+
+
+def _ego_velocity(layout, t: float) -> F64:
+    """World velocity (3,) [m/s] of the ego at ``t`` (central difference over 10 ms)."""
+    h = 0.005
+    return (layout.T_global_ego(t + h)[:3, 3] - layout.T_global_ego(t - h)[:3, 3]) / (2.0 * h)
+
+
+def render_frame(spec: FrameSpec, cfg: ReferenceConfig, medium: "FogLevel | ParticleField",
+                 nthreads: int = 1) -> RenderedFrame:
+    """Render frame ``spec`` through ``medium`` (`frame_medium`: the level's true fog, `CLEAR`, or its particle
+    field)."""
     layout = generate_layout(spec.recording, spec.scene_seed, spec.t_start, SCENE_DURATION_S, EGO_SPEED_RANGE,
                              np.array(spec.origin), spec.heading)
     caster = WorldRaycaster(layout, nthreads=nthreads)
     T_global_ego = layout.T_global_ego(spec.time)
+    particles = isinstance(medium, ParticleField)
 
-    # LiDAR: clear hits, system constants, exact pulse integral, detector
+    # LiDAR: clear hits, system constants, exact pulse integral (fog) or sub-rays through the particles, detector
     grid = hdl64_grid(cfg.lidar.firings_per_ring)
     T_global_lidar = T_global_ego @ T_EGO_LIDAR
     R = T_global_lidar[:3, :3]
@@ -288,15 +404,23 @@ def render_frame(spec: FrameSpec, cfg: ReferenceConfig, fog: FogLevel, nthreads:
     sensor, detector = sensor_of(cfg)
     has_target = np.isfinite(r_true) & (i0 > 0.0)
     r_echo = np.where(has_target & (r_true < sensor.listen_end), r_true, np.inf)
-    c = system_constants(np.where(has_target, r_true, np.inf), i0, grid.ring, sensor)
-    returns = exact_returns(r_echo, c, fog.alpha, fog.beta, sensor, tables=fog_tables(fog.alpha, sensor),
-                            grid_step=cfg.lidar.receiver_step_m)
+    if particles:
+        pc = cfg.precipitation
+        reflectivity = pc.snow_reflectivity if spec.level == "snow" else pc.rain_reflectivity
+        returns = particle_returns(T_global_lidar[:3, 3], dirs, r_echo, np.where(np.isfinite(r_echo), i0, 0.0),
+                                   medium, spec.time, reflectivity, sensor, noise_floor=detector.noise_floor,
+                                   sub_rays=pc.lidar_sub_rays, grid_step=cfg.lidar.receiver_step_m,
+                                   seed=int(_noise_rng(cfg, spec, 3).integers(0, 2**31 - 1))).returns
+    else:
+        c = system_constants(np.where(has_target, r_true, np.inf), i0, grid.ring, sensor)
+        returns = exact_returns(r_echo, c, medium.alpha, medium.beta, sensor, tables=fog_tables(medium.alpha, sensor),
+                                grid_step=cfg.lidar.receiver_step_m)
     out = read_out(returns, sensor, detector, _noise_rng(cfg, spec, 1))
     xyz = grid.directions[out.index] * out.range[:, None]
     channel = (len(HDL64E_ELEVATIONS_DEG) - 1) - grid.ring[out.index].astype(np.float64)
     points = np.column_stack([xyz, out.intensity, channel]).astype(np.float32)
 
-    # camera: clear radiance, exact fog integral, noise
+    # camera: clear radiance, exact fog integral or particle ray tracing, noise
     cam = stereo_left_camera(cfg.camera.image_scale)
     T_global_cam = T_global_ego @ cam.T_ego_cam
     pdirs = pixel_directions(cam, T_global_cam)
@@ -305,13 +429,26 @@ def render_frame(spec: FrameSpec, cfg: ReferenceConfig, fog: FogLevel, nthreads:
     lit = sun_lit(caster, origin, pdirs, chits, spec.time, cfg.camera.shadows)
     J = camera_radiance(layout, origin, pdirs, chits.range, chits.normal, chits.material, chits.albedo,
                        chits.reflectivity, lit)
-    if fog.alpha > 0.0:
+    coverage = 0.0
+    if particles:
+        pc = cfg.precipitation
+        view = T_global_cam[:3, 2]
+        seen = particle_image(J.reshape(cam.height, cam.width, 3), chits.range.reshape(cam.height, cam.width),
+                              cam.K, T_global_cam, spec.time, medium,
+                              particle_radiance(spec.level, layout, J, view), v_cam=_ego_velocity(layout, spec.time),
+                              exposure_s=pc.exposure_s, samples=pc.camera_samples,
+                              per_diameter_fall=spec.level == "rain",
+                              seed=int(_noise_rng(cfg, spec, 4).integers(0, 2**31 - 1)))
+        J = seen.radiance.reshape(-1, 3)
+        coverage = float(np.mean(seen.coverage))
+    elif medium.alpha > 0.0:
         A = srgb_to_linear(np.full(3, spec.airlight))
-        J = fog_radiance(J, chits.range, fog.alpha, A, cfg.camera.sky_distance_m)
+        J = fog_radiance(J, chits.range, medium.alpha, A, cfg.camera.sky_distance_m)
     image = encode_with_noise(J.reshape(cam.height, cam.width, 3), cfg.camera.noise_std, _noise_rng(cfg, spec, 2))
     range_map = chits.range.astype(np.float32).reshape(cam.height, cam.width)
     stats = {"beams": int(len(r_true)), "returns": int(len(points)),
              "target_returns": int((out.source == TARGET).sum()), "fog_returns": int((out.source == FOG).sum()),
+             "particle_returns": int((out.source == PARTICLE).sum()), "camera_particle_coverage": round(coverage, 6),
              "mean_intensity": float(points[:, 3].astype(np.float64).mean()) if len(points) else 0.0}
     return RenderedFrame(points, image, range_map, stats)
 
@@ -371,8 +508,7 @@ def render_or_resume(spec: FrameSpec, cfg: ReferenceConfig, data: Path, nthreads
     done = load_finished(spec, cfg, data, digest)
     if done is not None:
         return done, False
-    fog = draw_truth(cfg)[spec.level]
-    frame = render_frame(spec, cfg, fog, nthreads=nthreads)
+    frame = render_frame(spec, cfg, frame_medium(spec, cfg), nthreads=nthreads)
     write_frame(synthetic_root(data), spec, frame)
     record = FrameRecord(spec.level, spec.index, spec.sample_id, frame.stats)
     write_resume_record(_progress_file(data, spec), digest, synthetic_root(data), frame_files(spec),
@@ -439,10 +575,10 @@ def finalize(cfg: ReferenceConfig, data: Path, records: list[FrameRecord]) -> di
     atomic.write_json(root / TF_TREE_FILE, tf_tree(), indent=2)
     sensor, detector = sensor_of(cfg)
     manifest = {
-        "layout": "seeing_through_fog", "generator": "weatheralign synthetic fog reference",
+        "layout": "seeing_through_fog", "generator": "weatheralign synthetic reference",
         "config_hash": config_hash(cfg), "intensity_max": 255.0,
         "lidar_folder": LIDAR_FOLDER, "camera_folder": CAMERA_FOLDER, "range_folder": RANGE_FOLDER,
-        "split_files": split_files, "frames": {level: len(by_level[level]) for level in LEVELS},
+        "split_files": split_files, "frames": {level: len(by_level[level]) for level in split_files},
         "lidar": {"model": "HDL-64-like", "rings": int(len(HDL64E_ELEVATIONS_DEG)),
                   "firings_per_ring": cfg.lidar.firings_per_ring, "channel_order": "channel 0 = lowest laser",
                   "min_range_m": sensor.min_range, "max_range_m": sensor.max_range, "intensity_quantum": 1.0,
@@ -451,16 +587,25 @@ def finalize(cfg: ReferenceConfig, data: Path, records: list[FrameRecord]) -> di
     }
     atomic.write_json(root / MANIFEST_FILE, manifest, indent=2)
     truth = draw_truth(cfg)
-    atomic.write_json(sealed_truth_path(data), {level: {"alpha": truth[level].alpha, "beta": truth[level].beta}
-                                                for level in ("light", "dense")}, indent=2)
-    details = {level: {"alpha": truth[level].alpha, "beta": truth[level].beta, "mor_m": truth[level].mor,
-                       "beta_times_mor": truth[level].beta * truth[level].mor,
-                       "airlight_srgb": {r.sample_id: specs[r.sample_id].airlight for r in by_level[level]}}
-               for level in ("light", "dense")}
+    rates = {level: rate for level, rate in draw_precipitation_truth(cfg).items() if level in split_files}
+    sealed: dict[str, dict] = {level: {"alpha": truth[level].alpha, "beta": truth[level].beta} for level in FOG_LEVELS}
+    sealed.update({level: {"rate_mm_h": rate} for level, rate in rates.items()})
+    atomic.write_json(sealed_truth_path(data), sealed, indent=2)
+    details: dict[str, dict] = {
+        level: {"alpha": truth[level].alpha, "beta": truth[level].beta, "mor_m": truth[level].mor,
+                "beta_times_mor": truth[level].beta * truth[level].mor,
+                "airlight_srgb": {r.sample_id: specs[r.sample_id].airlight for r in by_level[level]}}
+        for level in FOG_LEVELS}
+    for level, rate in rates.items():
+        field_seeds = {r.sample_id: frame_field(specs[r.sample_id], cfg).seed for r in by_level[level]}
+        details[level] = {"rate_mm_h": rate, "field_seed": field_seeds,
+                          "particle_returns": {r.sample_id: r.stats.get("particle_returns", 0) for r in by_level[level]},
+                          "camera_particle_coverage": {r.sample_id: r.stats.get("camera_particle_coverage", 0.0)
+                                                       for r in by_level[level]}}
     details["detector"] = asdict(detector)
     atomic.write_json(reference_dir(data) / SEALED_DETAILS_FILE, details, indent=2)
     _remove_stale(data, {r.sample_id for r in records})
-    return {"root": str(root), "frames": {level: len(by_level[level]) for level in LEVELS}}
+    return {"root": str(root), "frames": {level: len(by_level[level]) for level in split_files}}
 
 
 def _remove_stale(data: Path, keep: set[str]) -> None:

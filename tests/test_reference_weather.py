@@ -1,0 +1,101 @@
+"""The synthetic reference's snow and rain are one medium for both sensors: the particles its exact LiDAR process
+reports are the particles its exact camera process images (and those of an independent field are not), and the
+rendered snow / rain splits react to the hidden rate as the physics says.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from weatheralign.config import params_from_dict
+from weatheralign.geometry import camera_rotation_from_yaw, make_transform
+from weatheralign.medium.distributions import SnowSizeDistribution
+from weatheralign.medium.field import ParticleField
+from weatheralign.reference.camera_particles_exact import particle_image
+from weatheralign.reference.lidar_exact import ExactSensor
+from weatheralign.reference.lidar_particles_exact import PARTICLE, particle_returns
+from weatheralign.reference.synthetic import (draw_precipitation_truth, frame_field, frame_medium, frame_specs,
+                                              render_frame)
+
+LIDAR_ORIGIN = np.array([0.0, 0.0, 1.95])
+T_WORLD_CAM = make_transform(camera_rotation_from_yaw(0.0), np.array([0.7, 0.0, 1.25]))
+F_PX, WIDTH, HEIGHT = 1500.0, 640, 400
+K = np.array([[F_PX, 0.0, WIDTH / 2.0], [0.0, F_PX, HEIGHT / 2.0], [0.0, 0.0, 1.0]])
+
+
+def _snow(seed: int) -> ParticleField:
+    return ParticleField(seed=seed, distribution=SnowSizeDistribution(4.0, 1.5), velocity=(0.0, 0.0, -1.5),
+                         cell_size=2.0)
+
+
+def _forward_beams() -> np.ndarray:
+    """64 x 400 beams within the camera's view (±12° azimuth, -7..+7° elevation), no targets."""
+    az, el = np.meshgrid(np.deg2rad(np.linspace(-12, 12, 400)), np.deg2rad(np.linspace(-7, 7, 64)))
+    return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1).reshape(-1, 3)
+
+
+def _lidar_particles(field: ParticleField) -> np.ndarray:
+    """Ids of the particles whose echo is the strongest return of some beam."""
+    dirs = _forward_beams()
+    n = len(dirs)
+    res = particle_returns(LIDAR_ORIGIN, dirs, np.full(n, np.inf), np.zeros(n), field, 0.0, 0.9, ExactSensor(),
+                           noise_floor=1.0, sub_rays=32)
+    ids = res.particle_id[res.returns.source == PARTICLE]
+    return np.unique(ids[ids >= 0])
+
+
+def _seen_fraction(ids: np.ndarray, lidar_field: ParticleField, camera_field: ParticleField) -> tuple[float, int]:
+    """Share of the LiDAR's particles (in view, beyond 1 m, imaged at least 1.5 px wide) whose centre pixel the
+    camera's particles cover at least a quarter of (a disc 1.5 px wide covers >= 0.3 of the pixel holding its centre)."""
+    J = np.full((HEIGHT, WIDTH, 3), 0.2)
+    img = particle_image(J, np.full((HEIGHT, WIDTH), np.inf), K, T_WORLD_CAM, 0.0, camera_field, np.full(3, 0.9),
+                         exposure_s=0.0, samples=16)
+    box = lidar_field.materialize(LIDAR_ORIGIN - 40.0, LIDAR_ORIGIN + 40.0, 0.0, min_diameter=5e-4)
+    diameter = dict(zip(box.ids.tolist(), box.diameters.tolist()))
+    pos = lidar_field.positions_at(ids, 0.0)
+    pc = (pos - T_WORLD_CAM[:3, 3]) @ T_WORLD_CAM[:3, :3]
+    u = F_PX * pc[:, 0] / pc[:, 2] + WIDTH / 2.0
+    v = F_PX * pc[:, 1] / pc[:, 2] + HEIGHT / 2.0
+    dist = np.linalg.norm(pc, axis=1)
+    d = np.array([diameter.get(i, 0.0) for i in ids.tolist()])
+    ok = (pc[:, 2] > 1.0) & (u >= 1) & (u < WIDTH - 2) & (v >= 1) & (v < HEIGHT - 2) & (F_PX * d / dist >= 1.5)
+    seen = img.coverage[np.round(v[ok]).astype(int), np.round(u[ok]).astype(int)] >= 0.25
+    return float(np.mean(seen)), int(ok.sum())
+
+
+def test_the_lidar_and_the_camera_see_the_same_particles():
+    lidar_field = _snow(7)
+    ids = _lidar_particles(lidar_field)
+    aligned, n = _seen_fraction(ids, lidar_field, lidar_field)
+    independent, _ = _seen_fraction(ids, lidar_field, _snow(8))
+    assert n >= 50
+    assert aligned >= 0.95  # every LiDAR echo is a flake the camera images (occlusion by nearer flakes still covers)
+    assert independent <= 0.3  # another field of the same statistics does not line up
+
+
+@pytest.fixture(scope="module")
+def weather_params(tmp_path_factory):
+    data = tmp_path_factory.mktemp("reference_weather")
+    return params_from_dict({"paths": {"data": str(data)}, "tracking": {"enabled": False},
+                             "reference": {"frames_per_split": 1, "lidar": {"firings_per_ring": 360},
+                                           "camera": {"image_scale": 0.2}}})
+
+
+def test_snow_and_rain_frames_react_to_the_rate(weather_params):
+    cfg = weather_params.reference
+    truth = draw_precipitation_truth(cfg)
+    for level in ("snow", "rain"):
+        spec = next(s for s in frame_specs(cfg) if s.level == level)
+        field = frame_medium(spec, cfg)
+        assert field == frame_field(spec, cfg) and field.t_ref == spec.time and field.number_density() > 0
+        light = render_frame(spec, cfg, field)
+        heavy_cfg = cfg.model_copy(update={"precipitation": cfg.precipitation.model_copy(
+            update={f"{level}_rate_mm_h": (4.0 * truth[level], 4.0 * truth[level] + 1e-3)})})
+        heavy = render_frame(spec, heavy_cfg, frame_field(spec, heavy_cfg))
+        # more particles: more particle echoes, more of them near, and the image loses contrast to the veil
+        assert heavy.stats["particle_returns"] > light.stats["particle_returns"] > 0
+        assert heavy.stats["camera_particle_coverage"] > light.stats["camera_particle_coverage"] > 0
+        np.testing.assert_array_equal(heavy.range, light.range)  # the same scene
+        near = lambda f: int((np.linalg.norm(f.points[:, :3], axis=1) < 10.0).sum())  # noqa: E731
+        assert near(heavy) > near(light)
