@@ -99,3 +99,57 @@ def test_snow_and_rain_frames_react_to_the_rate(weather_params):
         np.testing.assert_array_equal(heavy.range, light.range)  # the same scene
         near = lambda f: int((np.linalg.norm(f.points[:, :3], axis=1) < 10.0).sum())  # noqa: E731
         assert near(heavy) > near(light)
+
+
+def _hdl64_beams(columns: int) -> np.ndarray:
+    from weatheralign.data.rings import HDL64E_ELEVATIONS_DEG
+
+    el, az = np.meshgrid(np.deg2rad(np.asarray(HDL64E_ELEVATIONS_DEG)),
+                         np.linspace(-np.pi, np.pi, columns, endpoint=False))
+    return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1).reshape(-1, 3)
+
+
+@pytest.mark.parametrize("kind, rate, reflectivity", [("snow", 3.0, 0.9), ("rain", 80.0, 0.02)])
+def test_fast_simulator_agrees_with_the_exact_process_without_detector_noise(kind, rate, reflectivity):
+    """The fast LiDAR particle simulator (disk overlaps, closed-form pulse maxima, size thresholds by coverage) and
+    the reference's exact process (Monte-Carlo sub-rays, waveform on a grid) see the same field through the same
+    sensor: with a noise-free detector their particle echoes agree in number and range (HDL-64 grid over a flat
+    ground, sky above). Measured: snow 9561 vs 9928 particle returns with the ground (+4 %), rain 136 vs 144."""
+    from weatheralign.lidar.beams import Beams
+    from weatheralign.lidar.labels import WeatherLabel
+    from weatheralign.lidar.particles import simulate_particles
+    from weatheralign.medium.distributions import RainSizeDistribution
+    from weatheralign.reference.lidar_exact import Detector, read_out
+    from weatheralign.sensors import SYNTHETIC_INTENSITY, LidarModel, PulseSensor
+    from weatheralign.data.rings import HDL64E_ELEVATIONS_DEG
+
+    columns = 900
+    dirs = _hdl64_beams(columns)
+    n = len(dirs)
+    origin = np.array([0.0, 0.0, 1.95])
+    down = dirs[:, 2] < -0.01
+    r0 = np.where(down, 1.95 / np.maximum(-dirs[:, 2], 1e-9), np.inf)
+    r0[r0 > 110.0] = np.inf
+    has = np.isfinite(r0)
+    i0 = np.where(has, 255.0 * 0.2 * np.minimum(1.0, 10.0 / np.where(has, r0, 1.0)), 0.0)
+    dist = SnowSizeDistribution(rate, 1.5) if kind == "snow" else RainSizeDistribution(rate)
+    field = ParticleField(seed=5, distribution=dist, velocity=(0.0, 0.0, -1.5), cell_size=2.0 if kind == "snow" else 1.0)
+    sensor = ExactSensor()
+    exact = particle_returns(origin, dirs, r0, i0, field, 0.0, reflectivity, sensor, noise_floor=1.0, sub_rays=256)
+    out = read_out(exact.returns, sensor, Detector(0.0, 0.0, 1.0, 0.0), np.random.default_rng(0))
+    lidar = LidarModel(elevations_deg=tuple(HDL64E_ELEVATIONS_DEG), columns_per_ring=columns, rotation_hz=10.0,
+                       clockwise=True, start_azimuth_rad=np.pi, laser_step_s=0.0, divergence_rad=3e-3,
+                       max_range_m=120.0, min_range_m=1.0, noise_floor=1.0, intensity_max=255.0,
+                       intensity=SYNTHETIC_INTENSITY,
+                       pulse=PulseSensor(tau_h=2e-8, r1=0.9, r2=1.0, max_range=120.0), origin="params")
+    beams = Beams(np.tile(origin, (n, 1)), dirs, np.zeros(n), np.where(has, r0, 120.0), has, i0,
+                  np.zeros(n, np.float32), np.where(has, np.cumsum(has) - 1, -1), 3e-3, 120.0)
+    fast = simulate_particles(beams, field, lidar=lidar, reflectivity=reflectivity, intensity_max=255.0)
+    n_exact = int((out.source == PARTICLE).sum())
+    scattered = fast.labels == WeatherLabel.SCATTERED
+    n_fast = int(scattered.sum())
+    assert n_exact > (5000 if kind == "snow" else 80)
+    assert abs(n_fast / n_exact - 1.0) < (0.08 if kind == "snow" else 0.25)
+    r_exact = np.median(out.range[out.source == PARTICLE])
+    r_fast = np.median(np.linalg.norm(fast.points[scattered, :3] - origin, axis=1))
+    assert abs(r_fast / r_exact - 1.0) < 0.1
