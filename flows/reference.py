@@ -8,7 +8,7 @@ per frame, resumable. With ``reference.source: stf`` the stage checks a real See
 (every split file read, every listed frame loaded) and copies nothing.
 
 Both write ``reports/reference/metrics.json`` (frames, points per scan, mean intensity on 0..255, share of returns
-within 3 m, per split; seconds) and ``reports/reference/overview.png`` (intensity histograms and one image per split),
+within 3 m, isolated returns per scan (snow / rain clutter, `weatheralign.lidar.clutter`), per split; seconds) and ``reports/reference/overview.png`` (intensity histograms and one image per split),
 and log them to MLflow.
 """
 
@@ -29,7 +29,8 @@ from tasks.reference import render_reference_frame_task  # noqa: E402
 from tasks.tracking import StageTracker  # noqa: E402
 from weatheralign.config import Params  # noqa: E402
 from weatheralign.data.stf import CAMERA_CHANNEL  # noqa: E402
-from weatheralign.reference import ReferenceDataset, check_reference, configured_reference  # noqa: E402
+from weatheralign.reference import (ReferenceDataset, check_reference, configured_reference,  # noqa: E402
+                                    reference_lidar_model)
 from weatheralign.reference.synthetic import finalize, frame_specs  # noqa: E402
 
 FIGURE = "overview.png"
@@ -103,7 +104,9 @@ def reference_flow(params: Params) -> dict:
         tracker.log_params({"reference": cfg.model_dump(mode="json")})
         extra = _render_synthetic(params) if cfg.source == "synthetic" else {}
         ds = configured_reference(params)
-        splits = check_reference(ds, progress=params.run.show_progress)
+        lidar = reference_lidar_model(params, ds)
+        splits = check_reference(ds, progress=params.run.show_progress,
+                                 azimuth_step_rad=2.0 * np.pi / lidar.columns_per_ring)
         metrics = {"source": cfg.source, "root": _root_for_report(ds.root), "intensity_max": ds.intensity_max,
                    "splits": {level: s.as_dict() for level, s in splits.items()},
                    "frames_total": sum(s.frames for s in splits.values()), **extra}

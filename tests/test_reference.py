@@ -524,6 +524,7 @@ def test_reference_flow_writes_metrics_figure_and_resumes(tmp_path):
     assert metrics["source"] == "synthetic" and metrics["root"] == "data/reference/synthetic"
     assert metrics["frames_total"] == 10 and metrics["frames_rendered_this_run"] == 10
     assert metrics["particle_returns_per_scan"]["snow"] > 0 and metrics["particle_returns_per_scan"]["clear"] == 0
+    assert metrics["splits"]["snow"]["isolated_per_scan"] > 10 * max(1.0, metrics["splits"]["clear"]["isolated_per_scan"])
     splits = metrics["splits"]
     assert splits["clear"]["mean_intensity"] > splits["light"]["mean_intensity"] > splits["dense"]["mean_intensity"]
     assert all(s["points_per_scan"] > 10_000 for s in splits.values())

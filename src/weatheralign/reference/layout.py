@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 from weatheralign.data.errors import DataFormatError, require_file
 from weatheralign.data.frame import Frame, LidarScan
 from weatheralign.data.stf import CAMERA_CHANNEL, find_sensor_file, load_stf_frame, read_stf_split
+from weatheralign.lidar.clutter import isolated_returns
 
 LEVELS: tuple[str, ...] = ("clear", "light", "dense", "snow", "rain")
 """Levels (splits) of a reference, clear first: the two fog levels, then the precipitation splits."""
@@ -215,7 +216,9 @@ def open_reference(
 @dataclass(frozen=True)
 class SplitSummary:
     """What `check_reference` found in one level: frame count, points per scan, mean intensity (0..255 scale),
-    share of returns closer than 3 m, and the frames that have exact range maps."""
+    share of returns closer than 3 m, the frames that have exact range maps, and (when asked for) the mean and
+    standard deviation over scans of the isolated returns within 20 m (`weatheralign.lidar.clutter`: snow and rain
+    clutter)."""
 
     level: str
     frames: int
@@ -223,16 +226,24 @@ class SplitSummary:
     mean_intensity_255: float
     near_fraction: float
     with_range: int
+    isolated_per_scan: float | None = None
+    isolated_std: float | None = None
 
     def as_dict(self) -> dict:
-        return {"frames": self.frames, "points_per_scan": round(self.points_per_scan, 1),
-                "mean_intensity": round(self.mean_intensity_255, 4), "near_3m_fraction": round(self.near_fraction, 5),
-                "frames_with_range": self.with_range}
+        out = {"frames": self.frames, "points_per_scan": round(self.points_per_scan, 1),
+               "mean_intensity": round(self.mean_intensity_255, 4), "near_3m_fraction": round(self.near_fraction, 5),
+               "frames_with_range": self.with_range}
+        if self.isolated_per_scan is not None:
+            out["isolated_per_scan"] = round(self.isolated_per_scan, 1)
+            out["isolated_per_scan_std"] = round(float(self.isolated_std), 1)
+        return out
 
 
-def check_reference(ds: ReferenceDataset, *, images: bool = True, progress: bool = False) -> dict[str, SplitSummary]:
+def check_reference(ds: ReferenceDataset, *, images: bool = True, progress: bool = False,
+                    azimuth_step_rad: float | None = None) -> dict[str, SplitSummary]:
     """Load every frame of every level (scans fully checked, images' sizes against the calibration, range maps
-    against the images) and summarise each level.
+    against the images) and summarise each level; with ``azimuth_step_rad`` (the LiDAR's, [rad]) also count each
+    scan's isolated returns (`weatheralign.lidar.clutter.isolated_returns`).
 
     Raises:
         DataFormatError: any bad file, an empty scan, or a split declared 0..255 whose intensities all lie in 0..1.
@@ -241,7 +252,7 @@ def check_reference(ds: ReferenceDataset, *, images: bool = True, progress: bool
 
     out: dict[str, SplitSummary] = {}
     for level in ds.levels:
-        counts, sums, near, maxima, with_range = [], 0.0, 0, 0.0, 0
+        counts, sums, near, maxima, with_range, isolated = [], 0.0, 0, 0.0, 0, []
         for sample_id in tqdm(ds.ids(level), desc=f"reference: checking {level}", disable=not progress,
                               unit="frame"):
             frame = ds.load_frame(sample_id) if images else None
@@ -258,13 +269,17 @@ def check_reference(ds: ReferenceDataset, *, images: bool = True, progress: bool
             sums += float(scan.intensity_255().astype(np.float64).sum())
             near += int((np.linalg.norm(scan.points[:, :3], axis=1) < 3.0).sum())
             maxima = max(maxima, float(scan.points[:, 3].max()))
+            if azimuth_step_rad is not None:
+                isolated.append(isolated_returns(scan.points[:, :3], azimuth_step_rad=azimuth_step_rad))
         total = int(sum(counts))
         if ds.intensity_max == 255.0 and total >= UNIT_SCALE_SUSPECT_POINTS and maxima <= 1.0:
             raise DataFormatError(f"reference split {level!r} ({ds.splits[level].split_file}): all {total} "
                                   f"intensities lie in 0..1 but intensity_max = 255 was declared; set "
                                   f"intensity_max: 1.0 for a 0..1 reference")
         out[level] = SplitSummary(level, len(counts), total / max(1, len(counts)), sums / max(1, total),
-                                  near / max(1, total), with_range)
+                                  near / max(1, total), with_range,
+                                  float(np.mean(isolated)) if isolated else None,
+                                  float(np.std(isolated)) if isolated else None)
     return out
 
 
