@@ -91,7 +91,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from weatheralign.medium.distributions import Q_EXT_GEOMETRIC, rain_terminal_velocity
-from weatheralign.medium.field import ParticleField, Particles
+from weatheralign.medium.field import ParticleField, Particles, _mix, _mix_py
 
 Q_IMAGING = 1.0
 """Extinction efficiency of the unresolved particles for the camera: the geometric shadow (see the module docstring)."""
@@ -114,12 +114,10 @@ MAX_SAMPLES = 1024
 
 _PERM_SHIFT = np.uint64(64 - 10)
 _GOLD = np.uint64(0x9E3779B97F4A7C15)
-_MUL1 = np.uint64(0xBF58476D1CE4E5B9)
-_MUL2 = np.uint64(0x94D049BB133111EB)
 _TAG_T = np.uint64(0x7A3C5D1E9B2F4861)
 _TAG_Y = np.uint64(0x1F6B8E2D4C9A7305)
 _TAG_PERM = np.uint64(0x5EED0F9E12A3B4C7)
-_SH30, _SH27, _SH31, _SH11 = np.uint64(30), np.uint64(27), np.uint64(31), np.uint64(11)
+_SH11 = np.uint64(11)
 _UNIT = 2.0 ** -53
 _BBOX_EPS_PX = 1e-4
 """Pixel margin added to each particle's exact projected extent (covers rounding of the tangent evaluation)."""
@@ -127,21 +125,14 @@ _BBOX_EPS_PX = 1e-4
 
 # ------------------------------------------------------------------------------------------------------------ samples
 @njit(cache=True, nogil=True, inline="always")
-def _splitmix(z: np.uint64) -> np.uint64:  # pragma: no cover - numba
-    z = (z ^ (z >> _SH30)) * _MUL1
-    z = (z ^ (z >> _SH27)) * _MUL2
-    return z ^ (z >> _SH31)
-
-
-@njit(cache=True, nogil=True, inline="always")
 def _unit(key: np.uint64, counter: np.uint64) -> float:  # pragma: no cover - numba
     """Uniform in [0, 1) (53 bits) from hash stream ``key`` at ``counter``."""
-    return float(_splitmix(key + (counter + np.uint64(1)) * _GOLD) >> _SH11) * _UNIT
+    return float(_mix(key + (counter + np.uint64(1)) * _GOLD) >> _SH11) * _UNIT
 
 
 @njit(cache=True, nogil=True, inline="always")
 def _pixel_key(seed_key: np.uint64, pixel: np.int64) -> np.uint64:  # pragma: no cover - numba
-    return _splitmix(seed_key ^ _splitmix(np.uint64(pixel) * _GOLD + _GOLD))
+    return _mix(seed_key ^ _mix(np.uint64(pixel) * _GOLD + _GOLD))
 
 
 @njit(cache=True, nogil=True)
@@ -149,7 +140,7 @@ def _permutation_table(seed_key: np.uint64, n: int, s: int) -> NDArray:  # pragm
     """(n, s) int64: ``n`` permutations of ``0..s-1`` (Fisher–Yates on hashed uniforms)."""
     out = np.empty((n, s), dtype=np.int64)
     for r in range(n):
-        key = _splitmix(seed_key ^ _splitmix(np.uint64(r) * _GOLD + _TAG_PERM))
+        key = _mix(seed_key ^ _mix(np.uint64(r) * _GOLD + _TAG_PERM))
         for i in range(s):
             out[r, i] = i
         for i in range(s - 1, 0, -1):
@@ -191,7 +182,7 @@ def _sample(key: np.uint64, k: int, s: int, grid: int, perms: NDArray, row_t: in
 @njit(cache=True, nogil=True, inline="always")
 def _pixel_rows(key: np.uint64) -> tuple[int, int]:  # pragma: no cover - numba
     """The pixel's rows of the permutation table (time strata, row strata)."""
-    return int(_splitmix(key ^ _TAG_T) >> _PERM_SHIFT), int(_splitmix(key ^ _TAG_Y) >> _PERM_SHIFT)
+    return int(_mix(key ^ _TAG_T) >> _PERM_SHIFT), int(_mix(key ^ _TAG_Y) >> _PERM_SHIFT)
 
 
 @njit(cache=True, nogil=True)
@@ -206,14 +197,6 @@ def _pattern_kernel(height: int, width: int, s: int, grid: int, seed_key: np.uin
                 out[row, col, k, 0] = ux
                 out[row, col, k, 1] = uy
                 out[row, col, k, 2] = ut
-
-
-def _mix_py(z: int) -> int:
-    m = (1 << 64) - 1
-    z &= m
-    z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & m
-    z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & m
-    return z ^ (z >> 31)
 
 
 def _seed_key(seed: int) -> np.uint64:

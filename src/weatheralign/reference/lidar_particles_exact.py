@@ -75,7 +75,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
-from weatheralign.medium.field import ParticleField
+from weatheralign.medium.field import ParticleField, _mix_py
 from weatheralign.reference.lidar_exact import FOG, TARGET, ExactReturns, ExactSensor, _overlap_one, bistatic_overlap
 from weatheralign.sensors import SYNTHETIC_INTENSITY, IntensityModel
 
@@ -218,7 +218,7 @@ def range_shells(listen_end: float) -> F64:
 
 def beam_rotations(n_beams: int, seed: int) -> F64:
     """(n,) rotation ``φ_b`` [rad] in ``[0, 2π)`` of every beam's sub-ray pattern: SplitMix64 of ``(seed, b)``."""
-    key = _splitmix(_splitmix((int(seed) + 0x9E3779B97F4A7C15) & _MASK64) ^ 0x5B0_7A7E)
+    key = _mix_py(_mix_py((int(seed) + 0x9E3779B97F4A7C15) & _MASK64) ^ 0x5B0_7A7E)
     idx = np.arange(n_beams, dtype=np.uint64)
     z = np.uint64(key) + (idx + np.uint64(1)) * np.uint64(0x9E3779B97F4A7C15)
     z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
@@ -371,13 +371,6 @@ def beam_waveform(R: ArrayLike, beam: int, origin: ArrayLike, directions: ArrayL
 
 
 # ------------------------------------------------------------------------------------------------ validation
-def _splitmix(z: int) -> int:
-    z &= _MASK64
-    z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & _MASK64
-    z = ((z ^ (z >> 27)) * 0x94D049BB133111EB) & _MASK64
-    return z ^ (z >> 31)
-
-
 def _check_int(name: str, value: object, lo: int, hi: int) -> int:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or not lo <= int(value) <= hi:
         raise ValueError(f"{name} = {value!r}; expected an integer in [{lo}, {hi}]")
