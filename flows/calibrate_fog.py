@@ -45,11 +45,9 @@ from weatheralign.calibrate.lidar import (GridResult, LevelCalibration, fog_fram
                                           grid_cells)
 from weatheralign.camera.fog import estimate_airlight, fog_image  # noqa: E402
 from weatheralign.config import Params  # noqa: E402
-from weatheralign.reference import ReferenceDataset, configured_reference, reference_lidar_model  # noqa: E402
+from weatheralign.reference import FOG_LEVELS, ReferenceDataset, configured_reference, reference_lidar_model  # noqa: E402
 from weatheralign.sensors import LidarModel  # noqa: E402
 from weatheralign.manifest import FOG_LEVELS_FILE  # noqa: E402
-
-FOG_LEVELS = ("light", "dense")
 
 
 def lidar_level(ds: ReferenceDataset, frames, level: str, params: Params,
@@ -113,7 +111,7 @@ def calibrate_fog_flow(params: Params) -> dict:
     t0 = time.time()
     with StageTracker(params, "calibrate_fog") as tracker:
         torch.set_num_threads(params.run.torch_threads)
-        ds = configured_reference(params)
+        ds = configured_reference(params, ("clear", *FOG_LEVELS))
         sensor = reference_lidar_model(params, ds)
         tracker.log_params({"calibrate_fog": cfg.model_dump(mode="json"), "reference.source": params.reference.source,
                             "reference_lidar": sensor.to_dict()})

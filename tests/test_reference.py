@@ -159,6 +159,7 @@ def test_configured_stf_source(real_tree, tmp_path):
         with pytest.raises(DataFormatError, match=r"split 'rain': split file .*rain\.txt not found.*"
                                                   r"reference\.split_files\.rain: null"):
             configured_reference(params)
+        assert configured_reference(params, ("clear", "light", "dense")).levels == ("clear", "light", "dense")
     finally:
         (real_tree / "splits" / "rain_moved.txt").rename(real_tree / "splits" / "rain.txt")
 

@@ -9,26 +9,27 @@
 - `lidar_particles_exact`, `camera_particles_exact`: its exact snow and rain processes (Monte-Carlo sub-rays per beam
   through the particles; per-pixel ray tracing of the particles with supersampling and exposure-time integration).
 
-`configured_reference(params)` opens the reference that ``params.reference`` names.
+`configured_reference(params, levels)` opens the reference that ``params.reference`` names (or those of its levels).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
-
-import numpy as np
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from weatheralign.data.errors import DataFormatError
-from weatheralign.reference.layout import (FOG_LEVELS, LEVELS, PRECIPITATION_LEVELS, ReferenceDataset, ReferenceSplit, SplitSummary, check_reference,
-                                           open_reference, split_files_of)
+from weatheralign.reference.layout import (FOG_LEVELS, LEVELS, PRECIPITATION_LEVELS, ReferenceDataset, ReferenceSplit,
+                                           SplitSummary, check_reference, open_reference, split_files_of)
 
 if TYPE_CHECKING:
     from weatheralign.config import Params
     from weatheralign.sensors import LidarModel
 
-__all__ = ["FOG_LEVELS", "LEVELS", "PRECIPITATION_LEVELS", "ReferenceDataset", "ReferenceSplit", "SplitSummary", "check_reference", "configured_reference",
-           "open_reference", "reference_lidar_model", "reference_root", "split_files_of"]
+__all__ = ["FOG_LEVELS", "LEVELS", "PRECIPITATION_LEVELS", "ReferenceDataset", "ReferenceSplit", "SplitSummary",
+           "check_reference", "configured_reference", "open_reference", "reference_lidar_model", "reference_root", "split_files_of"]
 
 
 def reference_root(params: "Params") -> Path:
@@ -43,8 +44,10 @@ def reference_root(params: "Params") -> Path:
     return synthetic_root(params.paths.data)
 
 
-def configured_reference(params: "Params") -> ReferenceDataset:
-    """`open_reference` of the reference ``params.reference`` describes (root, split files, declared scale).
+def configured_reference(params: "Params", levels: Sequence[str] = LEVELS) -> ReferenceDataset:
+    """`open_reference` of the reference ``params.reference`` describes (root, split files, declared scale),
+    restricted to ``levels`` (the fog calibration opens only clear and the fog levels, so a root needs no snow / rain
+    split files for it).
 
     Raises:
         DataFormatError: the synthetic reference has not been rendered yet, or see `open_reference`.
@@ -54,7 +57,8 @@ def configured_reference(params: "Params") -> ReferenceDataset:
     if cfg.source == "synthetic" and not root.is_dir():
         raise DataFormatError(f"reference root {root} does not exist: render the synthetic reference first "
                               f"(python -m flows.reference)")
-    return open_reference(root, split_files_of(cfg.split_files), cfg.intensity_max)
+    files = {level: rel for level, rel in split_files_of(cfg.split_files).items() if level in levels}
+    return open_reference(root, files, cfg.intensity_max)
 
 
 def reference_lidar_model(params: "Params", reference: ReferenceDataset) -> "LidarModel":
