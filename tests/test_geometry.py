@@ -110,3 +110,13 @@ def test_save_npz_round_trips_byte_identically(tmp_path, compress):
                                              for k, v in arrays.items())
     stored = sum(v.nbytes for v in arrays.values())
     assert ((tmp_path / "x.npz").stat().st_size < stored) == compress
+    if compress:  # deflate level 1, as documented (a ZipInfo written through ZipFile.open would get level 6)
+        import io
+        import zipfile
+        import zlib
+
+        raw = io.BytesIO()
+        np.lib.format.write_array(raw, arrays["a"], allow_pickle=False)
+        level1 = zlib.compressobj(1, zlib.DEFLATED, -15)
+        with zipfile.ZipFile(tmp_path / "x.npz") as zf:
+            assert zf.getinfo("a.npy").compress_size == len(level1.compress(raw.getvalue()) + level1.flush())
