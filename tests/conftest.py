@@ -44,9 +44,9 @@ def tiny_world(tmp_path_factory: pytest.TempPathFactory) -> TinyWorld:
 
 def make_lidar(**overrides: object) -> "LidarModel":
     """An HDL-32E-like `LidarModel` for physics tests: 3 mrad divergence, τ_H = 10 ns, 120 m, noise floor 0.5 on
-    0..255, the synthetic world's intensity model and firing grid (1085 columns, per-point columns stored).
-    ``overrides``: any `LidarModel` field; ``pulse_half_width_s`` / ``pulse`` set the pulse; ``max_range_m`` moves the
-    pulse's maximum range too."""
+    0..255, a noise-free detector (the published models have none), the synthetic world's intensity model and firing
+    grid (1085 columns, per-point columns stored). ``overrides``: any `LidarModel` field; ``pulse_half_width_s`` /
+    ``pulse`` set the pulse; ``max_range_m`` moves the pulse's maximum range too."""
     from weatheralign.config import LidarConfig
     from weatheralign.sensors import lidar_model_from_params, with_overrides
 

@@ -768,3 +768,42 @@ def test_slice_table_equals_its_definition():
         span[rng.uniform(size=n) < 0.05] = 4.0
         got, want = _slice_table(az0, span, n_bins), _slice_table_loop(az0, span, n_bins)
         assert np.array_equal(got[0], want[0]) and np.array_equal(got[1], want[1])
+
+
+def test_detector_noise_decides_weak_particle_echoes_with_the_gaussian_probability():
+    """A particle echo of peak v (0..255) under detector noise σ and floor f is detected with probability
+    Φ((v - f) / σ); the detected intensities are v + σ z truncated at f, the ranges carry the clipped range noise, and
+    a beam without a particle keeps its clear return bit for bit (its noise is in the clear measurement already)."""
+    from scipy.stats import norm
+
+    n, s_p, floor, sigma, sigma_r = 4000, 10.0, 2.0, 1.0, 0.05
+    w = s_p * math.tan(1.5e-3)
+    v = 3.0  # the echo's noise-free peak: 255 · 0.9 · ratio at 10 m (g = 1)
+    ratio = v / (255.0 * SNOW_REFLECTIVITY)
+    beams = _beams([0, 0, 0], np.tile([1.0, 0, 0], (n, 1)), 60.0, 0.0, times=np.arange(n) * 1e-5,
+                   has_return=np.zeros(n, bool))
+    parts = _particles([s_p, 0.0, 0.0], 2 * w * math.sqrt(ratio))
+    quiet = simulate_particle_list(beams, parts, (0, 0, 0), lidar=make_lidar(noise_floor=floor),
+                                   reflectivity=SNOW_REFLECTIVITY)
+    assert len(quiet.points) == quiet.counts["CLUTTER"] == n  # beams without return: the echoes are clutter
+    np.testing.assert_allclose(quiet.points[:, 3], v, rtol=1e-6)  # every beam: the same noise-free echo
+    noisy_lidar = make_lidar(noise_floor=floor, intensity_noise_std=sigma, range_noise_std_m=sigma_r)
+    res = simulate_particle_list(beams, parts, (0, 0, 0), lidar=noisy_lidar, reflectivity=SNOW_REFLECTIVITY)
+    p_detect = norm.sf((floor - v) / sigma)
+    detected = len(res.points) / n
+    assert abs(detected - p_detect) < 4 * math.sqrt(p_detect * (1 - p_detect) / n)
+    inten = res.points[:, 3].astype(np.float64)
+    assert inten.min() >= floor
+    z0 = (floor - v) / sigma  # E[v + σ z | z >= z0] = v + σ φ(z0) / (1 - Φ(z0))
+    expected_mean = v + sigma * norm.pdf(z0) / norm.sf(z0)
+    assert abs(inten.mean() - expected_mean) < 4 * inten.std() / math.sqrt(len(inten))
+    ranges = np.linalg.norm(res.points[:, :3].astype(np.float64), axis=1)
+    assert np.all(np.abs(ranges - s_p) <= 2 * sigma_r + 1e-4)
+    clipped_std = sigma_r * math.sqrt(1 - 4 * norm.pdf(2) / (norm.cdf(2) - norm.cdf(-2)))  # N(0, 1) within ±2
+    assert abs(ranges.std() - clipped_std) < 0.1 * clipped_std
+    again = simulate_particle_list(beams, parts, (0, 0, 0), lidar=noisy_lidar, reflectivity=SNOW_REFLECTIVITY)
+    np.testing.assert_array_equal(again.points, res.points)  # the noise is the beam's: same beams, same bytes
+    target = _beams([0, 0, 0], np.tile([1.0, 0, 0], (3, 1)), 30.0, 20.0, times=np.arange(3) * 1e-5)
+    clear = simulate_particle_list(target, _particles([5.0, 5.0, 5.0], 1e-3), (0, 0, 0), lidar=noisy_lidar,
+                                   reflectivity=SNOW_REFLECTIVITY)
+    assert np.all(clear.input_labels == ParticleLabel.UNCHANGED)

@@ -195,6 +195,9 @@ class SensorOverrides(_Section):
     rotation_hz: Annotated[float, Field(gt=1.0, le=50.0)] | None = None
     max_range_m: Annotated[float, Field(gt=10.0, le=300.0)] | None = None
     columns_per_ring: Annotated[int, Field(ge=90, le=10_000)] | None = None
+    intensity_noise_std: Annotated[float, Field(ge=0.0, le=50.0)] | None = None  # detector noise (0..255); none
+    intensity_noise_rel: Annotated[float, Field(ge=0.0, le=1.0)] | None = None   # unless set
+    range_noise_std_m: Annotated[float, Field(ge=0.0, le=1.0)] | None = None
 
     def as_dict(self) -> dict:
         return {k: v for k, v in self.model_dump().items() if v is not None}

@@ -171,6 +171,10 @@ class LidarModel:
         firing_columns_stored: per-point firing columns are stored beside the scans (the synthetic world's extras),
             so beams without return come from the exact firing grid instead of a reconstruction.
         origin: ``params`` (declared) or ``estimated`` (from scans).
+        intensity_noise_std, intensity_noise_rel: the detector's intensity noise on a new echo (0..255 scale):
+            Gaussian of std ``sqrt(std² + (rel · peak)²)`` on the received peak, before the floor decides whether it
+            is detected (0, 0: noise-free). Weak particle echoes near the floor are detected by chance through it.
+        range_noise_std_m: Gaussian range noise of a new echo [m], clipped at ±2 σ.
     """
 
     elevations_deg: tuple[float, ...]
@@ -188,9 +192,15 @@ class LidarModel:
     pulse: PulseSensor
     firing_columns_stored: bool = False
     origin: str = "params"
+    intensity_noise_std: float = 0.0
+    intensity_noise_rel: float = 0.0
+    range_noise_std_m: float = 0.0
 
     def __post_init__(self) -> None:
         checks = {
+            "intensity_noise_std": math.isfinite(self.intensity_noise_std) and 0.0 <= self.intensity_noise_std <= 50.0,
+            "intensity_noise_rel": math.isfinite(self.intensity_noise_rel) and 0.0 <= self.intensity_noise_rel <= 1.0,
+            "range_noise_std_m": math.isfinite(self.range_noise_std_m) and 0.0 <= self.range_noise_std_m <= 1.0,
             "elevations_deg": len(self.elevations_deg) >= 1
             and all(math.isfinite(e) and -90.0 < e < 90.0 for e in self.elevations_deg),
             "columns_per_ring": 1 <= self.columns_per_ring <= 100_000,
@@ -297,7 +307,12 @@ class SensorRig:
 
 
 def lidar_model_from_params(cfg: Any) -> LidarModel:
-    """The synthetic world's HDL-32E-like LIDAR_TOP from ``world.lidar`` params (a `config.LidarConfig`)."""
+    """The synthetic world's HDL-32E-like LIDAR_TOP from ``world.lidar`` params (a `config.LidarConfig`).
+
+    Its detector reads new weather echoes without noise: the renderer's ``intensity_noise_std`` (1.5) lies above its
+    floor ``min_detectable_intensity`` (0.5), and a detector whose floor is under its noise would report noise on
+    every beam; as a detector model that would make any particle echo, however faint, a detection one time in three
+    (and the result depend on the simulator's resolution threshold)."""
     return LidarModel(
         elevations_deg=tuple(float(e) for e in HDL32E_ELEVATIONS_DEG), columns_per_ring=cfg.firings_per_ring,
         rotation_hz=cfg.frequency_hz, clockwise=True, start_azimuth_rad=float(SWEEP_START_AZIMUTH),

@@ -63,7 +63,7 @@ def configured_reference(params: "Params", levels: Sequence[str] = LEVELS) -> Re
 
 def reference_lidar_model(params: "Params", reference: ReferenceDataset) -> "LidarModel":
     """The reference's LiDAR as a `weatheralign.sensors.LidarModel`: the synthetic reference's HDL-64-like sensor
-    from ``reference.lidar`` (its pulse, overlap, range limits and detector floor), or for a real root the model
+    from ``reference.lidar`` (its pulse, overlap, range limits, detector floor and noise), or for a real root the model
     estimated from the clear split's scans with ``reference.sensor_overrides`` applied.
 
     The calibration fast-simulates fog on the reference's clear scans through this sensor, so the detector floor and
@@ -81,6 +81,7 @@ def reference_lidar_model(params: "Params", reference: ReferenceDataset) -> "Lid
             max_range_m=lc.max_range_m, min_range_m=lc.min_range_m, noise_floor=lc.noise_floor, intensity_max=255.0,
             intensity=SYNTHETIC_INTENSITY,
             pulse=PulseSensor(tau_h=lc.tau_h_s, r1=lc.overlap_r1_m, r2=lc.overlap_r2_m, max_range=lc.max_range_m),
-            origin="params")
+            origin="params", intensity_noise_std=lc.intensity_noise_std, intensity_noise_rel=lc.intensity_noise_rel,
+            range_noise_std_m=lc.range_noise_std_m)
     scans = [reference.load_frame(sample_id).lidar for sample_id in reference.ids("clear")[:8]]
     return estimate_lidar_model(scans, rotation_hz=10.0, overrides=cfg.sensor_overrides.as_dict())

@@ -145,12 +145,16 @@ class _Options:
     intensity_model: IntensityModel
     noise_floor: float | None
     keep_tolerance: float
+    intensity_noise_std: float = 0.0
+    intensity_noise_rel: float = 0.0
+    range_noise_std: float = 0.0
 
     @staticmethod
     def of(lidar: LidarModel, reflectivity: float, keep_tolerance: float) -> "_Options":
-        """The options of ``lidar`` (its pulse, intensity model and detector floor) for particles of
+        """The options of ``lidar`` (its pulse, intensity model, detector floor and noise) for particles of
         ``reflectivity``."""
-        return _Options(reflectivity, lidar.pulse, lidar.intensity, lidar.noise_floor, keep_tolerance)
+        return _Options(reflectivity, lidar.pulse, lidar.intensity, lidar.noise_floor, keep_tolerance,
+                        lidar.intensity_noise_std, lidar.intensity_noise_rel, lidar.range_noise_std_m)
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.reflectivity) and 0.0 <= self.reflectivity <= 1.0):
@@ -169,6 +173,20 @@ class _Response(NamedTuple):
     n_sampled: int  # hits whose ratio was counted on the SAMPLE_GRID grid (of all scans of a joint run)
 
 
+_KEY_MULTIPLIERS = np.array([0x9E3779B97F4A7C15, 0xBF58476D1CE4E5B9, 0x94D049BB133111EB, 0xD6E8FEB86659FD93,
+                              0xA0761D6478BD642F], dtype=np.uint64)
+
+
+def beam_noise_keys(beams: Beams) -> NDArray[np.uint64]:
+    """(B,) the detector-noise stream of each beam: the bits of its firing time [s], direction and ring, each times
+    an odd constant, summed (mod 2^64). A beam reads the same noise in every run and condition (the sensor's noise,
+    not the weather's; a scan simulated alone or with its sweeps alike), and beams differ in one of them."""
+    parts = np.column_stack([np.ascontiguousarray(beams.times, dtype=np.float64).view(np.uint64),
+                             np.ascontiguousarray(beams.directions, dtype=np.float64).view(np.uint64).reshape(-1, 3),
+                             beams.ring.astype(np.uint64)])
+    return (parts * _KEY_MULTIPLIERS).sum(axis=1, dtype=np.uint64)
+
+
 def _respond(beams: Beams, hits: HitArrays, edges: F64, alphas: F64, opt: _Options) -> _Response:
     """Run the response kernel on the sorted ``hits`` with the bulk extinction ``alphas`` (K,) [1/m] on the range
     shells ``edges`` (K+1,) [m]."""
@@ -181,11 +199,12 @@ def _respond(beams: Beams, hits: HitArrays, edges: F64, alphas: F64, opt: _Optio
                           dom=np.empty(n, dtype=np.int64))
     model = opt.intensity_model
     targets = BeamTargets(has_ret=beams.has_return, lengths=beams.lengths.astype(np.float64),
-                          i0=beams.intensity0.astype(np.float64))
+                          i0=beams.intensity0.astype(np.float64), noise_key=beam_noise_keys(beams))
     pulse = PulseParams(pulse_len=opt.sensor.pulse_length, r1=opt.sensor.r1, r2=opt.sensor.r2,
                         part_gain=model.scale * opt.reflectivity, r_ref=model.r_ref, falloff=model.falloff,
                         keep_tol=opt.keep_tolerance, floor=-1.0 if opt.noise_floor is None else float(opt.noise_floor),
-                        saturation=opt.sensor.saturation, grid_n=SAMPLE_GRID)
+                        saturation=opt.sensor.saturation, grid_n=SAMPLE_GRID, noise_std=opt.intensity_noise_std,
+                        noise_rel=opt.intensity_noise_rel, range_noise=opt.range_noise_std)
     n_sampled = response_kernel(hits, hit_off, targets, pulse, medium, ratios, outcome)
     return _Response(outcome, ratios, int(n_sampled))
 

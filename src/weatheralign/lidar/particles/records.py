@@ -202,6 +202,7 @@ class BeamTargets(NamedTuple):
     has_ret: NDArray[np.bool_]  # (B,) the beam has a return
     lengths: F64  # (B,) its range R_0, or the maximum range [m]
     i0: F64  # (B,) its clear intensity on the 0..255 scale
+    noise_key: NDArray[np.uint64]  # (B,) the beam's detector-noise stream (from its firing time and ring)
 
 
 class PulseParams(NamedTuple):
@@ -217,6 +218,9 @@ class PulseParams(NamedTuple):
     floor: float  # detector noise floor, < 0 for none
     saturation: float
     grid_n: int  # side of the sampling grid for overlapping disks
+    noise_std: float  # detector intensity noise of a new echo: std sqrt(noise_std² + (noise_rel · peak)²) (0..255)
+    noise_rel: float
+    range_noise: float  # range noise std of a new echo [m], clipped at ±2 σ
 
 
 class Medium(NamedTuple):

@@ -15,6 +15,7 @@ import numpy as np
 from numba import njit
 
 from weatheralign.lidar.labels import WeatherLabel
+from weatheralign.medium.field import _uniform
 
 
 @njit(nogil=True, cache=True, inline="always")
@@ -61,6 +62,15 @@ def _keep_or_lost(val, floor, i0):  # pragma: no cover
     there is a noise ``floor`` (>= 0) and the weather pushed the return below it (a return already below it in clear
     weather was detected nevertheless and stays), else ATTENUATED."""
     return WeatherLabel.LOST if (floor >= 0.0 and val < floor and val < i0) else WeatherLabel.ATTENUATED
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _normal_pair(key):  # pragma: no cover
+    """Two independent standard normals (Box–Muller) from the first two outputs of the SplitMix64 stream ``key``."""
+    u1 = 1.0 - _uniform(key, np.uint64(0))  # (0, 1]
+    u2 = _uniform(key, np.uint64(1))
+    rad = math.sqrt(-2.0 * math.log(u1))
+    return rad * math.cos(2.0 * math.pi * u2), rad * math.sin(2.0 * math.pi * u2)
 
 
 @njit(nogil=True, cache=True)
@@ -241,12 +251,18 @@ def response_kernel(hits, hit_off, beams, pulse, medium, ratio, out):  # pragma:
     ``out.intensity``, SCATTERED moved to ``out.range`` (dominant hit ``out.dom``), LOST, NO_ECHO nothing detected
     (beam without return). Intensities are on the 0..255 scale. Returns the number of hits whose ratio was sampled on
     the grid.
+
+    A particle echo is a new measurement: the detector's noise (``pulse.noise_std``, ``noise_rel``, ``range_noise``;
+    the beam's stream ``beams.noise_key``) is added to its peak and range before the floor decides whether it is
+    detected. A target kept at its range keeps the noise of its clear measurement (scaled with it).
     """
     h_s, h_u1, h_u2, h_a, h_ratio = hits.s, hits.u1, hits.u2, hits.a, ratio
     has_ret, lengths, i0 = beams.has_ret, beams.lengths, beams.i0
     pulse_len, r1, r2, part_gain = pulse.pulse_len, pulse.r1, pulse.r2, pulse.part_gain
     r_ref, falloff = pulse.r_ref, pulse.falloff
     keep_tol, floor, saturation, grid_n = pulse.keep_tol, pulse.floor, pulse.saturation, pulse.grid_n
+    noise_std, noise_rel, range_noise, noise_key = pulse.noise_std, pulse.noise_rel, pulse.range_noise, beams.noise_key
+    noisy = noise_std > 0.0 or noise_rel > 0.0 or range_noise > 0.0
     out_state, out_range, out_int, out_dom = out.state, out.range, out.intensity, out.dom
     n_beams = lengths.shape[0]
     max_k = 0
@@ -365,6 +381,10 @@ def response_kernel(hits, hit_off, beams, pulse, medium, ratio, out):  # pragma:
         r_out = min(max(r_meas, 0.0), length)
         g1 = _gain(max(r_out, 1e-9), r_ref, falloff)
         val = min(p_peak * r_out * r_out * g1, saturation)
+        if noisy and dom >= 0:  # the detector's reading of the particle echo
+            z_int, z_range = _normal_pair(noise_key[b])
+            val = min(max(val + math.sqrt(noise_std * noise_std + (noise_rel * val) ** 2) * z_int, 0.0), saturation)
+            r_out = min(max(r_out + range_noise * min(max(z_range, -2.0), 2.0), 0.0), length)
         if dom < 0 or (floor >= 0.0 and val < floor):
             if not ret:
                 out_state[b] = WeatherLabel.NO_ECHO
