@@ -35,10 +35,10 @@ $(STAMP): pyproject.toml Makefile
 	$(PY) -c "import torch, open3d, nuscenes, prefect, mlflow; print('[setup] torch', torch.__version__, '| open3d', open3d.__version__, '| prefect', prefect.__version__, '| mlflow', mlflow.__version__)"
 	@touch $(STAMP)
 
-# one Prefect API server for every stage of the run (flows.api_server): it dies with the run however it ends
+# one Prefect API server and one Dask cluster for every stage of the run (flows.api_server): they die with the run
 reproduce: setup
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" WEATHERALIGN_PIPELINE_ID=repro-$$(date +%Y%m%d-%H%M%S) \
-	  $(PY) -m flows.api_server dvc repro
+	  $(PY) -m flows.api_server --dask dvc repro
 
 test: setup
 	@# the report's HTML page is checked in a real headless browser: Debian's chromium

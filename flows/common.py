@@ -103,14 +103,21 @@ def worker_environment() -> contextlib.AbstractContextManager:
     return dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None})
 
 
+SHARED_DASK_ENV = "WEATHERALIGN_DASK_ADDRESS"
+"""Environment variable holding the scheduler address of the cluster `flows.api_server --dask` starts for a whole run
+(every stage's tasks go to its worker processes, which stay warm between stages)."""
+
+
 def task_runner(params: Params) -> TaskRunner:
-    """Dask: the scheduler at ``run.dask_address`` when set, else a `distributed.LocalCluster` of
+    """Dask: the scheduler at ``run.dask_address`` when set, else that of the run's shared cluster
+    (``$WEATHERALIGN_DASK_ADDRESS``, `flows.api_server --dask`), else a `distributed.LocalCluster` of
     ``run.max_workers`` worker processes with one thread each (per-sample work is CPU-bound Python and numpy: threads
     of one process would share its interpreter lock), started with the flow and closed with it."""
     from prefect_dask import DaskTaskRunner
 
-    if params.run.dask_address:
-        return DaskTaskRunner(address=params.run.dask_address)
+    address = params.run.dask_address or os.environ.get(SHARED_DASK_ENV)
+    if address:
+        return DaskTaskRunner(address=address)
     return DaskTaskRunner(cluster_class="distributed.LocalCluster", cluster_kwargs=local_cluster_kwargs(params))
 
 
