@@ -78,3 +78,34 @@ def test_one_server_for_a_whole_command(tmp_path: Path) -> None:
     assert _gone(int((tmp_path / "server.pid").read_text()))
     with pytest.raises(httpx.HTTPError):
         httpx.get(url + "/health", timeout=2.0)
+
+
+@pytest.mark.flow
+def test_one_dask_cluster_for_a_whole_command(tmp_path: Path) -> None:
+    """``--dask``: the command gets the scheduler address of one local cluster of ``run.max_workers`` processes whose
+    workers report to the run's Prefect server and stay the same from one client to the next (one per stage), and the
+    cluster's processes end with the command; ``run.dask_address`` in params means no cluster of its own."""
+    params = write_params_file(tmp_path / "params.yaml", {"run": {"max_workers": 2}})
+    probe = ("import os\nfrom distributed import Client\n"
+             "a = os.environ['WEATHERALIGN_DASK_ADDRESS']\n"
+             "def ask():\n"
+             "    with Client(a) as c:\n"
+             "        info = c.run(lambda: (os.getpid(), os.environ.get('PREFECT_API_URL')))\n"
+             "        return sorted(info.values())\n"
+             "first, second = ask(), ask()\n"
+             "assert first == second, (first, second)\n"
+             "print(len(first), first[0][1] == os.environ['PREFECT_API_URL'], *[p for p, _ in first])\n")
+    env = _env(tmp_path)
+    run = subprocess.run([sys.executable, "-m", "flows.api_server", "--dask", sys.executable, "-c", probe],
+                         cwd=tmp_path, env={**env, "PYTHONPATH": f"{REPO}{os.pathsep}{REPO / 'src'}"},
+                         capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-3000:]
+    n, same_server, *pids = run.stdout.split()
+    assert n == "2" and same_server == "True"
+    assert all(_gone(int(p)) for p in pids), "a worker process outlived the command"
+    write_params_file(params, {"run": {"dask_address": "tcp://127.0.0.1:1"}})
+    run = subprocess.run([sys.executable, "-m", "flows.api_server", "--dask", sys.executable, "-c",
+                          "import os; print(os.environ.get('WEATHERALIGN_DASK_ADDRESS'))"], cwd=tmp_path,
+                         env={**env, "PYTHONPATH": f"{REPO}{os.pathsep}{REPO / 'src'}"}, capture_output=True,
+                         text=True, timeout=300)
+    assert run.returncode == 0 and run.stdout.split() == ["None"], run.stderr[-2000:]
