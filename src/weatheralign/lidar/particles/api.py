@@ -198,8 +198,10 @@ def _respond(beams: Beams, hits: HitArrays, edges: F64, alphas: F64, opt: _Optio
     outcome = BeamOutcome(state=np.empty(n, dtype=np.uint8), range=np.empty(n), intensity=np.empty(n),
                           dom=np.empty(n, dtype=np.int64))
     model = opt.intensity_model
+    noisy = opt.intensity_noise_std > 0.0 or opt.intensity_noise_rel > 0.0 or opt.range_noise_std > 0.0
     targets = BeamTargets(has_ret=beams.has_return, lengths=beams.lengths.astype(np.float64),
-                          i0=beams.intensity0.astype(np.float64), noise_key=beam_noise_keys(beams))
+                          i0=beams.intensity0.astype(np.float64),
+                          noise_key=beam_noise_keys(beams) if noisy else np.zeros(0, dtype=np.uint64))
     pulse = PulseParams(pulse_len=opt.sensor.pulse_length, r1=opt.sensor.r1, r2=opt.sensor.r2,
                         part_gain=model.scale * opt.reflectivity, r_ref=model.r_ref, falloff=model.falloff,
                         keep_tol=opt.keep_tolerance, floor=-1.0 if opt.noise_floor is None else float(opt.noise_floor),

@@ -202,7 +202,7 @@ class BeamTargets(NamedTuple):
     has_ret: NDArray[np.bool_]  # (B,) the beam has a return
     lengths: F64  # (B,) its range R_0, or the maximum range [m]
     i0: F64  # (B,) its clear intensity on the 0..255 scale
-    noise_key: NDArray[np.uint64]  # (B,) the beam's detector-noise stream (from its firing time and ring)
+    noise_key: NDArray[np.uint64]  # (B,) each beam's detector-noise stream (`api.beam_noise_keys`); (0,) noise-free
 
 
 class PulseParams(NamedTuple):
