@@ -8,10 +8,9 @@ from prefect.cache_policies import NO_CACHE
 
 from weatheralign.calibrate.histograms import IntensityHistograms
 from weatheralign.calibrate.lidar import CellResult, FogFrames, evaluate_cell
-from weatheralign.camera.depth import camera_range_map
-from weatheralign.data.stf import CAMERA_CHANNEL
 from weatheralign.lidar.pulse import PulseSensor
 from weatheralign.reference import ReferenceDataset
+from weatheralign.reference.frames import reference_frame
 
 
 @task(name="ks-grid-cell", cache_policy=NO_CACHE, retries=0)
@@ -24,22 +23,9 @@ def evaluate_cell_task(frames: FogFrames, reference: IntensityHistograms, alpha:
 
 def reference_camera(ds: ReferenceDataset, sample_id: str) -> tuple[np.ndarray, np.ndarray]:
     """(image (H, W, 3) uint8 sRGB, ray length (H, W) float32 [m], inf = sky) of one reference frame's stereo-left
-    camera: the exact range map where the reference has one (synthetic), else dense depth from the frame's own scan
-    (real Seeing Through Fog).
-
-    Raises:
-        DataFormatError: the reference has no camera for ``sample_id``.
-    """
-    from weatheralign.data.errors import DataFormatError
-
-    frame = ds.load_frame(sample_id)
-    view = frame.cameras.get(CAMERA_CHANNEL)
-    if view is None:
-        raise DataFormatError(f"reference {ds.root}: frame {sample_id} has no {CAMERA_CHANNEL} image "
-                              f"(expected {ds.camera_folder}/{sample_id}.png)")
-    image = view.load_image()
-    rng = camera_range_map(view, frame.lidar, image)
-    return image, rng
+    camera (`reference_frame`)."""
+    _, image, range_map = reference_frame(ds, sample_id)
+    return image, range_map
 
 
 @task(name="reference-camera", cache_policy=NO_CACHE, retries=0)

@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from weatheralign.verify.classifier import broken_pairs, fused_features, train_weather_classifier
+from weatheralign.verify.classifier import (broken_pairs, fused_features, mismatched_pairs,
+                                            train_weather_classifier)
+from weatheralign.verify.mmd import mmd_test
 from weatheralign.verify.features import FUSED_CHANNELS
 
 
@@ -55,3 +57,47 @@ def test_broken_pairs_keep_both_marginals_and_move_every_lidar() -> None:
     assert np.array_equal(broken_pairs(x, seed=3), broken)
     two = broken_pairs(x[:2])
     assert np.array_equal(two[0, 3:], x[1, 3:]) and np.array_equal(two[1, 3:], x[0, 3:])
+
+
+def registered_scenes(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Two weather classes (image brightness) over random blob scenes whose LiDAR depth marks the image's blobs:
+    the weather label needs only the image; the LiDAR-camera registration is there to be learnt or ignored."""
+    rng = np.random.default_rng(seed)
+    x = np.zeros((n, FUSED_CHANNELS, 16, 24), np.float32)
+    labels = np.arange(n) % 2
+    for i in range(n):
+        for _ in range(3):
+            r, c = rng.integers(1, 15), rng.integers(1, 23)
+            x[i, :3, r - 1:r + 2, c - 1:c + 2] = 0.8
+            x[i, 3, r - 1:r + 2, c - 1:c + 2], x[i, 5, r - 1:r + 2, c - 1:c + 2] = 0.5, 1.0
+        x[i, :3] += 0.1 + 0.1 * labels[i]
+    return x, labels
+
+
+def test_mismatched_pairs_keep_the_camera_and_move_every_lidar() -> None:
+    x, _ = registered_scenes(8)
+    out = mismatched_pairs(torch.from_numpy(x), np.random.default_rng(0)).numpy()
+    assert np.array_equal(out[:, :3], x[:, :3])
+    assert np.array_equal(out[:4, 3:], x[[7, 0, 1, 2], 3:])  # the first half: the previous frame's LiDAR
+    for i in range(4, 8):  # the rest: their own LiDAR shifted sideways
+        assert not np.array_equal(out[i, 3:], x[i, 3:])
+        assert any(np.array_equal(out[i, 3:], np.roll(x[i, 3:], s, axis=-1)) for s in range(-6, 7) if abs(s) >= 3)
+
+
+def test_the_correspondence_objective_makes_the_fused_feature_see_broken_pairs() -> None:
+    torch.set_num_threads(1)
+    x, y = registered_scenes(160)
+    control = broken_pairs(x, seed=1)
+    p_values = {}
+    for weight in (0.0, 1.0):
+        model, report = train_weather_classifier(x, y, ("dim", "bright"), steps=200, width=8, embedding=16,
+                                                 correspondence_weight=weight)
+        assert report.accuracy > 0.9, (weight, report)
+        p_values[weight] = mmd_test(fused_features(model, x[:60]), fused_features(model, control[:60]),
+                                    permutations=200, resamples=10).p_value
+        if weight > 0:
+            with torch.no_grad():
+                true = model.correspondence(torch.from_numpy(x[:60]))
+                broken = model.correspondence(torch.from_numpy(control[:60]))
+            assert (true > 0).float().mean() > 0.9 and (broken < 0).float().mean() > 0.9
+    assert p_values[0.0] > 0.05 and p_values[1.0] < 0.01, p_values  # weather labels alone: blind to the pairing

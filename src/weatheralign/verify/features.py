@@ -58,7 +58,7 @@ def fused_input(image: NDArray[np.uint8], lidar_channels: NDArray[np.float32]) -
     """(6, h, w): the RGB image (H, W, 3) uint8 area-resized to the LiDAR channels' (h, w), in 0..1, on top of
     them."""
     h, w = lidar_channels.shape[1:]
-    rgb = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)[None].float() / 255.0
+    rgb = torch.from_numpy(np.array(image, dtype=np.uint8, copy=True)).permute(2, 0, 1)[None].float() / 255.0
     rgb = F.interpolate(rgb, size=(h, w), mode="area")[0].numpy()
     return np.concatenate([rgb, lidar_channels]).astype(np.float32)
 
@@ -71,7 +71,9 @@ def _block(c_in: int, c_out: int) -> nn.Sequential:
 
 class WeatherClassifier(nn.Module):
     """Early-fusion CNN: (B, 6, h, w) fused input -> four stride-2 blocks -> global average pool -> ``embedding``-d
-    fused feature (`embed`) -> class logits (clear / fog / snow / rain by default)."""
+    fused feature (`embed`) -> class logits (clear / fog / snow / rain by default, `forward`), and one
+    correspondence logit (`correspondence`: do the LiDAR channels belong to this image, at this registration?) that
+    trains the embedding to carry the cross-sensor alignment a weather label alone does not need."""
 
     def __init__(self, num_classes: int = 4, width: int = 16, embedding: int = 64) -> None:
         super().__init__()
@@ -79,6 +81,7 @@ class WeatherClassifier(nn.Module):
                                       _block(2 * width, 4 * width), _block(4 * width, 4 * width))
         self.embedding = nn.Sequential(nn.Linear(4 * width, embedding), nn.ReLU(inplace=True))
         self.logits = nn.Linear(embedding, num_classes)
+        self.pair = nn.Linear(embedding, 1)
 
     def embed(self, x: Tensor) -> Tensor:
         """(B, 6, h, w) -> (B, embedding) fused features."""
@@ -86,6 +89,10 @@ class WeatherClassifier(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         return self.logits(self.embed(x))
+
+    def correspondence(self, x: Tensor) -> Tensor:
+        """(B, 6, h, w) -> (B,) logit that the LiDAR channels are the image's own, registered."""
+        return self.pair(self.embed(x))[:, 0]
 
 
 __all__ = ["FUSED_CHANNELS", "LIDAR_CHANNELS", "WeatherClassifier", "fused_input", "lidar_image_channels"]

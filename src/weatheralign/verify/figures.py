@@ -1,5 +1,6 @@
 """Figures of the fused-feature check (`verify`): the embeddings of reference / aligned / unaligned frames in a
-common 2-D PCA (scikit-learn), and a permutation histogram with the observed MMD^2."""
+common 2-D PCA (scikit-learn), permutation histograms with the observed MMD^2, the LiDAR intensity ECDFs of the
+reference and the simulation per condition, and the weather classifier's held-out confusion matrix."""
 
 from __future__ import annotations
 
@@ -14,6 +15,8 @@ from matplotlib.figure import Figure  # noqa: E402
 from numpy.typing import NDArray  # noqa: E402
 from sklearn.decomposition import PCA  # noqa: E402
 
+from weatheralign.calibrate.histograms import IntensityHistograms  # noqa: E402
+from weatheralign.verify.classifier import ClassifierReport  # noqa: E402
 from weatheralign.verify.mmd import MmdTest, standardise  # noqa: E402
 
 SET_COLOURS = {"reference": "black", "aligned": "tab:blue", "unaligned": "tab:orange", "control": "tab:red"}
@@ -51,4 +54,37 @@ def permutation_figure(tests: Mapping[str, MmdTest], title: str) -> Figure:
     return fig
 
 
-__all__ = ["SET_COLOURS", "embedding_figure", "permutation_figure"]
+def ecdf_figure(histograms: Mapping[str, Mapping[str, IntensityHistograms]], ks: Mapping[str, float]) -> Figure:
+    """One panel per condition (name -> {set name -> histograms}): the pooled intensity ECDF of each set on the
+    0..255 code scale, titled with the condition's D_KS (``ks``, reference vs simulated)."""
+    fig, axes = plt.subplots(1, len(histograms), figsize=(4.2 * len(histograms), 3.5), squeeze=False)
+    styles = {"reference": ("black", "-"), "simulated (aligned)": ("tab:blue", "-"), "clear": ("0.6", "--")}
+    codes = np.arange(256)
+    for ax, (name, sets) in zip(axes[0], histograms.items()):
+        for label, hist in sets.items():
+            colour, line = styles.get(label, (None, "-"))
+            ax.step(codes, hist.ecdf(), where="post", color=colour, ls=line, lw=1.3,
+                    label=f"{label} ({hist.num_frames} frames)")
+        ax.set(xscale="symlog", xlim=(0, 255), ylim=(0, 1.01), xlabel="intensity code (0..255)", ylabel="ECDF",
+               title=f"{name}: D_KS = {ks.get(name, float('nan')):.3f}")
+        ax.legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    return fig
+
+
+def confusion_figure(report: ClassifierReport) -> Figure:
+    """The held-out confusion matrix (counts; rows true, columns predicted) with the accuracy in the title."""
+    fig, ax = plt.subplots(figsize=(4.2, 3.8))
+    ax.imshow(report.confusion, cmap="Blues")
+    n = len(report.classes)
+    for i in range(n):
+        for j in range(n):
+            ax.text(j, i, str(report.confusion[i, j]), ha="center", va="center", fontsize=10)
+    ax.set(xticks=range(n), yticks=range(n), xticklabels=report.classes, yticklabels=report.classes,
+           xlabel="predicted", ylabel="true",
+           title=f"weather classifier, held out: {report.accuracy:.0%} of {report.confusion.sum()}")
+    fig.tight_layout()
+    return fig
+
+
+__all__ = ["SET_COLOURS", "confusion_figure", "ecdf_figure", "embedding_figure", "permutation_figure"]

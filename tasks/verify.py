@@ -1,0 +1,28 @@
+"""Mapped tasks of the `verify` stage: one real reference frame; one clear reference frame through a condition."""
+
+from __future__ import annotations
+
+import numpy as np
+from prefect import task
+from prefect.cache_policies import NO_CACHE
+
+from weatheralign.conditions import Condition
+from weatheralign.reference import ReferenceDataset
+from weatheralign.sensors import LidarModel
+from weatheralign.reference.frames import reference_frame
+from weatheralign.verify.frames import Severity, SimulatedPair, frame_fused_input, simulated_pair
+
+
+@task(name="reference-frame", cache_policy=NO_CACHE, retries=0)
+def reference_frame_task(ds: ReferenceDataset, sample_id: str, out_hw: tuple[int, int]
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(fused input (6, h, w), image (H, W, 3) uint8, ray length (H, W) [m]) of one real reference frame."""
+    frame, image, range_map = reference_frame(ds, sample_id)
+    return frame_fused_input(frame, image, frame.lidar.points, ds.intensity_max, out_hw), image, range_map
+
+
+@task(name="simulated-reference-frame", cache_policy=NO_CACHE, retries=0)
+def simulated_pair_task(ds: ReferenceDataset, sample_id: str, condition: Condition, severity: Severity,
+                        lidar: LidarModel, exposure_s: float, out_hw: tuple[int, int], seed: int) -> SimulatedPair:
+    """`simulated_pair` as a mapped task."""
+    return simulated_pair(ds, sample_id, condition, severity, lidar, exposure_s, out_hw, seed)

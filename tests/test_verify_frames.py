@@ -1,0 +1,90 @@
+"""The frames of the fused-feature check (weatheralign.verify.frames): the media a clear reference frame is simulated
+through (aligned vs unaligned, as `simulate` builds them) and the simulated pair on the shared real Seeing Through
+Fog frame: one LiDAR for both copies, the cameras seeing the field or its twin, the particles re-projected onto the
+pixels that drew them. Skips without ``../shared``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from weatheralign.conditions import CONDITIONS
+from weatheralign.config import ParticlesConfig
+from weatheralign.reference import open_reference
+from weatheralign.simulate.media import FogLevels
+from weatheralign.verify.frames import Severity, scene_media, simulated_pair, reference_fused_input
+
+from .conftest import REPO, make_lidar
+
+STF = REPO.parent / "shared" / "data" / "real" / "stf"
+STF_ID = "2019-09-11_19-13-44_00960"
+LEVELS = FogLevels({"light": 0.01, "dense": 0.05}, {"light": 0.001, "dense": 0.004}, "params")
+
+
+def severity(snow: float = 2.0, rain: float = 50.0) -> Severity:
+    return Severity(LEVELS, snow, rain, ParticlesConfig())
+
+
+def test_fog_media_align_the_camera_with_the_lidar_or_draw_it_between_the_levels() -> None:
+    for name in ("fog_light", "fog_dense"):
+        level = CONDITIONS[name].fog.level
+        aligned = scene_media(CONDITIONS[name], True, "rec_00001", severity(), seed=3)
+        assert aligned.lidar_alpha == aligned.camera_alpha == LEVELS.alpha[level]
+        assert aligned.lidar_beta == LEVELS.beta[level] and aligned.field is None
+        cams = {scene_media(CONDITIONS[name], False, f"rec_{k:05d}", severity(), seed=3).camera_alpha
+                for k in range(20)}
+        assert len(cams) == 20 and all(0.01 <= a <= 0.05 for a in cams)
+        unaligned = scene_media(CONDITIONS[name], False, "rec_00001", severity(), seed=3)
+        assert unaligned.lidar_alpha == LEVELS.alpha[level]  # the LiDAR sees the condition's own fog either way
+        assert unaligned.camera_alpha == scene_media(CONDITIONS[name], False, "rec_00001", severity(), 3).camera_alpha
+
+
+def test_particle_media_take_the_severity_rate_and_a_field_per_frame() -> None:
+    snow = scene_media(CONDITIONS["snow"], True, "rec_00001", severity(snow=3.5), seed=0)
+    assert snow.field.rate_mm_h == 3.5 and snow.field.condition == "snow" and snow.lidar_alpha == 0.0
+    other = scene_media(CONDITIONS["snow"], True, "rec_00002", severity(snow=3.5), seed=0)
+    assert other.field.seed != snow.field.seed
+    rain = scene_media(CONDITIONS["rain"], False, "rec_00001", severity(rain=20.0), seed=0)
+    assert rain.field.rate_mm_h == 20.0 and not rain.aligned
+    assert rain.field.field(True).seed != rain.field.field(False).seed  # the unaligned cameras see the twin
+    mixed = scene_media(CONDITIONS["fog_snow"], True, "rec_00001", severity(), seed=0)
+    assert mixed.field is not None and mixed.lidar_alpha == LEVELS.alpha["light"]
+
+
+@pytest.fixture(scope="module")
+def stf_reference(tmp_path_factory: pytest.TempPathFactory):
+    if not STF.exists():
+        pytest.skip(f"real sample not available: {STF}")
+    root = tmp_path_factory.mktemp("stf")
+    (root / "clear.txt").write_text(f"{STF_ID.rsplit('_', 1)[0]},{STF_ID.rsplit('_', 1)[1]}\n")
+    for name in ("calib_cam_stereo_left.json", "calib_tf_tree_full.json"):
+        (root / name).write_bytes((STF / name).read_bytes())
+    (root / "lidar_hdl64_strongest").mkdir()
+    (root / "cam_stereo_left_lut").mkdir()
+    (root / "lidar_hdl64_strongest" / f"{STF_ID}.bin").write_bytes(
+        (STF / f"lidar_hdl64_strongest_{STF_ID}.bin").read_bytes())
+    (root / "cam_stereo_left_lut" / f"{STF_ID}.png").write_bytes((STF / f"cam_stereo_left_lut_{STF_ID}.png").read_bytes())
+    return open_reference(root, {"clear": "clear.txt"}, intensity_max=255.0)
+
+
+@pytest.mark.parametrize("condition", ["snow", "rain", "fog_dense"])
+def test_simulated_pair_on_a_real_frame(stf_reference, condition: str) -> None:
+    ds = stf_reference
+    lidar = make_lidar(noise_floor=1.0)
+    pair = simulated_pair(ds, STF_ID, CONDITIONS[condition], severity(), lidar, 0.006, (64, 120), seed=0)
+    clear = reference_fused_input(ds, STF_ID, (64, 120))
+    assert pair.aligned.shape == pair.unaligned.shape == clear.shape == (6, 64, 120)
+    assert np.array_equal(pair.aligned[3:], pair.unaligned[3:])  # one LiDAR scan for both copies
+    assert not np.array_equal(pair.aligned[:3], pair.unaligned[:3])  # the cameras see other media
+    assert not np.array_equal(pair.aligned[:3], clear[:3]) and not np.array_equal(pair.aligned[3:], clear[3:])
+    assert pair.image.shape == (*pair.range_map.shape, 3) and pair.image.dtype == np.uint8
+    assert pair.intensity_counts.shape == (256,)
+    assert pair.intensity_counts.sum() == sum(v for k, v in pair.counts.items() if k != "LOST")
+    if condition == "fog_dense":
+        assert len(pair.reprojection_px) == 0
+    else:
+        assert pair.counts["SCATTERED"] + pair.counts["CLUTTER"] > 0
+        assert len(pair.reprojection_px) > 0 or condition == "rain"  # few drops echo, fewer inside the camera's view
+        assert pair.reprojection_px.max(initial=0.0) < 0.05  # [px]
+    again = simulated_pair(ds, STF_ID, CONDITIONS[condition], severity(), lidar, 0.006, (64, 120), seed=0)
+    assert np.array_equal(again.aligned, pair.aligned) and np.array_equal(again.unaligned, pair.unaligned)
