@@ -36,6 +36,9 @@ FIGURES: tuple[tuple[str, str], ...] = (
     ("Every condition: LiDAR point labels and re-projection error", "simulate/summary.png"),
     ("Snow, aligned: LiDAR BEV and CAM_FRONT", "simulate/snow-aligned/side_by_side.png"),
     ("Fog (dense), aligned: LiDAR BEV and CAM_FRONT", "simulate/fog_dense-aligned/side_by_side.png"),
+    ("Fused features of real and simulated snow (verify)", "verify/embedding_snow.png"),
+    ("MMD² permutation tests, dense fog (verify)", "verify/permutations_fog_dense.png"),
+    ("LiDAR intensity ECDFs, reference vs simulation, every verified condition", "verify/ecdf.png"),
     ("Detector learning curve (clean val)", "detect/learning_curve.png"),
     ("Detector predictions in BEV", "detect/predictions_bev.png"),
 )
@@ -101,6 +104,10 @@ def read_inputs(params: Params) -> tuple[dict[str, dict[str, Any]], dict[str, An
     truth = read_json_file(truth_path, "") if truth_path.is_file() else None
     tables = [(reports / "detect" / name).read_text() for name in ("table_alignment.md", "table_finetune.md")
               if (reports / "detect" / name).is_file()]
+    verify = reports / "verify" / "metrics.json"
+    if verify.is_file():  # Table 1's MMD half (the verify stage)
+        metrics["verify"] = read_json_file(verify, "run the stage verify first (dvc repro verify)")
+        metrics["verify"]["table_markdown"] = (reports / "verify" / "table.md").read_text()
     return metrics, truth, tables
 
 

@@ -11,8 +11,9 @@ snow, rain):
    interval) and the simulated images with the reference's (KID on the calibrate_fog backbone; the visibility
    estimated from image + depth, `camera_visibility_ratio`);
 3. trains the auxiliary weather classifier (clear / fog / snow / rain) on the reference's real frames, early fusion of
-   the image and the LiDAR projected into it, with the correspondence objective (`train_weather_classifier`); its
-   penultimate layer is the fused feature;
+   the image and the LiDAR projected into it, with the correspondence objective (`train_weather_classifier`: true
+   pairs against another frame's LiDAR, the frame's own LiDAR shifted, and, for snow and rain frames with particle
+   echoes in view, the frame's LiDAR with its particle echoes displaced); its penultimate layer is the fused feature;
 4. per condition: MMD^2 (unbiased, Gaussian kernel, median heuristic on the pooled standardised features) of the
    reference's weather frames against the aligned and against the unaligned simulation with permutation p-values and
    frame-bootstrap intervals, the paired test of their difference, and the **sensitivity control**: the reference
@@ -47,7 +48,8 @@ from weatheralign.calibrate.kid import feature_extractor, kid_from_features  # n
 from weatheralign.conditions import CONDITIONS, variant_name  # noqa: E402
 from weatheralign.config import Params  # noqa: E402
 from weatheralign.data.errors import DataFormatError  # noqa: E402
-from weatheralign.reference import ReferenceDataset, configured_reference, reference_lidar_model  # noqa: E402
+from weatheralign.reference import (PRECIPITATION_LEVELS, ReferenceDataset, configured_reference,  # noqa: E402
+                                    reference_lidar_model)
 from weatheralign.simulate.media import configured_fog_levels  # noqa: E402
 from weatheralign.verify.classifier import broken_pairs, fused_features, train_weather_classifier  # noqa: E402
 from weatheralign.verify.figures import (confusion_figure, ecdf_figure, embedding_figure,  # noqa: E402
@@ -139,7 +141,9 @@ def verify_flow(params: Params) -> dict:
                                          "rain_rate_mm_h": severity.rain_rate_mm_h}})
         show = params.run.show_progress
         levels = ("clear", *dict.fromkeys(conditions.values()))
-        real = {level: gather([reference_frame_task.submit(ds, i, hw) for i in ds.ids(level)],
+        step = 2.0 * np.pi / lidar.columns_per_ring
+        real = {level: gather([reference_frame_task.submit(ds, i, hw, step if level in PRECIPITATION_LEVELS else None,
+                                                           cfg.seed + k) for k, i in enumerate(ds.ids(level))],
                               f"verify: reference {level} frames", show) for level in levels}
         sims: dict[str, list[SimulatedPair]] = {}
         for name in conditions:
@@ -149,13 +153,16 @@ def verify_flow(params: Params) -> dict:
         t_sim = time.time()
         inputs = np.concatenate([np.stack([r[0] for r in real[level]]) for level in levels])
         labels = np.concatenate([np.full(len(real[level]), CLASS_OF_LEVEL[level]) for level in levels])
+        nan = np.full((3, *hw), np.nan, dtype=np.float32)
+        displaced = np.stack([nan if r[3] is None else r[3] for level in levels for r in real[level]])
         model, report = train_weather_classifier(
             inputs, labels, CLASSES, held_out_fraction=cfg.held_out_fraction, steps=cfg.steps,
             batch_size=cfg.batch_size, lr=cfg.lr, seed=cfg.seed, device=cfg.device,
-            correspondence_weight=cfg.correspondence_weight, embedding=cfg.embedding)
+            correspondence_weight=cfg.correspondence_weight, embedding=cfg.embedding, displaced=displaced)
         t_train = time.time()
         print(f"verify: weather classifier held-out accuracy {report.accuracy:.3f} on {len(report.held_out)} frames "
-              f"({t_train - t_sim:.0f} s)")
+              f"({t_train - t_sim:.0f} s; {int(np.isfinite(displaced).all(axis=(1, 2, 3)).sum())} frames with "
+              f"displaced-particle negatives)")
 
         def features(x: np.ndarray) -> np.ndarray:
             return fused_features(model, x, device=cfg.device)

@@ -111,6 +111,13 @@ def test_report_stage_on_the_committed_reports(tmp_path: Path):
     page = (reports / "summary.html").read_text()
     assert page.count("data:image/png;base64,") == out["figures"] >= 4
     assert json.loads((reports / "report" / "metrics.json").read_text())["findings"] == out["findings"]
+    assert "needs the `verify` stage, which did not run" in text
+    (reports / "verify").mkdir()
+    (reports / "verify" / "metrics.json").write_text(json.dumps({"conditions": {}}))
+    (reports / "verify" / "table.md").write_text("# Table 1 regenerated\n\n## Ours\n\n| | snow |\n|---|---|\n")
+    report_flow.fn(params)
+    text = (reports / "summary.md").read_text()
+    assert "### Table 1 regenerated" in text and "#### Ours" in text and "did not run" not in text
     shutil.rmtree(reports / "detect")
     with pytest.raises(DataFormatError, match=r"detect/metrics.json: missing; run the stage detect first"):
         report_flow.fn(params)

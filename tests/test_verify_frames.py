@@ -88,3 +88,34 @@ def test_simulated_pair_on_a_real_frame(stf_reference, condition: str) -> None:
         assert pair.reprojection_px.max(initial=0.0) < 0.05  # [px]
     again = simulated_pair(ds, STF_ID, CONDITIONS[condition], severity(), lidar, 0.006, (64, 120), seed=0)
     assert np.array_equal(again.aligned, pair.aligned) and np.array_equal(again.unaligned, pair.unaligned)
+
+
+def test_displaced_particle_channels_move_only_the_particle_echoes(stf_reference) -> None:
+    from weatheralign.lidar.clutter import isolated_mask
+    from weatheralign.verify.frames import displaced_particle_channels, frame_fused_input
+    from weatheralign.reference.frames import reference_frame
+    from weatheralign.simulate.observe import observe
+    from weatheralign.sensors import CameraModel, SensorRig
+    from weatheralign.camera.fog import estimate_airlight
+
+    ds = stf_reference
+    frame, image, depth = reference_frame(ds, STF_ID)
+    step = 2 * np.pi / 1800
+    assert displaced_particle_channels(frame, frame.lidar.points, 255.0, (64, 120), step, seed=0) is None  # clear
+    view = frame.cameras["cam_stereo_left"]
+    rig = SensorRig(lidar=make_lidar(noise_floor=1.0), cameras={"cam_stereo_left": CameraModel(
+        "cam_stereo_left", tuple(tuple(r) for r in view.K), view.width, view.height, 0.006)})
+    media = scene_media(CONDITIONS["snow"], True, STF_ID, severity(snow=3.0), seed=0)
+    snow = observe(frame, {"cam_stereo_left": image}, {"cam_stereo_left": depth}, media, rig,
+                   estimate_airlight([image], [depth])).lidar.scan.points
+    moved = displaced_particle_channels(frame, snow, 255.0, (64, 120), step, seed=0)
+    true = frame_fused_input(frame, image, snow, 255.0, (64, 120))[3:]
+    assert moved is not None and moved.shape == true.shape
+    changed = (moved != true).any(axis=0)
+    keep = ~isolated_mask(snow[:, :3], azimuth_step_rad=step)
+    scene_only = frame_fused_input(frame, image, snow[keep], 255.0, (64, 120))[3:]
+    assert changed.sum() > 20
+    # every cell that changed holds a particle echo before or after the move: the scene's own cells are untouched
+    assert ((moved != scene_only).any(axis=0) | (true != scene_only).any(axis=0))[changed].all()
+    again = displaced_particle_channels(frame, snow, 255.0, (64, 120), step, seed=0)
+    assert np.array_equal(again, moved)

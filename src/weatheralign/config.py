@@ -497,9 +497,9 @@ class VerifyConfig(_Section):
 
     seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
     image_hw: tuple[Annotated[int, Field(ge=16, le=1024)], Annotated[int, Field(ge=16, le=2048)]] = (128, 240)
-    steps: Annotated[int, Field(ge=1, le=100_000)] = 800
+    steps: Annotated[int, Field(ge=1, le=100_000)] = 1000
     batch_size: Annotated[int, Field(ge=2, le=1024)] = 16
-    lr: Annotated[float, Field(gt=0.0, le=1.0)] = 3e-3
+    lr: Annotated[float, Field(gt=0.0, le=1.0)] = 2e-3
     held_out_fraction: Annotated[float, Field(gt=0.0, lt=1.0)] = 0.25
     correspondence_weight: Annotated[float, Field(ge=0.0, le=100.0)] = 1.0
     embedding: Annotated[int, Field(ge=2, le=1024)] = 16

@@ -10,14 +10,7 @@ import re
 from dataclasses import dataclass
 from typing import Any
 
-PAPER_TABLE1: dict[str, dict[str, float]] = {
-    "reprojection_mean_px": {"snow": 0.7632, "rain": 0.7641},
-    "reprojection_max_px": {"snow": 1.3843, "rain": 1.411},
-    "mmd_aligned": {"fog": 0.2837, "snow": 0.3065, "rain": 0.1870},
-    "mmd_unaligned": {"fog": 0.3491, "snow": 0.3607, "rain": 0.1870},
-}
-"""The paper's Table 1 (re-projection error [px] and MMD of fused features), measured on real data."""
-
+from weatheralign.verify.table import PAPER_TABLE1
 
 def _num(value: Any, fmt: str = ".3f") -> str:
     return "—" if value is None else format(value, fmt)
@@ -137,12 +130,14 @@ def summary_markdown(metrics: dict[str, dict[str, Any]], truth: dict[str, Any] |
               f"({metrics.get('detect', {}).get('confidence', 0.95):.0%}); those exceeding the noise first.", ""]
     found = findings(metrics.get("detect", {}))
     parts += [f"- {f}" for f in found] if found else ["- (no detect metrics in this run)"]
+    verify = metrics.get("verify", {})
+    mmd_half = (re.sub(r"^(#+) ", r"##\1 ", verify["table_markdown"], flags=re.MULTILINE) if "table_markdown" in verify
+                else "The MMD of fused features (the paper's second half of Table 1) needs the `verify` stage, which "
+                     "did not run: not measured.")
     parts += ["", "## Table 1: alignment of the weather across sensors", "",
               "Re-projection: each particle the LiDAR saw, projected into every camera that drew it, against where the "
-              "camera drew it. The MMD of fused features (the paper's second half of Table 1: fog 0.2837 / 0.3491, "
-              "snow 0.3065 / 0.3607, rain 0.1870 / 0.1870 aligned / unaligned, real data) needs the `verify` stage, "
-              "which this pipeline does not have yet: not measured.", "",
-              reprojection_table(metrics.get("simulate", {})), "",
+              "camera drew it.", "",
+              reprojection_table(metrics.get("simulate", {})), "", mmd_half, "",
               "## ReDAM: fog severity tuned to the reference", "",
               "The LiDAR fog parameters tuned so that the simulated intensity distribution matches the reference's "
               "(two-sample Kolmogorov-Smirnov distance, frame-bootstrap interval); the cameras get the same α. For "

@@ -1,2 +1,3 @@
-"""Verification of the simulated weather against real weather (the `verify` stage, being built): `mmd` holds the
-two-sample statistics of the fused-feature check."""
+"""Verification of the simulated weather against real weather (the `verify` stage): `frames` (reference and simulated
+frames as fused inputs), `features` and `classifier` (the early-fusion weather classifier and its fused feature),
+`mmd` (the two-sample statistics), `table` (Table 1), `figures`."""

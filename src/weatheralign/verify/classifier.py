@@ -44,14 +44,17 @@ def _check(inputs: NDArray, labels: NDArray, classes: Sequence[str]) -> None:
 def train_weather_classifier(inputs: NDArray, labels: NDArray, classes: Sequence[str], held_out_fraction: float = 0.25,
                              steps: int = 300, batch_size: int = 32, lr: float = 3e-3, seed: int = 0,
                              device: str = "cpu", width: int = 16, embedding: int = 64,
-                             correspondence_weight: float = 1.0
+                             correspondence_weight: float = 1.0, displaced: NDArray | None = None
                              ) -> tuple[WeatherClassifier, ClassifierReport]:
     """Train a `WeatherClassifier` on all frames but a stratified held-out share, report on the held-out ones.
 
     Loss per step: cross-entropy of the weather classes on the batch's true pairs, plus ``correspondence_weight`` x
     the binary cross-entropy of the correspondence logit on the true pairs (label 1) and as many mismatched ones
     (label 0, `mismatched_pairs`): the weather label alone never needs the LiDAR and the camera to agree, so without
-    this term the fused feature is blind to their alignment (measured: the sensitivity control was not detected)."""
+    this term the fused feature is blind to their alignment (measured: the sensitivity control was not detected).
+    ``displaced``: optional (N, 3, h, w) LiDAR channels of each frame with its particle echoes moved elsewhere
+    (`weatheralign.verify.frames.displaced_particle_channels`; NaN for a frame without particles): the hardest
+    mismatch, the right scene with the wrong particles, which half the negatives of such a frame become."""
     inputs, labels = np.asarray(inputs, dtype=np.float32), np.asarray(labels, dtype=np.int64)
     _check(inputs, labels, classes)
     index = np.arange(len(inputs))
@@ -62,6 +65,9 @@ def train_weather_classifier(inputs: NDArray, labels: NDArray, classes: Sequence
     optimizer = torch.optim.Adam(model.parameters(), lr=lr)
     x = torch.from_numpy(inputs)
     y = torch.from_numpy(labels)
+    hard = None if displaced is None else torch.from_numpy(np.asarray(displaced, dtype=np.float32))
+    if hard is not None and hard.shape != (len(x), LIDAR_CHANNELS, *x.shape[2:]):
+        raise ValueError(f"displaced must be (N, {LIDAR_CHANNELS}, h, w) like the inputs' LiDAR, got {tuple(hard.shape)}")
     loss = torch.zeros(())
     model.train()
     for _ in range(steps):
@@ -69,9 +75,11 @@ def train_weather_classifier(inputs: NDArray, labels: NDArray, classes: Sequence
         xb = x[pick]
         flip = torch.from_numpy(rng.random(len(pick)) < 0.5)
         xb = torch.where(flip[:, None, None, None], xb.flip(-1), xb)
+        hb = None if hard is None else torch.where(flip[:, None, None, None], hard[pick].flip(-1), hard[pick])
         xb = xb.to(device)
         if correspondence_weight > 0.0 and len(pick) >= 2:  # one pass over true and mismatched pairs (one BN batch)
-            embedded = model.embed(torch.cat([xb, mismatched_pairs(xb, rng)]))
+            negatives = mismatched_pairs(xb, rng, None if hb is None else hb.to(device))
+            embedded = model.embed(torch.cat([xb, negatives]))
             target = torch.cat([torch.ones(len(xb)), torch.zeros(len(xb))]).to(device)
             loss = F.cross_entropy(model.logits(embedded[:len(xb)]), y[pick].to(device)) + correspondence_weight * \
                 F.binary_cross_entropy_with_logits(model.pair(embedded)[:, 0], target)
@@ -87,10 +95,13 @@ def train_weather_classifier(inputs: NDArray, labels: NDArray, classes: Sequence
                                    float(loss.detach()))
 
 
-def mismatched_pairs(x: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
+def mismatched_pairs(x: torch.Tensor, rng: np.random.Generator, displaced: torch.Tensor | None = None
+                     ) -> torch.Tensor:
     """(B, 6, h, w) fused inputs (B >= 2) with their LiDAR channels mismatched: the first half take the LiDAR of the
     next frame in the batch (another scene), the rest their own LiDAR shifted sideways by 3..w/4 cells (the right
-    scene, misregistered). Camera channels unchanged."""
+    scene, misregistered). ``displaced`` (B, 3, h, w), optional: each frame's LiDAR with its particle echoes moved
+    (NaN: a frame without particles); a frame that has one takes it instead with probability 1/2 (the right scene,
+    the wrong particles). Camera channels unchanged."""
     lidar = FUSED_CHANNELS - LIDAR_CHANNELS
     out = x.clone()
     half = len(x) // 2
@@ -99,6 +110,9 @@ def mismatched_pairs(x: torch.Tensor, rng: np.random.Generator) -> torch.Tensor:
     for i in range(half, len(x)):
         shift = int(rng.integers(3, max(4, width // 4 + 1))) * (1 if rng.random() < 0.5 else -1)
         out[i, lidar:] = torch.roll(x[i, lidar:], shifts=shift, dims=-1)
+    if displaced is not None:
+        use = torch.from_numpy(rng.random(len(x)) < 0.5).to(x.device) & ~torch.isnan(displaced).any(dim=(1, 2, 3))
+        out[use, lidar:] = displaced[use]
     return out
 
 

@@ -28,6 +28,7 @@ from weatheralign.config import ParticlesConfig
 from weatheralign.data.frame import Frame
 from weatheralign.data.stf import CAMERA_CHANNEL
 from weatheralign.geometry import invert
+from weatheralign.lidar.clutter import isolated_mask
 from weatheralign.medium.conditions import field_spec
 from weatheralign.reference import ReferenceDataset
 from weatheralign.reference.frames import reference_frame
@@ -64,6 +65,34 @@ def frame_fused_input(frame: Frame, image: NDArray[np.uint8], points: NDArray, i
     lidar = lidar_image_channels(points[:, :3], points[:, 3] / intensity_max, view.K, T_cam_lidar,
                                  (view.height, view.width), out_hw)
     return fused_input(image, lidar)
+
+
+def displaced_particle_channels(frame: Frame, points: NDArray, intensity_max: float, out_hw: tuple[int, int],
+                                azimuth_step_rad: float, seed: int, min_in_view: int = 30
+                                ) -> NDArray[np.float32] | None:
+    """(3, h, w) LiDAR channels of ``frame`` with its particle echoes elsewhere, or None when fewer than
+    ``min_in_view`` of them fall in the camera's image: the echoes are the scan's isolated returns within 20 m
+    (`isolated_mask`, the DROR test), each turned about the LiDAR's vertical axis by ±(5..20)° (same range and
+    height: the right scene with the wrong particles). ``seed``: the turns."""
+    mask = isolated_mask(points[:, :3], azimuth_step_rad=azimuth_step_rad)
+    view = frame.cameras[CAMERA_CHANNEL]
+    T_cam_lidar = invert(np.asarray(view.T_ego_cam, dtype=np.float64)) @ np.asarray(frame.lidar.T_ego_lidar)
+    echoes = points[mask]
+    cam = echoes[:, :3] @ T_cam_lidar[:3, :3].T + T_cam_lidar[:3, 3]
+    uvw = cam @ np.asarray(view.K).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u, v = uvw[:, 0] / uvw[:, 2], uvw[:, 1] / uvw[:, 2]
+    in_view = (cam[:, 2] > 0.5) & (u >= 0) & (u < view.width) & (v >= 0) & (v < view.height)
+    if int(in_view.sum()) < min_in_view:
+        return None
+    rng = np.random.default_rng(seed)
+    turn = np.radians(rng.uniform(5.0, 20.0, len(echoes))) * rng.choice([-1.0, 1.0], len(echoes))
+    c, s = np.cos(turn), np.sin(turn)
+    moved = points.copy()
+    moved[mask, 0] = c * echoes[:, 0] - s * echoes[:, 1]
+    moved[mask, 1] = s * echoes[:, 0] + c * echoes[:, 1]
+    return lidar_image_channels(moved[:, :3], moved[:, 3] / intensity_max, view.K, T_cam_lidar,
+                                (view.height, view.width), out_hw)
 
 
 def reference_fused_input(ds: ReferenceDataset, sample_id: str, out_hw: tuple[int, int]) -> NDArray[np.float32]:
@@ -133,4 +162,5 @@ def simulated_pair(ds: ReferenceDataset, sample_id: str, condition: Condition, s
                          np.asarray(aligned.reprojection_px, dtype=np.float64))
 
 
-__all__ = ["Severity", "SimulatedPair", "frame_fused_input", "reference_fused_input", "scene_media", "simulated_pair"]
+__all__ = ["Severity", "SimulatedPair", "displaced_particle_channels", "frame_fused_input", "reference_fused_input",
+           "scene_media", "simulated_pair"]

@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 from typing import Any
 
-PAPER_TABLE_1: dict[str, dict[str, float | None]] = {
+PAPER_TABLE1: dict[str, dict[str, float | None]] = {
     "reprojection_mean_px": {"fog": None, "snow": 0.7632, "rain": 0.7641},
     "reprojection_max_px": {"fog": None, "snow": 1.3843, "rain": 1.411},
     "mmd_aligned": {"fog": 0.2837, "snow": 0.3065, "rain": 0.1870},
@@ -66,8 +66,8 @@ def table_markdown(metrics: Mapping[str, Any]) -> str:
     for key, label in (("reprojection_mean_px", "re-projection mean [px]"),
                        ("reprojection_max_px", "re-projection max [px]"),
                        ("mmd_aligned", "MMD aligned"), ("mmd_unaligned", "MMD unaligned")):
-        lines.append(f"| {label} | " + " | ".join(_num(PAPER_TABLE_1[key].get(w)) for w in weathers) + " |")
+        lines.append(f"| {label} | " + " | ".join(_num(PAPER_TABLE1[key].get(w)) for w in weathers) + " |")
     return "\n".join(lines) + "\n"
 
 
-__all__ = ["PAPER_TABLE_1", "table_markdown"]
+__all__ = ["PAPER_TABLE1", "table_markdown"]
