@@ -51,6 +51,7 @@ from weatheralign.detect.data import (DetectionDataset, build_cache, cache_path,
 from weatheralign.detect.evaluate import ego_positions, ground_truth, resistance_ability  # noqa: E402
 from weatheralign.detect.figures import detections_bev_figure, learning_curve_figure  # noqa: E402
 from weatheralign.detect.model import BEVFusionDetector, count_parameters  # noqa: E402
+from weatheralign.simulate.media import media_path, read_media  # noqa: E402
 from weatheralign.manifest import manifest_path, read_manifest  # noqa: E402
 from weatheralign.provenance import stage_fingerprint  # noqa: E402
 
@@ -304,8 +305,10 @@ class DetectRun:
         weather, alignment = split_variant(dataroot)
         if dataroot == CLEAN:
             return {"weather": weather, "alignment": alignment, "severity": "none"}
-        return condition_tags(weather, alignment == "aligned", self.params.particles.snow.rate_mm_h,
-                              self.params.particles.rain.rate_mm_h)
+        media = media_path(self.params.paths.data, weather)
+        rates = read_media(media).rates(self.params.particles) if media.is_file() else \
+            (self.params.particles.snow.rate_mm_h, self.params.particles.rain.rate_mm_h)
+        return condition_tags(weather, alignment == "aligned", *rates)
 
     def log_inputs(self, evaluated: list[str], trained_on: list[str]) -> None:
         """The datasets this run reads as MLflow dataset inputs: each dataroot's val split (``evaluation``) and

@@ -1,7 +1,9 @@
 """`media` stage: every condition's media resolved once, one file per condition.
 
 ``python -m flows.media`` reads the world's manifest (its scenes), the calibrate_fog stage's tuned fog levels
-(``simulate.fog_levels: calibrated``; ``params`` uses the literature levels) and the particles stage's fields, and
+(``simulate.fog_levels: calibrated``; ``params`` uses the literature levels), the particles stage's fields and the
+calibrate_precipitation stage's tuned snow and rain rates (``simulate.precipitation_rates: calibrated``; ``params``
+keeps the particles params' rates), and
 writes ``<paths.data>/media/<condition>.json`` for every condition of `weatheralign.conditions.CONDITIONS`
 (`weatheralign.simulate.media.resolve_media`): the fog's (α, β) and the cameras' unaligned α per scene, and/or the
 particle field of every scene. ``simulate@<condition>-*`` depends on its condition's file alone, so a new fog
@@ -18,7 +20,8 @@ from weatheralign import atomic
 from weatheralign.conditions import CONDITIONS, condition_tags
 from weatheralign.config import Params
 from weatheralign.manifest import FIELDS_FILE, manifest_path, read_manifest
-from weatheralign.simulate.media import configured_fog_levels, load_fields, media_path, resolve_media
+from weatheralign.simulate.media import (configured_fog_levels, configured_precipitation_rates, load_fields,
+                                        media_path, resolve_media)
 
 
 @flow(name="media", log_prints=True)
@@ -32,17 +35,22 @@ def media_flow(params: Params) -> dict:
         needs = {m for c in CONDITIONS.values() for m in c.media}
         fog_levels = configured_fog_levels(cfg, params.paths.data) if "fog_levels" in needs else None
         fields = load_fields(params.paths.data / FIELDS_FILE) if "fields" in needs else None
-        metrics: dict = {"fog_levels": None if fog_levels is None else fog_levels.source, "conditions": {}}
+        rates = configured_precipitation_rates(cfg, params.particles, params.paths.data) if fields else None
+        metrics: dict = {"fog_levels": None if fog_levels is None else fog_levels.source,
+                         "precipitation_rates": None if rates is None else {
+                             k: {"rate_mm_h": rates.rate_mm_h[k], "source": rates.source[k]} for k in rates.rate_mm_h},
+                         "conditions": {}}
         for name, condition in CONDITIONS.items():
-            media = resolve_media(condition, cfg, scenes, fog_levels, fields)
+            media = resolve_media(condition, cfg, scenes, fog_levels, fields, rates)
             atomic.write_json(media_path(params.paths.data, name), media.to_dict(), indent=1)
             metrics["conditions"][name] = {
                 "fog_alpha": None if media.fog is None else media.fog["alpha"],
                 "fog_beta": None if media.fog is None else media.fog["beta"],
                 "fields": 0 if media.fields is None else len(media.fields)}
-        rates = (params.particles.snow.rate_mm_h, params.particles.rain.rate_mm_h)
+        snow_rain = (params.particles.snow.rate_mm_h, params.particles.rain.rate_mm_h) if rates is None else \
+            (rates.rate_mm_h["snow"], rates.rate_mm_h["rain"])
         tracker.finish(metrics, logged={}, children={
-            name: (condition_tags(name, None, *rates), values) for name, values in metrics["conditions"].items()})
+            name: (condition_tags(name, None, *snow_rain), values) for name, values in metrics["conditions"].items()})
     return metrics
 
 

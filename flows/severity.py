@@ -1,7 +1,7 @@
 """Severity sweeps with DVC experiments: ``python -m flows.severity levels | queue | curve``.
 
-A weather's severity is a parameter of params.yaml: the snow rate (``particles.snow.rate_mm_h``), the rain rate
-(``particles.rain.rate_mm_h``) or the dense fog's extinction (``simulate.fog_alpha_dense`` with ``simulate.fog_levels:
+A weather's severity is a parameter of params.yaml: the snow rate (``particles.snow.rate_mm_h`` with
+``simulate.precipitation_rates: params``), the rain rate (``particles.rain.rate_mm_h``, likewise) or the dense fog's extinction (``simulate.fog_alpha_dense`` with ``simulate.fog_levels:
 params``; the light level at a third of it). `LEVELS` names five nuScenes-C-style levels of each (1 lightest, 5
 heaviest; level 3 of snow and 4 of rain are the paper's 2 and 50 mm/h); any other value works the same through
 ``-S``.
@@ -53,9 +53,11 @@ def _fog(level: int, mor_m: float) -> SeverityLevel:
 
 
 LEVELS: dict[str, tuple[SeverityLevel, ...]] = {
-    "snow": tuple(SeverityLevel("snow", k, r, "mm/h", (f"particles.snow.rate_mm_h={r:g}",))
+    "snow": tuple(SeverityLevel("snow", k, r, "mm/h", (f"particles.snow.rate_mm_h={r:g}",
+                                                        "simulate.precipitation_rates=params"))
                   for k, r in enumerate((0.5, 1.0, 2.0, 4.0, 8.0), start=1)),
-    "rain": tuple(SeverityLevel("rain", k, r, "mm/h", (f"particles.rain.rate_mm_h={r:g}",))
+    "rain": tuple(SeverityLevel("rain", k, r, "mm/h", (f"particles.rain.rate_mm_h={r:g}",
+                                                        "simulate.precipitation_rates=params"))
                   for k, r in enumerate((5.0, 10.0, 25.0, 50.0, 100.0), start=1)),
     "fog": tuple(_fog(k, m) for k, m in enumerate((1000.0, 500.0, 250.0, 100.0, 50.0), start=1)),
 }
@@ -89,6 +91,8 @@ def severity_value(weather: str, params: dict[str, Any]) -> float | None:
         if weather == "fog":
             alpha = float(params["simulate"]["fog_alpha_dense"])
             return math.log(20.0) / alpha if params["simulate"]["fog_levels"] == "params" else None
+        if params.get("simulate", {}).get("precipitation_rates", "params") != "params":
+            return None  # the tuned rate is in force, not the params one
         return float(params["particles"][weather]["rate_mm_h"])
     except (KeyError, TypeError, ValueError, ZeroDivisionError):
         return None

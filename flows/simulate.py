@@ -14,7 +14,6 @@ BEV coloured by label, CAM_FRONT), also logged to an MLflow child run.
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path
@@ -89,14 +88,13 @@ def fog_metrics(media: ConditionMedia, aligned: bool) -> dict:
 def simulate_flow(params: Params) -> dict:
     """Write the weather copy of one condition; returns the metrics written to reports/simulate/<name>/."""
     cfg = params.simulate
-    name = variant_name(cfg.condition, cfg.aligned)
-    rates = (params.particles.snow.rate_mm_h, params.particles.rain.rate_mm_h)
+    name = variant_name(condition_named(cfg.condition).name, cfg.aligned)  # an unknown condition: named first
+    media = read_media(media_path(params.paths.data, cfg.condition))
     with StageTracker(params, "simulate", name=f"simulate/{name}",
-                      tags=condition_tags(cfg.condition, cfg.aligned, *rates)) as tracker:
+                      tags=condition_tags(cfg.condition, cfg.aligned, *media.rates(params.particles))) as tracker:
         tracker.log_params({"simulate": cfg.model_dump(mode="json")})
         world = read_manifest(manifest_path(params.paths.data, "world"))
         tracker.log_dataset("world", world.content_digest, world.dataroot, "source")
-        media = read_media(media_path(params.paths.data, cfg.condition))
         src_root, out_root = Path(world.dataroot), output_dataroot(params)
         nusc = open_nuscenes(src_root, world.version)
         jobs = plan_jobs(nusc, media, cfg.aligned, cfg.rain_appearance, cfg.max_samples)

@@ -6,7 +6,8 @@ snow, rain):
 
 1. simulates the reference's clear frames through the condition with the fast simulator (`simulated_pair`: the
    observation core of `simulate`, the reference's LiDAR and stereo-left camera), aligned and unaligned, at the
-   severity the simulation uses (the fog levels ``simulate.fog_levels`` selects; ``particles.<kind>.rate_mm_h``);
+   severity the simulation uses (the fog levels ``simulate.fog_levels`` selects, the snow / rain rates
+   ``simulate.precipitation_rates`` selects: the calibrate_precipitation stage's or the particles params');
 2. compares the simulated LiDAR's intensity ECDF with the reference's weather split (D_KS with a frame-bootstrap
    interval) and the simulated images with the reference's (KID on the calibrate_fog backbone; the visibility
    estimated from image + depth, `camera_visibility_ratio`);
@@ -14,7 +15,8 @@ snow, rain):
    the image and the LiDAR projected into it, with the correspondence objective (`train_weather_classifier`: true
    pairs against another frame's LiDAR, the frame's own LiDAR shifted, and, for snow and rain frames with particle
    echoes in view, the frame's LiDAR with its particle echoes displaced); its penultimate layer is the fused feature;
-4. per condition: MMD^2 (unbiased, Gaussian kernel, median heuristic on the pooled standardised features) of the
+4. per condition, on one kernel (Gaussian, median heuristic on the pooled standardised reference, aligned and
+   unaligned features): MMD^2 (unbiased) of the
    reference's weather frames against the aligned and against the unaligned simulation with permutation p-values and
    frame-bootstrap intervals, the paired test of their difference, and the **sensitivity control**: the reference
    weather frames against themselves with every LiDAR paired with another frame's camera.
@@ -50,7 +52,7 @@ from weatheralign.config import Params  # noqa: E402
 from weatheralign.data.errors import DataFormatError  # noqa: E402
 from weatheralign.reference import (PRECIPITATION_LEVELS, ReferenceDataset, configured_reference,  # noqa: E402
                                     reference_lidar_model)
-from weatheralign.simulate.media import configured_fog_levels  # noqa: E402
+from weatheralign.simulate.media import configured_fog_levels, configured_precipitation_rates  # noqa: E402
 from weatheralign.verify.classifier import broken_pairs, fused_features, train_weather_classifier  # noqa: E402
 from weatheralign.verify.figures import (confusion_figure, ecdf_figure, embedding_figure,  # noqa: E402
                                          permutation_figure)
@@ -66,10 +68,12 @@ CLASSES: tuple[str, ...] = ("clear", "fog", "snow", "rain")
 CLASS_OF_LEVEL: dict[str, int] = {"clear": 0, "light": 1, "dense": 1, "snow": 2, "rain": 3}
 
 
-def severity_of(params: Params) -> Severity:
-    """The severity `simulate` uses: the fog levels of ``simulate.fog_levels`` and the params' snow / rain rates."""
-    return Severity(configured_fog_levels(params.simulate, params.paths.data), params.particles.snow.rate_mm_h,
-                    params.particles.rain.rate_mm_h, params.particles)
+def severity_of(params: Params) -> tuple[Severity, dict[str, str]]:
+    """The severity `simulate` uses — the fog levels of ``simulate.fog_levels``, the snow / rain rates of
+    ``simulate.precipitation_rates`` — and where each rate came from."""
+    rates = configured_precipitation_rates(params.simulate, params.particles, params.paths.data)
+    return Severity(configured_fog_levels(params.simulate, params.paths.data), rates.rate_mm_h["snow"],
+                    rates.rate_mm_h["rain"], params.particles), rates.source
 
 
 def verified_conditions(ds: ReferenceDataset) -> dict[str, str]:
@@ -104,8 +108,9 @@ def condition_metrics(name: str, ref_feat: np.ndarray, sims: list[SimulatedPair]
     """The MMD tests of one condition: (metrics, tests for the figures)."""
     cfg = params.verify
     kw = {"permutations": cfg.permutations, "resamples": cfg.resamples, "seed": cfg.seed, "confidence": cfg.confidence}
-    aligned, unaligned = mmd_test(ref_feat, al_feat, **kw), mmd_test(ref_feat, un_feat, **kw)
-    control = mmd_test(ref_feat, control_feat, **kw)
+    scale = (ref_feat, al_feat, un_feat)  # one kernel for the condition: aligned - unaligned = the paired difference
+    aligned, unaligned = mmd_test(ref_feat, al_feat, scale=scale, **kw), mmd_test(ref_feat, un_feat, scale=scale, **kw)
+    control = mmd_test(ref_feat, control_feat, scale=scale, **kw)
     diff = paired_mmd_difference(ref_feat, al_feat, un_feat, **kw)
     reproj = np.concatenate([s.reprojection_px for s in sims])
     metrics = {
@@ -133,7 +138,7 @@ def verify_flow(params: Params) -> dict:
         ds = configured_reference(params)
         conditions = verified_conditions(ds)
         lidar = reference_lidar_model(params, ds)
-        severity = severity_of(params)
+        severity, rate_source = severity_of(params)
         hw = tuple(cfg.image_hw)
         tracker.log_params({"verify": cfg.model_dump(mode="json"), "reference.source": params.reference.source,
                             "severity": {"fog_levels": severity.levels.source, "fog_alpha": severity.levels.alpha,
@@ -158,7 +163,8 @@ def verify_flow(params: Params) -> dict:
         model, report = train_weather_classifier(
             inputs, labels, CLASSES, held_out_fraction=cfg.held_out_fraction, steps=cfg.steps,
             batch_size=cfg.batch_size, lr=cfg.lr, seed=cfg.seed, device=cfg.device,
-            correspondence_weight=cfg.correspondence_weight, embedding=cfg.embedding, displaced=displaced)
+            correspondence_weight=cfg.correspondence_weight, embedding=cfg.embedding, displaced=displaced,
+            progress=show)
         t_train = time.time()
         print(f"verify: weather classifier held-out accuracy {report.accuracy:.3f} on {len(report.held_out)} frames "
               f"({t_train - t_sim:.0f} s; {int(np.isfinite(displaced).all(axis=(1, 2, 3)).sum())} frames with "
@@ -213,7 +219,7 @@ def verify_flow(params: Params) -> dict:
         metrics = {
             "reference_root": str(ds.root), "reference_source": params.reference.source,
             "severity": {"fog_levels": severity.levels.source, "snow_rate_mm_h": severity.snow_rate_mm_h,
-                         "rain_rate_mm_h": severity.rain_rate_mm_h},
+                         "rain_rate_mm_h": severity.rain_rate_mm_h, "rates": rate_source},
             "classifier_accuracy": report.accuracy, "classifier_held_out": int(len(report.held_out)),
             "classifier_confusion": report.confusion.tolist(), "classes": list(CLASSES),
             "control_mmd": min(m["control_mmd"] for m in per_condition.values()),

@@ -1,4 +1,5 @@
-"""Mapped tasks of the `calibrate_fog` stage: one (alpha, beta) grid cell; one reference camera frame."""
+"""Mapped tasks of the calibration stages: one (alpha, beta) grid cell and one reference camera frame
+(`calibrate_fog`); one grid rate of snow or rain over the clear scans (`calibrate_precipitation`)."""
 
 from __future__ import annotations
 
@@ -8,9 +9,12 @@ from prefect.cache_policies import NO_CACHE
 
 from weatheralign.calibrate.histograms import IntensityHistograms
 from weatheralign.calibrate.lidar import CellResult, FogFrames, evaluate_cell
+from weatheralign.calibrate.precipitation import simulated_statistics
+from weatheralign.config import ParticlesConfig
 from weatheralign.lidar.pulse import PulseSensor
 from weatheralign.reference import ReferenceDataset
 from weatheralign.reference.frames import reference_frame
+from weatheralign.sensors import LidarModel
 
 
 @task(name="ks-grid-cell", cache_policy=NO_CACHE, retries=0)
@@ -32,3 +36,13 @@ def reference_camera(ds: ReferenceDataset, sample_id: str) -> tuple[np.ndarray, 
 def reference_camera_task(ds: ReferenceDataset, sample_id: str) -> tuple[np.ndarray, np.ndarray]:
     """`reference_camera` as a mapped task."""
     return reference_camera(ds, sample_id)
+
+
+@task(name="precipitation-rate", cache_policy=NO_CACHE, retries=0)
+def precipitation_statistics_task(ds: ReferenceDataset, kind: str, rate_mm_h: float, lidar: LidarModel,
+                                  particles: ParticlesConfig) -> np.ndarray:
+    """(F,) open-path echo rate of every clear reference scan through ``kind`` at ``rate_mm_h`` (the worker reads
+    the scans itself; each frame's field is seeded from its id)."""
+    ids = ds.ids("clear")
+    scans = [ds.load_scan(i) for i in ids]
+    return simulated_statistics(scans, kind, (rate_mm_h,), lidar, particles, ids)[0]

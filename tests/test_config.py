@@ -135,7 +135,7 @@ def test_empty_file_or_missing_section_is_refused(tmp_path):
         empty.write_text(text)
         with pytest.raises(ConfigError, match=rf"^{empty}: the params file is empty; it must hold the sections "
                                               r"paths, run, tracking, world, particles, simulate, reference, "
-                                              r"calibrate_fog, detect, verify"):
+                                              r"calibrate_fog, calibrate_precipitation, detect, verify"):
             load_params(empty)
     partial = tmp_path / "partial.yaml"
     partial.write_text("world:\n  seed: 1\n")
@@ -143,7 +143,7 @@ def test_empty_file_or_missing_section_is_refused(tmp_path):
         load_params(partial)
     msg = str(err.value)
     assert msg.startswith(f"{partial}: missing sections paths, run, tracking, particles, simulate, reference, "
-                          f"calibrate_fog, detect, verify: a params file must hold every section")
+                          f"calibrate_fog, calibrate_precipitation, detect, verify: a params file must hold every section")
     # one section short: named alone; --set cannot stand in for it (overrides are for keys)
     f = _params_file(tmp_path, "calibrate_fog:", "calibrate_fog_old:")
     for overrides in ([], ["calibrate_fog.device=cpu"]):

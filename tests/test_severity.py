@@ -33,13 +33,15 @@ def test_named_levels_are_valid_params_and_grow_in_severity(tmp_path):
             assert math.isclose(got, lv.value, rel_tol=1e-5), (weather, lv.level, got)
     assert named_level("snow", 3).value == 2.0 and named_level("rain", 4).value == 50.0  # the paper's rates
     assert queue_command(named_level("rain", 2), ("simulate@rain-aligned",)) == [
-        "dvc", "exp", "run", "--queue", "-n", "severity-rain-2", "-S", "particles.rain.rate_mm_h=10",
-        "simulate@rain-aligned"]
+        "dvc", "exp", "run", "--queue", "-n", "severity-rain-2", "-S", "particles.rain.rate_mm_h=10", "-S",
+        "simulate.precipitation_rates=params", "simulate@rain-aligned"]
     with pytest.raises(ValueError, match="expected 1..5"):
         named_level("snow", 6)
     with pytest.raises(ValueError, match="expected one of"):
         named_level("hail", 1)
     assert severity_value("fog", {"simulate": {"fog_levels": "calibrated", "fog_alpha_dense": 0.04}}) is None
+    assert severity_value("snow", {"simulate": {"precipitation_rates": "calibrated"},
+                                   "particles": {"snow": {"rate_mm_h": 2.0}}}) is None
 
 
 def _entry(name: str, rev: str, rate: float, lost: int, scattered: int, maps: tuple[float, float] | None) -> dict:

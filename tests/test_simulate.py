@@ -254,6 +254,9 @@ def test_flow_writes_copy_and_metrics(world, tmp_path):
     levels = data / "calibrate_fog" / "fog_levels.json"
     levels.parent.mkdir(parents=True)
     levels.write_text(json.dumps({"light": {"alpha": 0.012, "beta": 0.0001}, "dense": {"alpha": 0.05, "beta": 0.0007}}))
+    rates = data / "calibrate_precipitation" / "rates.json"
+    rates.parent.mkdir(parents=True)
+    rates.write_text(json.dumps({"snow": {"rate_mm_h": 3.0}}))  # a reference without a rain split: rain keeps params
     env = {**os.environ, "PYTHONPATH": str(REPO), "PREFECT_LOGGING_LEVEL": "WARNING"}
     run = subprocess.run([sys.executable, "-m", "flows.media", "--params", str(params)], cwd=REPO,
                          capture_output=True, text=True, timeout=600, env=env)
@@ -288,7 +291,12 @@ def test_flow_writes_copy_and_metrics(world, tmp_path):
     assert [d.dataset.digest for d in unaligned[0].inputs.dataset_inputs] == [dataset_digest(tw.dataroot, version)]
     media_runs = client.search_runs([exp.experiment_id], "tags.stage = 'media' AND tags.kind = 'condition'")
     assert {r.data.tags["weather"]: r.data.tags["severity"] for r in media_runs} == {
-        "fog_light": "light", "fog_dense": "dense", "snow": "2 mm/h", "rain": "50 mm/h", "fog_snow": "light + 2 mm/h"}
+        "fog_light": "light", "fog_dense": "dense", "snow": "3 mm/h", "rain": "50 mm/h", "fog_snow": "light + 3 mm/h"}
+    media_metrics = json.loads((reports / "media" / "metrics.json").read_text())
+    assert media_metrics["precipitation_rates"] == {"snow": {"rate_mm_h": 3.0, "source": "calibrated"}, "rain": {
+        "rate_mm_h": 50.0, "source": "params (no rain split in the reference)"}}
+    snow = json.loads((data / "media" / "snow.json").read_text())
+    assert {f["rate_mm_h"] for f in snow["fields"].values()} == {3.0}
     assert {r.data.metrics.get("fog_alpha") for r in media_runs if r.data.tags["weather"] == "fog_dense"} == {0.05}
     bad = subprocess.run([sys.executable, "-m", "flows.simulate", "--params", str(params), "--set",
                           "simulate.condition=hail"], cwd=REPO, capture_output=True, text=True, timeout=600, env=env)

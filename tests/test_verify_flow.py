@@ -1,8 +1,9 @@
-"""The `verify` flow end to end on a Seeing Through Fog-layout tree with fog, snow and rain splits, built from the
-shared real frame: the clear split is the real HDL-64 scan and stereo-left image; each weather split is that frame
+"""The `verify` and `calibrate_precipitation` flows end to end on a Seeing Through Fog-layout tree with fog, snow and
+rain splits, built from the shared real frame: the clear split is the real HDL-64 scan and stereo-left image; each weather split is that frame
 through the condition's media (different particle fields per frame), written like a real recording (intensities
 rounded, PNG images). The flow reads it through ``reference.source: stf`` and must write every metric of the issue's
-list per condition, the regenerated Table 1 and the figures. Skips without ``../shared``."""
+list per condition, the regenerated Table 1 and the figures; the calibration must recover the rates the snow and
+rain splits were made at (3 and 60 mm/h) within its interval. Skips without ``../shared``."""
 
 from __future__ import annotations
 
@@ -22,12 +23,12 @@ from weatheralign.camera.fog import estimate_airlight
 from weatheralign.conditions import CONDITIONS
 from weatheralign.config import ParticlesConfig
 from weatheralign.data.stf import load_stf_frame
-from weatheralign.sensors import CameraModel, SensorRig
+from weatheralign.sensors import CameraModel, SensorRig, estimate_lidar_model
 from weatheralign.simulate.media import FogLevels
 from weatheralign.simulate.observe import observe
 from weatheralign.verify.frames import Severity, scene_media
 
-from .conftest import REPO, make_lidar
+from .conftest import REPO
 
 STF = REPO.parent / "shared" / "data" / "real" / "stf"
 STF_ID = "2019-09-11_19-13-44_00960"
@@ -46,7 +47,8 @@ def _stf_tree(root: Path) -> Path:
     depth = dense_depth(frame.lidar, view, image).range
     airlight = estimate_airlight([image], [depth])
     camera = CameraModel("cam_stereo_left", tuple(tuple(r) for r in view.K), view.width, view.height, 0.006)
-    rig = SensorRig(lidar=make_lidar(noise_floor=1.0), cameras={"cam_stereo_left": camera})
+    lidar = estimate_lidar_model([frame.lidar], rotation_hz=10.0, overrides={"noise_floor": 1.0})  # as the flows do
+    rig = SensorRig(lidar=lidar, cameras={"cam_stereo_left": camera})
     severity = Severity(FogLevels({"light": 0.012, "dense": 0.05}, {"light": 0.0012, "dense": 0.005}, "test"),
                         3.0, 60.0, ParticlesConfig())
     for d in ("lidar_hdl64_strongest", "cam_stereo_left_lut", "calib", "splits"):
@@ -73,13 +75,14 @@ def _stf_tree(root: Path) -> Path:
 
 
 @pytest.mark.flow
-def test_verify_flow_on_an_stf_layout_tree_with_snow_and_rain(tmp_path: Path) -> None:
+def test_verify_and_rate_calibration_on_an_stf_layout_tree_with_snow_and_rain(tmp_path: Path) -> None:
     if not STF.exists():
         pytest.skip(f"real sample not available: {STF}")
     root = _stf_tree(tmp_path / "stf")
     data, reports = tmp_path / "data", tmp_path / "reports"
     sets = ["reference.source=stf", f"reference.stf_root={root}", f"paths.data={data}", f"paths.reports={reports}",
-            "tracking.enabled=false", "run.show_progress=false", "simulate.fog_levels=params", "verify.steps=8",
+            "tracking.enabled=false", "run.show_progress=false", "simulate.fog_levels=params",
+            "simulate.precipitation_rates=params", "verify.steps=8",
             "verify.image_hw=[32, 64]", "verify.permutations=100", "verify.resamples=20", "verify.batch_size=4",
             "reference.sensor_overrides.noise_floor=1.0"]
     run = subprocess.run([sys.executable, "-m", "flows.verify", *[a for s in sets for a in ("--set", s)]],
@@ -96,9 +99,24 @@ def test_verify_flow_on_an_stf_layout_tree_with_snow_and_rain(tmp_path: Path) ->
             assert 0.0 < m[key] <= 1.0
         assert m["kid_backbone"] == "efficientnet_lite0"
         assert m["reprojection_mean_px"] is None  # no simulate stage ran in this tree
-    assert metrics["severity"] == {"fog_levels": "params", "snow_rate_mm_h": 2.0, "rain_rate_mm_h": 50.0}
+    assert metrics["severity"] == {"fog_levels": "params", "snow_rate_mm_h": 2.0, "rain_rate_mm_h": 50.0,
+                                   "rates": {"snow": "params", "rain": "params"}}
     assert 0.0 <= metrics["classifier_accuracy"] <= 1.0 and len(metrics["classifier_confusion"]) == 4
     table = (reports / "verify" / "table.md").read_text()
     assert "| MMD² aligned |" in table and "The paper" in table and "0.2837" in table
     for name in ("ecdf.png", "confusion.png", "embedding_snow.png", "permutations_rain.png"):
         assert (reports / "verify" / name).is_file()
+
+    calibrate = subprocess.run([sys.executable, "-m", "flows.calibrate_precipitation",
+                                *[a for s in sets[:6] + sets[-1:] + ["calibrate_precipitation.num_bootstrap=100"]
+                                  for a in ("--set", s)]],
+                               cwd=REPO, capture_output=True, text=True, timeout=900,
+                               env={**os.environ, "PYTHONPATH": str(REPO), "PREFECT_LOGGING_LEVEL": "WARNING"})
+    assert calibrate.returncode == 0, calibrate.stderr[-3000:]
+    rates = json.loads((data / "calibrate_precipitation" / "rates.json").read_text())
+    for kind, truth in (("snow", 3.0), ("rain", 60.0)):  # the rates the tree's snow and rain were made at
+        assert rates[kind]["ci_low"] <= truth <= rates[kind]["ci_high"], rates
+        assert abs(rates[kind]["rate_mm_h"] / truth - 1.0) < 0.3, rates
+    tuned = json.loads((reports / "calibrate_precipitation" / "metrics.json").read_text())
+    assert tuned["kinds"] == ["snow", "rain"] and not tuned["snow"]["beyond_grid"]
+    assert (reports / "calibrate_precipitation" / "rates.png").is_file()

@@ -94,3 +94,15 @@ def test_figures_render(tmp_path) -> None:
     assert tests["unaligned"].p_value < tests["aligned"].p_value and len(tests["aligned"].null) == 200
     permutation_figure(tests, "snow: MMD² against the reference").savefig(tmp_path / "perm.png")
     assert (tmp_path / "pca.png").stat().st_size > 10_000 and (tmp_path / "perm.png").stat().st_size > 10_000
+
+
+def test_tests_sharing_a_scale_share_one_kernel_so_their_difference_is_the_paired_one() -> None:
+    rng = np.random.default_rng(5)
+    ref, a, b = rng.normal(0, 1, (20, 4)), rng.normal(0.2, 1, (15, 4)), rng.normal(0.8, 1, (15, 4))
+    scale = (ref, a, b)
+    ta, tb = mmd_test(ref, a, 100, 10, scale=scale), mmd_test(ref, b, 100, 10, scale=scale)
+    paired = paired_mmd_difference(ref, a, b, 100, 10)
+    assert ta.bandwidth == tb.bandwidth == paired.bandwidth
+    assert ta.mmd2 == pytest.approx(paired.mmd2_a) and tb.mmd2 == pytest.approx(paired.mmd2_b)
+    assert ta.mmd2 - tb.mmd2 == pytest.approx(paired.difference)
+    assert mmd_test(ref, a, 100, 10).bandwidth != ta.bandwidth  # its own pool by default

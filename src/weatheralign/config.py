@@ -275,12 +275,16 @@ class SimulateConfig(_Section):
     keys are used as given: the literature values (``alpha`` [1/m], ``beta = fog_beta_mor / MOR``;
     ``fog_beta_light`` / ``fog_beta_dense``, None: from ``fog_beta_mor``). Unaligned fog: the cameras' alpha is drawn
     uniformly in ``[fog_alpha_light, fog_alpha_dense]`` (the levels in use), once per scene (seed ``fog_seed``).
+    Snow and rain rates: with ``precipitation_rates: calibrated`` (default) the ``calibrate_precipitation`` stage's
+    tuned rates (``<paths.data>/calibrate_precipitation/rates.json``) replace ``particles.<kind>.rate_mm_h`` in every
+    scene's field (the media stage applies them); with ``params`` the particles params are used as given.
     The sensors (noise floor, divergence, exposure, ...) are the dataset's (its manifest), not simulate params.
     """
 
     condition: Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$")] = "snow"
     aligned: bool = True
     fog_levels: Literal["calibrated", "params"] = "calibrated"
+    precipitation_rates: Literal["calibrated", "params"] = "calibrated"
     fog_alpha_light: Annotated[float, Field(gt=0.0, le=0.5)] = 0.01
     fog_alpha_dense: Annotated[float, Field(gt=0.0, le=0.5)] = 0.04
     fog_beta_mor: Annotated[float, Field(ge=0.0, le=1.0)] = 0.046
@@ -481,6 +485,27 @@ class CalibrateFogConfig(_Section):
     device: TorchDevice = "cpu"
 
 
+class CalibratePrecipitationConfig(_Section):
+    """The `calibrate_precipitation` stage (ReDAM for snow and rain): per kind, the reference's clear scans through
+    the fast simulator at each rate of ``snow_rates`` / ``rain_rates`` [mm/h] (increasing), the rate whose mean
+    open-path echo rate matches the reference's weather split, and a frame-bootstrap interval (``num_bootstrap``
+    resamples at ``confidence``, ``seed``)."""
+
+    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
+    snow_rates: tuple[Annotated[float, Field(gt=0.0, le=20.0)], ...] = (0.5, 1.0, 2.0, 4.0, 8.0)
+    rain_rates: tuple[Annotated[float, Field(gt=0.0, le=300.0)], ...] = (10.0, 25.0, 50.0, 100.0, 200.0)
+    num_bootstrap: Annotated[int, Field(ge=10, le=100_000)] = 1000
+    confidence: Annotated[float, Field(gt=0.5, lt=1.0)] = 0.95
+
+    @model_validator(mode="after")
+    def _increasing(self) -> "CalibratePrecipitationConfig":
+        for name in ("snow_rates", "rain_rates"):
+            rates = getattr(self, name)
+            if len(rates) < 2 or any(b <= a for a, b in zip(rates, rates[1:])):
+                raise ValueError(f"{name} = {list(rates)}: expected two or more increasing rates")
+        return self
+
+
 class VerifyConfig(_Section):
     """The `verify` stage: the fused-feature check of the simulated weather against the reference's real weather.
 
@@ -555,6 +580,7 @@ class Params(_Section):
     simulate: SimulateConfig = SimulateConfig()
     reference: ReferenceConfig = ReferenceConfig()
     calibrate_fog: CalibrateFogConfig = CalibrateFogConfig()
+    calibrate_precipitation: CalibratePrecipitationConfig = CalibratePrecipitationConfig()
     detect: DetectConfig = DetectConfig()
     verify: VerifyConfig = VerifyConfig()
 

@@ -23,6 +23,7 @@ from weatheralign.sensors import SensorRig
 
 MANIFEST_DIR = "manifests"
 FOG_LEVELS_FILE = "calibrate_fog/fog_levels.json"
+PRECIPITATION_RATES_FILE = "calibrate_precipitation/rates.json"
 """Tuned fog levels written by the calibrate_fog stage, relative to ``paths.data``:
 ``{"light": {"alpha": .., "beta": ..}, "dense": {...}, ...}``."""
 FIELDS_FILE = "particles/fields.json"
@@ -114,4 +115,4 @@ def read_manifest(path: Path) -> DatasetManifest:
         raise DataFormatError(f"{path}: not a dataset manifest ({exc})") from None
 
 
-__all__ = ["FIELDS_FILE", "FOG_LEVELS_FILE", "DatasetManifest", "dataset_digest", "display_path", "manifest_path", "read_manifest", "write_manifest"]
+__all__ = ["FIELDS_FILE", "FOG_LEVELS_FILE", "PRECIPITATION_RATES_FILE", "DatasetManifest", "dataset_digest", "display_path", "manifest_path", "read_manifest", "write_manifest"]

@@ -10,16 +10,16 @@ cameras' unaligned fog extinction per scene, and the particle field of every sce
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from weatheralign.conditions import CONDITIONS, Condition, FogPart
-from weatheralign.config import SimulateConfig
+from weatheralign.config import ParticlesConfig, SimulateConfig
 from weatheralign.data.errors import DataFormatError, read_json_file
-from weatheralign.manifest import FOG_LEVELS_FILE
+from weatheralign.manifest import FOG_LEVELS_FILE, PRECIPITATION_RATES_FILE
 from weatheralign.medium.conditions import FieldSpec
 from weatheralign.medium.fog import mor_from_alpha
 
@@ -72,6 +72,53 @@ def configured_fog_levels(cfg: SimulateConfig, data: Path) -> FogLevels:
     """The fog levels ``simulate.fog_levels`` selects (``calibrated``: `FOG_LEVELS_FILE` under ``data``)."""
     return calibrated_fog_levels(Path(data) / FOG_LEVELS_FILE) if cfg.fog_levels == "calibrated" else \
         params_fog_levels(cfg)
+
+
+@dataclass(frozen=True)
+class PrecipitationRates:
+    """The snow and rain rates [mm/h] of the particle fields and where each came from (``calibrated`` or
+    ``params``)."""
+
+    rate_mm_h: dict[str, float]
+    source: dict[str, str]
+
+
+def params_precipitation_rates(particles: ParticlesConfig) -> PrecipitationRates:
+    """The rates of ``particles.<kind>.rate_mm_h``."""
+    return PrecipitationRates({k: getattr(particles, k).rate_mm_h for k in ("snow", "rain")},
+                              {"snow": "params", "rain": "params"})
+
+
+def calibrated_precipitation_rates(path: Path, particles: ParticlesConfig) -> PrecipitationRates:
+    """The tuned rates in ``path`` (`PRECIPITATION_RATES_FILE`); a kind the file lacks (a reference without that
+    split) keeps its params rate, and its source says so.
+
+    Raises:
+        DataFormatError: missing or unreadable file, or a rate that is not a positive number.
+    """
+    path = Path(path)
+    tuned = read_json_file(path, "run the calibrate_precipitation stage first (dvc repro calibrate_precipitation) "
+                                 "or set simulate.precipitation_rates=params to use the particles params")
+    out = params_precipitation_rates(particles)
+    for kind in ("snow", "rain"):
+        entry = tuned.get(kind) if isinstance(tuned, dict) else None
+        if entry is None:
+            out.source[kind] = f"params (no {kind} split in the reference)"
+            continue
+        v = entry.get("rate_mm_h") if isinstance(entry, dict) else None
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v <= 0.0:
+            raise DataFormatError(f"{path}: {kind}.rate_mm_h = {v!r}; expected a positive number")
+        out.rate_mm_h[kind], out.source[kind] = float(v), "calibrated"
+    return out
+
+
+def configured_precipitation_rates(cfg: SimulateConfig, particles: ParticlesConfig, data: Path
+                                   ) -> PrecipitationRates:
+    """The rates ``simulate.precipitation_rates`` selects (``calibrated``: `PRECIPITATION_RATES_FILE` under
+    ``data``)."""
+    if cfg.precipitation_rates == "calibrated":
+        return calibrated_precipitation_rates(Path(data) / PRECIPITATION_RATES_FILE, particles)
+    return params_precipitation_rates(particles)
 
 
 def load_fields(path: Path) -> dict[str, list[FieldSpec]]:
@@ -150,6 +197,15 @@ class ConditionMedia:
             kw["field"] = self.fields[scene]
         return SceneMedia(condition, aligned, scene, **kw)
 
+    def rates(self, particles: ParticlesConfig) -> tuple[float, float]:
+        """(snow, rain) [mm/h] for run tags: the fields' rate (tuned or params, as resolved) for the condition's own
+        kind, the ``particles`` params' for the other."""
+        rates = {"snow": particles.snow.rate_mm_h, "rain": particles.rain.rate_mm_h}
+        if self.fields:
+            spec = next(iter(self.fields.values()))
+            rates[spec.condition] = spec.rate_mm_h
+        return rates["snow"], rates["rain"]
+
     def to_dict(self) -> dict[str, Any]:
         return {"condition": self.condition, "fog": self.fog,
                 "fields": None if self.fields is None else {k: v.to_dict() for k, v in sorted(self.fields.items())}}
@@ -166,8 +222,10 @@ class ConditionMedia:
 
 
 def resolve_media(condition: Condition, cfg: SimulateConfig, scenes: list[str], fog_levels: FogLevels | None,
-                  fields: dict[str, list[FieldSpec]] | None) -> ConditionMedia:
-    """The media of ``condition`` over ``scenes`` (``fog_levels`` needed with fog, ``fields`` with particles).
+                  fields: dict[str, list[FieldSpec]] | None, rates: PrecipitationRates | None = None
+                  ) -> ConditionMedia:
+    """The media of ``condition`` over ``scenes`` (``fog_levels`` needed with fog, ``fields`` with particles; the
+    fields' rates replaced by ``rates`` where given).
 
     Raises:
         DataFormatError: a needed input is missing or lacks a scene.
@@ -191,7 +249,8 @@ def resolve_media(condition: Condition, cfg: SimulateConfig, scenes: list[str], 
         missing = [s for s in scenes if s not in by_scene]
         if missing:
             raise DataFormatError(f"the particles stage's {kind} fields lack scenes {missing}; rerun it")
-        per_scene = {s: by_scene[s] for s in scenes}
+        per_scene = {s: by_scene[s] if rates is None else replace(by_scene[s], rate_mm_h=rates.rate_mm_h[kind])
+                     for s in scenes}
     return ConditionMedia(condition.name, fog, per_scene)
 
 

@@ -18,6 +18,7 @@ import torch.nn.functional as F
 from numpy.typing import NDArray
 from sklearn.metrics import confusion_matrix
 from sklearn.model_selection import train_test_split
+from tqdm import tqdm
 
 from weatheralign.verify.features import FUSED_CHANNELS, LIDAR_CHANNELS, WeatherClassifier
 
@@ -44,8 +45,8 @@ def _check(inputs: NDArray, labels: NDArray, classes: Sequence[str]) -> None:
 def train_weather_classifier(inputs: NDArray, labels: NDArray, classes: Sequence[str], held_out_fraction: float = 0.25,
                              steps: int = 300, batch_size: int = 32, lr: float = 3e-3, seed: int = 0,
                              device: str = "cpu", width: int = 16, embedding: int = 64,
-                             correspondence_weight: float = 1.0, displaced: NDArray | None = None
-                             ) -> tuple[WeatherClassifier, ClassifierReport]:
+                             correspondence_weight: float = 1.0, displaced: NDArray | None = None,
+                             progress: bool = False) -> tuple[WeatherClassifier, ClassifierReport]:
     """Train a `WeatherClassifier` on all frames but a stratified held-out share, report on the held-out ones.
 
     Loss per step: cross-entropy of the weather classes on the batch's true pairs, plus ``correspondence_weight`` x
@@ -54,7 +55,8 @@ def train_weather_classifier(inputs: NDArray, labels: NDArray, classes: Sequence
     this term the fused feature is blind to their alignment (measured: the sensitivity control was not detected).
     ``displaced``: optional (N, 3, h, w) LiDAR channels of each frame with its particle echoes moved elsewhere
     (`weatheralign.verify.frames.displaced_particle_channels`; NaN for a frame without particles): the hardest
-    mismatch, the right scene with the wrong particles, which half the negatives of such a frame become."""
+    mismatch, the right scene with the wrong particles, which half the negatives of such a frame become.
+    ``progress``: a progress bar over the steps with the running loss."""
     inputs, labels = np.asarray(inputs, dtype=np.float32), np.asarray(labels, dtype=np.int64)
     _check(inputs, labels, classes)
     index = np.arange(len(inputs))
@@ -70,7 +72,8 @@ def train_weather_classifier(inputs: NDArray, labels: NDArray, classes: Sequence
         raise ValueError(f"displaced must be (N, {LIDAR_CHANNELS}, h, w) like the inputs' LiDAR, got {tuple(hard.shape)}")
     loss = torch.zeros(())
     model.train()
-    for _ in range(steps):
+    bar = tqdm(range(steps), desc="verify: weather classifier", unit="step", disable=not progress)
+    for step in bar:
         pick = torch.from_numpy(rng.choice(train_idx, size=min(batch_size, len(train_idx)), replace=False))
         xb = x[pick]
         flip = torch.from_numpy(rng.random(len(pick)) < 0.5)
@@ -88,6 +91,8 @@ def train_weather_classifier(inputs: NDArray, labels: NDArray, classes: Sequence
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
+        if progress and step % 20 == 0:
+            bar.set_postfix(loss=f"{float(loss.detach()):.3f}")
     predicted = predict_classes(model, inputs[test_idx], device=device)
     confusion = confusion_matrix(labels[test_idx], predicted, labels=np.arange(len(classes))).astype(np.int64)
     accuracy = float(np.trace(confusion) / max(confusion.sum(), 1))

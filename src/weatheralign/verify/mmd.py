@@ -5,7 +5,8 @@ intervals and a paired test of two MMDs against one reference: the statistics of
 Conventions (stated once, used everywhere here):
 
 * The feature sets that are compared together are standardised together: pooled mean and standard deviation per
-  dimension (a dimension that is constant over the pool is left at 0).
+  dimension (a dimension that is constant over the pool is left at 0). Tests that must be comparable (a condition's
+  reference vs aligned, vs unaligned, and their paired difference) share the pool (``scale``) and so one kernel.
 * Gaussian kernel ``k(x, y) = exp(-|x - y|^2 / (2 l^2))`` with ``l`` the median Euclidean distance between distinct
   pooled, standardised vectors (the median heuristic; Gretton et al. 2012), computed with scikit-learn's
   ``pairwise_distances`` / ``rbf_kernel`` once per comparison: every permutation and resample reuses that matrix.
@@ -21,6 +22,7 @@ Shapes: feature sets are (n, d) float arrays, one row per frame.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,17 +32,28 @@ from sklearn.metrics.pairwise import pairwise_distances, rbf_kernel
 F64 = NDArray[np.float64]
 
 
-def standardise(*sets: NDArray) -> list[F64]:
-    """The feature sets (n_i, d) standardised with their pooled per-dimension mean and standard deviation."""
-    if not sets or any(np.ndim(s) != 2 for s in sets) or len({np.shape(s)[1] for s in sets}) != 1:
+def standardise(*sets: NDArray, using: Sequence[NDArray] | None = None) -> list[F64]:
+    """The feature sets (n_i, d) standardised with the pooled per-dimension mean and standard deviation of ``using``
+    (default: of the sets themselves)."""
+    scale_sets = tuple(sets) if using is None else tuple(using)
+    if not sets or any(np.ndim(s) != 2 for s in (*sets, *scale_sets)) or \
+            len({np.shape(s)[1] for s in (*sets, *scale_sets)}) != 1:
         raise ValueError(f"feature sets must be 2-D with one width, got shapes {[np.shape(s) for s in sets]}")
-    pooled = np.concatenate([np.asarray(s, dtype=np.float64) for s in sets])
-    if not np.isfinite(pooled).all():
+    pooled = np.concatenate([np.asarray(s, dtype=np.float64) for s in scale_sets])
+    everything = np.concatenate([np.asarray(s, dtype=np.float64) for s in sets])
+    if not (np.isfinite(pooled).all() and np.isfinite(everything).all()):
         raise ValueError("feature sets hold NaN or infinite values")
     std = pooled.std(axis=0)
-    scaled = (pooled - pooled.mean(axis=0)) / np.where(std > 0, std, 1.0)
+    scaled = (everything - pooled.mean(axis=0)) / np.where(std > 0, std, 1.0)
     bounds = np.cumsum([0] + [len(s) for s in sets])
     return [scaled[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
+
+
+def _scale_and_bandwidth(sets: Sequence[NDArray], scale: Sequence[NDArray] | None) -> tuple[list[F64], float]:
+    """``sets`` standardised with ``scale``'s pooled statistics (default: their own) and the median-heuristic
+    bandwidth of the standardised ``scale`` pool."""
+    scale = tuple(sets) if scale is None else tuple(scale)
+    return standardise(*sets, using=scale), median_bandwidth(np.concatenate(standardise(*scale)))
 
 
 def median_bandwidth(z: NDArray) -> float:
@@ -110,11 +123,12 @@ class MmdTest:
 
 
 def mmd_test(x: NDArray, y: NDArray, permutations: int = 1000, resamples: int = 1000, seed: int = 0,
-             confidence: float = 0.95, batch: int = 250) -> MmdTest:
-    """Two-sample MMD test of feature sets ``x`` (m, d) and ``y`` (n, d) under the module's conventions."""
-    xs, ys = standardise(x, y)
+             confidence: float = 0.95, batch: int = 250, scale: Sequence[NDArray] | None = None) -> MmdTest:
+    """Two-sample MMD test of feature sets ``x`` (m, d) and ``y`` (n, d) under the module's conventions; ``scale``:
+    the sets whose pool sets the standardisation and the bandwidth (default: x and y), so that several tests share
+    one kernel."""
+    (xs, ys), bandwidth = _scale_and_bandwidth((x, y), scale)
     z = np.concatenate([xs, ys])
-    bandwidth = median_bandwidth(z)
     K = gaussian_kernel(z, bandwidth)
     m, n = len(xs), len(ys)
     observed = mmd2_unbiased(K, m)
@@ -151,12 +165,12 @@ class PairedMmdDifference:
 def paired_mmd_difference(reference: NDArray, a: NDArray, b: NDArray, permutations: int = 1000,
                           resamples: int = 1000, seed: int = 0, confidence: float = 0.95) -> PairedMmdDifference:
     """Is ``a`` (n, d) closer to ``reference`` (r, d) than its paired set ``b`` (n, d)? All three standardised
-    together, one kernel (median heuristic over the three) for both MMDs."""
+    together, one kernel (median heuristic over the three) for both MMDs: ``mmd2_a`` and ``mmd2_b`` equal
+    `mmd_test` of each against the reference with ``scale=(reference, a, b)``."""
     if len(a) != len(b):
         raise ValueError(f"paired sets need one row per frame in both: {len(a)} vs {len(b)}")
-    rs, as_, bs = standardise(reference, a, b)
+    (rs, as_, bs), bandwidth = _scale_and_bandwidth((reference, a, b), None)
     z = np.concatenate([rs, as_, bs])
-    bandwidth = median_bandwidth(z)
     K = gaussian_kernel(z, bandwidth)
     r, n = len(rs), len(as_)
     ref_idx = np.arange(r)

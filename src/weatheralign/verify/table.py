@@ -29,6 +29,11 @@ def _ci(pair: Any) -> str:
     return "" if not pair else f" [{pair[0]:.3f}, {pair[1]:.3f}]"
 
 
+def _sources(severity: Mapping[str, Any]) -> str:
+    rates = severity.get("rates") or {}
+    return ", ".join(f"{k} {v}" for k, v in rates.items()) or "params"
+
+
 def table_markdown(metrics: Mapping[str, Any]) -> str:
     """Markdown: ours per verified condition (re-projection, MMD² aligned / unaligned with p-values and intervals,
     the paired difference, the control, D_KS, KID), then the paper's real-data row per weather."""
@@ -36,8 +41,8 @@ def table_markdown(metrics: Mapping[str, Any]) -> str:
     names = list(conditions)
     lines = ["# Table 1 regenerated: re-projection error and MMD of fused features", "",
              f"Reference: `{metrics.get('reference_source')}` ({metrics.get('reference_root')}); severity: fog levels "
-             f"from {metrics['severity']['fog_levels']}, snow {metrics['severity']['snow_rate_mm_h']} mm/h, rain "
-             f"{metrics['severity']['rain_rate_mm_h']} mm/h. Weather classifier held-out accuracy "
+             f"from {metrics['severity']['fog_levels']}, snow {metrics['severity']['snow_rate_mm_h']:.3g} mm/h, rain "
+             f"{metrics['severity']['rain_rate_mm_h']:.3g} mm/h (rates: {_sources(metrics['severity'])}). Weather classifier held-out accuracy "
              f"{metrics['classifier_accuracy']:.3f} ({metrics['classifier_held_out']} frames). MMD² is the unbiased "
              "estimator on the classifier's fused features (Gaussian kernel, median heuristic on the pooled, "
              "standardised features); p: permutation p-value; brackets: frame-bootstrap interval.", "",

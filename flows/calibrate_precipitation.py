@@ -1,0 +1,127 @@
+"""`calibrate_precipitation` stage: ReDAM for snow and rain — the rates of the simulation tuned to a reference with
+real snow and rain.
+
+``python -m flows.calibrate_precipitation`` opens the reference of the `reference` stage (its clear split and the
+``snow`` / ``rain`` splits it has) and, per kind: runs the reference's clear scans through the fast particle simulator
+(`simulate_particles`, the reference's LiDAR with its detector noise, one mapped task per grid rate of
+``calibrate_precipitation.<kind>_rates``), measures the open-path echo rate of every scan
+(`weatheralign.calibrate.precipitation`), and finds the rate whose mean matches the reference split's, with a frame
+bootstrap interval. The camera side of the check (KID, visibility) is in the `verify` stage, which simulates the
+reference frames at these rates.
+
+Writes ``<paths.data>/calibrate_precipitation/rates.json`` (``{snow|rain: {rate_mm_h, ci_low, ci_high}}``: what
+the media stage applies to the particle fields with ``simulate.precipitation_rates: calibrated``),
+``reports/calibrate_precipitation/metrics.json`` and ``rates.png`` (the statistic against the rate, per kind, with the
+reference's mean and interval), also logged to MLflow. The synthetic reference's sealed truth is never read here.
+"""
+
+from __future__ import annotations
+
+import time
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from prefect import flow  # noqa: E402
+
+from flows.common import gather, parse_stage_args, run_stage  # noqa: E402
+from tasks.calibrate import precipitation_statistics_task  # noqa: E402
+from tasks.tracking import StageTracker  # noqa: E402
+from weatheralign import atomic  # noqa: E402
+from weatheralign.calibrate.precipitation import RateFit, fit_rate, reference_statistics  # noqa: E402
+from weatheralign.config import Params  # noqa: E402
+from weatheralign.data.errors import DataFormatError  # noqa: E402
+from weatheralign.manifest import PRECIPITATION_RATES_FILE  # noqa: E402
+from weatheralign.reference import PRECIPITATION_LEVELS, configured_reference, reference_lidar_model  # noqa: E402
+
+
+def rates_figure(fits: dict[str, RateFit], reference: dict[str, np.ndarray], simulated: dict[str, np.ndarray]):
+    """Per kind: the simulated open-path echo rate (mean and per-frame spread) against the rate, the reference's mean
+    with its frame-bootstrap spread, and the tuned rate with its interval."""
+    fig, axes = plt.subplots(1, len(fits), figsize=(5.2 * len(fits), 3.8), squeeze=False)
+    for ax, (kind, fit) in zip(axes[0], fits.items()):
+        rates, sim = np.asarray(fit.rates), simulated[kind]
+        ax.fill_between(rates, np.percentile(sim, 10, axis=1), np.percentile(sim, 90, axis=1), color="tab:blue",
+                        alpha=0.2, label="simulated, 10-90 % of frames")
+        ax.plot(rates, sim.mean(axis=1), "o-", color="tab:blue", label="simulated mean")
+        ref = reference[kind]
+        se = ref.std(ddof=1) / np.sqrt(len(ref)) if len(ref) > 1 else 0.0
+        ax.axhspan(ref.mean() - 2 * se, ref.mean() + 2 * se, color="0.5", alpha=0.25)
+        ax.axhline(ref.mean(), color="black", lw=1.2, label=f"reference {kind} ({len(ref)} frames) ± 2 SE")
+        ax.axvline(fit.rate_mm_h, color="tab:red", lw=1.5, label=f"tuned {fit.rate_mm_h:.3g} mm/h")
+        ax.axvspan(fit.ci_low, fit.ci_high, color="tab:red", alpha=0.12)
+        ax.set(xscale="log", yscale="log", xlabel=f"{kind} rate [mm/h]", ylabel="isolated echoes per open beam",
+               title=f"{kind}: open-path echo rate (≤ 20 m)")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+@flow(name="calibrate_precipitation", log_prints=True)
+def calibrate_precipitation_flow(params: Params) -> dict:
+    """The tuned rate per precipitation split of the reference; returns the metrics written to
+    reports/calibrate_precipitation/metrics.json."""
+    cfg = params.calibrate_precipitation
+    t0 = time.time()
+    with StageTracker(params, "calibrate_precipitation") as tracker:
+        ds = configured_reference(params, ("clear", *PRECIPITATION_LEVELS))
+        kinds = [k for k in PRECIPITATION_LEVELS if k in ds.splits and ds.ids(k)]
+        lidar = reference_lidar_model(params, ds)
+        tracker.log_params({"calibrate_precipitation": cfg.model_dump(mode="json"),
+                            "reference.source": params.reference.source, "reference_lidar": lidar.to_dict()})
+        clear = ds.ids("clear")
+        if len(clear) < 2:
+            raise DataFormatError(f"reference {ds.root}: calibrate_precipitation needs a clear split of two frames "
+                                  f"or more")
+        metrics: dict = {"reference_root": str(ds.root), "reference_source": params.reference.source,
+                         "kinds": kinds, "statistic": "isolated returns within 20 m per open beam"}
+        rates, fits, reference, simulated = {}, {}, {}, {}
+        for kind in kinds:
+            t_kind = time.time()
+            grid = tuple(cfg.snow_rates if kind == "snow" else cfg.rain_rates)
+            futures = [precipitation_statistics_task.submit(ds, kind, rate, lidar, params.particles) for rate in grid]
+            simulated[kind] = np.stack(gather(futures, f"calibrate_precipitation {kind}: rate grid",
+                                              params.run.show_progress))
+            reference[kind] = reference_statistics([ds.load_scan(i) for i in ds.ids(kind)], lidar)
+            fit = fit_rate(reference[kind], simulated[kind], grid, num_bootstrap=cfg.num_bootstrap,
+                           confidence=cfg.confidence, seed=cfg.seed)
+            fits[kind] = fit
+            rates[kind] = {"rate_mm_h": fit.rate_mm_h, "ci_low": fit.ci_low, "ci_high": fit.ci_high}
+            metrics[kind] = {**fit.metrics(), "frames_reference": len(reference[kind]), "frames_clear": len(clear),
+                             "seconds": round(time.time() - t_kind, 2)}
+            print(f"calibrate_precipitation {kind}: {fit.rate_mm_h:.3g} mm/h [{fit.ci_low:.3g}, {fit.ci_high:.3g}] "
+                  f"(reference {fit.reference_mean:.4g} isolated echoes per open beam)"
+                  + (f"; WARNING: outside the simulated grid {list(grid)}, widen calibrate_precipitation."
+                     f"{kind}_rates" if fit.beyond_grid else ""))
+        if not kinds:
+            print(f"calibrate_precipitation: reference {ds.root} has no snow or rain split; the particles params' "
+                  f"rates stay in force")
+        atomic.write_json(params.paths.data / PRECIPITATION_RATES_FILE,
+                          {**rates, "reference_root": str(ds.root), "reference_source": params.reference.source},
+                          indent=2)
+        figure = tracker.reports / "rates.png"
+        if fits:
+            fig = rates_figure(fits, reference, simulated)
+        else:
+            fig, ax = plt.subplots(figsize=(5, 2))
+            ax.text(0.5, 0.5, "no snow or rain split in the reference", ha="center", va="center")
+            ax.axis("off")
+        fig.savefig(figure, dpi=100)
+        plt.close(fig)
+        tracker.log_artifact(figure, "figures")
+        metrics["seconds"] = round(time.time() - t0, 2)
+        tracker.finish(metrics, logged={"seconds": metrics["seconds"]}, children={
+            kind: ({"weather": kind, "severity": f"{rates[kind]['rate_mm_h']:.3g} mm/h"},
+                   {k: v for k, v in metrics[kind].items() if isinstance(v, (int, float))}) for kind in kinds})
+    return metrics
+
+
+def main(argv: list[str] | None = None) -> dict:
+    params = parse_stage_args("calibrate_precipitation", argv)
+    return run_stage(calibrate_precipitation_flow, params)
+
+
+if __name__ == "__main__":
+    main()
