@@ -24,6 +24,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.ticker import NullFormatter  # noqa: E402
 from prefect import flow  # noqa: E402
 
 from flows.common import gather, parse_stage_args, run_stage  # noqa: E402
@@ -54,6 +55,8 @@ def rates_figure(fits: dict[str, RateFit], reference: dict[str, np.ndarray], sim
         ax.axvspan(fit.ci_low, fit.ci_high, color="tab:red", alpha=0.12)
         ax.set(xscale="log", yscale="log", xlabel=f"{kind} rate [mm/h]", ylabel="isolated echoes per open beam",
                title=f"{kind}: open-path echo rate (≤ 20 m)")
+        ax.set_xticks(rates, [f"{r:g}" for r in rates])
+        ax.xaxis.set_minor_formatter(NullFormatter())
         ax.legend(fontsize=7)
     fig.tight_layout()
     return fig
