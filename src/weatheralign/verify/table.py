@@ -29,6 +29,11 @@ def _ci(pair: Any) -> str:
     return "" if not pair else f" [{pair[0]:.3f}, {pair[1]:.3f}]"
 
 
+def _kid(c: Mapping[str, Any]) -> str:
+    spread = f" ± {_num(c['kid_std'])}" if c.get("kid_std", 0.0) > 1e-9 else ""  # all frames in one subset: none
+    return f"{_num(c['kid'])}{spread} ({c['kid_backbone']})"
+
+
 def _sources(severity: Mapping[str, Any]) -> str:
     rates = severity.get("rates") or {}
     return ", ".join(f"{k} {v}" for k, v in rates.items()) or "params"
@@ -63,7 +68,7 @@ def table_markdown(metrics: Mapping[str, Any]) -> str:
                                                   f"(p {_p(c['mmd_difference_p'])})")
     row("control: broken pairs", lambda c: f"{_num(c['control_mmd'])} (p {_p(c['control_p'])})")
     row("LiDAR D_KS vs reference", lambda c: f"{_num(c['ks'])} [{c['ks_ci_low']:.3f}, {c['ks_ci_high']:.3f}]")
-    row("camera KID", lambda c: f"{_num(c['kid'])} ± {_num(c['kid_std'])} ({c['kid_backbone']})")
+    row("camera KID", _kid)
     row("camera visibility ratio", lambda c: _num(c.get("camera_visibility_ratio"), 3))
     weathers = list(dict.fromkeys(WEATHER_OF.get(n, n) for n in names))
     lines += ["", "## The paper (real nuScenes weather; not targets)", "",
