@@ -56,12 +56,18 @@ class Severity:
             "rain": self.particles.rain.model_copy(update={"rate_mm_h": self.rain_rate_mm_h})})
 
 
+def camera_from_lidar(frame: Frame) -> NDArray[np.float64]:
+    """(4, 4) LiDAR -> stereo-left camera (OpenCV axes) of ``frame``."""
+    view = frame.cameras[CAMERA_CHANNEL]
+    return invert(np.asarray(view.T_ego_cam, dtype=np.float64)) @ np.asarray(frame.lidar.T_ego_lidar)
+
+
 def frame_fused_input(frame: Frame, image: NDArray[np.uint8], points: NDArray, intensity_max: float,
                       out_hw: tuple[int, int]) -> NDArray[np.float32]:
     """(6, h, w) fused input of ``frame``'s stereo-left ``image`` and the LiDAR ``points`` (N, >=4) [m, intensity in
     0..``intensity_max``] in the LiDAR frame."""
     view = frame.cameras[CAMERA_CHANNEL]
-    T_cam_lidar = invert(np.asarray(view.T_ego_cam, dtype=np.float64)) @ np.asarray(frame.lidar.T_ego_lidar)
+    T_cam_lidar = camera_from_lidar(frame)
     lidar = lidar_image_channels(points[:, :3], points[:, 3] / intensity_max, view.K, T_cam_lidar,
                                  (view.height, view.width), out_hw)
     return fused_input(image, lidar)
@@ -76,7 +82,7 @@ def displaced_particle_channels(frame: Frame, points: NDArray, intensity_max: fl
     height: the right scene with the wrong particles). ``seed``: the turns."""
     mask = isolated_mask(points[:, :3], azimuth_step_rad=azimuth_step_rad)
     view = frame.cameras[CAMERA_CHANNEL]
-    T_cam_lidar = invert(np.asarray(view.T_ego_cam, dtype=np.float64)) @ np.asarray(frame.lidar.T_ego_lidar)
+    T_cam_lidar = camera_from_lidar(frame)
     echoes = points[mask]
     cam = echoes[:, :3] @ T_cam_lidar[:3, :3].T + T_cam_lidar[:3, 3]
     uvw = cam @ np.asarray(view.K).T
