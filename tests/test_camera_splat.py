@@ -319,12 +319,14 @@ def test_materialize_for_camera_is_the_exact_resolvable_subset() -> None:
 
 
 def test_unresolved_profile_integrates_the_field() -> None:
+    """The camera's unresolved medium is the particles' geometric shadow: half the beam extinction (Q_ext = 2) of
+    the field's particles below the splatting threshold."""
     fld = _snow_field()
     f = 1266.0
     prof = unresolved_extinction_profile(fld, f, SNOW, near_clip=0.5)
-    total = fld.extinction()
+    total = 0.5 * fld.extinction()
     for ell in (0.3, 2.0, 9.0, 20.0):
-        expected = quad(lambda r: fld.unresolved_extinction(float(min_splat_diameter(r, f, SNOW, 0.5)))
+        expected = quad(lambda r: 0.5 * fld.unresolved_extinction(float(min_splat_diameter(r, f, SNOW, 0.5)))
                         if r >= 0.5 else total, 0.0, ell, points=[0.5], limit=200)[0]
         assert float(prof.optical_depth(ell)) == pytest.approx(expected, rel=2e-3, abs=1e-7)
     r_end = max_splat_range(fld.spectrum.d_max, f, SNOW)
@@ -337,6 +339,27 @@ def test_unresolved_profile_integrates_the_field() -> None:
     tr = prof.transmission(rmap, fog_alpha=0.01)
     assert tr.dtype == np.float32
     np.testing.assert_allclose(tr[0, :2], np.exp(-0.01 * rmap[0, :2] - prof.optical_depth(rmap[0, :2])), rtol=1e-6)
+
+
+@pytest.mark.parametrize("distribution", [SnowSizeDistribution(2.0, 1.5), RainSizeDistribution(50.0)])
+def test_unresolved_profile_matches_the_exact_cameras_medium(distribution) -> None:
+    """The fast camera and the synthetic reference's exact camera (`camera_particles_exact.UnresolvedMedium`, closed
+    form) see the same unresolved medium when they resolve the same particles: splatting from ``D = k ℓ`` on, the
+    optical depth gained between two ray lengths agrees, and beyond the last resolved range both grow at the bulk
+    geometric shadow."""
+    from weatheralign.reference.camera_particles_exact import UnresolvedMedium
+
+    fld = ParticleField(5, distribution, velocity=(0.0, 0.0, -1.0), t_ref=0.0)
+    f, near = 1266.0, 0.5
+    prof = unresolved_extinction_profile(fld, f, SNOW, near_clip=near, samples=4096)
+    k = float(min_splat_diameter(1.0, f, SNOW, near))  # the splatting threshold per metre of ray length
+    exact = UnresolvedMedium.of(fld, resolve_px=k * f, focal_px=f, max_distance=prof.r_end)
+    for a, b in ((near, 2.0), (2.0, 7.0), (near, prof.r_end)):
+        gained = float(prof.optical_depth(b) - prof.optical_depth(a))
+        assert gained == pytest.approx(float(exact.optical_depth_to(b) - exact.optical_depth_to(a)), rel=1e-4)
+    beyond = float(prof.optical_depth(prof.r_end + 30.0) - prof.optical_depth(prof.r_end + 10.0)) / 20.0
+    assert beyond == pytest.approx(exact.alpha_total, rel=1e-9)
+    assert beyond == pytest.approx(0.5 * fld.extinction(), rel=1e-9)
 
 
 def test_rain_field_end_to_end_small_camera() -> None:

@@ -392,6 +392,38 @@ def small_scan():
     return d, r0, np.where(np.isfinite(r0), 10.0, 0.0)
 
 
+def test_undetectable_drop_echo_leaves_the_target_to_the_receiver():
+    """A drop near the sensor whose raw echo (1/r²) beats a faint target's but whose intensity is under the floor:
+    the strongest peak is the drop's, the target's own echo crest is kept as the second return (the waveform there,
+    read as an intensity at the target's range) and a strongest-return receiver reports the target."""
+    r_drop, r_target, i_target, rho = 2.0, 15.0, 3.0, 0.02
+    d = np.array([[1.0, 0.0, 0.0]])
+    diam = 2.0 * 0.4 * r_drop * TAN_A  # covers ~16 % of the cone
+    pos = ORIGIN + d[0] * (r_drop + diam / 2)
+    res = returns_from_particles(ORIGIN, d, [r_target], [i_target], pos[None], [diam], [9], rho, SENSOR)
+    ret = res.returns
+    assert ret.source[0] == PARTICLE and ret.power[0] < 1.0 and res.particle_hits[0] > 0
+    R_t = r_target + L / 2
+    pulses, cont = beam_waveform(np.array([R_t]), 0, ORIGIN, d, [r_target], [i_target], pos[None], [diam], rho,
+                                 SENSOR)
+    assert ret.target_r_peak[0] == pytest.approx(R_t)
+    assert ret.target_power[0] == pytest.approx((pulses[0] + cont[0]) * r_target**2 * gain(r_target), rel=1e-9)
+    unblocked = 1.0 - res.particle_hits[0] / 64
+    assert ret.target_power[0] == pytest.approx(i_target * unblocked, rel=1e-6)  # the drop's echo ended long before
+    exact = Detector(intensity_noise_std=0.0, intensity_noise_rel=0.0, noise_floor=1.0, range_noise_std=0.0)
+    out = read_out(ret, SENSOR, exact, np.random.default_rng(0))
+    assert out.index.tolist() == [0] and out.source[0] == TARGET
+    assert out.range[0] == pytest.approx(r_target) and out.intensity[0] == round(i_target * unblocked)
+    # without the second return (a receiver that only reads the strongest peak) the target would be lost
+    first_only = type(ret)(ret.power, ret.r_peak, ret.source)
+    assert len(read_out(first_only, SENSOR, exact, np.random.default_rng(0)).index) == 0
+    # a detectable drop echo is reported instead of the target (the strongest detected echo)
+    loud = returns_from_particles(ORIGIN, d, [r_target], [i_target], pos[None], [diam], [9], 0.9, SENSOR).returns
+    assert loud.source[0] == PARTICLE and loud.power[0] > 1.0
+    out = read_out(loud, SENSOR, exact, np.random.default_rng(0))
+    assert out.source[0] == PARTICLE and out.range[0] == pytest.approx(loud.r_peak[0] - L / 2)
+
+
 def test_deterministic_bytes_and_seeded_pattern():
     d, r0, i0 = small_scan()
     field = ParticleField(8, SnowSizeDistribution(2.5, 1.5))

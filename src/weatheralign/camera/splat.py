@@ -24,15 +24,17 @@ Contract with the caller (the ``simulate`` stage):
    queries in range shells with the per-range threshold `min_splat_diameter` (``D ≥ sqrt(0.3) ℓ / (f k)``), keeping
    exactly the particles with ``D ≥ min_splat_diameter(ℓ)`` inside the frustum (plus the footprint margin).
 2. Everything else is unresolved: at ray length r the particles with ``D < min_splat_diameter(r)`` (all of them
-   nearer than ``near_clip`` or beyond ``max_range``) contribute the extinction ``field.unresolved_extinction(
-   min_splat_diameter(r))``. `unresolved_extinction_profile` integrates it into an optical depth ``τ_u(ℓ)``
+   nearer than ``near_clip`` or beyond ``max_range``) contribute their geometric shadow, the extinction
+   ``field.unresolved_extinction(min_splat_diameter(r)) · Q_IMAGING / Q_EXT_GEOMETRIC`` (half the beam extinction:
+   the diffracted half stays inside the pixel, `weatheralign.medium.distributions.Q_IMAGING`; the synthetic
+   reference's exact camera counts the same). `unresolved_extinction_profile` integrates it into an optical depth ``τ_u(ℓ)``
    (`UnresolvedExtinction`). The camera fog must use the transmission
    ``t(ℓ) = exp(-fog_alpha ℓ - τ_u(ℓ))`` on the scene's ray length ℓ (`UnresolvedExtinction.transmission`), with
    the same scene airlight, and `render_particles` must get the same ``fog_alpha``, ``airlight`` and ``unresolved``
    so that the particles' pre-fogged colours match; the veiling of the unresolved particles is the airlight term
-   ``A (1 - t)``. Where a fog model only takes a constant coefficient, use ``fog_alpha + field.extinction()``
-   (this double-counts the splatted particles' own extinction, an optical depth of
-   `UnresolvedExtinction.resolved_optical_depth`: 0.012 for the paper's snow, 0.006 for its rain at f = 1266 px).
+   ``A (1 - t)``. Where a fog model only takes a constant coefficient, use ``fog_alpha +
+   UnresolvedExtinction.total_extinction`` (this double-counts the splatted particles' own shadow, an optical depth
+   of `UnresolvedExtinction.resolved_optical_depth`: 0.006 for the paper's snow, 0.003 for its rain at f = 1266 px).
    Build the profile with the same ``appearance``, ``near_clip`` and ``max_range`` as the materialisation (once per
    camera and field: it does not depend on time). With nuScenes' f ≈ 1266 px nothing is resolvable beyond
    `max_splat_range`: ~23 m for snow (20 mm flakes), ~7 m for rain (6 mm drops).
@@ -56,7 +58,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from weatheralign.geometry import invert
-from weatheralign.medium.distributions import ExponentialSizeDistribution
+from weatheralign.medium.distributions import Q_EXT_GEOMETRIC, Q_IMAGING, ExponentialSizeDistribution
 from weatheralign.medium.field import DEFAULT_MAX_PARTICLES, ParticleField, Particles
 
 F64 = NDArray[np.float64]
@@ -300,14 +302,16 @@ def _transmission_kernel(r: NDArray, near: float, r_end: float, table: NDArray, 
 class UnresolvedExtinction:
     """Optical depth of the particles a camera does not splat, along its rays.
 
-    ``τ_u(ℓ) = ∫_0^ℓ E(r) dr`` with ``E(r) = field.unresolved_extinction(min_splat_diameter(r))`` [1/m]: the full
-    extinction ``total_extinction`` nearer than ``near_clip`` and beyond ``r_end`` (nothing is splatted there),
-    tabulated on a uniform grid in between and linearly interpolated.
+    ``τ_u(ℓ) = ∫_0^ℓ E(r) dr`` with ``E(r) = field.unresolved_extinction(min_splat_diameter(r)) · Q_IMAGING /
+    Q_EXT_GEOMETRIC`` [1/m] (the geometric shadow: see the module contract): the full ``total_extinction`` nearer
+    than ``near_clip`` and beyond ``r_end`` (nothing is splatted there), tabulated on a uniform grid in between and
+    linearly interpolated.
 
     Attributes:
         near_clip: [m]; r_end: last splatting range [m] (``min(max_range, max_splat_range)``).
         table: (M,) τ_u at ``linspace(near_clip, r_end, M)``.
-        total_extinction: bulk extinction of all particles [1/m].
+        total_extinction: the geometric shadow of all particles [1/m] (``field.extinction() · Q_IMAGING /
+            Q_EXT_GEOMETRIC``).
     """
 
     near_clip: float
@@ -342,19 +346,21 @@ class UnresolvedExtinction:
 def unresolved_extinction_profile(medium: ParticleField | ExponentialSizeDistribution, focal: float,
                                   appearance: ParticleAppearance, near_clip: float = 0.5,
                                   max_range: float = math.inf, samples: int = 512) -> UnresolvedExtinction:
-    """`UnresolvedExtinction` of ``medium`` for a camera of focal length ``focal`` [px] (see the module contract).
+    """`UnresolvedExtinction` of ``medium`` for a camera of focal length ``focal`` [px] (see the module contract):
+    the unresolved particles' geometric shadow (extinction efficiency `Q_IMAGING`).
 
     Use the same ``appearance``, ``near_clip`` and ``max_range`` as `materialize_for_camera`.
     """
     spec = _spectrum_of(medium)
-    total = spec.extinction()
+    shadow = Q_IMAGING / Q_EXT_GEOMETRIC  # `extinction` counts Q_EXT_GEOMETRIC
+    total = shadow * spec.extinction()
     near = float(near_clip)
     r_cut = min(float(max_range), max_splat_range(spec.d_max, focal, appearance))
     if not r_cut > near:
         return UnresolvedExtinction(near, near, np.array([total * near]), total)
     r = np.linspace(near, r_cut, samples)
     m = min_splat_diameter(r, focal, appearance, near, r_cut)
-    e = np.array([spec.extinction(d_hi=float(x)) if x < spec.d_max else total for x in m])
+    e = np.array([shadow * spec.extinction(d_hi=float(x)) if x < spec.d_max else total for x in m])
     tau = total * near + np.concatenate([[0.0], np.cumsum(0.5 * (e[1:] + e[:-1]) * np.diff(r))])
     return UnresolvedExtinction(near, float(r_cut), tau, total)
 

@@ -44,6 +44,12 @@ RAIN_REFLECTIVITY = 0.02
 Q_EXT_GEOMETRIC = 2.0
 """Extinction efficiency of particles much larger than the wavelength (geometric-optics limit)."""
 
+Q_IMAGING = 1.0
+"""Extinction efficiency of snowflakes and raindrops for a camera pixel: their geometric shadow. The other half of
+`Q_EXT_GEOMETRIC` is light diffracted into a lobe of ``λ / D`` (~0.5 mrad for a 1 mm particle in visible light),
+narrower than a pixel (~0.8 mrad at nuScenes' f ≈ 1266 px): the pixel keeps it. (A LiDAR beam of 3 mrad keeps it
+too: `weatheralign.lidar.particles` counts the shadow once as well.)"""
+
 SnowModel = Literal["gunn_marshall", "sekhon_srivastava"]
 
 

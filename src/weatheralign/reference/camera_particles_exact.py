@@ -90,11 +90,8 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from weatheralign.medium.distributions import Q_EXT_GEOMETRIC, rain_terminal_velocity
+from weatheralign.medium.distributions import Q_EXT_GEOMETRIC, Q_IMAGING, rain_terminal_velocity
 from weatheralign.medium.field import ParticleField, Particles, _mix, _mix_py
-
-Q_IMAGING = 1.0
-"""Extinction efficiency of the unresolved particles for the camera: the geometric shadow (see the module docstring)."""
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]

@@ -262,11 +262,18 @@ class ExactReturns:
         power: (N,) peak power in intensity units (``C`` times the response), before the detector.
         r_peak: (N,) peak position on the receiver axis [m] (the reported range is ``r_peak - c τ_H / 2``).
         source: (N,) uint8 `TARGET` or `FOG` (0: nothing received, e.g. β = 0 on a beam without target).
+        target_power: (N,) where the strongest peak is not the target's: the received power at the target's own
+            echo crest (``r_peak`` ``r0 + c τ_H / 2``, in intensity units at the target's range), 0 elsewhere; the
+            return `read_out` reports when the strongest peak is too weak to be detected. None: no such second
+            return (the fog process, whose continuum has no separate echo).
+        target_r_peak: (N,) that crest's position on the receiver axis [m] (0 where ``target_power`` is 0), or None.
     """
 
     power: F64
     r_peak: F64
     source: NDArray[np.uint8]
+    target_power: F64 | None = None
+    target_r_peak: F64 | None = None
 
 
 @njit(cache=True, nogil=True)
@@ -440,21 +447,41 @@ class Readout:
     source: NDArray[np.uint8]
 
 
-def read_out(returns: ExactReturns, sensor: ExactSensor, detector: Detector, rng: np.random.Generator) -> Readout:
-    """Detector chain: saturate at ``sensor.saturation``, add intensity noise (`Detector`), round to integers
-    0..255, keep the peaks whose measured and rounded intensities are at or above the noise floor and whose reported
-    range ``r_peak - c τ_H / 2`` (+ range noise) lies in ``[min_range, max_range]``. Noise is drawn for every beam
-    in a fixed order: the same generator state gives the same bytes."""
-    n = len(returns.power)
-    peak = np.minimum(returns.power, sensor.saturation)
+def _detect(power: F64, r_peak: F64, sensor: ExactSensor, detector: Detector,
+            rng: np.random.Generator) -> tuple[NDArray[np.bool_], F64, F64]:
+    """One reading of peaks ``power`` (N,) at ``r_peak`` (N,) [m]: (detected, reported range [m], integer
+    intensity 0..255), the noise drawn for all N in a fixed order."""
+    n = len(power)
+    peak = np.minimum(power, sensor.saturation)
     std = np.sqrt(detector.intensity_noise_std ** 2 + (detector.intensity_noise_rel * peak) ** 2)
     measured = peak + std * rng.standard_normal(n)
     sigma = detector.range_noise_std
     jitter = np.clip(rng.normal(0.0, sigma, n), -2 * sigma, 2 * sigma) if sigma > 0 else np.zeros(n)
-    reported = returns.r_peak - 0.5 * sensor.pulse_length + jitter
+    reported = r_peak - 0.5 * sensor.pulse_length + jitter
     quantised = np.clip(np.rint(measured), 0.0, 255.0)
-    keep = ((returns.source > 0) & (measured >= detector.noise_floor) & (quantised >= detector.noise_floor)
-            & (reported >= sensor.min_range)
-            & (reported <= sensor.max_range))
+    detected = ((measured >= detector.noise_floor) & (quantised >= detector.noise_floor)
+                & (reported >= sensor.min_range) & (reported <= sensor.max_range))
+    return detected, reported, quantised
+
+
+def read_out(returns: ExactReturns, sensor: ExactSensor, detector: Detector, rng: np.random.Generator) -> Readout:
+    """Detector chain: saturate at ``sensor.saturation``, add intensity noise (`Detector`), round to integers
+    0..255, keep the peaks whose measured and rounded intensities are at or above the noise floor and whose reported
+    range ``r_peak - c τ_H / 2`` (+ range noise) lies in ``[min_range, max_range]``. A strongest-return receiver
+    reports the strongest *detected* echo: where the strongest peak is not detected and the beam has a second
+    return (``returns.target_power``, the target behind a particle's echo), that return is read the same way (its
+    own noise) and reported if detected. Noise is drawn for every beam in a fixed order (the second returns' after
+    the first): the same generator state gives the same bytes."""
+    detected, reported, quantised = _detect(returns.power, returns.r_peak, sensor, detector, rng)
+    keep = (returns.source > 0) & detected
+    source = returns.source.copy()
+    if returns.target_power is not None and returns.target_r_peak is not None:
+        t_detected, t_reported, t_quantised = _detect(returns.target_power, returns.target_r_peak, sensor,
+                                                      detector, rng)
+        second = ~keep & (returns.target_power > 0.0) & t_detected
+        reported = np.where(second, t_reported, reported)
+        quantised = np.where(second, t_quantised, quantised)
+        source[second] = TARGET
+        keep |= second
     idx = np.flatnonzero(keep)
-    return Readout(idx.astype(np.int64), reported[idx], quantised[idx], returns.source[idx])
+    return Readout(idx.astype(np.int64), reported[idx], quantised[idx], source[idx])

@@ -39,6 +39,14 @@ gain (a disc covering the beam at ``r`` reports ``scale ρ g(r)``). `ExactReturn
 `TARGET`, `FOG` (the continuum) or `PARTICLE` (all resolved particles together), whichever contributes most at the
 peak; `ParticleReturns.particle_id` names the particle contributing most to a `PARTICLE` peak.
 
+The receiver reports the strongest *detected* echo. Where the strongest peak is not the target's, the waveform at
+the target's own echo crest ``R = r0 + c τ_H / 2`` (intensity ``P · r0² · g(r0)``) is kept as the beam's second
+return (`ExactReturns.target_power`); `lidar_exact.read_out` reports it when the strongest peak is too weak to be
+detected. Without it a drop's echo near the sensor, strongest on the raw waveform (1/r²) but below the floor once
+read as an intensity, would hide a detectable target behind it: 1,300 of the ~100,000 targets within 20 m per scan
+at 78 mm/h of rain, five times what the fast simulator loses on the same scans and field (it reads the target's
+own echo in that case).
+
 Resolved and unresolved particles. A particle at range ``r`` is resolved when, centred in the beam, it would alone
 reach ``resolve_fraction`` of the detector noise floor: ``scale ρ min(1, (D / (r θ))²) g(r) >= resolve_fraction ·
 noise_floor``, i.e. ``D >= D_res(r)``. Space is cut into range shells by the particle centre's distance,
@@ -288,7 +296,7 @@ def particle_returns(origin: ArrayLike, directions: ArrayLike, r0: ArrayLike, i0
         raise ValueError(f"particle_returns: noise_floor = {noise_floor!r}; expected 0 < noise_floor <= 255")
     frac = float(resolve_fraction)
     if not (math.isfinite(frac) and 0.0 < frac <= 1e3):
-        raise ValueError(f"particle_returns: resolve_fraction = {resolve_fraction!r}; expected a finite value > 0")
+        raise ValueError(f"particle_returns: resolve_fraction = {resolve_fraction!r}; expected 0 < resolve_fraction <= 1000")
     theta = _check_divergence(divergence_rad)
     _check_sensor(sensor, intensity_model)
     _check_search(sub_rays, grid_step, seed)
@@ -529,7 +537,8 @@ def _run(o: F64, d: F64, r0: F64, i0: F64, pos: F64, diam: F64, ids: I64, rho: f
     upper bounds is exact: same peaks, for the tests)."""
     prep = _prepare(o, d, r0, i0, pos, diam, rho, sensor, unresolved, theta, sub_rays, im, grid_step, seed)
     if len(d) == 0:
-        return ParticleReturns(ExactReturns(np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.uint8)),
+        return ParticleReturns(ExactReturns(np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.uint8), np.zeros(0),
+                                            np.zeros(0)),
                                np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int32), len(pos), 0, 0, unresolved,
                                np.zeros(0))
     (o, d, r0, i0, phis, pos, diam, pair_start, pair_part, px, py, pn, tan_a, w_part, r1, r2, kappa, listen_end,
@@ -540,14 +549,16 @@ def _run(o: F64, d: F64, r0: F64, i0: F64, pos: F64, diam: F64, ids: I64, rho: f
     source = np.zeros(n, dtype=np.uint8)
     dominant = np.full(n, -1, dtype=np.int64)
     hits = np.zeros(n, dtype=np.int32)
+    target_power, target_r = np.zeros(n), np.zeros(n)
     _beams_kernel(o, d, r0, i0, phis, pos, diam, pair_start, pair_part, px, py, pn, tan_a, w_part, r1, r2, kappa,
                   listen_end, length, step, h, H0, Hc, Hs, H0n, Hcn, Hsn, H0l, Hcl, Hsl, cosn, sinn, G, sp,
                   bool(has_cont), u_edges, u_area, u_tau, r_ref, falloff, bool(prune), power, r_out, source, dominant,
-                  hits)
+                  hits, target_power, target_r)
     pid = np.full(n, -1, dtype=np.int64)
     sel = dominant >= 0
     pid[sel] = ids[dominant[sel]]
-    return ParticleReturns(ExactReturns(power, r_out, source), pid, hits, len(pos), int(pair_start[-1]),
+    return ParticleReturns(ExactReturns(power, r_out, source, target_power, target_r), pid, hits, len(pos),
+                           int(pair_start[-1]),
                            int(hits.sum()), unresolved, np.zeros(0))
 
 
@@ -1054,11 +1065,12 @@ def _events(b, o, dirs, r0s, i0s, phis, pos, diam, pair_start, pair_part, px, py
 def _beams_kernel(o, dirs, r0s, i0s, phis, pos, diam, pair_start, pair_part, px, py, pn, tan_a, w_part, r1, r2, kappa,
                   listen_end, length, step, h, H0, Hc, Hs, H0n, Hcn, Hsn, H0l, Hcl, Hsl, cosn, sinn, G, sp, has_cont,
                   u_edges, u_area, u_tau, r_ref, falloff, prune, power, r_out, source, dominant,
-                  hits):  # pragma: no cover
+                  hits, target_power, target_r):  # pragma: no cover
     """Per beam: sub-rays against the candidate particles and the target, the events sorted by range, the waveform
     swept over the grid nodes inside the echoes' supports (running sums: every node O(1)), the continuum alone in
     the gaps between them by range maxima of G times the unblocked share, a three-point fit through the best node's
-    neighbours, attribution at the refined peak."""
+    neighbours, attribution at the refined peak; where that peak is not the target's, the waveform at the target's
+    own echo crest (``target_power``, ``target_r``; 0 where the target's echo is fully blocked)."""
     omega = 2.0 * math.pi / length
     k_sub = px.shape[0]
     sin_w = math.sin(omega * step)
@@ -1293,6 +1305,18 @@ def _beams_kernel(o, dirs, r0s, i0s, phis, pos, diam, pair_start, pair_part, px,
         r_rep = R_best - 0.5 * length
         power[b] = vb * r_rep * r_rep * _gain(r_rep, r_ref, falloff) if r_rep > 0.0 else 0.0
         r_out[b] = R_best
+        # ---- the target's own return where the strongest peak is not it (the receiver's second choice)
+        if source[b] != TARGET and r0 < math.inf and r0 > 0.0:
+            R_t = r0 + 0.5 * length
+            pul_t, cont_t = _evaluate(R_t, n_ev, ev_s, ev_amp, ev_q, ev_h0, ev_hc, ev_hs, r0, length, omega,
+                                      has_cont, h, H0, Hc, Hs, hr0_0, hr0_c, hr0_s, parts)
+            own = 0.0
+            for e in range(n_ev):
+                if ev_p[e] < 0 and parts[e] > 0.0:
+                    own += parts[e]
+            if own > 0.0:
+                target_power[b] = (pul_t + cont_t) * r0 * r0 * _gain(r0, r_ref, falloff)
+                target_r[b] = R_t
 
 
 @njit(cache=True, nogil=True)
