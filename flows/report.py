@@ -26,9 +26,10 @@ STAGES_READ = ("world", "calibrate_fog", "simulate", "detect")
 """Stages whose ``reports/<stage>/metrics.json`` the summary reads."""
 
 COST_STAGES: tuple[tuple[str, str | None], ...] = (
-    ("world", "world"), ("reference", "reference"), ("calibrate_fog", None), ("particles", None), ("media", None),
-    ("simulate", "simulate"), ("detect", "detect"))
-"""(stage, its folder under ``paths.data`` or None) in pipeline order, for the cost table."""
+    ("world", "world"), ("reference", "reference"), ("calibrate_fog", None), ("calibrate_precipitation", None),
+    ("particles", None), ("media", None), ("simulate", "simulate"), ("verify", None), ("detect", "detect"))
+"""(stage, its folder under ``paths.data`` or None) in pipeline order, for the cost table: every stage of
+``dvc.yaml`` but ``simulate_summary`` (counted in ``simulate``) and ``report`` itself."""
 
 FIGURES: tuple[tuple[str, str], ...] = (
     ("A world sample: LiDAR BEV with boxes", "world/sample_bev.png"),

@@ -484,7 +484,7 @@ def test_bad_inputs_are_refused_with_the_expected_form():
         (dict(t=float("nan")), r"t = nan; expected a finite time"),
         (dict(reflectivity=1.5), r"reflectivity = 1.5; expected a particle reflectivity in \[0, 1\]"),
         (dict(noise_floor=0.0), r"noise_floor = 0.0; expected 0 < noise_floor <= 255"),
-        (dict(resolve_fraction=-1.0), r"resolve_fraction = -1.0; expected a finite value > 0"),
+        (dict(resolve_fraction=-1.0), r"resolve_fraction = -1.0; expected 0 < resolve_fraction <= 1000"),
         (dict(divergence_rad=0.0), r"divergence_rad = 0.0; expected a full divergence"),
         (dict(sub_rays=0), r"sub_rays = 0; expected an integer in \[1, 4096\]"),
         (dict(sub_rays=8.5), r"sub_rays = 8.5; expected an integer"),

@@ -67,6 +67,18 @@ def test_cost_table_totals():
     assert table.splitlines()[-1] == "| **total** | 6.0 min | 11.00 GB |"
 
 
+def test_cost_table_lists_every_stage_in_dvc_order():
+    """The cost table has a row for every stage of dvc.yaml (simulate_summary counted in simulate; the report
+    itself aside), in the pipeline's order."""
+    import yaml
+
+    from flows.report import COST_STAGES
+
+    stages = [s for s in yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
+              if s not in ("simulate_summary", "report")]
+    assert [stage for stage, _ in COST_STAGES] == stages
+
+
 def test_html_page_is_self_contained(tmp_path: Path):
     png = REPORTS / "detect" / "learning_curve.png"
     if not png.is_file():

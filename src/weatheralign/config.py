@@ -492,8 +492,8 @@ class CalibratePrecipitationConfig(_Section):
     resamples at ``confidence``, ``seed``)."""
 
     seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
-    snow_rates: tuple[Annotated[float, Field(gt=0.0, le=20.0)], ...] = (0.5, 1.0, 2.0, 4.0, 8.0)
-    rain_rates: tuple[Annotated[float, Field(gt=0.0, le=300.0)], ...] = (10.0, 25.0, 50.0, 100.0, 200.0)
+    snow_rates: tuple[Annotated[float, Field(gt=0.0, le=20.0)], ...] = (0.6, 1.8, 5.4)
+    rain_rates: tuple[Annotated[float, Field(gt=0.0, le=300.0)], ...] = (15.0, 45.0, 135.0)
     num_bootstrap: Annotated[int, Field(ge=10, le=100_000)] = 1000
     confidence: Annotated[float, Field(gt=0.5, lt=1.0)] = 0.95
 
@@ -522,7 +522,7 @@ class VerifyConfig(_Section):
 
     seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
     image_hw: tuple[Annotated[int, Field(ge=16, le=1024)], Annotated[int, Field(ge=16, le=2048)]] = (128, 240)
-    steps: Annotated[int, Field(ge=1, le=100_000)] = 1000
+    steps: Annotated[int, Field(ge=1, le=100_000)] = 600
     batch_size: Annotated[int, Field(ge=2, le=1024)] = 16
     lr: Annotated[float, Field(gt=0.0, le=1.0)] = 2e-3
     held_out_fraction: Annotated[float, Field(gt=0.0, lt=1.0)] = 0.25
@@ -555,14 +555,14 @@ class DetectConfig(_Section):
     bev_range_m: Annotated[float, Field(gt=10.0, le=100.0)] = 51.2
     bev_cell_m: Annotated[float, Field(gt=0.1, le=2.0)] = 0.8
     batch_size: Annotated[int, Field(ge=1, le=64)] = 2
-    pretrain_steps: Annotated[int, Field(ge=1, le=1_000_000)] = 1200
+    pretrain_steps: Annotated[int, Field(ge=1, le=1_000_000)] = 1000
     finetune_steps: Annotated[int, Field(ge=0, le=1_000_000)] = 160
     lr: Annotated[float, Field(gt=0.0, le=1.0)] = 2e-3
     finetune_lr: Annotated[float, Field(gt=0.0, le=1.0)] = 5e-4
     weight_decay: Annotated[float, Field(ge=0.0, le=1.0)] = 0.01
     modality_dropout: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.15
     mix_weather_fraction: Annotated[float, Field(gt=0.0, lt=1.0)] = 0.3
-    eval_every: Annotated[int, Field(ge=0, le=1_000_000)] = 400
+    eval_every: Annotated[int, Field(ge=0, le=1_000_000)] = 500
     score_threshold: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.05
     max_detections: Annotated[int, Field(ge=1, le=1000)] = 200
     num_bootstrap: Annotated[int, Field(ge=10, le=100_000)] = 200
