@@ -105,6 +105,9 @@ def read_inputs(params: Params) -> tuple[dict[str, dict[str, Any]], dict[str, An
     truth = read_json_file(truth_path, "") if truth_path.is_file() else None
     tables = [(reports / "detect" / name).read_text() for name in ("table_alignment.md", "table_finetune.md")
               if (reports / "detect" / name).is_file()]
+    rates = reports / "calibrate_precipitation" / "metrics.json"
+    if rates.is_file():  # ReDAM for snow and rain
+        metrics["calibrate_precipitation"] = read_json_file(rates, "")
     verify = reports / "verify" / "metrics.json"
     if verify.is_file():  # Table 1's MMD half (the verify stage)
         metrics["verify"] = read_json_file(verify, "run the stage verify first (dvc repro verify)")

@@ -50,6 +50,20 @@ def test_redam_table_reports_the_error_against_the_hidden_truth():
     assert "| — |" in redam_table({"light": level}, None)  # real data: no hidden truth
 
 
+def test_rate_table_reports_the_error_against_the_hidden_rate():
+    from weatheralign.report import rate_table
+
+    cal = {"kinds": ["snow", "rain"],
+           "snow": {"rate_mm_h": 2.89, "rate_ci_low": 2.02, "rate_ci_high": 4.07, "beyond_grid": False,
+                    "open_path_echo_rate_reference": 0.2215},
+           "rain": {"rate_mm_h": 53.2, "rate_ci_low": 42.6, "rate_ci_high": 67.3, "beyond_grid": True,
+                    "open_path_echo_rate_reference": 0.0065}}
+    table = rate_table(cal, {"snow": {"rate_mm_h": 2.958}, "rain": {"rate_mm_h": 78.19}})
+    assert "| snow | 2.89 [2.02, 4.07] | 2.958 | -2.3% | yes | 0.2215 | no |" in table
+    assert "| rain | 53.2 [42.6, 67.3] | 78.19 | -32.0% | no | 0.0065 | yes |" in table
+    assert "| snow | 2.89 [2.02, 4.07] | — | — | — |" in rate_table(cal, None)  # real data: no hidden truth
+
+
 def test_reprojection_table_shows_the_papers_figures_beside_aligned_snow_and_rain():
     m = {"points_unchanged": 10, "points_attenuated": 80, "points_scattered": 8, "points_lost": 2,
          "reprojection_mean_px": 0.0003, "reprojection_max_px": 0.009, "reprojection_pairs": 5}

@@ -57,6 +57,25 @@ def redam_table(calibrate: dict[str, Any], truth: dict[str, Any] | None) -> str:
     return "\n".join(lines)
 
 
+def rate_table(calibrate: dict[str, Any], truth: dict[str, Any] | None) -> str:
+    """ReDAM for snow and rain (``reports/calibrate_precipitation/metrics.json``): per weather the tuned rate with
+    its frame-bootstrap interval, the reference's open-path echo rate it was matched on, and, for the synthetic
+    reference, the hidden rate it was tuned blind to (relative error; whether the interval holds it)."""
+    lines = ["| weather | tuned rate [mm/h] [interval] | hidden rate [mm/h] | error | interval holds it | "
+             "echo rate matched (reference) | beyond the grid |", "| --- | --- | ---: | ---: | --- | ---: | --- |"]
+    for kind in calibrate.get("kinds", []):
+        m = calibrate.get(kind)
+        if not isinstance(m, dict) or "rate_mm_h" not in m:
+            continue
+        hidden = (truth or {}).get(kind, {}).get("rate_mm_h")
+        err = m["rate_mm_h"] / hidden - 1.0 if hidden else None
+        holds = "—" if hidden is None else ("yes" if m["rate_ci_low"] <= hidden <= m["rate_ci_high"] else "no")
+        lines.append(f"| {kind} | {m['rate_mm_h']:.3g} [{m['rate_ci_low']:.3g}, {m['rate_ci_high']:.3g}] | "
+                     f"{_num(hidden, '.4g')} | {'—' if err is None else f'{err:+.1%}'} | {holds} | "
+                     f"{m['open_path_echo_rate_reference']:.4g} | {'yes' if m.get('beyond_grid') else 'no'} |")
+    return "\n".join(lines)
+
+
 _FINDING_PATTERNS: list[tuple[str, str]] = [
     (r"pretrained:(?P<w>[^:]+):unaligned-aligned:(?P<m>\w+)",
      "evaluating the pretrained detector on unaligned instead of aligned {w} changes its {M} by"),
@@ -143,6 +162,12 @@ def summary_markdown(metrics: dict[str, dict[str, Any]], truth: dict[str, Any] |
               "(two-sample Kolmogorov-Smirnov distance, frame-bootstrap interval); the cameras get the same α. For "
               "the synthetic reference, the hidden levels it was tuned blind to are beside.", "",
               redam_table(metrics.get("calibrate_fog", {}), truth), ""]
+    if "calibrate_precipitation" in metrics:
+        parts += ["## ReDAM for snow and rain: rates tuned to the reference", "",
+                  "The snow and rain rates tuned so that the fast simulator's statistic "
+                  f"({metrics['calibrate_precipitation'].get('statistic', 'an echo rate')}) matches the reference's "
+                  "(frame-bootstrap interval). For the synthetic reference, the hidden rates it was tuned blind to "
+                  "are beside.", "", rate_table(metrics["calibrate_precipitation"], truth), ""]
     for table in detect_tables:
         parts += [re.sub(r"^(#+) ", r"#\1 ", table, flags=re.MULTILINE), ""]  # one level below the summary
     parts += ["## Figures", ""]
