@@ -61,16 +61,21 @@ SUMMARY_KEYS = ("map", "nds", "map_present", "map_ci", "nds_ci", "map_present_ci
 
 
 def weather_roots(params: Params, version: str) -> dict[str, Path]:
-    """Every weather copy of the simulate matrix, by variant name; a missing one is an error naming its stage."""
+    """Every weather copy of the simulate matrix, by variant name, from its manifest; a missing one is an error naming
+    its stage."""
     roots = {}
     for condition in CONDITIONS:
         for aligned in (True, False):
             name = variant_name(condition, aligned)
-            root = params.paths.data / "simulate" / name
-            if not (root / version / "sample.json").is_file():
-                raise DataFormatError(f"{root}: no weather copy (run the stage simulate@{name} first: "
+            path = manifest_path(params.paths.data, f"simulate-{name}")
+            if not path.is_file():
+                raise DataFormatError(f"{path}: no weather copy (run the stage simulate@{name} first: "
                                       f"dvc repro simulate@{name})")
-            roots[name] = root
+            manifest = read_manifest(path)
+            if manifest.version != version:
+                raise DataFormatError(f"{path}: version {manifest.version!r}; expected the world's {version!r} "
+                                      f"(rerun dvc repro simulate@{name})")
+            roots[name] = Path(manifest.dataroot)
     return roots
 
 

@@ -9,7 +9,8 @@ workers, completes the copy with hard links and tracks. An unaligned copy hard-l
 fingerprint, and computes them otherwise: the LiDAR sees the condition's own media in both copies. Writes
 ``<paths.data>/simulate/<condition>-<aligned|unaligned>/`` (a complete nuScenes dataroot) and
 ``reports/simulate/<condition>-<aligned|unaligned>/metrics.json`` plus a side-by-side figure (clean vs weather: LiDAR
-BEV coloured by label, CAM_FRONT), also logged to an MLflow child run.
+BEV coloured by label, CAM_FRONT), also logged to an MLflow child run, and hands the copy on by its manifest
+``<paths.data>/manifests/simulate-<condition>-<aligned|unaligned>.json`` (the stage's DVC output, written last).
 """
 
 from __future__ import annotations
@@ -29,7 +30,8 @@ from tasks.tracking import StageTracker
 from weatheralign.conditions import condition_named, condition_tags, variant_name
 from weatheralign.config import Params
 from weatheralign.data.nuscenes import load_frame, open_nuscenes
-from weatheralign.manifest import display_path, manifest_path, read_manifest
+from weatheralign.manifest import (DatasetManifest, dataset_digest, display_path, manifest_path, read_manifest,
+                                   write_manifest)
 from weatheralign.provenance import stage_fingerprint
 from weatheralign.simulate.media import ConditionMedia, media_path, read_media
 from weatheralign.simulate.observe import ObserveOptions
@@ -90,6 +92,8 @@ def simulate_flow(params: Params) -> dict:
     cfg = params.simulate
     name = variant_name(condition_named(cfg.condition).name, cfg.aligned)  # an unknown condition: named first
     media = read_media(media_path(params.paths.data, cfg.condition))
+    handoff = manifest_path(params.paths.data, f"simulate-{name}")
+    handoff.unlink(missing_ok=True)  # written last: a failed run leaves no handoff behind
     with StageTracker(params, "simulate", name=f"simulate/{name}",
                       tags=condition_tags(cfg.condition, cfg.aligned, *media.rates(params.particles))) as tracker:
         tracker.log_params({"simulate": cfg.model_dump(mode="json")})
@@ -123,6 +127,8 @@ def simulate_flow(params: Params) -> dict:
             side_by_side(src_root, out_root, world.version, jobs[0].sample_token, name, fig_path)
             tracker.log_artifact(fig_path, "figures")
         tracker.finish(metrics)
+        write_manifest(handoff, DatasetManifest(display_path(out_root), world.version, "simulate", world.sensors,
+                                                dataset_digest(out_root, world.version), world.scenes))
     return metrics
 
 

@@ -1,11 +1,12 @@
 """`world` stage: the clean multi-sensor dataset in nuScenes format, handed on by its manifest.
 
 Default: render the synthetic world into ``<paths.data>/world``. With ``world.source: nuscenes`` the stage checks a
-real nuScenes(-mini) dataroot instead (loads every sample's frame once), reports on it and writes only a pointer to it
-into ``<paths.data>/world`` (the stage's declared DVC output; `point_at_real`): the dataset is read in place. Either
-way it writes ``<paths.data>/manifests/world.json`` (`weatheralign.manifest`): the dataroot, version, sensor models
+real nuScenes(-mini) dataroot instead (loads every sample's frame once) and reports on it: the dataset is read in
+place, nothing is copied. Either way it writes ``<paths.data>/manifests/world.json`` (`weatheralign.manifest`): the dataroot, version, sensor models
 (from params for the synthetic world; estimated from the scans, with ``world.sensor_overrides``, for real data) and
 content digest, which every later stage reads. The manifest is removed first and written last, so a failed run leaves none.
+It is the stage's DVC output, not the dataset folder: DVC would hash every file of the rendered world (~11 GB, 13k
+files at the default: 40 s a run) where the manifest's digest already names every file by path and size.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from weatheralign.data.nuscenes import load_frame, load_lidar, open_nuscenes
 from weatheralign.manifest import DatasetManifest, dataset_digest, display_path, manifest_path, write_manifest
 from weatheralign.sensors import SensorRig, camera_models, estimate_lidar_model, lidar_model_from_params
 from weatheralign.viz import bev_figure, camera_mosaic
-from weatheralign.world.dataset import REAL_SOURCE_FILE, claim_dataroot, finalize, point_at_real, sample_jobs
+from weatheralign.world.dataset import claim_dataroot, finalize, sample_jobs
 
 
 def synthetic_dataroot(params: Params) -> Path:
@@ -37,7 +38,6 @@ def _render_synthetic(params: Params) -> tuple[Path, dict]:
     cfg = params.world
     dataroot = synthetic_dataroot(params)
     claim_dataroot(dataroot, cfg.version)  # before anything is written or removed
-    (dataroot / REAL_SOURCE_FILE).unlink(missing_ok=True)  # an earlier run's pointer to a user's dataset
     jobs = sample_jobs(cfg)
     t0 = time.time()
     nthreads = threads_per_task(params)
@@ -61,7 +61,6 @@ def _summarise_real(params: Params) -> tuple[Path, dict]:
     t0 = time.time()
     check = check_dataset(nusc, Path(cfg.nuscenes_dataroot), params.run.max_workers)
     check.raise_if_bad(Path(cfg.nuscenes_dataroot))  # every bad file at once, before any later stage writes
-    point_at_real(synthetic_dataroot(params), cfg.version, cfg.source, Path(cfg.nuscenes_dataroot))
     counts: dict[str, int] = {}
     for ann in nusc.sample_annotation:
         name = nusc.get("category", nusc.get("instance", ann["instance_token"])["category_token"])["name"]

@@ -37,7 +37,12 @@ def _stage_env(tiny_world, tmp: Path, root: Path, source: str):
         str(root), version, source, sensors, dataset_digest(root, version), tuple(s["name"] for s in nusc.scene)))
     for condition in CONDITIONS:
         for aligned in (True, False):
-            shutil.copytree(root, data / "simulate" / variant_name(condition, aligned), copy_function=os.link)
+            name = variant_name(condition, aligned)
+            copy = data / "simulate" / name
+            shutil.copytree(root, copy, copy_function=os.link)
+            write_manifest(manifest_path(data, f"simulate-{name}"), DatasetManifest(
+                str(copy), version, "simulate", sensors, dataset_digest(copy, version),
+                tuple(s["name"] for s in nusc.scene)))
     params = write_params_file(tmp / "params.yaml", {
         "paths": {"data": str(data), "reports": str(reports)},
         "tracking": {"enabled": True, "mlflow_uri": f"sqlite:///{tmp / 'mlflow.db'}"},

@@ -20,7 +20,7 @@ from weatheralign.config import params_from_dict
 from weatheralign.data.errors import DataFormatError
 from weatheralign.data.nuscenes import compressed_extras_relpath, load_frame, open_nuscenes, read_point_extras
 from weatheralign.lidar import simulate_fog
-from weatheralign.manifest import DatasetManifest, dataset_digest, manifest_path, write_manifest
+from weatheralign.manifest import DatasetManifest, dataset_digest, manifest_path, read_manifest, write_manifest
 from weatheralign.medium.conditions import field_spec
 from weatheralign.sensors import SensorRig, camera_models, lidar_model_from_params
 from weatheralign.simulate.media import (ConditionMedia, SceneMedia, calibrated_fog_levels, params_fog_levels,
@@ -278,6 +278,10 @@ def test_flow_writes_copy_and_metrics(world, tmp_path):
     assert metrics["points_lost"] + metrics["points_scattered"] > 0 and metrics["reprojection_pairs"] == 0
     assert (reports / "simulate" / "fog_dense-unaligned" / "side_by_side.png").is_file()
     assert len(open_nuscenes(out, version).sample) == len(nusc.sample)
+    handoff = read_manifest(manifest_path(data, "simulate-fog_dense-unaligned"))  # the stage's DVC output
+    assert Path(handoff.dataroot).resolve() == out.resolve() and handoff.source == "simulate"
+    assert handoff.content_digest == dataset_digest(out, version) != dataset_digest(tw.dataroot, version)
+    assert handoff.sensors == sensors and handoff.scenes == tuple(scenes)
     from mlflow.tracking import MlflowClient
 
     client = MlflowClient(tracking_uri=f"sqlite:///{tmp_path / 'mlflow.db'}")

@@ -27,9 +27,6 @@ PROGRESS_DIR = ".progress"
 SENSOR_DIRS = ("samples", "sweeps", "extras")
 OWNER_FILE = ".weatheralign-world"
 """Marks a dataroot the world stage claimed (`claim_dataroot`)."""
-REAL_SOURCE_FILE = "real-dataset.json"
-"""Written into the world stage's folder when ``world.source`` names a dataset of the user's (`point_at_real`): where
-the dataset is; the folder is then the stage's declared output without holding a copy of it."""
 OWN_NAME = re.compile(r"^\.?wa-\d+-synthetic-log\d+__")
 """The world's sensor files are ``wa-<seed>-synthetic-log<k>__<channel>__<timestamp>.<ext>`` (atomic temporaries
 ``.<name>.<random>.tmp``): a file under ``samples/``, ``sweeps/`` or ``extras/`` named otherwise is not ours."""
@@ -39,7 +36,7 @@ def _is_ours(dataroot: Path, path: Path, version: str) -> bool:
     """Whether ``path`` (a file under ``dataroot``) is one the world stage writes."""
     rel = path.relative_to(dataroot)
     top = rel.parts[0]
-    if rel.as_posix() in (OWNER_FILE, REAL_SOURCE_FILE) or top == PROGRESS_DIR:
+    if rel.as_posix() == OWNER_FILE or top == PROGRESS_DIR:
         return True
     if top in SENSOR_DIRS:
         return bool(OWN_NAME.match(path.name))
@@ -68,21 +65,6 @@ def claim_dataroot(dataroot: Path, version: str) -> None:
     if not (root / OWNER_FILE).is_file():
         atomic.write_text(root / OWNER_FILE, "written by the weatheralign world stage: it replaces and removes the "
                                              "files it wrote here (and no others)\n")
-
-
-def point_at_real(folder: Path, version: str, source: str, dataroot: Path) -> None:
-    """Make the world stage's own ``folder`` (its DVC output) name the user's dataset at ``dataroot`` (`REAL_SOURCE_FILE`:
-    source, absolute dataroot, version) instead of holding a render; a synthetic world rendered there earlier is left
-    as it is (the next synthetic run resumes it). Nothing is written when ``dataroot`` is the folder itself (the
-    user's dataset placed there is never written into); a folder holding files the stage did not write is refused
-    (`claim_dataroot`).
-    """
-    folder, dataroot = Path(folder), Path(dataroot)
-    if folder.resolve() == dataroot.resolve():
-        return
-    claim_dataroot(folder, version)
-    atomic.write_json(folder / REAL_SOURCE_FILE, {"source": source, "dataroot": str(dataroot.resolve()),
-                                                  "version": version}, indent=2)
 
 
 def config_hash(cfg: WorldConfig) -> str:
