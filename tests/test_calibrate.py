@@ -183,11 +183,10 @@ def _synthetic_scan(seed: int, n: int = 20_000, moving: bool = False) -> LidarSc
 
 
 def _foggy_reference(scans: list[LidarScan], alpha: float, factor: float) -> IntensityHistograms:
-    """The 'real' fog: simulate_fog with range noise, a different seed per frame."""
+    """The 'real' fog: simulate_fog with the sensor's range noise on the fog echoes."""
     beta = beta_from_factor(alpha, factor)
     return IntensityHistograms.from_scans(
-        simulate_fog(s, alpha, beta, lidar=_lidar(0.5), range_noise=0.5, rng=1000 + k).apply_to(s)
-        for k, s in enumerate(scans))
+        simulate_fog(s, alpha, beta, lidar=make_lidar(pulse=SENSOR, noise_floor=0.5, range_noise_std_m=0.05)).apply_to(s) for s in scans)
 
 
 def test_simulated_histograms_equal_binned_simulate_fog_with_beam_origins():
@@ -197,8 +196,7 @@ def test_simulated_histograms_equal_binned_simulate_fog_with_beam_origins():
     for alpha, beta in [(0.02, 1e-4), (0.08, 1.2e-3), (0.005, 2e-5)]:
         fast = simulated_histograms(frames, alpha, beta, noise_floor=0.5, sensor=SENSOR)
         full = IntensityHistograms.from_scans(
-            simulate_fog(s, alpha, beta, lidar=_lidar(0.5), range_noise=1.0, rng=k).apply_to(s)
-            for k, s in enumerate(scans))
+            simulate_fog(s, alpha, beta, lidar=make_lidar(pulse=SENSOR, noise_floor=0.5, range_noise_std_m=0.05)).apply_to(s) for s in scans)
         assert fast == full  # the fog's randomness never changes an intensity
     lost = simulated_histograms(frames, 0.1, 0.0, noise_floor=5.0, sensor=SENSOR)
     assert lost.num_points < frames.num_points  # LOST returns leave the histogram

@@ -55,9 +55,9 @@ def _stf_tree(root: Path) -> Path:
             scan, img = frame.lidar.points, image
             if level != "clear":
                 alpha = LEVELS[level]
-                lidar = make_lidar(pulse=PULSE, noise_floor=NOISE_FLOOR)
-                fogged = simulate_fog(frame.lidar, alpha, 0.023 * 1.5 / mor_from_alpha(alpha), lidar=lidar,
-                                      rng=100 * k + len(level)).apply_to(frame.lidar).points.copy()
+                lidar = make_lidar(pulse=PULSE, noise_floor=NOISE_FLOOR, range_noise_std_m=0.02)
+                fogged = simulate_fog(frame.lidar, alpha, 0.023 * 1.5 / mor_from_alpha(alpha),
+                                      lidar=lidar).apply_to(frame.lidar).points.copy()
                 fogged[:, 3] = np.rint(fogged[:, 3])
                 scan = fogged[fogged[:, 3] >= 1.0]
                 img = fog_image(image, depth, alpha, airlight)

@@ -46,10 +46,17 @@ PUBLISHED_CROSSOVER = {0.005: 138.0, 0.01: 101.0, 0.02: 70.0, 0.03: 55.0, 0.06: 
 # ---------------------------------------------------------------------------------------------------- references
 
 
-def _lidar(noise_floor: float = 0.0, sensor: PulseSensor = SENSOR) -> LidarModel:
-    """A `LidarModel` with the fog model's pulse ``sensor`` and detector ``noise_floor`` (0..255; 0 keeps every
-    return, like ``noise_floor=None`` of the array functions, since intensities are >= 0)."""
-    return make_lidar(pulse=sensor, max_range_m=sensor.max_range, noise_floor=noise_floor)
+def _lidar(noise_floor: float = 0.0, sensor: PulseSensor = SENSOR, range_noise: float = 0.0) -> LidarModel:
+    """A `LidarModel` with the fog model's pulse ``sensor``, detector ``noise_floor`` (0..255; 0 keeps every
+    return, like ``noise_floor=None`` of the array functions, since intensities are >= 0) and Gaussian
+    ``range_noise`` [m] of a new echo."""
+    return make_lidar(pulse=sensor, max_range_m=sensor.max_range, noise_floor=noise_floor,
+                      range_noise_std_m=range_noise)
+
+
+def _reported(alpha: float, sensor: PulseSensor = SENSOR) -> float:
+    """Where a noise-free receiver reports the fog echo of a far target: the power peak minus c τ_H / 2."""
+    return soft_target_response(alpha, sensor).r_peak - sensor.pulse_length / 2.0
 
 
 FOG_LIDAR = _lidar()
@@ -269,7 +276,7 @@ def test_alpha_zero_gives_the_input_back_exactly(moving: bool, intensity_max: fl
     scan = _scan(intensity_max=intensity_max, moving=moving)
     before = scan.points.copy()
     for alpha, beta in ((0.0, 0.0), (0.0, default_beta(0.0)), (1e-12, default_beta(1e-12))):
-        res = simulate_fog(scan, alpha, beta, lidar=_lidar(10.0), range_noise=5.0, rng=0)
+        res = simulate_fog(scan, alpha, beta, lidar=_lidar(10.0, range_noise=0.05))
         assert res.points.tobytes() == scan.points.tobytes()
         assert (res.labels == FogLabel.UNCHANGED).all()
         np.testing.assert_array_equal(res.source_index, np.arange(len(scan.points)))
@@ -288,8 +295,7 @@ def test_labels_and_attenuation() -> None:
     assert (res.labels[zero] == FogLabel.UNCHANGED).all()
     fog = res.labels == FogLabel.SCATTERED
     assert fog.sum() > 0 and (r0[fog] > 30).all() and (r0[~fog & ~zero & (r0 > 40)].size == 0)
-    np.testing.assert_allclose(np.linalg.norm(res.points[fog, :3], axis=1), soft_target_response(0.06, SENSOR).r_peak,
-                               rtol=1e-5)
+    np.testing.assert_allclose(np.linalg.norm(res.points[fog, :3], axis=1), _reported(0.06), rtol=1e-5)
     assert (res.points[fog, 3] > np.exp(-0.12 * r0[fog]) * src[fog, 3]).all()
 
 
@@ -298,7 +304,7 @@ def test_intensity_scale_0_1_behaves_like_0_255() -> None:
     pts1 = scan255.points.copy()
     pts1[:, 3] /= np.float32(255.0)
     scan1 = replace(scan255, points=pts1, intensity_max=1.0)
-    for kwargs in ({"lidar": FOG_LIDAR}, {"lidar": _lidar(40.0)}, {"lidar": FOG_LIDAR, "range_noise": 2.0, "rng": 5}):
+    for kwargs in ({"lidar": FOG_LIDAR}, {"lidar": _lidar(40.0)}, {"lidar": _lidar(range_noise=0.05)}):
         a = simulate_fog(scan255, 0.1, default_beta(0.1), **kwargs)
         b = simulate_fog(scan1, 0.1, default_beta(0.1), **kwargs)
         assert b.intensity_max == 1.0 and a.intensity_max == 255.0
@@ -313,26 +319,41 @@ def test_intensity_scale_0_1_behaves_like_0_255() -> None:
     assert sat == (255.0, 1.0)
 
 
-def test_range_noise_is_bounded_and_seeded() -> None:
+def test_fog_echoes_get_the_sensors_range_noise_bounded_and_deterministic() -> None:
+    """One range convention with the hard targets (peak - c τ_H / 2) and the sensor's Gaussian range noise (σ, clipped
+    at ±2σ) from each beam's own stream: the echoes form no perfect shell, the same scan gives the same bytes, and no
+    echo lands behind the sensor, past its target or beyond the maximum range."""
     scan = _scan(n=20000, seed=4, moving=True)
     origins = beam_origins(scan, "scan")
     sensor = PulseSensor(max_range=60.0)
-    lidar = _lidar(sensor=sensor)
-    res = simulate_fog(scan, 0.1, default_beta(0.1), lidar=lidar, range_noise=1000.0, rng=np.random.default_rng(7))
+    sigma = 0.05
+    res = simulate_fog(scan, 0.1, default_beta(0.1), lidar=_lidar(sensor=sensor, range_noise=sigma))
     _check_sane(scan, res, sensor, origins)
     fog = res.labels == FogLabel.SCATTERED
-    r_out = np.linalg.norm(res.points[fog, :3].astype(np.float64) - origins[fog], axis=1)
-    assert r_out.min() < 5.0 and r_out.max() > 40.0  # the jitter really spans the allowed interval
-    again = simulate_fog(scan, 0.1, default_beta(0.1), lidar=lidar, range_noise=1000.0, rng=7)
+    dev = np.linalg.norm(res.points[fog, :3].astype(np.float64) - origins[res.source_index[fog]], axis=1) - _reported(
+        0.1, sensor)
+    assert fog.sum() > 1000 and np.abs(dev).max() <= 2 * sigma + 1e-5
+    # a normal clamped at ±2 has standard deviation 0.959 (a shell: 0; a uniform ±2σ jitter: 1.155)
+    assert 0.93 * sigma < dev.std() < 0.99 * sigma and abs(dev.mean()) < 0.05 * sigma
+    again = simulate_fog(scan, 0.1, default_beta(0.1), lidar=_lidar(sensor=sensor, range_noise=sigma))
     assert again.points.tobytes() == res.points.tobytes()
-    other = simulate_fog(scan, 0.1, default_beta(0.1), lidar=lidar, range_noise=1000.0, rng=8)
-    assert other.points.tobytes() != res.points.tobytes()
-    with pytest.raises(ValueError, match="rng"):
-        simulate_fog(scan, 0.1, default_beta(0.1), lidar=lidar, range_noise=1.0)
+    quiet = simulate_fog(scan, 0.1, default_beta(0.1), lidar=_lidar(sensor=sensor))
+    np.testing.assert_array_equal(quiet.input_labels, res.input_labels)  # noise moves echoes, decides nothing
+    np.testing.assert_array_equal(quiet.points[:, 3:], res.points[:, 3:])
+    wild = simulate_fog(scan, 0.1, default_beta(0.1), lidar=_lidar(sensor=sensor, range_noise=1.0))
+    _check_sane(scan, wild, sensor, origins)  # 2σ = 2 m > the reported 1.6 m: clipped at the blind zone's edge r1
+    r_wild = np.linalg.norm(wild.points[:, :3].astype(np.float64) - origins[wild.source_index], axis=1)
+    assert r_wild[wild.labels == FogLabel.SCATTERED].min() == pytest.approx(sensor.r1, abs=1e-5)
+    with pytest.raises(ValueError, match="noise_keys"):
+        fog_point_arrays(scan.points, origins, 0.1, default_beta(0.1), sensor=sensor, noise_floor=None,
+                         range_noise_std=0.05)
+    with pytest.raises(ValueError, match="range_noise_std"):
+        fog_point_arrays(scan.points, origins, 0.1, default_beta(0.1), sensor=sensor, noise_floor=None,
+                         range_noise_std=-1.0)
     with pytest.raises(ValueError):
-        simulate_fog(scan, -0.1, 0.0, lidar=lidar)
+        simulate_fog(scan, -0.1, 0.0, lidar=_lidar(sensor=sensor))
     with pytest.raises(ValueError):
-        simulate_fog(scan, 0.1, float("nan"), lidar=lidar)
+        simulate_fog(scan, 0.1, float("nan"), lidar=_lidar(sensor=sensor))
 
 
 def test_noise_floor_drops_undetectable_returns() -> None:
@@ -373,7 +394,7 @@ def test_simulate_fog_takes_pulse_and_floor_from_the_explicit_lidar_model() -> N
         fog = res.labels == FogLabel.SCATTERED
         peaks[sensor.tau_h] = soft_target_response(0.06, sensor).r_peak
         assert fog.sum() > 0
-        np.testing.assert_allclose(np.linalg.norm(res.points[fog, :3], axis=1), peaks[sensor.tau_h], rtol=1e-5)
+        np.testing.assert_allclose(np.linalg.norm(res.points[fog, :3], axis=1), _reported(0.06, sensor), rtol=1e-5)
         same = fog_point_arrays(scan.points, None, 0.06, default_beta(0.06), sensor=sensor, noise_floor=None)
         assert same.points.tobytes() == res.points.tobytes()
     assert abs(peaks[10e-9] - peaks[20e-9]) > 0.5  # the pulse really is the model's
@@ -393,7 +414,7 @@ def test_beam_origins_and_moving_ego() -> None:
     _check_sane(scan, res, origins=fast)
     fog = res.labels == FogLabel.SCATTERED
     r_fog = np.linalg.norm(res.points[fog, :3].astype(np.float64) - fast[fog], axis=1)
-    np.testing.assert_allclose(r_fog, soft_target_response(0.08, SENSOR).r_peak, rtol=1e-5)
+    np.testing.assert_allclose(r_fog, _reported(0.08), rtol=1e-5)
     # the array-level function with explicit origins is what simulate_fog runs
     arr = fog_point_arrays(scan.points, fast, 0.08, default_beta(0.08), sensor=SENSOR, noise_floor=None)
     assert arr.points.tobytes() == res.points.tobytes()
@@ -453,15 +474,15 @@ def test_real_scans_give_sane_output(which: str, request: pytest.FixtureRequest)
         res = simulate_fog(scan, alpha, default_beta(alpha), lidar=FOG_LIDAR)
         _check_sane(scan, res)
         scattered.append(res.counts["SCATTERED"])
-        noisy = simulate_fog(scan, alpha, default_beta(alpha), lidar=_lidar(5.0), range_noise=3.0,
-                             rng=round(alpha * 1000))
+        noisy = simulate_fog(scan, alpha, default_beta(alpha), lidar=_lidar(5.0, range_noise=0.5))
         _check_sane(scan, noisy)
     assert scattered == sorted(scattered) and 0 < scattered[-1] < 0.2 * len(scan.points)
     assert scan.points.tobytes() == before.tobytes()
-    # fog echoes sit in front of the sensor's near field, never at the original far range
+    # fog echoes sit in the sensor's near field (power peak 4.64 m, reported c τ_H / 2 = 3.0 m nearer), never at the
+    # original far range
     res = simulate_fog(scan, 0.06, default_beta(0.06), lidar=FOG_LIDAR)
     fog = res.labels == FogLabel.SCATTERED
-    np.testing.assert_allclose(np.linalg.norm(res.points[fog, :3], axis=1), 4.64, atol=0.01)
+    np.testing.assert_allclose(np.linalg.norm(res.points[fog, :3], axis=1), 4.64 - 3.0, atol=0.01)
     # the same scan on the other intensity scale gives the same result
     factor = np.float32(1 / 255.0 if which == "stf" else 255.0)
     pts = scan.points.copy()

@@ -24,7 +24,7 @@ from weatheralign.config import ConfigError, params_from_dict
 from weatheralign.data.errors import DataFormatError
 from weatheralign.data.rings import elevation_deg
 from weatheralign.geometry import apply, invert, project
-from weatheralign.lidar.fog import fog_intensities, soft_target_response
+from weatheralign.lidar.fog import fog_intensities, fog_point_arrays, soft_target_response
 from weatheralign.medium.fog import LN20
 from weatheralign.reference import check_reference, configured_reference, open_reference, reference_root
 from weatheralign.reference.camera_exact import fog_radiance
@@ -300,6 +300,11 @@ def test_fog_effects_are_monotonic_and_match_the_fast_model():
             assert FAST_SENSOR == PulseSensor()  # the fog model's sensor, as before
             fast = soft_target_response(alpha, FAST_SENSOR)
             assert ret.r_peak[~np.isfinite(r0)][0] == pytest.approx(fast.r_peak, abs=0.02)
+            # one range convention: the fast model reports its fog echo where the exact receiver does (peak - cτ_H/2)
+            far = fog_point_arrays(np.array([[100.0, 0.0, 0.0, 50.0, 0.0]], np.float32), None, alpha,
+                                   0.046 * alpha / LN20, sensor=FAST_SENSOR, noise_floor=None)
+            assert far.labels[0] == 2
+            assert float(far.points[0, 0]) == pytest.approx(ret.r_peak[~np.isfinite(r0)][0] - L / 2, abs=0.02)
             exact_tables = fog_tables(alpha)
             assert exact_tables.g_peak == pytest.approx(fast.g_peak, rel=0.01)
             hard_r = r0[np.isfinite(r0)]

@@ -201,6 +201,21 @@ def scan_times(scan: LidarScan) -> F64:
     return scan.timestamp + derived_time_offsets(scan.points, scan.T_ego_lidar).astype(np.float64)
 
 
+_KEY_MULTIPLIERS = np.array([0x9E3779B97F4A7C15, 0xBF58476D1CE4E5B9, 0x94D049BB133111EB, 0xD6E8FEB86659FD93,
+                              0xA0761D6478BD642F], dtype=np.uint64)
+
+
+def detector_noise_keys(times: NDArray, directions: NDArray, ring: NDArray) -> NDArray[np.uint64]:
+    """(B,) the detector-noise stream of each beam (`weatheralign.medium.field.normal_pair` draws from it): the bits of
+    its firing time [s] (B,), unit direction (B, 3) and ring (B,), each times an odd constant, summed (mod 2^64). A
+    beam reads the same noise in every run and condition (the sensor's noise, not the weather's; a scan simulated
+    alone or with its sweeps alike), and beams differ in one of them."""
+    parts = np.column_stack([np.ascontiguousarray(times, dtype=np.float64).view(np.uint64),
+                             np.ascontiguousarray(directions, dtype=np.float64).view(np.uint64).reshape(-1, 3),
+                             np.asarray(ring).astype(np.uint64)])
+    return (parts * _KEY_MULTIPLIERS).sum(axis=1, dtype=np.uint64)
+
+
 def beam_origins(scan: LidarScan, frame: str = "global") -> F64 | None:
     """(N, 3) position [m] of the sensor at each point's firing time: the origin of the point's beam.
 

@@ -26,8 +26,11 @@ Traps of the published code, fixed here:
 - intensity scale: the model is homogeneous of degree 1 in intensity; it is evaluated in the scan's own units with the
   saturation and the noise floor converted from the 0..255 scale, and nothing is rounded (the published code rounds
   ``i_hard`` to integers, which zeroes 0..1 intensities and turns almost every KITTI point into fog);
-- range noise (optional, seeded) is drawn inside ``[r1, min(R_0, max_range)]``, never behind the sensor or beyond
-  the target or the maximum range;
+- one range convention for every echo: the receiver is calibrated on hard targets (whose power peaks at
+  ``R_0 + c τ_H / 2`` and which it reports at ``R_0``), so a fog echo is reported at its power peak minus ``c τ_H / 2``
+  too (≈ 1.64 m for α = 0.06, not the published code's raw 4.64 m), with the sensor's Gaussian range noise
+  (``LidarModel.range_noise_std_m``, clipped at ±2σ, from each beam's own counter-based stream, as the particle echoes
+  get it): no perfect shell, never inside the receiver's blind zone (``r1``), beyond the target or the maximum range;
 - β is an explicit argument (the published parameter object keeps β = 0.046 / MOR(α = 0.06) = 9.21e-4 whatever α);
 - an optional detector noise floor drops returns that the weather pushed below it (label LOST).
 """
@@ -44,8 +47,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from weatheralign.data.frame import LidarScan
 from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel
-from weatheralign.lidar.beams import beam_origins
+from weatheralign.lidar.beams import beam_origins, detector_noise_keys, scan_times
 from weatheralign.lidar.pulse import SPEED_OF_LIGHT, PulseSensor, overlap
+from weatheralign.medium.field import normal_pair
 from weatheralign.medium.fog import DEFAULT_BETA_MOR, LN20
 
 if TYPE_CHECKING:
@@ -150,7 +154,8 @@ class FogIntensities:
     Attributes:
         intensity: (N,) float64 output intensity, in the input's units (LOST points: the undetected value).
         labels: (N,) uint8 `FogLabel` values.
-        r_fog: (N,) float64 range [m] of each point's fog echo (meaningful where SCATTERED).
+        r_fog: (N,) float64 receiver-axis range [m] of each point's fog-echo power peak (meaningful where SCATTERED);
+            the sensor reports it at ``r_fog - c τ_H / 2`` (`fog_point_arrays`).
     """
 
     intensity: F64
@@ -264,9 +269,22 @@ def _intensity_kernel(r0, i0, r_start, dr, g, r_peak, g_peak, alpha, soft_gain, 
 
 
 @njit(cache=True, nogil=True)
+def _reported_range(r_fog, r0, half_length, range_sigma, key, r1, max_range):  # pragma: no cover
+    """Range [m] the receiver reports for a fog echo whose power peaks at ``r_fog``: ``r_fog - c τ_H / 2`` plus the
+    range noise ``range_sigma · z`` (``z`` the beam's second normal of `normal_pair`, clipped at ±2), inside
+    ``[r1, min(r0, max_range)]`` (nothing nearer than the receiver's blind zone, nothing past the target)."""
+    r = r_fog - half_length
+    if range_sigma > 0.0:
+        z = normal_pair(key)[1]
+        r += range_sigma * min(max(z, -2.0), 2.0)
+    return min(max(r, r1), min(r0, max_range))
+
+
+@njit(cache=True, nogil=True)
 def _points_kernel(points, origins, r_start, dr, g, r_peak, g_peak, alpha, soft_gain, saturation, floor,
-                   out, labels, r0_out, r_fog_out):  # pragma: no cover
-    """Fog every row of ``points`` (N, 5) float32 into ``out`` (a copy of ``points``); origins (N, 3) or (0, 3)."""
+                   half_length, range_sigma, keys, r1, max_range, out, labels, r0_out, r_fog_out):  # pragma: no cover
+    """Fog every row of ``points`` (N, 5) float32 into ``out`` (a copy of ``points``); origins (N, 3) or (0, 3);
+    keys (N,) the beams' noise streams (read only when ``range_sigma > 0``)."""
     has_origin = origins.shape[0] > 0
     for n in range(points.shape[0]):
         ox = oy = oz = 0.0
@@ -284,7 +302,8 @@ def _points_kernel(points, origins, r_start, dr, g, r_peak, g_peak, alpha, soft_
         if label == 1:
             out[n, 3] = value
         elif label == 2:
-            f = r_fog / r0
+            f = _reported_range(r_fog, r0, half_length, range_sigma, keys[n] if range_sigma > 0.0 else np.uint64(0),
+                                r1, max_range) / r0
             out[n, 0] = ox + dx * f
             out[n, 1] = oy + dy * f
             out[n, 2] = oz + dz * f
@@ -334,12 +353,6 @@ class FogResult:
         )
 
 
-def _as_generator(rng: np.random.Generator | int | None) -> np.random.Generator:
-    if rng is None:
-        raise ValueError("fog: range_noise needs rng (a seed or numpy Generator); there is no global RNG")
-    return rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
-
-
 def fog_point_arrays(
     points: NDArray[np.float32],
     origins: NDArray | None,
@@ -349,8 +362,8 @@ def fog_point_arrays(
     intensity_max: float = 255.0,
     sensor: PulseSensor,
     noise_floor: float | None,
-    range_noise: float | None = None,
-    rng: np.random.Generator | int | None = None,
+    range_noise_std: float = 0.0,
+    noise_keys: NDArray[np.uint64] | None = None,
     response: SoftTargetResponse | None = None,
 ) -> FogResult:
     """Fog on a bare point array (the array-level core of `simulate_fog`).
@@ -362,11 +375,13 @@ def fog_point_arrays(
         intensity_max: 255 or 1, the scale of ``points[:, 3]`` (kept in the output).
         sensor: pulse parameters (τ_H, overlap, β_0, max range, saturation).
         noise_floor: detector floor on the 0..255 scale, or None (see `fog_intensities`).
-        range_noise: half-width [m] of a uniform jitter of fog-echo ranges, or None. The jittered range is drawn
-            uniformly from ``[max(r1, R_fog - w), min(R_fog + w, R_0, max_range)]``: never behind the sensor, past the
-            target or beyond the maximum range.
-        rng: seed or Generator; required when ``range_noise`` is set.
+        range_noise_std: the sensor's Gaussian range noise [m] of a new (fog) echo, clipped at ±2σ; 0: none.
+        noise_keys: (N,) each point's beam noise stream (`detector_noise_keys`); required when ``range_noise_std > 0``.
         response: precomputed `soft_target_response` of ``alpha``, or None.
+
+    A SCATTERED point moves along its ray to the range the receiver reports for the fog echo: the power peak
+    ``R_fog`` minus ``c τ_H / 2`` (the hard targets' convention), plus the range noise, inside
+    ``[r1, min(R_0, max_range)]``.
 
     Returns:
         `FogResult`; with ``alpha == 0`` and ``beta == 0`` the points are the input's, bit for bit.
@@ -374,11 +389,17 @@ def fog_point_arrays(
     points = np.asarray(points)
     if points.ndim != 2 or points.shape[1] != 5 or points.dtype != np.float32:
         raise ValueError(f"fog: points must be float32 (N, 5), got {points.dtype} {points.shape}")
-    if range_noise is not None and not (math.isfinite(range_noise) and range_noise >= 0.0):
-        raise ValueError(f"fog: range_noise = {range_noise!r}; expected None or a finite half-width >= 0 m")
-    gen = _as_generator(rng) if range_noise else None
-    params = _kernel_params(alpha, beta, intensity_max, sensor, noise_floor, response)
     n = len(points)
+    if not (math.isfinite(range_noise_std) and range_noise_std >= 0.0):
+        raise ValueError(f"fog: range_noise_std = {range_noise_std!r}; expected a finite standard deviation >= 0 m")
+    if range_noise_std > 0.0:
+        if noise_keys is None or np.shape(noise_keys) != (n,):
+            raise ValueError(f"fog: range noise needs noise_keys of shape ({n},) (detector_noise_keys), got "
+                             f"{None if noise_keys is None else np.shape(noise_keys)}")
+        keys = np.ascontiguousarray(noise_keys, dtype=np.uint64)
+    else:
+        keys = np.zeros(0, dtype=np.uint64)
+    params = _kernel_params(alpha, beta, intensity_max, sensor, noise_floor, response)
     if origins is None:
         origins = np.zeros((0, 3))
     else:
@@ -389,9 +410,8 @@ def fog_point_arrays(
     labels = np.empty(n, dtype=np.uint8)
     r0 = np.empty(n)
     r_fog = np.empty(n)
-    _points_kernel(np.ascontiguousarray(points), origins, *params, out, labels, r0, r_fog)
-    if gen is not None:
-        _jitter_fog_ranges(points, origins, out, labels, r0, r_fog, range_noise, sensor, gen)
+    _points_kernel(np.ascontiguousarray(points), origins, *params, sensor.pulse_length / 2.0, float(range_noise_std),
+                   keys, float(sensor.r1), float(sensor.max_range), out, labels, r0, r_fog)
     counts = np.bincount(labels, minlength=len(POINT_LABELS))
     if counts[FogLabel.LOST]:
         keep = np.flatnonzero(labels != FogLabel.LOST)
@@ -410,38 +430,12 @@ def fog_point_arrays(
     )
 
 
-def _jitter_fog_ranges(
-    points: NDArray[np.float32],
-    origins: F64,
-    out: NDArray[np.float32],
-    labels: NDArray[np.uint8],
-    r0: F64,
-    r_fog: F64,
-    half_width: float,
-    sensor: PulseSensor,
-    gen: np.random.Generator,
-) -> None:
-    """Move the SCATTERED rows of ``out`` (in place) to a range drawn uniformly from
-    ``[max(r1, R_fog - w), min(R_fog + w, R_0, max_range)]`` on their ray."""
-    hit = np.flatnonzero(labels == FogLabel.SCATTERED)
-    if not len(hit):
-        return
-    lo = np.maximum(sensor.r1, r_fog[hit] - half_width)
-    hi = np.minimum(np.minimum(r_fog[hit] + half_width, r0[hit]), sensor.max_range)
-    r_new = lo + gen.random(len(hit)) * np.maximum(hi - lo, 0.0)
-    origin = origins[hit] if len(origins) else np.zeros((len(hit), 3))
-    ray = points[hit, :3].astype(np.float64) - origin
-    out[hit, :3] = origin + ray * (r_new / r0[hit])[:, None]
-
-
 def simulate_fog(
     scan: LidarScan,
     alpha: float,
     beta: float,
     *,
     lidar: "LidarModel",
-    range_noise: float | None = None,
-    rng: np.random.Generator | int | None = None,
 ) -> FogResult:
     """Fog a LiDAR scan (Hahner et al. 2021 for any α), each beam from its own origin (moving ego).
 
@@ -449,12 +443,18 @@ def simulate_fog(
         scan: the clear scan (any intensity scale; the result keeps it).
         alpha: extinction [1/m] (``MOR = ln 20 / α``); 0 returns the input unchanged when ``beta`` is 0 too.
         beta: backscatter [1/(m sr)], e.g. `default_beta` (0.046 / MOR).
-        lidar: the sensor (`weatheralign.sensors.LidarModel`): its pulse and its detector noise floor (0..255).
-        range_noise: optional uniform half-width [m] of the fog-echo range jitter (bounded; needs ``rng``).
-        rng: seed or numpy Generator for the range jitter.
+        lidar: the sensor (`weatheralign.sensors.LidarModel`): its pulse, its detector noise floor (0..255) and the
+            range noise of a new echo (``range_noise_std_m``; each beam's stream from its firing time, direction and
+            ring: the same scan gives the same bytes).
 
     Returns:
         `FogResult` (use ``result.apply_to(scan)`` for a `LidarScan`).
     """
-    return fog_point_arrays(scan.points, beam_origins(scan, "scan"), alpha, beta, intensity_max=scan.intensity_max,
-                            sensor=lidar.pulse, noise_floor=lidar.noise_floor, range_noise=range_noise, rng=rng)
+    origins = beam_origins(scan, "scan")
+    keys = None
+    if lidar.range_noise_std_m > 0.0:
+        ray = scan.points[:, :3].astype(np.float64) - (0.0 if origins is None else origins)
+        norm = np.linalg.norm(ray, axis=1, keepdims=True)
+        keys = detector_noise_keys(scan_times(scan), ray / np.where(norm > 0.0, norm, 1.0), scan.points[:, 4])
+    return fog_point_arrays(scan.points, origins, alpha, beta, intensity_max=scan.intensity_max, sensor=lidar.pulse,
+                            noise_floor=lidar.noise_floor, range_noise_std=lidar.range_noise_std_m, noise_keys=keys)

@@ -93,6 +93,16 @@ def _uniform(key: np.uint64, counter: np.uint64) -> float:
 
 
 @njit(nogil=True, cache=True, inline="always")
+def normal_pair(key: np.uint64) -> tuple[float, float]:
+    """Two independent standard normals (Box–Muller) from the first two outputs of the SplitMix64 stream ``key``: a
+    LiDAR beam's detector noise (intensity, range) from its key (`weatheralign.lidar.beams.detector_noise_keys`)."""
+    u1 = 1.0 - _uniform(key, np.uint64(0))  # (0, 1]
+    u2 = _uniform(key, np.uint64(1))
+    rad = math.sqrt(-2.0 * math.log(u1))
+    return rad * math.cos(2.0 * math.pi * u2), rad * math.sin(2.0 * math.pi * u2)
+
+
+@njit(nogil=True, cache=True, inline="always")
 def _packed_cell(ix: np.int64, iy: np.int64, iz: np.int64) -> np.uint64:
     ux = np.uint64(ix + XY_OFFSET)
     uy = np.uint64(iy + XY_OFFSET)

@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 
 from weatheralign.data.frame import LidarScan
 from weatheralign.geometry import invert
-from weatheralign.lidar.beams import Beams, beams_from_scan
+from weatheralign.lidar.beams import Beams, beams_from_scan, detector_noise_keys
 from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel
 from weatheralign.lidar.particles.beam_index import (empty_hits, field_hits, index_beams, list_hits, range_shells,
                                                      rank_cutoffs, reachable_cells, shell_edges)
@@ -173,18 +173,9 @@ class _Response(NamedTuple):
     n_sampled: int  # hits whose ratio was counted on the SAMPLE_GRID grid (of all scans of a joint run)
 
 
-_KEY_MULTIPLIERS = np.array([0x9E3779B97F4A7C15, 0xBF58476D1CE4E5B9, 0x94D049BB133111EB, 0xD6E8FEB86659FD93,
-                              0xA0761D6478BD642F], dtype=np.uint64)
-
-
 def beam_noise_keys(beams: Beams) -> NDArray[np.uint64]:
-    """(B,) the detector-noise stream of each beam: the bits of its firing time [s], direction and ring, each times
-    an odd constant, summed (mod 2^64). A beam reads the same noise in every run and condition (the sensor's noise,
-    not the weather's; a scan simulated alone or with its sweeps alike), and beams differ in one of them."""
-    parts = np.column_stack([np.ascontiguousarray(beams.times, dtype=np.float64).view(np.uint64),
-                             np.ascontiguousarray(beams.directions, dtype=np.float64).view(np.uint64).reshape(-1, 3),
-                             beams.ring.astype(np.uint64)])
-    return (parts * _KEY_MULTIPLIERS).sum(axis=1, dtype=np.uint64)
+    """(B,) the detector-noise stream of each beam (`detector_noise_keys` of its firing time, direction and ring)."""
+    return detector_noise_keys(beams.times, beams.directions, beams.ring)
 
 
 def _respond(beams: Beams, hits: HitArrays, edges: F64, alphas: F64, opt: _Options) -> _Response:

@@ -15,7 +15,7 @@ import numpy as np
 from numba import njit
 
 from weatheralign.lidar.labels import WeatherLabel
-from weatheralign.medium.field import _uniform
+from weatheralign.medium.field import normal_pair
 
 
 @njit(nogil=True, cache=True, inline="always")
@@ -62,15 +62,6 @@ def _keep_or_lost(val, floor, i0):  # pragma: no cover
     there is a noise ``floor`` (>= 0) and the weather pushed the return below it (a return already below it in clear
     weather was detected nevertheless and stays), else ATTENUATED."""
     return WeatherLabel.LOST if (floor >= 0.0 and val < floor and val < i0) else WeatherLabel.ATTENUATED
-
-
-@njit(nogil=True, cache=True, inline="always")
-def _normal_pair(key):  # pragma: no cover
-    """Two independent standard normals (Box–Muller) from the first two outputs of the SplitMix64 stream ``key``."""
-    u1 = 1.0 - _uniform(key, np.uint64(0))  # (0, 1]
-    u2 = _uniform(key, np.uint64(1))
-    rad = math.sqrt(-2.0 * math.log(u1))
-    return rad * math.cos(2.0 * math.pi * u2), rad * math.sin(2.0 * math.pi * u2)
 
 
 @njit(nogil=True, cache=True)
@@ -382,7 +373,7 @@ def response_kernel(hits, hit_off, beams, pulse, medium, ratio, out):  # pragma:
         g1 = _gain(max(r_out, 1e-9), r_ref, falloff)
         val = min(p_peak * r_out * r_out * g1, saturation)
         if noisy and dom >= 0:  # the detector's reading of the particle echo
-            z_int, z_range = _normal_pair(noise_key[b])
+            z_int, z_range = normal_pair(noise_key[b])
             val = min(max(val + math.sqrt(noise_std * noise_std + (noise_rel * val) ** 2) * z_int, 0.0), saturation)
             r_out = min(max(r_out + range_noise * min(max(z_range, -2.0), 2.0), 0.0), length)
         if dom < 0 or (floor >= 0.0 and val < floor):
