@@ -50,7 +50,7 @@ def make_lidar(**overrides: object) -> "LidarModel":
     from weatheralign.config import LidarConfig
     from weatheralign.sensors import lidar_model_from_params, with_overrides
 
-    base = lidar_model_from_params(LidarConfig(max_range_m=120.0))
+    base = lidar_model_from_params(LidarConfig(max_range_m=120.0, range_noise_std_m=0.0))
     pulse = overrides.pop("pulse", None)
     model = with_overrides(base, dict(overrides))
     if pulse is not None:

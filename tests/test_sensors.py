@@ -12,8 +12,8 @@ import pytest
 from weatheralign.data.nuscenes import load_frame, open_nuscenes
 from weatheralign.lidar.beams import beams_from_scan, grid_no_return_beams
 from weatheralign.manifest import DatasetManifest, dataset_digest, read_manifest, write_manifest
-from weatheralign.sensors import (CameraModel, LidarModel, SensorRig, camera_models, estimate_lidar_model,
-                                  lidar_model_from_params)
+from weatheralign.sensors import (CameraModel, EgoBody, LidarModel, SensorRig, camera_models, ego_body_from_params,
+                                  estimate_lidar_model, lidar_model_from_params)
 from weatheralign.world.dataset import finalize, render_or_resume, sample_jobs
 
 from .conftest import SHARED_REAL, tiny_params
@@ -129,3 +129,42 @@ def test_other_firing_grids_get_their_own_no_return_beams(firings: int, tmp_path
     spec = field_spec(params.particles, "snow", nusc.scene[0]["name"], scan.timestamp)
     res = simulate_particles(scan, spec.field(), lidar=model, reflectivity=0.9)
     assert res.counts["CLUTTER"] > 0 and res.counts["SCATTERED"] > 0
+
+
+# ------------------------------------------------------------------------------------------------ the ego body
+
+
+def test_ego_body_ray_distances_against_closed_forms() -> None:
+    """Entry distances into the prism: a vertical ray onto the flat roof, a ray onto the sloping hatch (the plane's
+    closed form), a ray through the side wall; misses, rays starting inside and rays pointing away give inf."""
+    body = EgoBody(rear_x=-0.66, front_x=-0.25, roof_z=1.47, hatch_z=1.02, bottom_z=0.25, width=1.73)
+    down = body.ray_distances([[-0.4, 0.3, 3.0]], [[0.0, 0.0, -1.0]])[0]
+    slope_z = 1.02 + (1.47 - 1.02) * (-0.4 + 0.66) / (-0.25 + 0.66)  # the hatch's height at x = -0.4
+    assert down == pytest.approx(3.0 - slope_z, abs=1e-12)
+    slope = 0.45 / 0.41  # the hatch: z = 1.47 + (x + 0.25) slope
+    o, d = np.array([-0.3, 0.0, 2.0]), np.array([-0.3, 0.0, -1.0]) / np.hypot(0.3, 1.0)
+    t = (1.47 + (o[0] + 0.25) * slope - o[2]) / (d[2] - d[0] * slope)  # ray meets the hatch plane
+    assert -0.66 < o[0] + t * d[0] < -0.25
+    assert body.ray_distances(o[None], d[None])[0] == pytest.approx(t, rel=1e-12)
+    # a ray from below the hatch's plane enters through the face at front_x, not the hatch
+    o, d = np.array([0.03, 0.0, 1.57]), np.array([-0.884, 0.0, -0.468]) / np.hypot(0.884, 0.468)
+    assert body.ray_distances(o[None], d[None])[0] == pytest.approx((-0.25 - 0.03) / d[0], rel=1e-12)
+    side = body.ray_distances([[-0.5, 3.0, 0.5]], [[0.0, -1.0, 0.0]])[0]
+    assert side == pytest.approx(3.0 - 0.865, abs=1e-12)
+    inf = body.ray_distances([[-0.5, 3.0, 0.5], [-0.5, 0.0, 0.5], [-0.5, 0.0, 3.0], [-0.5, 3.0, 0.5]],
+                             [[0.0, 1.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    assert np.isinf(inf).all()  # away from it; from inside; parallel above it; parallel beside it
+    with pytest.raises(ValueError, match="rear_x < front_x"):
+        EgoBody(rear_x=0.2, front_x=0.1, roof_z=1.4, hatch_z=1.4, bottom_z=0.2, width=1.7)
+
+
+def test_ego_body_travels_in_the_manifest_and_comes_from_params(tiny_world) -> None:
+    body = ego_body_from_params(tiny_world.params.world.ego_body)
+    assert body is not None and body.corners().shape == (8, 3)
+    rig = SensorRig(lidar_model_from_params(tiny_world.params.world.lidar), {}, body)
+    assert SensorRig.from_dict(json.loads(json.dumps(rig.to_dict()))) == rig
+    bare = replace(rig, ego_body=None)
+    assert SensorRig.from_dict(json.loads(json.dumps(bare.to_dict()))) == bare
+    assert ego_body_from_params(None) is None
+    with pytest.raises(ValueError, match="sensors.ego_body"):
+        SensorRig.from_dict({**rig.to_dict(), "ego_body": {"rear_x": 1.0}})

@@ -22,11 +22,11 @@ from weatheralign.data.nuscenes import compressed_extras_relpath, load_frame, op
 from weatheralign.lidar import simulate_fog
 from weatheralign.manifest import DatasetManifest, dataset_digest, manifest_path, read_manifest, write_manifest
 from weatheralign.medium.conditions import field_spec
-from weatheralign.sensors import SensorRig, camera_models, lidar_model_from_params
+from weatheralign.sensors import SensorRig, camera_models, ego_body_from_params, lidar_model_from_params
 from weatheralign.simulate.media import (ConditionMedia, SceneMedia, calibrated_fog_levels, params_fog_levels,
                                          resolve_media)
 from weatheralign.simulate.observe import ObserveOptions, observe, observe_lidar
-from weatheralign.simulate.plan import SampleJob, plan_jobs, scene_airlight
+from weatheralign.simulate.plan import SampleJob, plan_jobs, sample_range_maps, scene_airlight
 from weatheralign.simulate.weather_copy import (copy_outputs, finalize_copy, read_weather_record, run_sample, summarise,
                                                 smallest_int_dtype, sweep_records, weather_relpath)
 
@@ -518,3 +518,33 @@ def test_ego_velocity_from_every_sensor_pose(tmp_path):
     still = {k: CameraView(c.channel, c.image_path, c.K, 16, 9, c.T_ego_cam, c.T_global_ego, t0)
              for k, c in cams.items()}
     assert np.array_equal(ego_velocity(Frame("s", t0, scan, still)), np.zeros(3))
+
+
+def test_estimated_depth_puts_the_ego_body_at_its_own_distance(world, tmp_path):
+    """Real data has no exact range maps and its LiDAR never sees the own car: the completion from the LiDAR gives the
+    body's pixels the far scene (or sky), and fog or particles would be drawn on the car. With the rig's ego body the
+    pixels whose rays meet it get its distance (exactly the synthetic world's rendered range there), the rest keeps
+    the completion; the synthetic world's exact maps are left as they are."""
+    import shutil
+
+    tw, nusc, _, frame, _, _, _ = world
+    body = ego_body_from_params(tw.params.world.ego_body)
+    real = tmp_path / "real"  # the tiny world without its extras (exact range maps), as a real dataset comes
+    shutil.copytree(tw.dataroot, real, ignore=shutil.ignore_patterns("extras", ".progress", ".weatheralign*"))
+    real_nusc = open_nuscenes(real, tw.params.world.version)
+    real_frame = load_frame(real_nusc, frame.token)
+    images = {ch: v.load_image() for ch, v in real_frame.cameras.items()}
+    plain = sample_range_maps(real_nusc, real_frame, images)
+    masked = sample_range_maps(real_nusc, real_frame, images, body)
+    view = real_frame.cameras["CAM_BACK"]
+    on_body = body.camera_ranges(view.K, view.T_ego_cam, view.width, view.height)
+    hit = np.isfinite(on_body)
+    assert hit.mean() > 0.05 and (plain["CAM_BACK"][hit] > 2.0 * on_body[hit]).mean() > 0.9  # the defect
+    np.testing.assert_array_equal(masked["CAM_BACK"][hit], on_body[hit])
+    np.testing.assert_allclose(masked["CAM_BACK"][hit], frame.cameras["CAM_BACK"].load_range()[hit], rtol=2e-3)
+    np.testing.assert_array_equal(masked["CAM_BACK"][~hit], plain["CAM_BACK"][~hit])
+    for ch in ("CAM_FRONT", "CAM_BACK_LEFT"):
+        np.testing.assert_array_equal(masked[ch], plain[ch])
+    exact_images = {ch: v.load_image() for ch, v in frame.cameras.items()}
+    exact = sample_range_maps(nusc, frame, exact_images, body)
+    np.testing.assert_array_equal(exact["CAM_BACK"], frame.cameras["CAM_BACK"].load_range().astype(np.float32))

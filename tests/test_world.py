@@ -16,6 +16,7 @@ from weatheralign.data.rings import HDL32E_ELEVATIONS_DEG
 from weatheralign.geometry import apply, invert, project
 from weatheralign.world.build import SWEEP_PERIOD_US, render_sample, scene_specs
 from weatheralign.world.dataset import finalize, render_or_resume, sample_jobs
+from weatheralign.sensors import ego_body_from_params
 from weatheralign.world.raycast import WorldRaycaster
 from weatheralign.world.rig import make_cameras
 
@@ -130,6 +131,7 @@ def test_every_lidar_point_lands_on_the_camera_depth(tiny_world, nusc, layouts):
     """Each keyframe point seen by a camera (at the camera's own timestamp and ego pose; points on moving actors
     propagated by their velocity) lies on that camera's exact range map within 1 % of its range."""
     checked = 0
+    body = ego_body_from_params(tiny_world.params.world.ego_body)
     for sample in nusc.sample:
         layout = layouts[_scene_index(nusc, sample)]
         caster = WorldRaycaster(layout)
@@ -158,6 +160,9 @@ def test_every_lidar_point_lands_on_the_camera_depth(tiny_world, nusc, layouts):
             tol = np.maximum(0.005 * dist, 2.5 * tiny_world.params.world.lidar.range_noise_std_m)
             seen = np.abs(hits.range - dist) <= tol
             assert (hits.range > dist + tol).mean() < 0.02, f"{ch}: camera rays pass behind LiDAR points"
+            # the ego's own body, which only the cameras see, hides what lies behind it (CAM_BACK's bottom rows)
+            dirs_ego = dirs @ view.T_global_ego[:3, :3]
+            seen &= ~(body.ray_distances(np.broadcast_to(view.T_ego_cam[:3, 3], dirs.shape), dirs_ego) < dist)
             idx, dist, uvs = idx[seen], dist[seen], uv[idx[seen]]
             ok, undecidable = _matches_depth_map(view, uvs, pc[idx, 2], dist)
             assert np.all(ok | undecidable), f"{ch}: {(~ok & ~undecidable).sum()} points off the depth map"
@@ -410,3 +415,27 @@ def test_one_pass_camera_equals_the_step_by_step_camera(tiny_world, layouts):
     z = camera_noise(12345, 200_000)
     assert abs(z.mean()) < 0.01 and abs(z.std() - 1.0) < 0.01 and np.abs(z).max() < 4.33
     assert np.array_equal(z, camera_noise(12345, 200_000)) and not np.array_equal(z, camera_noise(12346, 200_000))
+
+
+def test_the_ego_body_fills_the_bottom_of_cam_back_only(tiny_world, nusc):
+    """The cameras see the ego's own body where nuScenes' do (the bottom of CAM_BACK, none of the others): its exact
+    range map equals the body's closed-form distance on every pixel whose ray meets it, nothing nearer, and the LiDAR
+    never reports it (no point within the body)."""
+    body = ego_body_from_params(tiny_world.params.world.ego_body)
+    frame = load_frame(nusc, nusc.sample[0]["token"])
+    for ch, view in frame.cameras.items():
+        on_body = body.camera_ranges(view.K, view.T_ego_cam, view.width, view.height)
+        hit = np.isfinite(on_body)
+        if ch != "CAM_BACK":
+            assert not hit.any(), ch
+            continue
+        rows = np.flatnonzero(hit.any(axis=1))
+        assert 0.08 < hit.mean() < 0.25 and rows[-1] == view.height - 1  # a band along the bottom edge
+        exact = view.load_range().astype(np.float64)
+        np.testing.assert_allclose(exact[hit], on_body[hit], rtol=2e-3)  # float16 storage
+        assert not np.isnan(exact).any()
+        assert not (exact[~hit] < on_body[hit].min() - 1e-3).any()  # nothing else that near
+    pts = apply(frame.lidar.T_ego_lidar, frame.lidar.points[:, :3].astype(np.float64))
+    inside = ((pts[:, 0] > body.rear_x) & (pts[:, 0] < body.front_x) & (np.abs(pts[:, 1]) < body.width / 2)
+              & (pts[:, 2] < body.roof_z))
+    assert not inside.any()

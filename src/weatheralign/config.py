@@ -185,6 +185,30 @@ class CameraConfig(_Section):
     exposure_s: Annotated[float, Field(ge=0.0, le=0.1)] = 0.005
 
 
+class EgoBodyConfig(_Section):
+    """The part of the ego's body that the cameras see (`weatheralign.sensors.EgoBody`), ego frame [m] (x forward,
+    z up, origin at the rear axle on the ground): the prism of width ``width_m`` over the side profile
+    (front_x, roof_z) -> (rear_x, hatch_z) -> (rear_x, bottom_z) -> (front_x, bottom_z). Default: the rear of the roof
+    of nuScenes' Renault Zoe (1.73 m wide, roof 1.45 m high) from just ahead of CAM_BACK to 0.30 m behind the rear
+    axle, which fills the bottom ~15 % of CAM_BACK as in nuScenes (steeper parts of the hatch lie outside its view).
+    The synthetic world renders it; the simulator draws no weather on its pixels (real data: the LiDAR never sees the
+    own car, so its depth comes from here)."""
+
+    rear_x_m: Annotated[float, Field(ge=-5.0, le=0.0)] = -0.30
+    front_x_m: Annotated[float, Field(ge=-5.0, le=2.0)] = 0.10
+    roof_z_m: Annotated[float, Field(gt=0.0, le=4.0)] = 1.45
+    hatch_z_m: Annotated[float, Field(gt=0.0, le=4.0)] = 1.45
+    bottom_z_m: Annotated[float, Field(ge=0.0, le=2.0)] = 0.25
+    width_m: Annotated[float, Field(gt=0.5, le=3.0)] = 1.73
+
+    @model_validator(mode="after")
+    def _check(self) -> "EgoBodyConfig":
+        if not (self.rear_x_m < self.front_x_m and self.bottom_z_m < self.hatch_z_m <= self.roof_z_m):
+            raise ValueError(f"expected rear_x_m ({self.rear_x_m}) < front_x_m ({self.front_x_m}) and bottom_z_m "
+                             f"({self.bottom_z_m}) < hatch_z_m ({self.hatch_z_m}) <= roof_z_m ({self.roof_z_m})")
+        return self
+
+
 class SensorOverrides(_Section):
     """Facts of a real dataset's LiDAR that a point cloud cannot tell (or that the estimate gets wrong): each key
     that is set replaces the value `weatheralign.sensors.estimate_lidar_model` finds; null keeps the estimate."""
@@ -218,6 +242,7 @@ class WorldConfig(_Section):
     ego_speed_max: Annotated[float, Field(ge=5.0, le=12.0)] = 12.0
     lidar: LidarConfig = LidarConfig()
     camera: CameraConfig = CameraConfig()
+    ego_body: EgoBodyConfig | None = EgoBodyConfig()
     sensor_overrides: SensorOverrides = SensorOverrides()
 
     @model_validator(mode="after")

@@ -286,21 +286,105 @@ class CameraModel:
 
 
 @dataclass(frozen=True)
+class EgoBody:
+    """The part of the ego vehicle that the cameras see (nuScenes: the rear of the roof at the bottom of CAM_BACK), in
+    the ego frame (x forward, y left, z up; origin at the rear axle on the ground) [m]: the convex prism of width
+    ``width`` over the side profile (front_x, roof_z) -> (rear_x, hatch_z) -> (rear_x, bottom_z) -> (front_x, bottom_z).
+
+    The synthetic world renders exactly this solid into its cameras; the simulator gives its pixels the distance to
+    it (`ray_distances`), so no weather is drawn on the ego (a real dataset's LiDAR never sees its own car)."""
+
+    rear_x: float
+    front_x: float
+    roof_z: float
+    hatch_z: float
+    bottom_z: float
+    width: float
+
+    def __post_init__(self) -> None:
+        if not all(math.isfinite(v) for v in asdict(self).values()):
+            raise ValueError(f"ego body: every dimension must be finite, got {asdict(self)}")
+        if not (self.rear_x < self.front_x and self.bottom_z < self.hatch_z <= self.roof_z and self.width > 0.0):
+            raise ValueError(f"ego body {asdict(self)}: expected rear_x < front_x, bottom_z < hatch_z <= roof_z and "
+                             f"width > 0 [m]")
+
+    def corners(self) -> NDArray[np.float64]:
+        """(8, 3) corners, ego frame [m]: the bottom ring, then the top ring, counter-clockwise from (rear, right)
+        (`weatheralign.world.meshes.hexahedron` order)."""
+        h = self.width / 2.0
+        x0, x1 = self.rear_x, self.front_x
+        z0 = self.bottom_z
+        return np.array([[x0, -h, z0], [x1, -h, z0], [x1, h, z0], [x0, h, z0],
+                         [x0, -h, self.hatch_z], [x1, -h, self.roof_z], [x1, h, self.roof_z], [x0, h, self.hatch_z]])
+
+    def _planes(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """Outward normals (6, 3) and offsets (6,): the solid is ``n · p <= d`` for all six planes."""
+        h = self.width / 2.0
+        slope = np.array([self.roof_z - self.hatch_z, 0.0, self.front_x - self.rear_x])  # up and back, outward
+        slope /= np.linalg.norm(slope)
+        normals = np.array([[-1.0, 0, 0], [1.0, 0, 0], [0, -1.0, 0], [0, 1.0, 0], [0, 0, -1.0], slope * [-1, 1, 1]])
+        offsets = np.array([-self.rear_x, self.front_x, h, h, -self.bottom_z,
+                            float(normals[5] @ [self.front_x, 0.0, self.roof_z])])
+        return normals, offsets
+
+    def ray_distances(self, origins: NDArray, directions: NDArray) -> NDArray[np.float64]:
+        """(N,) distance [m] along each ray (origins (N, 3), unit directions (N, 3), ego frame) to where it enters the
+        body; ``inf`` where it misses it or starts inside it (slab clipping against the six planes)."""
+        o = np.asarray(origins, dtype=np.float64).reshape(-1, 3)
+        d = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+        normals, offsets = self._planes()
+        denom = d @ normals.T  # (N, 6)
+        gap = offsets - o @ normals.T  # >= 0: the origin is inside that plane's half-space
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = gap / denom
+        enter = np.where(denom < 0.0, t, -np.inf).max(axis=1)
+        leave = np.where(denom > 0.0, t, np.inf).min(axis=1)
+        parallel_out = ((denom == 0.0) & (gap < 0.0)).any(axis=1)
+        hit = (enter <= leave) & (enter > 0.0) & ~parallel_out
+        return np.where(hit, enter, np.inf)
+
+    def camera_ranges(self, K: NDArray, T_ego_cam: NDArray, width: int, height: int) -> NDArray[np.float32]:
+        """(H, W) float32 ray length [m] from a pinhole camera (intrinsics ``K`` (3, 3) for ``width`` x ``height``,
+        OpenCV axes, pose ``T_ego_cam`` (4, 4)) to the body through each pixel centre; ``inf`` where its ray misses."""
+        u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+        rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1).reshape(-1, 3)
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        dirs = rays @ np.asarray(T_ego_cam)[:3, :3].T
+        origins = np.broadcast_to(np.asarray(T_ego_cam)[:3, 3], dirs.shape)
+        return self.ray_distances(origins, dirs).reshape(height, width).astype(np.float32)
+
+    def to_dict(self) -> dict[str, float]:
+        return {k: float(v) for k, v in asdict(self).items()}
+
+    @staticmethod
+    def from_dict(d: dict[str, Any], where: str = "ego body") -> "EgoBody":
+        try:
+            return EgoBody(**{k: float(v) for k, v in d.items()})
+        except (TypeError, ValueError, AttributeError) as exc:
+            raise ValueError(f"{where}: not a valid ego body ({exc})") from None
+
+
+@dataclass(frozen=True)
 class SensorRig:
-    """The sensors of one dataset: its LiDAR and its cameras by channel."""
+    """The sensors of one dataset: its LiDAR, its cameras by channel, and the ego body the cameras see (None: none)."""
 
     lidar: LidarModel
     cameras: dict[str, CameraModel]
+    ego_body: EgoBody | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        return {"lidar": self.lidar.to_dict(), "cameras": {k: v.to_dict() for k, v in sorted(self.cameras.items())}}
+        return {"lidar": self.lidar.to_dict(), "cameras": {k: v.to_dict() for k, v in sorted(self.cameras.items())},
+                "ego_body": None if self.ego_body is None else self.ego_body.to_dict()}
 
     @staticmethod
     def from_dict(d: dict[str, Any], where: str = "sensors") -> "SensorRig":
         if not isinstance(d, dict) or "lidar" not in d or not isinstance(d.get("cameras"), dict):
-            raise ValueError(f"{where}: expected {{'lidar': {{...}}, 'cameras': {{channel: {{...}}}}}}")
+            raise ValueError(f"{where}: expected {{'lidar': {{...}}, 'cameras': {{channel: {{...}}}}, "
+                             f"'ego_body': {{...}} or null}}")
+        body = d.get("ego_body")
         return SensorRig(LidarModel.from_dict(d["lidar"], f"{where}.lidar"),
-                         {k: CameraModel.from_dict(v, f"{where}.cameras.{k}") for k, v in d["cameras"].items()})
+                         {k: CameraModel.from_dict(v, f"{where}.cameras.{k}") for k, v in d["cameras"].items()},
+                         None if body is None else EgoBody.from_dict(body, f"{where}.ego_body"))
 
 
 # ------------------------------------------------------------------------------------------------ from params
@@ -309,7 +393,8 @@ class SensorRig:
 def lidar_model_from_params(cfg: Any) -> LidarModel:
     """The synthetic world's HDL-32E-like LIDAR_TOP from ``world.lidar`` params (a `config.LidarConfig`).
 
-    Its detector reads new weather echoes without noise: the renderer's ``intensity_noise_std`` (1.5) lies above its
+    New weather echoes get the renderer's range noise (``range_noise_std_m``), but their intensity is read without
+    noise: the renderer's ``intensity_noise_std`` (1.5) lies above its
     floor ``min_detectable_intensity`` (0.5), and a detector whose floor is under its noise would report noise on
     every beam; as a detector model that would make any particle echo, however faint, a detection one time in three
     (and the result depend on the simulator's resolution threshold)."""
@@ -318,9 +403,17 @@ def lidar_model_from_params(cfg: Any) -> LidarModel:
         rotation_hz=cfg.frequency_hz, clockwise=True, start_azimuth_rad=float(SWEEP_START_AZIMUTH),
         laser_step_s=HDL32E_LASER_STEP_S, divergence_rad=cfg.beam_divergence_rad, max_range_m=cfg.max_range_m,
         min_range_m=cfg.min_range_m, noise_floor=cfg.min_detectable_intensity, intensity_max=255.0,
+        range_noise_std_m=cfg.range_noise_std_m,
         intensity=SYNTHETIC_INTENSITY,
         pulse=PulseSensor(tau_h=cfg.pulse_half_width_s, max_range=cfg.max_range_m),
         firing_columns_stored=True, origin="params")
+
+
+def ego_body_from_params(cfg: Any) -> EgoBody | None:
+    """The `EgoBody` of ``world.ego_body`` params (a `config.EgoBodyConfig`, or None: no body in view)."""
+    if cfg is None:
+        return None
+    return EgoBody(cfg.rear_x_m, cfg.front_x_m, cfg.roof_z_m, cfg.hatch_z_m, cfg.bottom_z_m, cfg.width_m)
 
 
 # ------------------------------------------------------------------------------------------------ estimated

@@ -309,7 +309,7 @@ def run_sample(nusc, src_root: Path, out_root: Path, job: SampleJob, sensors: Se
         twin = reusable_lidar(Path(lidar_twin), token, lidar_fp, lidar_files)
     frame = load_frame(nusc, token)
     images = {ch: v.load_image() for ch, v in frame.cameras.items()}
-    ranges = sample_range_maps(nusc, frame, images)
+    ranges = sample_range_maps(nusc, frame, images, sensors.ego_body)
     sweep_list = weather_sweeps(nusc, token, sweeps)
     if twin is not None:
         keyframe = read_lidar_weather(Path(lidar_twin), _sample_files(nusc, token)[0], frame.lidar, twin["counts"])

@@ -22,10 +22,11 @@ from weatheralign.config import WorldConfig
 from weatheralign.data.nuscenes import extras_relpath
 from weatheralign.geometry import apply, invert, project, quaternion_wxyz
 from weatheralign.world.layout import Actor, SceneLayout, generate_layout
+from weatheralign.world.objects import ego_rear
 from weatheralign.world.raster import pinhole_depth
 from weatheralign.world.raycast import WorldRaycaster
 from weatheralign.world.render import CameraFrame, LidarSweep, render_camera, render_lidar_sweep, to_float16
-from weatheralign.sensors import FiringPattern, lidar_model_from_params
+from weatheralign.sensors import FiringPattern, ego_body_from_params, lidar_model_from_params
 from weatheralign.world.rig import Camera, camera_time_offset, make_cameras
 
 SWEEP_PERIOD_US = 50_000
@@ -232,13 +233,15 @@ def scene_caster(spec: SceneSpec, cfg: WorldConfig, nthreads: int = 0) -> WorldR
     (layout, BVHs, triangle tables, the static sun grid once built), so a worker rendering consecutive samples of a
     scene generates it once instead of once per sample; a caster is safe to share between threads (read only after
     construction)."""
-    key = (spec, scene_duration_s(cfg), cfg.ego_speed_min, cfg.ego_speed_max, nthreads)
+    key = (spec, scene_duration_s(cfg), cfg.ego_speed_min, cfg.ego_speed_max, cfg.ego_body, nthreads)
     with _cache_lock:
         caster = _scene_cache.get(key)
         if caster is not None:
             _scene_cache.move_to_end(key)
             return caster
-    caster = WorldRaycaster(spec.layout(cfg), nthreads=nthreads)
+    body = ego_body_from_params(cfg.ego_body)
+    caster = WorldRaycaster(spec.layout(cfg), nthreads=nthreads,
+                            ego_body=None if body is None else ego_rear(body.corners()))
     with _cache_lock:
         caster = _scene_cache.setdefault(key, caster)
         _scene_cache.move_to_end(key)

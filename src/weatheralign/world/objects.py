@@ -7,9 +7,11 @@ in the nuScenes order. Reflectivities are LiDAR (905 nm) values in [0, 1].
 from __future__ import annotations
 
 import numpy as np
+from numpy.typing import NDArray
 
 from weatheralign.world.materials import Material as M
-from weatheralign.world.meshes import RGB, Mesh, box, concat, cylinder, ellipsoid, rod, tapered_box, torus
+from weatheralign.world.meshes import (RGB, Mesh, box, concat, cylinder, ellipsoid, hexahedron, rod, tapered_box,
+                                      torus)
 
 GLASS: RGB = (0.04, 0.05, 0.06)
 TYRE: RGB = (0.03, 0.03, 0.03)
@@ -47,6 +49,19 @@ def car(size: tuple[float, float, float], paint: RGB) -> Mesh:
         box(back - 1e-3, back + 0.015, -0.26, 0.26, 0.45, 0.57, M.PLATE, PLATE, 0.95),
     ])
     return concat([body, cabin, lights, _wheels(l, w, r, [front - 0.85, back + 0.85])])
+
+
+EGO_PAINT: RGB = (0.20, 0.21, 0.22)
+"""The ego's paint (a silver-grey hatch, linear albedo)."""
+
+
+def ego_rear(corners: NDArray) -> Mesh:
+    """The ego's rear body as the cameras see it: the solid of ``corners`` (8, 3) (`weatheralign.sensors.EgoBody.
+    corners`, ego frame; bottom ring then top ring), its sloping hatch, rear face and sides painted (the face towards
+    the cabin and the underside are never in view), instance 0 (not an annotation)."""
+    paint = (M.PAINT, EGO_PAINT, 0.5)
+    return hexahedron(np.asarray(corners, dtype=np.float64), {"top": paint, "back": paint, "left": paint,
+                                                              "right": paint})
 
 
 def truck(size: tuple[float, float, float], cab_paint: RGB, cargo: RGB) -> Mesh:

@@ -190,7 +190,9 @@ def _finish_kernel(gid: NDArray, normal: NDArray, dirs: NDArray, tri_material: N
 class WorldRaycaster:
     """Casts rays into one `SceneLayout` at given times."""
 
-    def __init__(self, layout: SceneLayout, nthreads: int = 0) -> None:
+    def __init__(self, layout: SceneLayout, nthreads: int = 0, ego_body: Mesh | None = None) -> None:
+        """``ego_body``: the ego's own body (ego frame), seen by the cameras only (`camera_depth`; a LiDAR does not
+        report its own car), posed with the ego at each camera's time."""
         self.layout = layout
         self.nthreads = nthreads
         self._static = scene_of_mesh(layout.static_mesh, nthreads) if layout.static_mesh.num_triangles else None
@@ -224,6 +226,17 @@ class WorldRaycaster:
             [np.zeros(0)] + [np.full(len(a.mesh.vertices), a.t_ref) for a in self._moving])
         self._moving_normals = np.concatenate(
             [np.zeros((0, 3))] + [n @ R.T for n, R in zip(self._normals[1:], turns)])
+        # the cameras' triangle table: the same, then the ego body's triangles (their vertices follow the actors')
+        self._ego = ego_body
+        cam_meshes = meshes if ego_body is None else [*meshes, ego_body]
+        cam_vertex_offsets = np.cumsum([0] + [len(m.vertices) for m in cam_meshes])
+        self._cam_triangles = np.concatenate([m.triangles.astype(np.int64) + o
+                                              for m, o in zip(cam_meshes, cam_vertex_offsets)])
+        self._cam_table = (np.concatenate([m.material for m in cam_meshes]),
+                           np.concatenate([m.albedo for m in cam_meshes]).astype(np.float32),
+                           np.concatenate([m.reflectivity for m in cam_meshes]).astype(np.float32),
+                           np.concatenate([m.instance for m in cam_meshes]).astype(np.int32))
+        self._ego_normals = np.zeros((0, 3)) if ego_body is None else triangle_normals(ego_body)
 
     def cast_rolling(self, origins: NDArray, directions: NDArray, times: NDArray) -> Hits:
         """Cast rays whose times differ (a rolling LiDAR sweep): each ray sees every moving actor where it is at
@@ -258,14 +271,16 @@ class WorldRaycaster:
                 normal[sel] = (nb[closer] @ R.T).astype(np.float32)
         return self._finish(t, gid, normal, directions)
 
-    def _finish(self, t: NDArray, gid: NDArray, normal: NDArray, directions: NDArray) -> Hits:
+    def _finish(self, t: NDArray, gid: NDArray, normal: NDArray, directions: NDArray,
+                camera: bool = False) -> Hits:
         """`Hits` from hit distances (N,), global triangle ids (N,) (-1: none) and normals (N, 3) float32 (turned
-        towards the ray origin in place)."""
+        towards the ray origin in place); ``camera``: ids of the cameras' table (with the ego body)."""
         n = len(t)
         hits = Hits(t, normal, np.empty(n, np.uint8), np.empty((n, 3), np.float32), np.empty(n, np.float32),
                     np.empty(n, np.int32))
-        _finish_kernel(gid, normal, directions, self._tri_material, self._tri_albedo, self._tri_reflectivity,
-                       self._tri_instance, hits.material, hits.albedo, hits.reflectivity, hits.instance)
+        table = self._cam_table if camera else (self._tri_material, self._tri_albedo, self._tri_reflectivity,
+                                                self._tri_instance)
+        _finish_kernel(gid, normal, directions, *table, hits.material, hits.albedo, hits.reflectivity, hits.instance)
         return hits
 
     def cast_at_time(self, origins: NDArray, directions: NDArray, time: float) -> Hits:
@@ -281,11 +296,15 @@ class WorldRaycaster:
         posed at ``time``)."""
         R, o = T_global_cam[:3, :3], T_global_cam[:3, 3]
         moving, moving_normals = self._moving_at(time)
-        verts_cam = (np.concatenate([self.layout.static_mesh.vertices, moving]) - o) @ R  # R^T (v - o)
-        inv_depth, gid = pinhole_depth(verts_cam, self._triangles, K, width, height)
-        normal = np.concatenate([self._static_normals32, moving_normals.astype(np.float32)])
-        return inv_depth, gid, TriangleTable(normal, self._tri_material, self._tri_albedo, self._tri_reflectivity,
-                                             self._tri_instance)
+        parts, normals = [self.layout.static_mesh.vertices, moving], [self._static_normals32, moving_normals]
+        if self._ego is not None:
+            T_global_ego = self.layout.T_global_ego(time)
+            parts.append(self._ego.vertices @ T_global_ego[:3, :3].T + T_global_ego[:3, 3])
+            normals.append(self._ego_normals @ T_global_ego[:3, :3].T)
+        verts_cam = (np.concatenate(parts) - o) @ R  # R^T (v - o)
+        inv_depth, gid = pinhole_depth(verts_cam, self._cam_triangles, K, width, height)
+        normal = np.concatenate(normals).astype(np.float32)
+        return inv_depth, gid, TriangleTable(normal, *self._cam_table)
 
     def cast_camera(self, K: NDArray, T_global_cam: NDArray, width: int, height: int, time: float,
                     directions: NDArray) -> Hits:
@@ -298,7 +317,7 @@ class WorldRaycaster:
         """
         inv_depth, gid, tris = self.camera_depth(K, T_global_cam, width, height, time)
         normal = gather_rows(tris.normal, gid)
-        return self._finish(pixel_ranges(inv_depth, K, width), gid, normal, directions)
+        return self._finish(pixel_ranges(inv_depth, K, width), gid, normal, directions, camera=True)
 
     def _moving_at(self, time: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         """The moving actors' vertices (V, 3) (in the order of `_triangles`) and triangle normals (T, 3) posed at
