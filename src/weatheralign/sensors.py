@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from weatheralign.data.frame import LidarScan
-from weatheralign.data.nuscenes import SWEEP_START_AZIMUTH
+from weatheralign.data.nuscenes import LIDAR_TOP_YAW, SWEEP_START_AZIMUTH
 from weatheralign.data.rings import HDL32E_ELEVATIONS_DEG
 
 F64 = NDArray[np.float64]
@@ -390,8 +390,22 @@ class SensorRig:
 # ------------------------------------------------------------------------------------------------ from params
 
 
-def lidar_model_from_params(cfg: Any) -> LidarModel:
-    """The synthetic world's HDL-32E-like LIDAR_TOP from ``world.lidar`` params (a `config.LidarConfig`).
+def sensor_start_azimuth(mount_yaw: float) -> float:
+    """The nuScenes sweep start (`SWEEP_START_AZIMUTH`, an ego-frame azimuth) in the frame of a LiDAR mounted with
+    ``mount_yaw`` [rad] about the ego's z (sensor azimuth = ego azimuth - mount yaw), in (-π, π]."""
+    a = float(np.angle(np.exp(1j * (SWEEP_START_AZIMUTH - mount_yaw))))
+    return math.pi if a == -math.pi else a
+
+
+def mount_yaw_of(T_ego_lidar: NDArray) -> float:
+    """Yaw [rad] of a LiDAR mounting ``T_ego_lidar`` (4, 4) about the ego's z axis."""
+    R = np.asarray(T_ego_lidar, dtype=np.float64)[:3, :3]
+    return float(math.atan2(R[1, 0], R[0, 0]))
+
+
+def lidar_model_from_params(cfg: Any, mount_yaw: float = LIDAR_TOP_YAW) -> LidarModel:
+    """The synthetic world's HDL-32E-like LIDAR_TOP from ``world.lidar`` params (a `config.LidarConfig`), mounted like
+    nuScenes' (``mount_yaw``: its firing grid starts at the nuScenes sweep start in the ego frame).
 
     New weather echoes get the renderer's range noise (``range_noise_std_m``), but their intensity is read without
     noise: the renderer's ``intensity_noise_std`` (1.5) lies above its
@@ -400,7 +414,7 @@ def lidar_model_from_params(cfg: Any) -> LidarModel:
     (and the result depend on the simulator's resolution threshold)."""
     return LidarModel(
         elevations_deg=tuple(float(e) for e in HDL32E_ELEVATIONS_DEG), columns_per_ring=cfg.firings_per_ring,
-        rotation_hz=cfg.frequency_hz, clockwise=True, start_azimuth_rad=float(SWEEP_START_AZIMUTH),
+        rotation_hz=cfg.frequency_hz, clockwise=True, start_azimuth_rad=sensor_start_azimuth(mount_yaw),
         laser_step_s=HDL32E_LASER_STEP_S, divergence_rad=cfg.beam_divergence_rad, max_range_m=cfg.max_range_m,
         min_range_m=cfg.min_range_m, noise_floor=cfg.min_detectable_intensity, intensity_max=255.0,
         range_noise_std_m=cfg.range_noise_std_m,
@@ -501,7 +515,8 @@ def estimate_lidar_model(scans: list[LidarScan], *, rotation_hz: float | None = 
     divergence, tau = _known_sensor(num_rings)
     fields: dict[str, Any] = {
         "elevations_deg": tuple(elevations), "columns_per_ring": int(round(2 * np.pi / step)),
-        "rotation_hz": rotation_hz, "clockwise": clockwise, "start_azimuth_rad": float(SWEEP_START_AZIMUTH),
+        "rotation_hz": rotation_hz, "clockwise": clockwise,
+        "start_azimuth_rad": sensor_start_azimuth(mount_yaw_of(scans[0].T_ego_lidar)),
         "laser_step_s": 0.0, "divergence_rad": divergence, "max_range_m": max_range, "min_range_m": 1.0,
         "noise_floor": float(np.min(np.concatenate(inten))), "intensity_max": imax,
         "intensity": CALIBRATED_INTENSITY if imax == 1.0 else SYNTHETIC_INTENSITY,

@@ -27,6 +27,9 @@ from weatheralign.geometry import NonRigidTransformError, apply, check_rigid, in
 
 CAMERA_CHANNELS = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT")
 SWEEP_START_AZIMUTH = np.pi / 2  # ego +y (left)
+LIDAR_TOP_YAW = -np.pi / 2
+"""nuScenes' LIDAR_TOP mounting about the ego's z axis [rad]: its x axis points right, its y axis forward (every
+nuScenes log; the synthetic world mounts it the same way)."""
 SWEEP_PERIOD_S = 0.05  # 20 Hz
 TABLES = ("category", "attribute", "visibility", "instance", "sensor", "calibrated_sensor", "ego_pose", "log",
           "scene", "sample", "sample_data", "sample_annotation", "map")

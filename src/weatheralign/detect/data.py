@@ -3,7 +3,7 @@ nuScenes): split reading, a preprocessed per-sample cache, a torch `Dataset` wit
 collation into a `DetectionBatch`, and mixing two dataroots at the data-loader level.
 
 Frames: every geometric quantity is in the keyframe's LiDAR frame (``LIDAR_TOP`` at the keyframe timestamp), whatever
-way the sensor is mounted (real nuScenes: x right, y forward; the synthetic world: x forward). Box rows follow
+way the sensor is mounted (nuScenes and the synthetic world: x right, y forward; KITTI, STF: x forward). Box rows follow
 `weatheralign.detect.types`: ``(x, y, z, w, l, h, yaw, vx, vy)``.
 
 Cache layout (`build_cache`)::

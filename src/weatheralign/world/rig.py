@@ -1,5 +1,5 @@
-"""The nuScenes-like sensor rig: the LIDAR_TOP's mounting and six cameras (the LiDAR's firing grid is its
-`weatheralign.sensors.LidarModel`'s).
+"""The nuScenes-like sensor rig: the LIDAR_TOP's mounting (as nuScenes': x right, y forward) and six cameras (the
+LiDAR's firing grid is its `weatheralign.sensors.LidarModel`'s).
 
 Sweep timing follows nuScenes: the LiDAR spins clockwise seen from above, starting at the left (+y of the ego), and
 a sweep's timestamp is the end of its rotation. Each camera is exposed when the sweep crosses its optical axis.
@@ -12,12 +12,12 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from weatheralign.data.nuscenes import sweep_fraction_at_azimuth
-from weatheralign.geometry import camera_rotation_from_yaw, make_transform
+from weatheralign.data.nuscenes import LIDAR_TOP_YAW, sweep_fraction_at_azimuth
+from weatheralign.geometry import camera_rotation_from_yaw, make_transform, yaw_matrix
 
 F64 = NDArray[np.float64]
 
-T_EGO_LIDAR = make_transform(np.eye(3), np.array([0.943, 0.0, 1.84]))
+T_EGO_LIDAR = make_transform(yaw_matrix(LIDAR_TOP_YAW), np.array([0.943, 0.0, 1.84]))
 
 
 @dataclass(frozen=True)
