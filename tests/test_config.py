@@ -277,3 +277,12 @@ def test_rain_fall_speed_from_drop_size_by_default_with_the_paper_preset(tmp_pat
     assert str(err.value) == ("--set particles.rain.terminal_velocity_m_s=20: particles.rain.terminal_velocity_m_s = "
                               "20 is invalid: Input should be less than or equal to 12")
 
+
+def test_rain_appearance_names_the_presets(tmp_path):
+    base = _params_file(tmp_path)
+    assert load_params(base).simulate.rain_appearance == "rain"
+    assert load_params(base, ["simulate.rain_appearance=rain_weather_edit"]).simulate.rain_appearance == \
+        "rain_weather_edit"
+    with pytest.raises(ConfigError, match=r"simulate.rain_appearance = 'rain_opaque_drops' is invalid: Input should "
+                                          r"be 'rain' or 'rain_weather_edit'"):
+        load_params(base, ["simulate.rain_appearance=rain_opaque_drops"])
