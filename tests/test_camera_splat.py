@@ -8,6 +8,7 @@ scenes) and to 1e-6 px in the centroids, with identical drawn flags.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from concurrent.futures import ThreadPoolExecutor
 
@@ -17,11 +18,15 @@ from scipy.integrate import quad
 from scipy.spatial.transform import Rotation
 
 from weatheralign.camera.splat import (
+    APPEARANCES,
+    DILATION_PX2,
     OPACITY_RANGE,
     RAIN,
+    RAIN_WEATHER_EDIT,
     SNOW,
     ParticleAppearance,
     _naive,
+    environment_radiance,
     focal_px,
     materialize_for_camera,
     max_splat_range,
@@ -30,8 +35,12 @@ from weatheralign.camera.splat import (
     render_particles,
     unresolved_extinction_profile,
 )
+from weatheralign.conditions import CONDITIONS, RAIN_APPEARANCES
+from weatheralign.config import SimulateConfig, params_from_dict
 from weatheralign.geometry import camera_rotation_from_yaw, invert, make_transform
 from weatheralign.medium import ParticleField, RainSizeDistribution, SnowSizeDistribution, fall_velocity
+from weatheralign.medium.conditions import FieldSpec, field_spec
+from weatheralign.metrics.reprojection import CameraParticles, reprojection_check
 
 IMAGE_TOL = 1e-6
 H, W = 36, 48
@@ -168,6 +177,103 @@ def test_streak_follows_relative_motion_and_conserves_energy() -> None:
     assert width(a_moving, 1) <= width(a_still, 1)  # not along v
     # without the opacity scaling the energy would grow by the area ratio (the test would fail)
     assert still.opacity[0] / moving.opacity[0] > 3.0
+
+
+@pytest.mark.parametrize("speed", [0.0, 2.0, 6.6, 12.0])  # m/s across the view: streaks of 0, 10, 33, 60 px
+def test_rain_streak_alpha_is_the_drops_projected_area_for_any_streak(speed: float) -> None:
+    """Garg & Nayar's streak: each pixel's alpha is the fraction of the exposure the drop covers it, so the alpha
+    summed over the streak is the drop's projected area ``π a D²/4 (f/z)²`` [px²] whatever its length (the part of
+    the Gaussian below the 1/255 cut-off, ``2π sqrt(det Σ'2D) / 255``, is not drawn). Closed form for an upright
+    drop (no cant) on the optical axis: ``σ_u = f D / (2z)``, ``σ_v = a σ_u``, ``a = 1.03 - 62 D``."""
+    h, w, f, z, d = 120, 160, 1000.0, 1.0, 0.002
+    K = np.array([[f, 0.0, 80.0], [0.0, f, 60.0], [0.0, 0.0, 1.0]])
+    T = _pose(0.0, (0.0, 0.0, 0.0))  # looks along global +x; image u is global -y
+    pos = _points_in_view(T, np.array([[0.0, 0.0, z]]))
+    look = dataclasses.replace(RAIN, tilt_max_deg=0.0)
+    res = render_particles(np.zeros((h, w, 3), np.float32), np.full((h, w), np.inf, np.float32), K, T, pos, [d],
+                           [3], (0.0, speed, 0.0), (0.0, 0.0, 0.0), exposure_s=0.005, appearance=look)
+    a = 1.03 - 62.0 * d
+    su, sv = f * d / (2 * z), a * f * d / (2 * z)
+    length = f * speed * 0.005 / z  # streak length [px]
+    area = math.pi / 4 * a * d**2 * (f / z) ** 2  # = 2π · 0.5 · σ_u σ_v
+    det2 = (su**2 + DILATION_PX2 + length**2 / 12) * (sv**2 + DILATION_PX2)
+    assert res.opacity[0] == pytest.approx(0.5 * su * sv / math.sqrt(det2), rel=1e-9)
+    cut = 2 * math.pi * math.sqrt(det2) / 255  # 0.5 % of the area still, 8 % at 6.6 m/s, 16 % at 12 m/s
+    assert res.alpha_sum[0] + cut == pytest.approx(area, rel=0.025)  # the pixel grid's truncation: <= 2 %
+    # the image holds alpha x the drop's radiance (black scene: the environment is half the airlight)
+    radiance = 0.94 * 0.5 * 0.8
+    assert float(res.image[..., 0].sum()) == pytest.approx(radiance * res.alpha_sum[0], rel=1e-5)
+
+
+def test_weather_edit_rain_draws_40_percent_of_the_area_and_the_dilation_more() -> None:
+    """Weather-edit's look (opacity 0.2 ± 0.05) draws ~40 % of an opaque drop; without the dilation compensation its
+    integrated alpha is that of the dilated footprint ``o 2π sqrt(det(Σ2D + 0.3 I))``."""
+    h, w, f, z, d = 120, 160, 1000.0, 1.0, 0.002
+    K = np.array([[f, 0.0, 80.0], [0.0, f, 60.0], [0.0, 0.0, 1.0]])
+    T = _pose(0.0, (0.0, 0.0, 0.0))
+    pos = _points_in_view(T, np.array([[0.0, 0.0, z]]))
+    args = (np.zeros((h, w, 3), np.float32), np.full((h, w), np.inf, np.float32), K, T, pos, [d], [3], (0, 0, 0),
+            (0, 0, 0))
+    new = render_particles(*args, appearance=dataclasses.replace(RAIN, tilt_max_deg=0.0))
+    old = render_particles(*args, appearance=dataclasses.replace(RAIN_WEATHER_EDIT, tilt_max_deg=0.0))
+    o_old = particle_attributes(np.array([3]), np.array([d]), RAIN_WEATHER_EDIT)[1][0]
+    a = 1.03 - 62.0 * d
+    su, sv = f * d / (2 * z), a * f * d / (2 * z)
+    dilated = 2 * math.pi * math.sqrt((su**2 + DILATION_PX2) * (sv**2 + DILATION_PX2))
+    assert old.alpha_sum[0] == pytest.approx(o_old * dilated - dilated / 255, rel=5e-3)
+    assert new.alpha_sum[0] / old.alpha_sum[0] == pytest.approx(0.5 * su * sv / (o_old * dilated / (2 * math.pi)),
+                                                                rel=0.05)
+
+
+def test_drop_radiance_follows_the_environment() -> None:
+    """A drop's radiance is 0.94 x (half the image's mean radiance + half the airlight): it brightens a dark road and
+    darkens a bright sky (a constant grey 0.7 brightens both); it scales with the scene's light."""
+    h, w = 80, 120
+    K = np.array([[800.0, 0.0, 60.0], [0.0, 800.0, 40.0], [0.0, 0.0, 1.0]])
+    T = _pose(0.0, (0.0, 0.0, 0.0))
+    img = np.full((h, w, 3), 0.05, np.float32)
+    img[: h // 2] = 0.9  # sky
+    rmap = np.full((h, w), 20.0, np.float32)
+    rmap[: h // 2] = np.inf
+    cam = np.array([[0.0, -0.025, 1.0], [0.0, 0.025, 1.0]])  # one drop over the sky (row 20), one over the road
+    pos = _points_in_view(T, cam)
+    air = np.array([0.85, 0.85, 0.85])
+    env = environment_radiance(img, air)
+    np.testing.assert_allclose(env, 0.5 * img.astype(np.float64).reshape(-1, 3).mean(0) + 0.5 * air, rtol=1e-12)
+
+    def drops(image, airlight, look=RAIN):
+        return render_particles(image, rmap, K, T, pos, [0.003, 0.003], [1, 2], (0, 0, 0), (0, 0, 0),
+                                appearance=look, airlight=airlight)
+
+    res = drops(img, air)
+    top, bottom = res.image[: h // 2] - img[: h // 2], res.image[h // 2:] - img[h // 2:]
+    assert top.min() < -0.1 and top.max() <= 1e-7  # darker than the sky
+    assert bottom.max() > 0.1 and bottom.min() >= -1e-7  # brighter than the road
+    # the drop's colour: out = bg + alpha (c - bg) at its peak pixel
+    centre = (20, 60)  # the sky drop's centre pixel
+    alpha = float(res.max_alpha[0])
+    c = img[centre] + (res.image[centre] - img[centre]) / alpha
+    np.testing.assert_allclose(c, 0.94 * env, rtol=1e-4)
+    brighter = drops(2 * img, 2 * air)
+    np.testing.assert_allclose(brighter.image - 2 * img, 2 * (res.image - img), atol=1e-6)  # linear in the light
+    old = drops(img, air, RAIN_WEATHER_EDIT)
+    assert (old.image[h // 2:] - img[h // 2:]).max() > 0.05 and (old.image[: h // 2] - img[: h // 2]).min() > -0.1
+
+
+def test_rain_appearances_are_named_consistently() -> None:
+    """``simulate.rain_appearance`` offers exactly `RAIN_APPEARANCES`, each a rain look of `APPEARANCES`; the rain
+    condition switches between them and names the choices when given another."""
+    assert set(RAIN_APPEARANCES) == set(SimulateConfig.model_fields["rain_appearance"].annotation.__args__)
+    assert all(APPEARANCES[n].name == n and APPEARANCES[n].oblate_drops for n in RAIN_APPEARANCES)
+    assert APPEARANCES["rain"] is RAIN and APPEARANCES["rain_weather_edit"] is RAIN_WEATHER_EDIT
+    assert CONDITIONS["rain"].with_rain_appearance("rain_weather_edit").particles.camera_appearance == \
+        "rain_weather_edit"
+    assert CONDITIONS["snow"].with_rain_appearance("rain_weather_edit") is CONDITIONS["snow"]
+    with pytest.raises(ValueError, match=r"simulate.rain_appearance = 'rain_opaque_drops' is invalid: expected one "
+                                         r"of \['rain', 'rain_weather_edit'\]"):
+        CONDITIONS["rain"].with_rain_appearance("rain_opaque_drops")
+    with pytest.raises(ValueError, match="ParticleAppearance.radiance = 'sky' is invalid"):
+        ParticleAppearance("x", radiance="sky")
 
 
 # ------------------------------------------------------------------------------------------------------ occlusion
@@ -362,22 +468,37 @@ def test_unresolved_profile_matches_the_exact_cameras_medium(distribution) -> No
     assert beyond == pytest.approx(0.5 * fld.extinction(), rel=1e-9)
 
 
-def test_rain_field_end_to_end_small_camera() -> None:
-    """A rain field materialised for a small camera and splatted: drawn streaks, fast == naive."""
-    fld = ParticleField(3, RainSizeDistribution(50.0), velocity=fall_velocity(2.0), t_ref=0.0, cell_size=1.0)
+@pytest.mark.parametrize("appearance", [RAIN, RAIN_WEATHER_EDIT], ids=["rain", "weather_edit"])
+def test_rain_field_end_to_end_small_camera(appearance: ParticleAppearance) -> None:
+    """The default rain field (params' 50 mm/h, falling at its median-volume drop's 6.6 m/s) materialised for a
+    small camera and splatted: drawn streaks, fast == naive; the same spec gives the same bytes."""
+    spec = field_spec(params_from_dict({}).particles, "rain", "scene-0061", 0.0)
+    fld = spec.field()
+    assert fld.velocity_array[2] == pytest.approx(-6.613, abs=1e-3)
     w, h = 240, 180
     K = np.array([[600.0, 0.0, 120.0], [0.0, 600.0, 90.0], [0.0, 0.0, 1.0]])
     T_global_cam = make_transform(camera_rotation_from_yaw(1.0), np.array([0.0, 0.0, 1.5]))
-    parts = materialize_for_camera(fld, K, w, h, T_global_cam, 0.01, RAIN)
+    parts = materialize_for_camera(fld, K, w, h, T_global_cam, 0.01, appearance)
     assert len(parts) > 3
-    assert max_splat_range(fld.spectrum.d_max, 600.0, RAIN) < 4.0  # rain is resolved only near the lens
+    assert max_splat_range(fld.spectrum.d_max, 600.0, appearance) < 4.0  # rain is resolved only near the lens
     T = invert(T_global_cam)
     img = np.full((h, w, 3), 0.1, np.float32)
     rmap = np.full((h, w), np.inf, np.float32)
-    kw = dict(appearance=RAIN, exposure_s=0.005)
+    kw = dict(appearance=appearance, exposure_s=0.005)
     fast = render_particles(img, rmap, K, T, parts.positions, parts.diameters, parts.ids, fld.velocity_array,
                             (8.0, 0.0, 0.0), **kw)
     ref, _ = _naive(img, rmap, K, T, parts.positions, parts.diameters, parts.ids, fld.velocity_array,
                     (8.0, 0.0, 0.0), **kw)
     assert fast.counts["drawn"] > 0
     assert np.abs(fast.image - ref).max() <= IMAGE_TOL
+    again = FieldSpec.from_dict(spec.to_dict()).field()
+    p2 = materialize_for_camera(again, K, w, h, T_global_cam, 0.01, appearance)
+    twice = render_particles(img, rmap, K, T, p2.positions, p2.diameters, p2.ids, again.velocity_array,
+                             (8.0, 0.0, 0.0), **kw)
+    assert twice.image.tobytes() == fast.image.tobytes() and twice.centroids.tobytes() == fast.centroids.tobytes()
+    # aligned with what a LiDAR knows: the drawn drops 30 ms earlier, moved by the one field velocity, land on their
+    # streaks' rasterised centroids
+    usable = fast.drawn & fast.unoccluded & fast.in_frame
+    cam = CameraParticles("cam", K, T_global_cam, 0.01, w, h, parts.ids, fast.centroids, usable, rmap)
+    check = reprojection_check(fld, parts.ids[usable], np.full(int(usable.sum()), 0.01 - 0.03), [cam], True)
+    assert check.error_px.size == usable.sum() > 3 and check.error_px.max() < 0.01

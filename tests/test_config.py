@@ -262,3 +262,27 @@ def test_errors_from_set_overrides_name_the_set(tmp_path):
     # a value that is not YAML is blamed on its --set, not a traceback
     with pytest.raises(ConfigError, match=r"^--set 'world.seed=\[1': the value is not valid YAML"):
         load_params(f, ["world.seed=[1"])
+
+
+def test_rain_fall_speed_from_drop_size_by_default_with_the_paper_preset(tmp_path):
+    """``particles.rain.terminal_velocity_m_s``: null (the repository's and the default) derives the speed from drop
+    size; a number fixes it (the paper's 2.0 m/s); out of range names the key and the range."""
+    base = _params_file(tmp_path)
+    assert load_params(base).particles.rain.terminal_velocity_m_s is None
+    assert params_from_dict({}).particles.rain.terminal_velocity_m_s is None
+    assert load_params(base, ["particles.rain.terminal_velocity_m_s=2.0"]).particles.rain.terminal_velocity_m_s == 2.0
+    assert load_params(base, ["particles.rain.terminal_velocity_m_s=null"]).particles.rain.terminal_velocity_m_s is None
+    with pytest.raises(ConfigError) as err:
+        load_params(base, ["particles.rain.terminal_velocity_m_s=20"])
+    assert str(err.value) == ("--set particles.rain.terminal_velocity_m_s=20: particles.rain.terminal_velocity_m_s = "
+                              "20 is invalid: Input should be less than or equal to 12")
+
+
+def test_rain_appearance_names_the_presets(tmp_path):
+    base = _params_file(tmp_path)
+    assert load_params(base).simulate.rain_appearance == "rain"
+    assert load_params(base, ["simulate.rain_appearance=rain_weather_edit"]).simulate.rain_appearance == \
+        "rain_weather_edit"
+    with pytest.raises(ConfigError, match=r"simulate.rain_appearance = 'rain_opaque_drops' is invalid: Input should "
+                                          r"be 'rain' or 'rain_weather_edit'"):
+        load_params(base, ["simulate.rain_appearance=rain_opaque_drops"])

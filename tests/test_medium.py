@@ -21,6 +21,8 @@ from weatheralign.medium import (
     gunn_marshall_lambda,
     mor_from_alpha,
     paper_beta_grid,
+    rain_field_fall_speed,
+    rain_median_volume_diameter,
     rain_terminal_velocity,
     sekhon_srivastava_lambda,
     snow_equivalent_rain_rate,
@@ -126,6 +128,32 @@ def test_rain_marshall_palmer_extinction() -> None:
                                                      - math.exp(-RAIN.rate_parameter * 6e-3)))
     assert float(rain_terminal_velocity(2e-3)) == pytest.approx(6.5, abs=0.2)  # Gunn–Kinzer
     assert float(rain_terminal_velocity(1e-5)) == 0.0
+
+
+@pytest.mark.parametrize(("rate", "d0_mm", "speed"), [
+    # by hand: Λ = 4.1 R^-0.21 /mm, D0 = 3.67 / Λ, v = 9.65 - 10.3 exp(-0.6 D0[mm])
+    (5.0, 1.2551, 4.7994),    # Λ = 2.9242 /mm: v = 9.65 - 10.3 exp(-0.7530)
+    (50.0, 2.0355, 6.6130),   # Λ = 1.8030 /mm: v = 9.65 - 10.3 exp(-1.2213)
+    (100.0, 2.3544, 7.1420),  # Λ = 1.5588 /mm: v = 9.65 - 10.3 exp(-1.4126)
+])
+def test_rain_field_fall_speed_is_the_median_volume_drops(rate: float, d0_mm: float, speed: float) -> None:
+    """The one fall speed of a rain field: the Atlas / Gunn–Kinzer law at D0 = 3.67 / Λ (closed form)."""
+    assert rain_median_volume_diameter(rate) == pytest.approx(d0_mm * 1e-3, rel=1e-4)
+    assert rain_field_fall_speed(rate) == pytest.approx(speed, abs=2e-4)
+    lam_mm = 4.1 * rate**-0.21
+    assert rain_field_fall_speed(rate) == pytest.approx(9.65 - 10.3 * math.exp(-0.6 * 3.67 / lam_mm), rel=1e-12)
+
+
+def test_median_volume_diameter_is_the_median_of_the_cameras_streak_energy() -> None:
+    """Why D0: the streak energy a camera draws from drops of size D is ∝ D² (area) x D (resolved depth) x N(D);
+    its median over the Marshall-Palmer spectrum (without the near clip) is D0, and the law is increasing in D."""
+    for rate in (5.0, 50.0, 100.0):
+        spec = RainSizeDistribution(rate).spectrum()
+        d0 = rain_median_volume_diameter(rate)
+        below, _ = integrate.quad(lambda d: d**3 * math.exp(-spec.lam * d), spec.d_min, d0)
+        total, _ = integrate.quad(lambda d: d**3 * math.exp(-spec.lam * d), spec.d_min, spec.d_max)
+        assert below / total == pytest.approx(0.5, abs=0.01)  # the 6 mm cap: +1.6 % at 100 mm/h
+    assert 2.0 < rain_field_fall_speed(1.0) < rain_field_fall_speed(10.0) < rain_field_fall_speed(200.0) < 9.65
 
 
 def test_partial_extinction_adds_up() -> None:

@@ -7,9 +7,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from weatheralign.config import params_from_dict
+from weatheralign.config import PAPER_RAIN_FALL_M_S, params_from_dict
 from weatheralign.medium.conditions import FieldSpec, field_seed, field_spec
-from weatheralign.medium.distributions import SnowSizeDistribution
+from weatheralign.medium.distributions import SnowSizeDistribution, rain_field_fall_speed
 from weatheralign.medium.field import ParticleField, Particles
 from weatheralign.medium.validation import camera_air_volume, check_region, lidar_air_volume
 
@@ -26,6 +26,23 @@ def test_field_spec_round_trip_rebuilds_the_same_field(cfg):
     a = spec.field().materialize([0, 0, 0], [4, 4, 4], 1.7e9 + 0.3)
     b = again.field().materialize([0, 0, 0], [4, 4, 4], 1.7e9 + 0.3)
     assert np.array_equal(a.ids, b.ids) and np.array_equal(a.positions, b.positions) and len(a) > 1000
+
+
+def test_rain_falls_at_its_drop_size_speed_by_default_and_the_paper_preset_is_2_m_s(cfg):
+    """Default (``terminal_velocity_m_s: null``): the median-volume drop's speed at the field's rate, also after the
+    media stage replaces the rate; ``2.0``: the paper's fixed speed. LiDAR and cameras read the one field velocity."""
+    assert cfg.rain.terminal_velocity_m_s is None
+    spec = field_spec(cfg, "rain", "scene-0061", 0.0)
+    assert spec.fall_speed_m_s == pytest.approx(rain_field_fall_speed(50.0)) == pytest.approx(6.613, abs=2e-3)
+    np.testing.assert_allclose(spec.field().velocity_array, [0.0, 0.0, -rain_field_fall_speed(50.0)], rtol=1e-15)
+    np.testing.assert_array_equal(spec.field(aligned=False).velocity_array, spec.field().velocity_array)
+    assert FieldSpec.from_dict(spec.to_dict()) == spec
+    tuned = dataclasses.replace(spec, rate_mm_h=5.0)  # what resolve_media does with a calibrated rate
+    assert tuned.field().velocity_array[2] == pytest.approx(-4.799, abs=2e-3)
+    paper = params_from_dict({"particles": {"rain": {"terminal_velocity_m_s": PAPER_RAIN_FALL_M_S}}}).particles
+    assert field_spec(paper, "rain", "scene-0061", 0.0).field().velocity_array[2] == -2.0
+    with pytest.raises(ValueError, match="terminal_velocity_m_s = None is invalid"):
+        dataclasses.replace(field_spec(cfg, "snow", "s", 0.0), terminal_velocity_m_s=None).field()
 
 
 def test_seeds_differ_per_scene_and_condition_and_unaligned_twin_is_independent(cfg):

@@ -27,6 +27,9 @@ from weatheralign.medium.distributions import RAIN_REFLECTIVITY, SNOW_REFLECTIVI
 FogLevel = Literal["light", "dense"]
 PrecipitationKind = Literal["snow", "rain"]
 ALIGNMENTS: tuple[str, ...] = ("aligned", "unaligned")
+RAIN_APPEARANCES: tuple[str, ...] = ("rain", "rain_weather_edit")
+"""The values of ``simulate.rain_appearance``: names of `weatheralign.camera.splat.APPEARANCES` (``rain``: opaque
+refracting drops, radiance from their environment; ``rain_weather_edit``: Weather-edit's translucent grey drops)."""
 
 
 @dataclass(frozen=True)
@@ -59,7 +62,7 @@ class ParticlePart:
         kind: ``snow`` or ``rain``.
         lidar_reflectivity: the particles' reflectivity at the LiDAR wavelength.
         camera_appearance: how the cameras draw them: a name of `weatheralign.camera.splat.APPEARANCES`
-            (``snow``, ``rain``, ``rain_opaque_drops``).
+            (``snow``, ``rain``, ``rain_weather_edit``).
 
     Unaligned: the cameras observe the field's independent twin (same statistics, another seed).
     """
@@ -88,12 +91,13 @@ class Condition:
         return tuple(m for m, part in (("fog_levels", self.fog), ("fields", self.particles)) if part is not None)
 
     def with_rain_appearance(self, appearance: str) -> "Condition":
-        """The condition with rain drawn as ``appearance`` (``rain``: Weather-edit's opacity 0.2;
-        ``rain_opaque_drops``: opaque drops), unchanged for any other particle kind."""
+        """The condition with rain drawn as ``appearance`` (one of `RAIN_APPEARANCES`), unchanged for any other
+        particle kind."""
         if self.particles is None or self.particles.kind != "rain":
             return self
-        if appearance not in ("rain", "rain_opaque_drops"):
-            raise ValueError(f"simulate.rain_appearance = {appearance!r}; expected 'rain' or 'rain_opaque_drops'")
+        if appearance not in RAIN_APPEARANCES:
+            raise ValueError(f"simulate.rain_appearance = {appearance!r} is invalid: expected one of "
+                             f"{list(RAIN_APPEARANCES)}")
         return replace(self, particles=replace(self.particles, camera_appearance=appearance))
 
 
@@ -139,5 +143,5 @@ def condition_tags(name: str, aligned: bool | None, snow_rate_mm_h: float, rain_
             "severity": severity_label(name, snow_rate_mm_h, rain_rate_mm_h)}
 
 
-__all__ = ["ALIGNMENTS", "CONDITIONS", "Condition", "FogPart", "ParticlePart", "condition_named", "condition_tags",
+__all__ = ["ALIGNMENTS", "CONDITIONS", "RAIN_APPEARANCES", "Condition", "FogPart", "ParticlePart", "condition_named", "condition_tags",
            "severity_label", "variant_name"]

@@ -269,11 +269,21 @@ class SnowConfig(_Section):
     cell_size_m: Annotated[float, Field(ge=0.5, le=10.0)] = 2.0
 
 
+PAPER_RAIN_FALL_M_S = 2.0
+"""The paper's (LISA / Weather-edit) fixed rain fall speed [m/s]: the preset ``particles.rain.terminal_velocity_m_s:
+2.0``."""
+
+
 class RainConfig(_Section):
-    """Rain (LISA): Marshall-Palmer drops from the rain rate, one fall velocity for the field, wind."""
+    """Rain (LISA): Marshall-Palmer drops from the rain rate, one fall velocity for the field, wind.
+
+    ``terminal_velocity_m_s``: None (default) = from drop size: the terminal speed of the spectrum's median-volume
+    drop at the field's rate (`weatheralign.medium.distributions.rain_field_fall_speed`: 4.8 / 6.6 / 7.1 m/s at
+    5 / 50 / 100 mm/h), which follows a tuned rate; a number = that fixed speed (`PAPER_RAIN_FALL_M_S` = 2.0: the
+    paper's preset)."""
 
     rate_mm_h: Annotated[float, Field(gt=0.0, le=300.0)] = 50.0
-    terminal_velocity_m_s: Annotated[float, Field(ge=0.5, le=12.0)] = 2.0
+    terminal_velocity_m_s: Annotated[float, Field(ge=0.5, le=12.0)] | None = None
     wind_m_s: tuple[WindComponent, WindComponent] = (0.0, 0.0)
     min_diameter_m: Annotated[float, Field(ge=1e-5, le=1e-3)] = 5e-5
     cell_size_m: Annotated[float, Field(ge=0.25, le=10.0)] = 1.0
@@ -303,6 +313,9 @@ class SimulateConfig(_Section):
     Snow and rain rates: with ``precipitation_rates: calibrated`` (default) the ``calibrate_precipitation`` stage's
     tuned rates (``<paths.data>/calibrate_precipitation/rates.json``) replace ``particles.<kind>.rate_mm_h`` in every
     scene's field (the media stage applies them); with ``params`` the particles params are used as given.
+    ``rain_appearance``: how the cameras draw the drops (`weatheralign.camera.splat.APPEARANCES`): ``rain``
+    (default) opaque refracting drops whose radiance is their environment's; ``rain_weather_edit`` Weather-edit's
+    translucent grey drops (opacity 0.2, grey 0.7).
     The sensors (noise floor, divergence, exposure, ...) are the dataset's (its manifest), not simulate params.
     """
 
@@ -316,7 +329,7 @@ class SimulateConfig(_Section):
     fog_beta_light: Annotated[float, Field(ge=0.0, le=1.0)] | None = None
     fog_beta_dense: Annotated[float, Field(ge=0.0, le=1.0)] | None = None
     fog_seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 7
-    rain_appearance: Literal["rain", "rain_opaque_drops"] = "rain"
+    rain_appearance: Literal["rain", "rain_weather_edit"] = "rain"
     jpeg_quality: Annotated[int, Field(ge=50, le=100)] = 92
     near_clip_m: Annotated[float, Field(gt=0.0, le=5.0)] = 0.5
     refine_transmission: bool = True

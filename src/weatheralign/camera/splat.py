@@ -9,6 +9,12 @@ per-pixel ray length (``docs/physics.md`` section 4). On top of Weather-edit's r
   camera (translation only; the camera's rotation during 5 ms is neglected); its 3-D covariance gains the covariance
   of a uniform segment, ``s sᵀ / 12``, and its opacity is scaled by ``sqrt(det Σ2D / det Σ'2D)`` so that its
   integrated alpha (the "energy" ``o · 2π sqrt(det Σ2D)``) stays that of the still particle;
+- photometric rain (Garg & Nayar 2004, 2007): a drop is an opaque sphere whose radiance is what it refracts from
+  a wide cone of its environment, ``0.94 (½ mean of the background image + ½ airlight)`` (`environment_radiance`,
+  the synthetic reference's exact camera counts the same); with ``σ = D/2`` an opacity of 1/2 gives the drop's
+  projected area as integrated alpha, so each pixel's alpha along a streak is the fraction of the exposure the drop
+  covers it and the streak changes a pixel by that fraction of (drop radiance - background): it brightens a dark
+  background and darkens a bright sky (`RAIN`; Weather-edit's translucent grey drops are `RAIN_WEATHER_EDIT`);
 - pre-fogged colour: a particle at ray length ℓ is composited with ``c t(ℓ) + A (1 - t(ℓ))``,
   ``t(ℓ) = exp(-fog_alpha ℓ - τ_u(ℓ))``. Composited over the *fogged* background ``J t(R) + A (1 - t(R))`` this is
   exact Koschmieder for a particle inside the medium;
@@ -52,6 +58,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from numba import njit
@@ -77,6 +84,8 @@ than the 1/255 that is composited: a window cut at 1/255 would depend on the opa
 ~0.01) that cut leaves a thin, grid-asymmetric sliver whose centroid is off by up to ~0.8 px."""
 OPACITY_RANGE = (0.01, 0.99)
 """Per-particle base opacities are clipped into this interval (inside (0, 1))."""
+RadianceSource = Literal["grey", "environment"]
+"""Where a particle's radiance comes from: a constant ``grey`` or its environment (`environment_radiance`)."""
 
 _GAMMA = np.uint64(0x9E3779B97F4A7C15)
 _M1 = np.uint64(0xBF58476D1CE4E5B9)
@@ -94,7 +103,8 @@ class ParticleAppearance:
     horizontal axes and ``sv = aspect · sh`` along its symmetry axis, which is tilted from the vertical by an angle
     uniform in ``[0, tilt_max_deg]`` towards a uniform azimuth: ``Σ = sh² I + (sv² - sh²) n nᵀ`` (global frame).
     With ``k = 1/2`` and opacity ``o`` a sphere's integrated alpha is ``o · 2π (D/2)²``: at ``o = 1/2`` exactly the
-    cross-section ``π D²/4`` of an opaque disc of diameter D (snow), at ``o = 0.2`` 40 % of it (a transparent drop).
+    cross-section ``π D²/4`` of an opaque disc of diameter D (snow, raindrops), at ``o = 0.2`` 40 % of it
+    (Weather-edit's rain). The exposure streak keeps that integral (its opacity is scaled, `render_particles`).
     Every per-particle variation is a function of ``(id, salt)`` only, never of the call order.
 
     Attributes:
@@ -105,8 +115,15 @@ class ParticleAppearance:
             (Pruppacher & Beard 1970), clipped to [0.5, 1].
         tilt_max_deg: largest tilt [deg] of the symmetry axis from the vertical.
         opacity, opacity_spread: base opacity, uniform in ``opacity ± opacity_spread``, clipped to `OPACITY_RANGE`.
-        grey, grey_spread: linear radiance (1 = white), uniform in ``grey ± grey_spread``, clipped to [0, 1].
+        grey, grey_spread: linear radiance (1 = white), uniform in ``grey ± grey_spread``, clipped to [0, 1]; with
+            ``radiance = "environment"`` the factor on the environment's radiance instead.
         tint: (3,) RGB factors of the grey.
+        radiance: ``grey`` (the particle's linear radiance is ``grey · tint``) or ``environment`` (``grey · tint ·
+            environment_radiance(background, airlight)``: a refracting drop, per camera image).
+        dilation_keeps_area: if true, the opacity is also scaled by ``sqrt(det Σ2D_raw / det Σ2D)`` (``Σ2D_raw``
+            without the 0.3 px² dilation), so the integrated alpha is the footprint's own ``o · 2π sqrt(det
+            Σ2D_raw)`` (the dilation is a pixel low-pass that keeps energy; without this a drop at the resolution
+            limit, ``Σ2D_raw ≈ 0.3 I``, is drawn with twice its area).
         salt: stream of the per-id hash (different types vary independently).
     """
 
@@ -122,6 +139,8 @@ class ParticleAppearance:
     grey_spread: float = 0.0
     tint: tuple[float, float, float] = (1.0, 1.0, 1.0)
     salt: int = 0
+    radiance: RadianceSource = "grey"
+    dilation_keeps_area: bool = False
 
     def __post_init__(self) -> None:
         checks = {"sigma_per_diameter": (self.sigma_per_diameter, 1e-3, 10.0), "aspect": (self.aspect, 0.05, 1.0),
@@ -137,6 +156,9 @@ class ParticleAppearance:
         object.__setattr__(self, "tint", tint)
         if not 0 <= int(self.salt) < 2**63:
             raise ValueError(f"ParticleAppearance.salt = {self.salt!r} is invalid: must be in [0, 2^63)")
+        if self.radiance not in ("grey", "environment"):
+            raise ValueError(f"ParticleAppearance.radiance = {self.radiance!r} is invalid: expected 'grey' or "
+                             f"'environment'")
 
 
 SNOW = ParticleAppearance(name="snow", sigma_per_diameter=0.5, aspect=0.6, aspect_spread=0.15, tilt_max_deg=35.0,
@@ -144,21 +166,29 @@ SNOW = ParticleAppearance(name="snow", sigma_per_diameter=0.5, aspect=0.6, aspec
 """Snowflakes: flattened aggregates (axis ratio 0.6 ± 0.15) fluttering up to 35° off horizontal, opacity 0.5 ± 0.2,
 grey 0.85 ± 0.05 (Weather-edit's snow)."""
 
-RAIN = ParticleAppearance(name="rain", sigma_per_diameter=0.5, oblate_drops=True, tilt_max_deg=5.0, opacity=0.2,
-                          opacity_spread=0.05, grey=0.7, grey_spread=0.05, salt=0x4A_1D)
-"""Raindrops: small (oblate) spheres, canted at most 5°, opacity 0.2 ± 0.05, grey 0.7 ± 0.05 (Weather-edit's rain).
-The streak is the exposure blur of the drop's relative motion, not a fixed elongated shape (Weather-edit's rain
-Gaussians are 2–8 cm long and tilted ~23° instead)."""
+DROP_RADIANCE_FACTOR = 0.94
+"""A raindrop's radiance relative to the environment it refracts (Garg & Nayar 2004; the synthetic reference's
+exact camera uses the same factor, `weatheralign.reference.synthetic.particle_radiance`)."""
 
-RAIN_OPAQUE_DROPS = ParticleAppearance(name="rain_opaque_drops", sigma_per_diameter=0.5, oblate_drops=True,
-                                       tilt_max_deg=5.0, opacity=0.5, opacity_spread=0.1, grey=0.8, grey_spread=0.05,
-                                       salt=0x4A_1D)
-"""Raindrops as the physical optics suggests instead of Weather-edit's 0.2: a drop refracts the light of a wide
-field of view and replaces the background over its disc (Garg & Nayar 2004), i.e. an opaque disc of diameter D,
-whose integrated alpha ``π D²/4`` a ``σ = D/2`` Gaussian reaches at opacity 0.5. Streaks are ~2.5x more visible than
-with `RAIN`; same ids, same variation stream."""
+RAIN = ParticleAppearance(name="rain", sigma_per_diameter=0.5, oblate_drops=True, tilt_max_deg=5.0, opacity=0.5,
+                          opacity_spread=0.0, grey=DROP_RADIANCE_FACTOR, grey_spread=0.0, radiance="environment",
+                          dilation_keeps_area=True, salt=0x4A_1D)
+"""Raindrops as opaque refracting spheres (Garg & Nayar 2004, 2007): small (oblate) spheres canted at most 5°,
+opacity 1/2 (with ``σ = D/2`` the integrated alpha is the drop's projected area ``π D²/4``: a drop replaces the
+background over its disc; the dilation keeps that area, so a drop at the resolution limit is not drawn twice as
+large and the splatted drops continue the unresolved ones' geometric shadow), radiance ``0.94 x
+environment_radiance`` of the camera's image (brighter than a dark road, darker than the sky). The streak is the
+exposure blur of the drop's relative motion, not a fixed elongated shape: its alpha at a pixel is the fraction of
+the exposure the drop covers it (Garg & Nayar's ``τ / T``)."""
 
-APPEARANCES: dict[str, ParticleAppearance] = {a.name: a for a in (SNOW, RAIN, RAIN_OPAQUE_DROPS)}
+RAIN_WEATHER_EDIT = ParticleAppearance(name="rain_weather_edit", sigma_per_diameter=0.5, oblate_drops=True,
+                                       tilt_max_deg=5.0, opacity=0.2, opacity_spread=0.05, grey=0.7,
+                                       grey_spread=0.05, salt=0x4A_1D)
+"""Weather-edit's rain look: translucent drops (opacity 0.2 ± 0.05: 40 % of an opaque drop's area) of constant grey
+0.7 ± 0.05, whatever the scene (invisible on bright surfaces); same geometry, ids and variation stream as `RAIN`
+(Weather-edit's rain Gaussians are 2–8 cm long and tilted ~23° instead of streaked by the motion)."""
+
+APPEARANCES: dict[str, ParticleAppearance] = {a.name: a for a in (SNOW, RAIN, RAIN_WEATHER_EDIT)}
 """The named particle appearances (a condition names its camera appearance; `APPEARANCES[name]` draws it)."""
 
 
@@ -223,6 +253,33 @@ def particle_attributes(ids: NDArray, diameters: NDArray,
                        a.oblate_drops, math.radians(a.tilt_max_deg), a.opacity, a.opacity_spread, OPACITY_RANGE[0],
                        OPACITY_RANGE[1], a.grey, a.grey_spread, cov, opac, grey)
     return cov, opac, grey
+
+
+def environment_radiance(image_linear: NDArray, airlight: NDArray | tuple) -> F64:
+    """(3,) linear radiance of the environment a raindrop refracts: ``½ mean(image) + ½ airlight``.
+
+    A drop maps a ~165° cone of its surroundings into its disc, the ground and the scene in front of it as much as
+    the sky above (Garg & Nayar 2004): half the mean radiance of the camera's whole image (the scene, as the camera
+    sees it: already fogged by the caller) and half the sky, whose radiance the scene's airlight stands for (the
+    synthetic reference's exact camera uses the mean of the clear image and of its sky's zenith and horizon).
+
+    Args:
+        image_linear: (H, W, 3) linear RGB (any float dtype; averaged in float64).
+        airlight: (3,) linear RGB.
+    """
+    img = np.asarray(image_linear)
+    mean = img.reshape(-1, 3).mean(axis=0, dtype=np.float64)
+    return 0.5 * mean + 0.5 * np.asarray(airlight, dtype=np.float64)
+
+
+def particle_radiance(appearance: ParticleAppearance, grey: F64, image_linear: NDArray,
+                      airlight: NDArray | tuple) -> F64:
+    """(N, 3) linear RGB radiance of particles of per-particle ``grey`` (N,) (`particle_attributes`):
+    ``grey · tint``, times `environment_radiance` when ``appearance.radiance == "environment"``."""
+    base = np.asarray(appearance.tint, dtype=np.float64)
+    if appearance.radiance == "environment":
+        base = base * environment_radiance(image_linear, airlight)
+    return np.asarray(grey, dtype=np.float64)[:, None] * base[None, :]
 
 
 # ------------------------------------------------------------------------------------------------------ resolution
@@ -446,13 +503,14 @@ _OK, _NEAR, _FAINT, _OFFSCREEN = 0, 1, 2, 3
 @njit(nogil=True, cache=True)
 def _prepare_kernel(pos: NDArray, cov: NDArray, opac0: NDArray, R: NDArray, tr: NDArray, K: NDArray,
                     streak: NDArray, width: int, height: int, near_clip: float, cap_var: float, dilation: float,
-                    centroid_q: float, u0: NDArray, v0: NDArray, ca: NDArray, cb: NDArray, cc: NDArray,
+                    keep_area: bool, centroid_q: float, u0: NDArray, v0: NDArray, ca: NDArray, cb: NDArray, cc: NDArray,
                     opac: NDArray, qmax: NDArray, qwin: NDArray, ell: NDArray, rx: NDArray, ry: NDArray,
                     status: NDArray, capped: NDArray, in_frame: NDArray) -> None:
     """Per particle: camera-frame position, EWA conic ``(ca, cb, cc)`` of ``Σ'2D⁻¹`` (streak, dilation, cap
-    included), opacity after the streak, the Mahalanobis² bound ``qmax`` of alpha >= 1/255 (off-screen test), the
-    centroid window ``qwin = max(qmax, centroid_q)`` and its half extents (``rx``, ``ry``; ``in_frame``: the whole
-    window inside the image) and a status (ok / near-clipped / too faint / off screen)."""
+    included), opacity after the streak (with ``keep_area`` also after the dilation), the Mahalanobis² bound
+    ``qmax`` of alpha >= 1/255 (off-screen test), the centroid window ``qwin = max(qmax, centroid_q)`` and its half
+    extents (``rx``, ``ry``; ``in_frame``: the whole window inside the image) and a status (ok / near-clipped / too
+    faint / off screen)."""
     fx, sk, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
     sx, sy, sz = streak[0], streak[1], streak[2]
     for i in range(pos.shape[0]):
@@ -488,6 +546,8 @@ def _prepare_kernel(pos: NDArray, cov: NDArray, opac0: NDArray, R: NDArray, tr: 
         b0 = m10 * g00 + m11 * g01 + m12 * g02
         c0 = m10 * g10 + m11 * g11 + m12 * g12 + dilation
         det0 = a0 * c0 - b0 * b0
+        if keep_area:  # the energy of the undilated footprint
+            det0 = (a0 - dilation) * (c0 - dilation) - b0 * b0
         p0 = g00 * sx + g01 * sy + g02 * sz
         p1 = g10 * sx + g11 * sy + g12 * sz
         a2 = a0 + p0 * p0 / 12.0
@@ -660,10 +720,11 @@ def render_particles(image_linear: NDArray, range_map: NDArray, K: NDArray, T_ca
         velocity_global: (3,) particle velocity [m/s] (``field.velocity_array``).
         camera_velocity_global: (3,) camera (ego) velocity [m/s], for the relative motion.
         exposure_s: exposure time [s] (streak length ``|v_rel| exposure_s``); 0 = no motion blur.
-        appearance: `SNOW`, `RAIN` or any `ParticleAppearance`.
+        appearance: `SNOW`, `RAIN`, `RAIN_WEATHER_EDIT` or any `ParticleAppearance` (an ``environment`` radiance
+            is taken from ``image_linear`` and ``airlight``: `particle_radiance`).
         fog_alpha: extinction of the fog [1/m] (0 = clear); unresolved: the particles' unresolved extinction;
             together they give each particle's transmission ``t(ℓ)`` for its pre-fogged colour.
-        airlight: (3,) linear RGB airlight of the scene.
+        airlight: (3,) linear RGB airlight of the scene (the fog's, and the sky's radiance for a drop's environment).
         near_clip: particles nearer than this ray length [m] (or with z < near_clip / 4) are skipped.
         max_footprint_px: cap on the 3-σ half-axes of a footprint [px]: larger axes are shrunk to it and the
             opacity is ``o min(1, sqrt(det Σ2D / det Σ'2D))`` with the shrunk ``Σ'2D`` (never above ``o``).
@@ -708,14 +769,13 @@ def render_particles(image_linear: NDArray, range_map: NDArray, K: NDArray, T_ca
     capped = np.zeros(n, dtype=np.bool_)
     in_frame = np.zeros(n, dtype=np.bool_)
     _prepare_kernel(pos, cov, opac0, R, np.ascontiguousarray(T[:3, 3]), K, streak, w, h, float(near_clip),
-                    (float(max_footprint_px) / 3.0) ** 2, DILATION_PX2, CENTROID_Q, u0, v0, ca, cb, cc, opac, qmax,
-                    qwin, ell, rx, ry, status, capped, in_frame)
+                    (float(max_footprint_px) / 3.0) ** 2, DILATION_PX2, appearance.dilation_keeps_area, CENTROID_Q,
+                    u0, v0, ca, cb, cc, opac, qmax, qwin, ell, rx, ry, status, capped, in_frame)
     if unresolved is not None:
         trans = unresolved.transmission(ell, fog_alpha)
     else:
         trans = np.exp(-float(fog_alpha) * ell)
-    tint = np.asarray(appearance.tint)
-    col = (grey * trans)[:, None] * tint[None, :] + (1.0 - trans)[:, None] * air[None, :]
+    col = particle_radiance(appearance, grey, img, air) * trans[:, None] + (1.0 - trans)[:, None] * air[None, :]
 
     ok = np.flatnonzero(status == _OK)
     order = ok[np.lexsort((ids[ok], ell[ok]))]
@@ -767,6 +827,9 @@ def _naive(image_linear: NDArray, range_map: NDArray, K: NDArray, T_cam_global: 
     cov, opac0, grey = particle_attributes(ids, diameters, appearance)
     s = Rm @ (np.asarray(velocity_global, float) - np.asarray(camera_velocity_global, float)) * exposure_s
     air = np.asarray(airlight, dtype=np.float64)
+    radiance = np.asarray(appearance.tint, dtype=np.float64)
+    if appearance.radiance == "environment":  # half the image's mean radiance, half the sky (airlight)
+        radiance = radiance * (0.5 * img.reshape(-1, 3).mean(axis=0) + 0.5 * air)
     yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
     alphas: list[F64] = []
     weights: list[F64] = []
@@ -788,7 +851,8 @@ def _naive(image_linear: NDArray, range_map: NDArray, K: NDArray, T_cam_global: 
         lam, vec = np.linalg.eigh(S2s)
         lam = np.minimum(lam, (max_footprint_px / 3.0) ** 2)
         S2s = vec @ np.diag(lam) @ vec.T
-        o = opac0[i] * min(1.0, math.sqrt(np.linalg.det(S2) / np.linalg.det(S2s)))
+        S_energy = J @ S_cam @ J.T if appearance.dilation_keeps_area else S2
+        o = opac0[i] * min(1.0, math.sqrt(np.linalg.det(S_energy) / np.linalg.det(S2s)))
         mean = (K @ p)[:2] / z
         d = np.stack([xx - mean[0], yy - mean[1]], axis=-1)
         q = np.einsum("...i,ij,...j->...", d, np.linalg.inv(S2s), d)
@@ -800,7 +864,7 @@ def _naive(image_linear: NDArray, range_map: NDArray, K: NDArray, T_cam_global: 
         alphas.append(alpha)
         weights.append(weight)
         keys.append((ln, int(ids[i])))
-        colours.append(grey[i] * np.asarray(appearance.tint) * t + air * (1.0 - t))
+        colours.append(grey[i] * radiance * t + air * (1.0 - t))
         lengths.append(ln)
         owners.append(i)
     out = img.copy()

@@ -4,6 +4,11 @@ A `FieldSpec` is everything needed to rebuild a `ParticleField` exactly (seed, s
 velocity, reference time, layer, cell size). The `particles` stage writes them to JSON; the `simulate` stage rebuilds
 the same fields from that file, so a change of rate or seed reruns exactly the stages it must. The "unaligned"
 ablation gives the cameras ``unaligned_seed(seed)``: a field of identical statistics with independent particles.
+
+Fall speed. A field has one velocity, set here once for every sensor. Snow falls at its configured speed; rain at
+its configured speed, or by default (``terminal_velocity_m_s: None``) at the terminal speed of the Marshall-Palmer
+median-volume drop at the field's own rate (`weatheralign.medium.distributions.rain_field_fall_speed`), so a rate
+replaced by the calibration (the media stage) falls at its own speed.
 """
 
 from __future__ import annotations
@@ -13,7 +18,7 @@ from dataclasses import asdict, dataclass
 from typing import Literal
 
 from weatheralign.config import ParticlesConfig
-from weatheralign.medium.distributions import RainSizeDistribution, SnowSizeDistribution
+from weatheralign.medium.distributions import RainSizeDistribution, SnowSizeDistribution, rain_field_fall_speed
 from weatheralign.medium.field import ParticleField, fall_velocity, unaligned_seed
 
 Precipitation = Literal["snow", "rain"]
@@ -26,7 +31,8 @@ class FieldSpec:
 
     Attributes:
         condition: ``snow`` or ``rain``; scene: scene name; seed: the field seed (the LiDAR's and, when aligned,
-        the cameras'); rate_mm_h: snowfall (water equivalent) or rain rate; terminal_velocity_m_s: fall speed;
+        the cameras'); rate_mm_h: snowfall (water equivalent) or rain rate; terminal_velocity_m_s: fall speed
+        [m/s], or None (rain only) for the median-volume drop's at ``rate_mm_h`` (`fall_speed_m_s`);
         size_distribution: ``gunn_marshall``/``sekhon_srivastava`` (snow) or ``marshall_palmer`` (rain);
         wind_m_s: (2,) horizontal wind; t_ref: field reference time [s]; layer (z_min, z_max) [m]; cell_size [m];
         min_diameter_m: smallest drop (rain) or 0 (snow).
@@ -36,7 +42,7 @@ class FieldSpec:
     scene: str
     seed: int
     rate_mm_h: float
-    terminal_velocity_m_s: float
+    terminal_velocity_m_s: float | None
     size_distribution: str
     wind_m_s: tuple[float, float]
     t_ref: float
@@ -45,16 +51,27 @@ class FieldSpec:
     cell_size: float
     min_diameter_m: float = 0.0
 
+    @property
+    def fall_speed_m_s(self) -> float:
+        """The field's fall speed [m/s]: ``terminal_velocity_m_s``, or for rain with None the terminal speed of the
+        median-volume drop at ``rate_mm_h`` (`rain_field_fall_speed`)."""
+        if self.terminal_velocity_m_s is not None:
+            return float(self.terminal_velocity_m_s)
+        if self.condition != "rain":
+            raise ValueError(f"{self.condition} field of scene {self.scene!r}: terminal_velocity_m_s = None is "
+                             f"invalid: only rain derives its fall speed from drop size")
+        return rain_field_fall_speed(self.rate_mm_h)
+
     def field(self, aligned: bool = True) -> ParticleField:
         """The field; ``aligned=False`` gives the independent twin of identical statistics."""
         if self.condition == "snow":
-            dist = SnowSizeDistribution(self.rate_mm_h, self.terminal_velocity_m_s, model=self.size_distribution)
+            dist = SnowSizeDistribution(self.rate_mm_h, self.fall_speed_m_s, model=self.size_distribution)
         elif self.condition == "rain":
             dist = RainSizeDistribution(self.rate_mm_h, d_min=self.min_diameter_m)
         else:
             raise ValueError(f"condition = {self.condition!r} is invalid: expected 'snow' or 'rain'")
         return ParticleField(seed=self.seed if aligned else unaligned_seed(self.seed), distribution=dist,
-                             velocity=fall_velocity(self.terminal_velocity_m_s, self.wind_m_s), t_ref=self.t_ref,
+                             velocity=fall_velocity(self.fall_speed_m_s, self.wind_m_s), t_ref=self.t_ref,
                              z_min=self.z_min, z_max=self.z_max, cell_size=self.cell_size)
 
     def to_dict(self) -> dict:
