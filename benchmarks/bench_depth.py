@@ -4,9 +4,10 @@ Run from the repository root after the world stage (``dvc repro world``):
 ``.venv/bin/python -m benchmarks.bench_depth [--world DATAROOT] [--samples 12] [--alpha 0.05]``.
 
 On real nuScenes data the cameras have no exact depth: `weatheralign.camera.depth.camera_range_map` completes it
-from the LiDAR (keyframe + `weatheralign.simulate.plan.DEPTH_SWEEPS` earlier sweeps). Here every camera of
+from the LiDAR (the keyframe and earlier sweeps, `weatheralign.simulate.plan.DEPTH_SWEEPS` in all). Every camera of
 ``--samples`` keyframes spread over the world's scenes is treated as if it had no exact map (``range_path=None``) and
-completed from the world's LiDAR alone, once from the keyframe sweep and once with the sweeps, then compared with its
+completed from the world's LiDAR alone, once from the keyframe sweep and once with the sweeps (``load_lidar(...,
+DEPTH_SWEEPS)``, as `weatheralign.simulate.plan.sample_range_maps` loads them), then compared with its
 exact range map:
 
 - depth: AbsRel, RMSE [m], delta < 1.25 on pixels finite in both; the same within ``--edge-px`` of exact depth edges
@@ -152,7 +153,8 @@ def halo_widths(fog_est: NDArray[np.uint8], fog_exact: NDArray[np.uint8], t_exac
 
     Pixels whose fogged images differ by more than ``codes`` sRGB codes (any channel) and whose connected region
     (8-neighbourhood) reaches within 2 px of an edge belong to a halo; each is assigned to its nearest edge pixel,
-    whose width is the largest distance among its halo pixels (0 without any). Returns (E,) float32 widths."""
+    whose width is the largest distance among its halo pixels (0 without any; both pixels of a jump are edge
+    pixels, so a halo on one side leaves the other at 0). Returns (E,) float32 widths."""
     dt_h = np.abs(np.diff(t_exact, axis=1)) > T_EDGE
     dt_v = np.abs(np.diff(t_exact, axis=0)) > T_EDGE
     edge = np.zeros(t_exact.shape, bool)
@@ -262,7 +264,7 @@ def run_synthetic(world: Path, count: int, alpha: float, edge_px: int, codes: in
 
     nusc = open_nuscenes(world, "v1.0-mini")
     tokens = pick_samples(nusc, count)
-    modes = {"keyframe": 1, "sweeps": 1 + DEPTH_SWEEPS}
+    modes = {"keyframe": 1, "sweeps": DEPTH_SWEEPS}  # load_lidar's count includes the keyframe, as the simulator's
     depth = {m: DepthSums() for m in modes}
     depth_edge = {m: DepthSums() for m in modes}
     sky = {m: SkySums() for m in modes}
