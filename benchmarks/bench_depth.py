@@ -320,7 +320,8 @@ def run_synthetic(world: Path, count: int, alpha: float, edge_px: int, codes: in
         out[mode] = {"sweeps_aggregated": nsweeps, "depth_all": depth[mode].result(),
                      f"depth_within_{edge_px}px_of_edges": depth_edge[mode].result(), "sky": sky[mode].result(),
                      "halo": _halo_summary(halos[mode]),
-                     "halo_without_guided_filter": _halo_summary(halos[f"{mode}_unrefined"]), "seams": _pool_seams(seams[mode]),
+                     "halo_without_guided_filter": _halo_summary(halos[f"{mode}_unrefined"]),
+                     "seams": _pool_seams(seams[mode]),
                      "cpu_s_per_camera": float(np.median(cpu[mode])), "wall_s_per_camera": float(np.median(wall[mode])),
                      "cpu_s_total": float(np.sum(cpu[mode]))}
     out["seams_exact"] = _pool_seams(seams["exact"])
