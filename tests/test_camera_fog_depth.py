@@ -460,3 +460,32 @@ def test_a_crown_above_the_lidar_takes_its_trunks_depth_not_the_facade_behind():
     pts, K, image, _ = _crown_scene(with_crown=False)
     z = complete_depth(pts, K, 320, 180, image, top_elevation_deg=0.0).range / pixel_ray_norms(K, 320, 180)
     assert np.all(np.abs(z[5:60, 100:220] - 20.0) < 1.0)
+
+
+def test_sky_beside_a_facade_edge_is_sky_and_its_fog_has_no_halo():
+    """A facade (z = 15 m, columns 0-159) against a blue sky (right half above the horizon, row 90) and a far wall
+    (z = 60 m) below it; LiDAR rings every 12 px reach the facade's edge. A plain support radius (1.2 ring gaps)
+    gave the sky a 14 px band of facade depth beside the edge: in dense fog a bright band along the skyline."""
+    W, H, f = 320, 180, 160.0
+    K = np.array([[f, 0.0, W / 2.0], [0.0, f, H / 2.0], [0.0, 0.0, 1.0]])
+    image = np.empty((H, W, 3), np.float32)
+    image[:, :160] = (0.55, 0.3, 0.25)
+    image[:90, 160:] = (0.7, 0.8, 0.95)
+    image[90:, 160:] = (0.5, 0.5, 0.5)
+    uu, vv = np.meshgrid(np.arange(0, W, 2.0), np.arange(2, H, 12.0))
+    z = np.where(uu < 160, 15.0, 60.0)
+    keep = (uu < 160) | (vv >= 90)
+    uu, vv, z = uu[keep], vv[keep], z[keep]
+    xyz = np.column_stack([(uu - K[0, 2]) / f * z, (vv - K[1, 2]) / f * z, z])
+    pts = CameraPoints(xyz=xyz, dt=np.zeros(len(xyz)),
+                       R_lidar_cam=np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]),
+                       up_cam=np.array([0.0, -1.0, 0.0]))
+    dd = complete_depth(pts, K, W, H, image, top_elevation_deg=40.0)
+    sky = np.zeros((H, W), bool)
+    sky[:88, 161:] = True
+    assert dd.sky[sky].mean() > 0.99
+    assert not dd.sky[:, :158].any()  # the facade stays a surface
+    exact = np.where(sky, np.inf, 15.0).astype(np.float32)
+    dt = np.abs(transmission(dd.range, 0.05) - transmission(exact, 0.05))
+    halo_cols = np.flatnonzero((dt[10:80] > 0.05).any(axis=0))
+    assert halo_cols.size == 0 or halo_cols.max() - 159 <= 3

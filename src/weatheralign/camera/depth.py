@@ -27,8 +27,9 @@ the synthetic world and as Koschmieder's law needs), ``inf`` for sky. Stages (`d
    instead of the dilation's nearest-wins halo.
 6. **Sky and holes**: nothing above the LiDAR's top elevation ever returns, so a pixel whose viewing ray (taken to
    the LiDAR frame, `above_fov_mask`) points above ``lidar_top_elevation_deg`` and has no LiDAR support nearby is
-   sky; with an image, only where the image agrees (`image_sky`: bright, bluish or neutral, smooth, above the
-   horizon, connected to the top border, not continuing a LiDAR-hit surface) - and then also below the top
+   sky (with an image: no point within reach on its own side of an image boundary, `lidar_support`); with an image,
+   only where the image agrees (`image_sky`: bright, bluish or neutral, smooth, above the horizon, connected to the
+   top border, not continuing a LiDAR-hit surface) - and then also below the top
    elevation where the LiDAR had no return (sky at the end of a street). Unsupported pixels above the field of view
    that the image shows as structure (facades above the top ring) keep the camera z of the highest known pixel of
    their column (a vertical surface continued upwards), with low confidence: "sky is far only where it really is
@@ -91,7 +92,8 @@ class DepthParams:
         ground_height_range_m: ... and its corners differ in height by at most this [m].
         max_edge_gaps: longest triangle edge, in measured vertical point gaps.
         occlusion_ratio: a point is hidden if nearer points (depth below ``z / ratio``) flank it on both sides.
-        support_gaps: a pixel within this many point gaps of a LiDAR point has LiDAR support (never sky).
+        support_gaps: a pixel within this many point gaps of a LiDAR point has LiDAR support (never sky); with an
+            image, only along a path inside the point's own image segment (`lidar_support`).
         sky_margin_deg: a ray is above the LiDAR's field of view if its elevation exceeds the top elevation by this.
         stale_s: points fired more than this before/after the exposure [s] are stale: dropped where fresh points
             around disagree with their depth (moving objects of older sweeps), and second to fresh ones per pixel.
@@ -687,6 +689,28 @@ def _nearest_fill(z: F32, known: BoolA, todo: BoolA) -> F32:
     return out
 
 
+def lidar_support(points: BoolA, image: F32, radius_px: float, params: DepthParams, scale: int = 2) -> BoolA:
+    """(H, W) bool: pixels within ``radius_px`` of a LiDAR point (``points`` (H, W)) along a path that crosses no
+    object boundary of the ``image`` (H, W, 3) float sRGB (`_image_edges`, at 1/``scale`` resolution): a point
+    vouches for the surface it lies on, not for the sky beyond that surface's outline. A plain distance let a
+    facade's points claim a band of sky one ring gap wide beside its skyline (that band then took the facade's depth:
+    a fog halo and a seam with the neighbouring camera). Seeds on a boundary support only themselves."""
+    H, W = points.shape
+    s = max(1, min(scale, H // 8, W // 8))
+    size = (max(1, W // s), max(1, H // s))
+    small = cv2.resize(image, size, interpolation=cv2.INTER_AREA) if s > 1 else image
+    free = ~_image_edges(small, params.overhang_chroma, params.overhang_brightness)
+    seeds = cv2.resize(cv2.dilate(points.astype(np.uint8), np.ones((s, s), np.uint8)), size,
+                       interpolation=cv2.INTER_NEAREST) > 0
+    grown = (seeds & free).astype(np.uint8)
+    free_u8 = free.astype(np.uint8)
+    k = np.ones((3, 3), np.uint8)
+    for _ in range(max(1, int(math.ceil(radius_px / s)))):
+        grown = cv2.dilate(grown, k) & free_u8
+    out = cv2.resize(grown, (W, H), interpolation=cv2.INTER_NEAREST) > 0
+    return out | points
+
+
 def _gradient(x: F32) -> F32:
     """(h, w) largest per-channel Sobel gradient magnitude [1/px] of ``x`` (h, w) or (h, w, c), 3 x 3
     Gaussian-blurred (closes gaps in a boundary, so segments do not leak into each other)."""
@@ -871,8 +895,11 @@ def complete_depth(points: CameraPoints, K: F64, width: int, height: int, image:
         todo = ~planar & (inv > 0)
         inv = refine_edges(inv, conf_inv, todo, img, int(round(params.refine_radius_gaps * gap)), params)
     # LiDAR support and sky
-    dist = cv2.distanceTransform((z_sparse <= 0).astype(np.uint8), cv2.DIST_L2, 3)
-    supported = (dist <= params.support_gaps * gap) | planar
+    if img is None:
+        dist = cv2.distanceTransform((z_sparse <= 0).astype(np.uint8), cv2.DIST_L2, 3)
+        supported = (dist <= params.support_gaps * gap) | planar
+    else:
+        supported = lidar_support(z_sparse > 0, img, params.support_gaps * gap, params) | planar
     if img is not None:
         # no return and sky in the image; below the field of view too (sky behind the end of a street), where the
         # image's sky region (connected to the top border) reaches down unsupported
