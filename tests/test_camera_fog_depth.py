@@ -14,6 +14,7 @@ import pytest
 from PIL import Image
 
 from weatheralign.camera.depth import (
+    CameraPoints,
     DenseDepth,
     above_fov_mask,
     camera_points,
@@ -419,3 +420,72 @@ def test_dense_depth_on_kitti(kitti_frame):
     dd, image = _check_real(kitti_frame, "image_2", expected_top=2.0)
     _save(fog_image(image, dd.range, 0.04, estimate_airlight([image], [dd.range], neutral=True)),
           "kitti_000008_alpha0.04.png")
+
+
+def _crown_scene(with_crown: bool = True) -> tuple:
+    """A 320 x 180 upright camera (f = 160 px) level with a LiDAR whose top beam is the horizon (row 90): a pale
+    facade at z = 20 m behind a tree whose 20 px trunk (z = 8 m) the LiDAR hits below the horizon and whose green
+    crown (rows 30-79, columns 100-219, z = 8 m) lies wholly above it. Returns (points, K, image, crown mask)."""
+    W, H, f = 320, 180, 160.0
+    K = np.array([[f, 0.0, W / 2.0], [0.0, f, H / 2.0], [0.0, 0.0, 1.0]])
+    image = np.empty((H, W, 3), np.float32)
+    image[:] = (0.72, 0.72, 0.74)
+    image[:, ::16] = (0.55, 0.55, 0.57)  # facade joints: texture, not sky
+    trunk = np.zeros((H, W), bool)
+    trunk[80:, 150:170] = True
+    crown = np.zeros((H, W), bool)
+    if with_crown:
+        crown[30:80, 100:220] = True
+    image[trunk] = (0.35, 0.22, 0.1)
+    image[crown] = (0.15, 0.45, 0.12)
+    vv, uu = np.mgrid[90:H:4, 0:W:2].astype(np.float64)
+    z = np.where((uu >= 150) & (uu < 170), 8.0, 20.0)
+    xyz = np.column_stack([((uu - K[0, 2]) / f * z).ravel(), ((vv - K[1, 2]) / f * z).ravel(), z.ravel()])
+    R_lidar_cam = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    pts = CameraPoints(xyz=xyz, dt=np.zeros(len(xyz)), R_lidar_cam=R_lidar_cam, up_cam=np.array([0.0, -1.0, 0.0]))
+    return pts, K, image, crown
+
+
+def test_a_crown_above_the_lidar_takes_its_trunks_depth_not_the_facade_behind():
+    pts, K, image, crown = _crown_scene()
+    dd = complete_depth(pts, K, 320, 180, image, top_elevation_deg=0.0)
+    z = dd.range / pixel_ray_norms(K, 320, 180)
+    assert not dd.sky.any()
+    assert abs(float(np.median(z[crown])) - 8.0) < 0.8  # the column rule gave the facade's 20 m
+    assert np.mean(np.abs(z[crown] - 8.0) < 1.0) > 0.9
+    facade_above = np.zeros_like(crown)
+    facade_above[5:85, 10:90] = True  # facade above the top beam, away from the tree: continued upwards
+    assert np.all(np.abs(z[facade_above] - 20.0) < 1.0)
+    # without a crown the facade above the trunk is the facade (the trunk does not paint a streak upwards)
+    pts, K, image, _ = _crown_scene(with_crown=False)
+    z = complete_depth(pts, K, 320, 180, image, top_elevation_deg=0.0).range / pixel_ray_norms(K, 320, 180)
+    assert np.all(np.abs(z[5:60, 100:220] - 20.0) < 1.0)
+
+
+def test_sky_beside_a_facade_edge_is_sky_and_its_fog_has_no_halo():
+    """A facade (z = 15 m, columns 0-159) against a blue sky (right half above the horizon, row 90) and a far wall
+    (z = 60 m) below it; LiDAR rings every 12 px reach the facade's edge. A plain support radius (1.2 ring gaps)
+    gave the sky a 14 px band of facade depth beside the edge: in dense fog a bright band along the skyline."""
+    W, H, f = 320, 180, 160.0
+    K = np.array([[f, 0.0, W / 2.0], [0.0, f, H / 2.0], [0.0, 0.0, 1.0]])
+    image = np.empty((H, W, 3), np.float32)
+    image[:, :160] = (0.55, 0.3, 0.25)
+    image[:90, 160:] = (0.7, 0.8, 0.95)
+    image[90:, 160:] = (0.5, 0.5, 0.5)
+    uu, vv = np.meshgrid(np.arange(0, W, 2.0), np.arange(2, H, 12.0))
+    z = np.where(uu < 160, 15.0, 60.0)
+    keep = (uu < 160) | (vv >= 90)
+    uu, vv, z = uu[keep], vv[keep], z[keep]
+    xyz = np.column_stack([(uu - K[0, 2]) / f * z, (vv - K[1, 2]) / f * z, z])
+    pts = CameraPoints(xyz=xyz, dt=np.zeros(len(xyz)),
+                       R_lidar_cam=np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]),
+                       up_cam=np.array([0.0, -1.0, 0.0]))
+    dd = complete_depth(pts, K, W, H, image, top_elevation_deg=40.0)
+    sky = np.zeros((H, W), bool)
+    sky[:88, 161:] = True
+    assert dd.sky[sky].mean() > 0.99
+    assert not dd.sky[:, :158].any()  # the facade stays a surface
+    exact = np.where(sky, np.inf, 15.0).astype(np.float32)
+    dt = np.abs(transmission(dd.range, 0.05) - transmission(exact, 0.05))
+    halo_cols = np.flatnonzero((dt[10:80] > 0.05).any(axis=0))
+    assert halo_cols.size == 0 or halo_cols.max() - 159 <= 3

@@ -27,13 +27,16 @@ the synthetic world and as Koschmieder's law needs), ``inf`` for sky. Stages (`d
    instead of the dilation's nearest-wins halo.
 6. **Sky and holes**: nothing above the LiDAR's top elevation ever returns, so a pixel whose viewing ray (taken to
    the LiDAR frame, `above_fov_mask`) points above ``lidar_top_elevation_deg`` and has no LiDAR support nearby is
-   sky; with an image, only where the image agrees (`image_sky`: bright, bluish or neutral, smooth, above the
-   horizon, connected to the top border, not continuing a LiDAR-hit surface) - and then also below the top
+   sky (with an image: no point within reach on its own side of an image boundary, `lidar_support`); with an image,
+   only where the image agrees (`image_sky`: bright, bluish or neutral, smooth, above the horizon, connected to the
+   top border, not continuing a LiDAR-hit surface) - and then also below the top
    elevation where the LiDAR had no return (sky at the end of a street). Unsupported pixels above the field of view
    that the image shows as structure (facades above the top ring) keep the camera z of the highest known pixel of
    their column (a vertical surface continued upwards), with low confidence: "sky is far only where it really is
-   sky". Holes below it without returns are filled across when one surface surrounds them (dark paint, glass),
-   else from the farthest surface around (beyond range, or in the LiDAR's shadow behind a foreground object).
+   sky". Where the image separates a region there from the surface below it (a tree crown or a lamp head above its
+   trunk or pole), the region takes the near side of the depths it rests on (`_overhangs`), not the facade behind.
+   Holes below it without returns are filled across when one surface surrounds them (dark paint, glass), else from
+   the farthest surface around (beyond range, or in the LiDAR's shadow behind a foreground object).
 
 ``DenseDepth.confidence`` is 1 for planar interpolation between LiDAR points and for sky decided by both the LiDAR
 and the image, 0.5 for the morphological fill / refined edges, 0.25 for upward continuation and nearest fill; it is
@@ -44,6 +47,9 @@ against the exact ray length, pixels below the LiDAR's top elevation): median re
 percentile 1.0 %, 95th 4.7 % (IP-Basic alone: median 1.1 %, 90th percentile 7.5 % on CAM_FRONT); 93 % of the sky
 above the top elevation is inf, 4.7 % of the structure above it is taken for sky. ~0.35 s per image on 2 shared
 CPU cores (morphological fill 0.10 s, triangles 0.05 s, refinement ~0.05-0.1 s).
+
+`benchmarks/bench_depth.py` measures the whole image against the world's exact range maps (depth near edges, sky,
+the dense-fog halo, seams between neighbouring cameras; `reports/benchmarks/depth.json`).
 
 Known limits: buildings beyond the LiDAR's range (100 m) get the farthest depth around, not theirs; a pale, smooth
 facade entirely above the top ring, meeting the sky without a visible edge, can be taken for sky; LiDAR points seen
@@ -86,7 +92,8 @@ class DepthParams:
         ground_height_range_m: ... and its corners differ in height by at most this [m].
         max_edge_gaps: longest triangle edge, in measured vertical point gaps.
         occlusion_ratio: a point is hidden if nearer points (depth below ``z / ratio``) flank it on both sides.
-        support_gaps: a pixel within this many point gaps of a LiDAR point has LiDAR support (never sky).
+        support_gaps: a pixel within this many point gaps of a LiDAR point has LiDAR support (never sky); with an
+            image, only along a path inside the point's own image segment (`lidar_support`).
         sky_margin_deg: a ray is above the LiDAR's field of view if its elevation exceeds the top elevation by this.
         stale_s: points fired more than this before/after the exposure [s] are stale: dropped where fresh points
             around disagree with their depth (moving objects of older sweeps), and second to fresh ones per pixel.
@@ -95,6 +102,14 @@ class DepthParams:
         edge_ratio: neighbourhood depth spread above which the refinement chooses between near and far surfaces.
         hole_spread: a hole without returns whose rim depths span at most this factor is one surface (filled
             across); other holes are filled from the farthest surface around.
+        overhang_scale: resolution divisor of the image segmentation above the LiDAR's field of view (`_overhangs`).
+        overhang_chroma, overhang_brightness: blurred chromaticity / brightness gradients [1/px, sRGB] that
+            separate two segments there (`_image_edges`).
+        overhang_reach_gaps: how far below a segment [point gaps] the surface it rests on is looked for (at least 8
+            pixels of the segmentation's resolution: across the edge band).
+        overhang_quantile: quantile of the depths below a separate segment it takes (the near side).
+        overhang_colour_tol: a pixel of the edge band around a separate segment within this colour distance of the
+            segment's mean colour (largest sRGB channel) belongs to it.
     """
 
     min_depth_m: float = 1.0
@@ -110,6 +125,12 @@ class DepthParams:
     refine_sigma_colour: float = 0.08
     edge_ratio: float = 1.1
     hole_spread: float = 1.3
+    overhang_scale: int = 4
+    overhang_chroma: float = 0.02
+    overhang_brightness: float = 0.1
+    overhang_reach_gaps: float = 1.5
+    overhang_quantile: float = 0.05
+    overhang_colour_tol: float = 0.1
 
 
 @dataclass(frozen=True)
@@ -668,6 +689,172 @@ def _nearest_fill(z: F32, known: BoolA, todo: BoolA) -> F32:
     return out
 
 
+def lidar_support(points: BoolA, image: F32, radius_px: float, params: DepthParams, scale: int = 2) -> BoolA:
+    """(H, W) bool: pixels within ``radius_px`` of a LiDAR point (``points`` (H, W)) along a path that crosses no
+    object boundary of the ``image`` (H, W, 3) float sRGB (`_image_edges`, at 1/``scale`` resolution): a point
+    vouches for the surface it lies on, not for the sky beyond that surface's outline. A plain distance let a
+    facade's points claim a band of sky one ring gap wide beside its skyline (that band then took the facade's depth:
+    a fog halo and a seam with the neighbouring camera). Seeds on a boundary support only themselves."""
+    H, W = points.shape
+    s = max(1, min(scale, H // 8, W // 8))
+    size = (max(1, W // s), max(1, H // s))
+    small = cv2.resize(image, size, interpolation=cv2.INTER_AREA) if s > 1 else image
+    free = ~_image_edges(small, params.overhang_chroma, params.overhang_brightness)
+    seeds = cv2.resize(cv2.dilate(points.astype(np.uint8), np.ones((s, s), np.uint8)), size,
+                       interpolation=cv2.INTER_NEAREST) > 0
+    grown = (seeds & free).astype(np.uint8)
+    free_u8 = free.astype(np.uint8)
+    k = np.ones((3, 3), np.uint8)
+    for _ in range(max(1, int(math.ceil(radius_px / s)))):
+        grown = cv2.dilate(grown, k) & free_u8
+    out = cv2.resize(grown, (W, H), interpolation=cv2.INTER_NEAREST) > 0
+    return out | points
+
+
+def _gradient(x: F32) -> F32:
+    """(h, w) largest per-channel Sobel gradient magnitude [1/px] of ``x`` (h, w) or (h, w, c), 3 x 3
+    Gaussian-blurred (closes gaps in a boundary, so segments do not leak into each other)."""
+    gx = cv2.Sobel(x, cv2.CV_32F, 1, 0, ksize=3) / 8.0
+    gy = cv2.Sobel(x, cv2.CV_32F, 0, 1, ksize=3) / 8.0
+    g = np.sqrt(gx * gx + gy * gy)
+    return cv2.GaussianBlur(g.max(axis=2) if g.ndim == 3 else g, (3, 3), 0)
+
+
+def _image_edges(rgb: F32, chroma_gradient: float, brightness_gradient: float) -> BoolA:
+    """(h, w) bool object boundaries of ``rgb`` (h, w, 3) sRGB in [0, 1]: the chromaticity (r, g, b over their sum)
+    changes by ``chroma_gradient`` per px, or the brightness (largest channel) by ``brightness_gradient``. Shading
+    (a crown's facets, a facade's lit and shaded sides) changes the brightness a little and the hue hardly at all."""
+    total = rgb.sum(axis=2, keepdims=True) + np.float32(0.05)
+    chroma = np.ascontiguousarray(rgb / total)
+    brightness = np.ascontiguousarray(rgb.max(axis=2))
+    return (_gradient(chroma) >= chroma_gradient) | (_gradient(brightness) >= brightness_gradient)
+
+
+def _label_quantile(labels: NDArray[np.int64], values: F32, q: float, which: BoolA, n: int) -> F32:
+    """(n,) float32: per label ``k`` with ``which[k]``, the ``q`` quantile (lower order statistic) of the ``values``
+    (M,) whose ``labels`` (M,) are ``k``; 0 for other labels."""
+    out = np.zeros(n, np.float32)
+    pick = which[labels]
+    if not pick.any():
+        return out
+    order = np.lexsort((values[pick], labels[pick]))
+    ls, vs = labels[pick][order], values[pick][order]
+    starts = np.flatnonzero(np.r_[True, ls[1:] != ls[:-1]])
+    counts = np.diff(np.r_[starts, len(ls)])
+    idx = starts + np.minimum(counts - 1, (q * counts).astype(np.int64))
+    out[ls[starts]] = vs[idx]
+    return out
+
+
+def _grow_into_edges(z: F32, lab: NDArray[np.int64], band: BoolA, rgb: F32, tol: float, steps: int = 3) -> None:
+    """Extend each labelled segment's value of ``z`` (h, w) (in place) into the edge ``band`` around it, pixel ring by
+    pixel ring (``steps`` rings), where the pixel's colour is within ``tol`` (largest channel) of the segment's mean
+    colour: the blurred boundary of a crown is crown, not the facade behind. ``lab`` (h, w): segment labels (0 =
+    none); ``rgb`` (h, w, 3) the image at that resolution."""
+    n = int(lab.max()) + 1
+    if n <= 1:
+        return
+    flat = lab.ravel()
+    count = np.maximum(np.bincount(flat, minlength=n), 1)
+    mean = np.stack([np.bincount(flat, rgb[..., k].ravel(), minlength=n) / count for k in range(3)], axis=1)
+    cur = lab.astype(np.float32)
+    todo = band & (lab == 0)
+    for _ in range(steps):
+        grown = cv2.dilate(cur, np.ones((3, 3), np.uint8)).astype(np.int64)
+        vv, uu = np.nonzero(todo & (grown > 0))
+        g = grown[vv, uu]
+        ok = np.abs(rgb[vv, uu] - mean[g]).max(axis=1) <= tol
+        if not ok.any():
+            break
+        vv, uu, g = vv[ok], uu[ok], g[ok]
+        src = cv2.dilate(np.where(cur > 0, z, 0.0).astype(np.float32), np.ones((3, 3), np.uint8))
+        z[vv, uu] = src[vv, uu]
+        cur[vv, uu] = g
+        todo[vv, uu] = False
+
+
+def _overhangs(z: F32, z_cont: F32, up: BoolA, image: F32, gap_h: float, params: DepthParams) -> F32:
+    """Camera z (H, W) [m] of the unknown pixels above the LiDAR's field of view (``up``), image segment by segment.
+
+    The column rule (``z_cont``: each column's highest known z continued upwards) is right for a surface that
+    continues upwards (a facade above the top ring) and wrong for an object that starts above it: a tree crown or a
+    lamp head above its trunk or pole would take the depth of the facade behind. At 1/``params.overhang_scale``
+    resolution, ``up`` is cut along object boundaries in the image (`_image_edges`) into segments. A segment touching
+    known depth (``z > 0``) or an already decided segment without an edge between continues that surface: it keeps
+    ``z_cont`` where that lies within ``params.same_surface_ratio`` of the depths it touches, else takes their median
+    (the side columns of a crown whose middle the LiDAR hit, over a facade). A segment the image separates from
+    everything below it is a separate object resting on, or hanging from, what lies under it: it takes the
+    ``params.overhang_quantile`` quantile (the near side) of the z directly below it (within
+    ``params.overhang_reach_gaps`` point gaps), so a crown over a 10 % wide trunk gets the trunk's depth and a facade
+    over a thin pole keeps its own. Segments are decided bottom-up; edge pixels of the
+    colour of a separate segment beside them join it (`_grow_into_edges`); the rest keeps ``z_cont``.
+
+    Args:
+        z: (H, W) camera z [m] before the column rule (0 = unknown); z_cont: (H, W) after it; up: (H, W) the pixels
+            the column rule filled; image: (H, W, 3) float sRGB in [0, 1]; gap_h: horizontal point gap [px].
+
+    Returns:
+        (H, W) float32 camera z [m] (``z_cont`` where no segment decides otherwise).
+    """
+    H, W = z.shape
+    s = max(1, min(int(params.overhang_scale), H // 8, W // 8))
+    size = (max(1, W // s), max(1, H // s))
+    fs = cv2.resize(image, size, interpolation=cv2.INTER_AREA) if s > 1 else image
+    us = cv2.resize(up.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+    zs = np.where(us, 0.0, cv2.resize(z, size, interpolation=cv2.INTER_NEAREST)).astype(np.float32)
+    zc = cv2.resize(z_cont, size, interpolation=cv2.INTER_NEAREST)
+    edge = _image_edges(fs, params.overhang_chroma, params.overhang_brightness)
+    n, lab = cv2.connectedComponents((us & ~edge).astype(np.uint8), connectivity=4)
+    if n <= 1:
+        return z_cont
+    reach = max(8, int(round(params.overhang_reach_gaps * gap_h / s)))  # beyond the edge band
+    decided = np.zeros(n, bool)
+    decided[0] = True
+    separate = np.zeros(n, bool)
+    fixed = np.zeros(zs.shape, bool)  # pixels whose value overrides the column rule
+    tol = np.float32(params.same_surface_ratio)
+    for _ in range(64):  # bottom-up: each pass decides the segments resting on what is known so far
+        known = zs > 0
+        c_lab, c_z = [], []
+        for a, b in (((slice(None, -1), slice(None)), (slice(1, None), slice(None))),
+                     ((slice(1, None), slice(None)), (slice(None, -1), slice(None))),
+                     ((slice(None), slice(None, -1)), (slice(None), slice(1, None))),
+                     ((slice(None), slice(1, None)), (slice(None), slice(None, -1)))):
+            m = (lab[a] > 0) & known[b] & ~edge[b]
+            c_lab.append(lab[a][m])
+            c_z.append(zs[b][m])
+        b_lab, b_z = [], []
+        for d in range(1, reach + 1):
+            m = (lab[:-d] > 0) & known[d:]
+            b_lab.append(lab[:-d][m])
+            b_z.append(zs[d:][m])
+        cl, cz = np.concatenate(c_lab), np.concatenate(c_z)
+        bl, bz = np.concatenate(b_lab), np.concatenate(b_z)
+        touch = np.zeros(n, bool)
+        touch[cl] = True
+        new_touch = touch & ~decided
+        new_sep = np.zeros(n, bool)
+        new_sep[bl] = True
+        new_sep &= ~touch & ~decided
+        if not (new_touch.any() or new_sep.any()):
+            break
+        # a continuing segment keeps the column rule where it gives a depth of the surface it touches (within the
+        # same-surface ratio of the contacts' range), else the contacts' median: a crown whose lower part the LiDAR
+        # hit must not take, in its side columns, the facade below it
+        lo, hi, med = (_label_quantile(cl, cz, q, new_touch, n) for q in (0.0, 1.0, 0.5))
+        off = new_touch[lab] & ((zc < lo[lab] / tol) | (zc > hi[lab] * tol))
+        sep_z = _label_quantile(bl, bz, params.overhang_quantile, new_sep, n)
+        zs = np.where(new_sep[lab], sep_z[lab], np.where(off, med[lab], np.where(new_touch[lab], zc, zs)))
+        zs = zs.astype(np.float32)
+        fixed |= new_sep[lab] | off
+        separate |= new_sep
+        decided |= new_touch | new_sep
+    out_small = np.where(fixed, zs, 0.0).astype(np.float32)
+    _grow_into_edges(out_small, np.where(separate[lab], lab, 0), us & edge, fs, params.overhang_colour_tol)
+    out = cv2.resize(out_small, (W, H), interpolation=cv2.INTER_NEAREST) if s > 1 else out_small
+    return np.where(up & (out > 0), out, z_cont).astype(np.float32)
+
+
 def complete_depth(points: CameraPoints, K: F64, width: int, height: int, image: NDArray | None,
                    top_elevation_deg: float, params: DepthParams = DepthParams()) -> DenseDepth:
     """Dense ray length (H, W) for camera-frame LiDAR points (see the module docstring for the stages).
@@ -708,8 +895,11 @@ def complete_depth(points: CameraPoints, K: F64, width: int, height: int, image:
         todo = ~planar & (inv > 0)
         inv = refine_edges(inv, conf_inv, todo, img, int(round(params.refine_radius_gaps * gap)), params)
     # LiDAR support and sky
-    dist = cv2.distanceTransform((z_sparse <= 0).astype(np.uint8), cv2.DIST_L2, 3)
-    supported = (dist <= params.support_gaps * gap) | planar
+    if img is None:
+        dist = cv2.distanceTransform((z_sparse <= 0).astype(np.uint8), cv2.DIST_L2, 3)
+        supported = (dist <= params.support_gaps * gap) | planar
+    else:
+        supported = lidar_support(z_sparse > 0, img, params.support_gaps * gap, params) | planar
     if img is not None:
         # no return and sky in the image; below the field of view too (sky behind the end of a street), where the
         # image's sky region (connected to the top border) reaches down unsupported
@@ -744,7 +934,8 @@ def complete_depth(points: CameraPoints, K: F64, width: int, height: int, image:
             size = max(3, int(round(4 * gap_h)) | 1)
             z_top[cols] = median_filter(z_top[cols], size=size, mode="nearest")
         up = (rows < first[None, :]) & has_col[None, :] & ~sky
-        z = np.where(up, z_top[None, :], z)
+        z_cont = np.where(up, z_top[None, :], z)
+        z = z_cont if img is None else np.where(up, _overhangs(z, z_cont, up, img, gap_h, params), z)
         rest = (z <= 0) & ~sky
         z = _nearest_fill(z, z > 0, rest)
         conf[(conf == 0) & ~sky] = CONF_EXTENDED
