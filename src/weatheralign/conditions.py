@@ -143,5 +143,5 @@ def condition_tags(name: str, aligned: bool | None, snow_rate_mm_h: float, rain_
             "severity": severity_label(name, snow_rate_mm_h, rain_rate_mm_h)}
 
 
-__all__ = ["ALIGNMENTS", "CONDITIONS", "RAIN_APPEARANCES", "Condition", "FogPart", "ParticlePart", "condition_named", "condition_tags",
-           "severity_label", "variant_name"]
+__all__ = ["ALIGNMENTS", "CONDITIONS", "RAIN_APPEARANCES", "Condition", "FogPart", "ParticlePart", "condition_named",
+           "condition_tags", "severity_label", "variant_name"]
