@@ -164,6 +164,17 @@ def test_partial_extinction_adds_up() -> None:
     assert t.d_min == m and t.number_density() == pytest.approx(spec.number_density(d_lo=m))
 
 
+def test_extinction_below_is_extinction_up_to_each_diameter() -> None:
+    """The vectorised form (the camera's unresolved-extinction table) equals the scalar one at every diameter,
+    including below the support (0) and above it (everything)."""
+    for spec in (RAIN.spectrum(), SnowSizeDistribution(2.0, 1.5).spectrum()):
+        d = np.concatenate([[0.0, 0.5 * spec.d_min, spec.d_min], np.geomspace(max(spec.d_min, 1e-5), spec.d_max, 50),
+                            [2.0 * spec.d_max]])
+        expected = [spec.extinction(d_hi=float(x)) for x in d]
+        np.testing.assert_allclose(spec.extinction_below(d), expected, rtol=1e-12, atol=0.0)
+        assert spec.extinction_below(d)[0] == 0.0 and spec.extinction_below(d)[-1] == pytest.approx(spec.extinction())
+
+
 @pytest.mark.parametrize(("make", "match"), [
     (lambda: SnowSizeDistribution(-1.0, 1.5), r"snowfall_rate = -1.0 \[mm/h\].*> 0"),
     (lambda: SnowSizeDistribution(2.0, 0.0), r"terminal_velocity = 0.0 \[m/s\].*> 0"),

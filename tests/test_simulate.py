@@ -18,14 +18,16 @@ import pytest
 from weatheralign.conditions import CONDITIONS
 from weatheralign.config import params_from_dict
 from weatheralign.data.errors import DataFormatError
-from weatheralign.data.nuscenes import compressed_extras_relpath, load_frame, open_nuscenes, read_point_extras
-from weatheralign.lidar import simulate_fog
+from weatheralign.data.nuscenes import (compressed_extras_relpath, load_frame, load_lidar, open_nuscenes,
+                                        read_point_extras)
+from weatheralign.lidar import simulate_fog, simulate_particle_scans
 from weatheralign.manifest import DatasetManifest, dataset_digest, manifest_path, read_manifest, write_manifest
 from weatheralign.medium.conditions import field_spec
 from weatheralign.sensors import SensorRig, camera_models, ego_body_from_params, lidar_model_from_params
 from weatheralign.simulate.media import (ConditionMedia, SceneMedia, calibrated_fog_levels, params_fog_levels,
                                          resolve_media)
-from weatheralign.simulate.observe import ObserveOptions, observe, observe_lidar
+from weatheralign.simulate.observe import (JOINT_DRIFT_MAX_M, ObserveOptions, joint_drift_m, observe, observe_lidar,
+                                          observe_lidar_scans)
 from weatheralign.simulate.plan import SampleJob, plan_jobs, sample_range_maps, scene_airlight
 from weatheralign.simulate.weather_copy import (copy_outputs, finalize_copy, read_weather_record, run_sample, summarise,
                                                 smallest_int_dtype, sweep_records, weather_relpath)
@@ -407,6 +409,27 @@ def test_unaligned_copy_takes_its_aligned_twins_lidar(world, tmp_path):
 
 
 # ------------------------------------------------------------------------------------------------ mixed weather
+def test_fast_fields_run_each_scan_alone_slow_ones_jointly(world):
+    """A keyframe and its 2 sweeps: snow (1.5 m/s, 0.2 m of drift over the three) goes through one joint run, rain
+    at its drop-size fall speed (~6.7 m/s, 1 m) scan by scan, exactly as a run on each scan alone would give it."""
+    tw, nusc, fields, frame, _, sensors, scenes = world
+    scans = [frame.lidar, *(load_lidar(nusc, sd["token"]) for sd in sweep_records(nusc, frame.token))]
+    assert len(scans) == 3
+    for condition, joint_expected in (("snow", True), ("rain", False)):
+        media = _media(condition, scenes, fields).for_scene(scenes[0], True)
+        fld = media.field.field()
+        drift = joint_drift_m(scans, sensors.lidar, float(np.linalg.norm(fld.velocity_array)))
+        assert (drift <= JOINT_DRIFT_MAX_M) == joint_expected, drift
+        got = observe_lidar_scans(scans, media, sensors.lidar)
+        kw = {"lidar": sensors.lidar, "reflectivity": media.condition.particles.lidar_reflectivity}
+        want = (simulate_particle_scans(scans, fld, **kw) if joint_expected
+                else [simulate_particle_scans([scan], fld, **kw)[0] for scan in scans])
+        for lw, res, scan in zip(got, want, scans):
+            np.testing.assert_array_equal(lw.scan.points, res.apply_to(scan).points)
+            np.testing.assert_array_equal(lw.particle_id, res.particle_id)
+        assert sum(lw.counts["SCATTERED"] for lw in got) > 0
+
+
 def test_fog_snow_lidar_is_the_composition_of_its_media(world):
     """fog_snow's LiDAR: fog's attenuation and backscatter plus the flakes' echoes in one response. With the field
     emptied it is exactly fog (same labels and points as simulate_fog); with the fog removed, exactly snow; with

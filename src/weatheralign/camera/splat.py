@@ -268,7 +268,8 @@ def environment_radiance(image_linear: NDArray, airlight: NDArray | tuple) -> F6
         airlight: (3,) linear RGB.
     """
     img = np.asarray(image_linear)
-    mean = img.reshape(-1, 3).mean(axis=0, dtype=np.float64)
+    # column sums first: numpy's strided float64 mean over axis 0 of (H W, 3) is ~8x slower (19 ms on 1600 x 900)
+    mean = img.sum(axis=0, dtype=np.float64).sum(axis=0) / (img.shape[0] * img.shape[1])
     return 0.5 * mean + 0.5 * np.asarray(airlight, dtype=np.float64)
 
 
@@ -417,7 +418,7 @@ def unresolved_extinction_profile(medium: ParticleField | ExponentialSizeDistrib
         return UnresolvedExtinction(near, near, np.array([total * near]), total)
     r = np.linspace(near, r_cut, samples)
     m = min_splat_diameter(r, focal, appearance, near, r_cut)
-    e = np.array([shadow * spec.extinction(d_hi=float(x)) if x < spec.d_max else total for x in m])
+    e = np.where(m < spec.d_max, shadow * spec.extinction_below(m), total)
     tau = total * near + np.concatenate([[0.0], np.cumsum(0.5 * (e[1:] + e[:-1]) * np.diff(r))])
     return UnresolvedExtinction(near, float(r_cut), tau, total)
 

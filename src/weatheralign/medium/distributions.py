@@ -244,6 +244,13 @@ class ExponentialSizeDistribution:
         a, b = self._range(d_lo, d_hi)
         return q_ext * math.pi / 4.0 * self.n0 * self._partial_moment(2, a, b)
 
+    def extinction_below(self, d_hi: NDArray | float, q_ext: float = Q_EXT_GEOMETRIC) -> F64:
+        """`extinction` of the particles with diameter at most ``d_hi`` [m], elementwise over an array (float64, shape
+        of ``d_hi``): ``extinction(d_hi=x)`` for every ``x``, in one vectorised pass."""
+        b = np.clip(np.asarray(d_hi, dtype=np.float64), self.d_min, self.d_max)
+        moment = gamma_fn(3) / self.lam ** 3 * (gammaincc(3, self.lam * self.d_min) - gammaincc(3, self.lam * b))
+        return q_ext * math.pi / 4.0 * self.n0 * moment
+
     def truncated(self, min_diameter: float) -> "ExponentialSizeDistribution":
         """The same spectrum restricted to ``[max(d_min, min_diameter), d_max]`` (same n0: the particles of at least
         ``min_diameter`` of this medium, exactly)."""

@@ -111,16 +111,35 @@ def observe_lidar(scan: LidarScan, media: SceneMedia, lidar: LidarModel) -> Lida
     return observe_lidar_scans([scan], media, lidar)[0]
 
 
+JOINT_DRIFT_MAX_M = 0.5
+"""Scans of one sample are matched against a particle field together while the field drifts at most this far [m]
+over their joint time span; beyond it each scan runs alone. A joint run generates each field cell once for all scans
+but widens every beam's reach by the drift: measured on the default world (a keyframe and 2 sweeps, 0.15 s), snow at
+1.5 m/s (0.2 m) costs 0.44 CPU-s joint vs 0.49 alone, rain at 6.7 m/s (1.0 m) 0.65 joint vs 0.40 alone."""
+
+
+def joint_drift_m(scans: list[LidarScan], lidar: LidarModel, speed_m_s: float) -> float:
+    """How far [m] a field moving at ``speed_m_s`` drifts over the time ``scans`` span together (first timestamp to
+    the end of the last sweep, one rotation ``1 / lidar.rotation_hz`` each)."""
+    stamps = [scan.timestamp for scan in scans]
+    return speed_m_s * (max(stamps) - min(stamps) + 1.0 / lidar.rotation_hz)
+
+
 def observe_lidar_scans(scans: list[LidarScan], media: SceneMedia, lidar: LidarModel) -> list[LidarWeather]:
     """Several scans of the LiDAR (a keyframe and the sweeps before it, each at its own times) through the media it
     sees: fog alone scan by scan; a particle field for all scans at once (`simulate_particle_scans`: each field cell
-    generated once for all of them)."""
+    generated once for all of them) unless the field drifts more than `JOINT_DRIFT_MAX_M` over their span (fast
+    rain), then scan by scan."""
     fog = FogMedium(media.lidar_alpha, media.lidar_beta) if media.lidar_alpha > 0.0 else None
     if media.field is None:
         return [_fog_weather(scan, media, lidar) for scan in scans]
     fld = media.field.field() if media.has_particles else None
-    results = simulate_particle_scans(scans, fld, lidar=lidar,
-                                      reflectivity=media.condition.particles.lidar_reflectivity, fog=fog)
+    kw = {"lidar": lidar, "reflectivity": media.condition.particles.lidar_reflectivity, "fog": fog}
+    speed = 0.0 if fld is None else float(np.linalg.norm(fld.velocity_array))
+    if len(scans) > 1 and joint_drift_m(scans, lidar, speed) > JOINT_DRIFT_MAX_M:
+        results = [simulate_particle_scans([scan], fld, **kw)[0] for scan in scans]
+    else:
+        results = simulate_particle_scans(scans, fld, **kw)
     return [LidarWeather(res.apply_to(scan), res.labels.astype(np.uint8), res.particle_id.astype(np.int64),
                          res.source_index.astype(np.int64), res.times.astype(np.float64),
                          {k: int(res.counts.get(k, 0)) for k in COUNT_KEYS})
@@ -234,5 +253,5 @@ def observe(frame: Frame, images: dict[str, NDArray[np.uint8]], ranges: dict[str
     return FrameWeather(lidar, cams, errors, channels)
 
 
-__all__ = ["COUNT_KEYS", "CameraWeather", "FrameWeather", "LidarWeather", "ObserveOptions", "ego_velocity", "observe",
-           "observe_camera", "observe_lidar"]
+__all__ = ["COUNT_KEYS", "JOINT_DRIFT_MAX_M", "CameraWeather", "FrameWeather", "LidarWeather", "ObserveOptions",
+           "ego_velocity", "joint_drift_m", "observe", "observe_camera", "observe_lidar", "observe_lidar_scans"]
