@@ -15,6 +15,7 @@ import pytest
 import yaml
 
 from weatheralign.conditions import ALIGNMENTS, CONDITIONS
+from weatheralign.data.nuscenes import open_nuscenes
 from weatheralign.provenance import stage_code
 
 REPO = Path(__file__).resolve().parents[1]
@@ -184,7 +185,9 @@ def test_noop_rerun_leaves_downstream_up_to_date(tmp_path: Path) -> None:
 def test_your_own_dataset_through_dvc_repro_and_exp_run(tiny_world, tmp_path: Path) -> None:
     """``world.source: nuscenes`` goes through the same stage graph: `dvc repro` and `dvc exp run -S ...` run the world
     stage on a real-layout nuScenes dataroot (the tiny world without its extras, as a real dataset has none), its
-    output folder names the dataset instead of copying it, particles runs on the manifest, the dataset is untouched."""
+    output folder names the dataset instead of copying it, particles runs on the manifest, then `dvc repro` goes on to
+    every weather copy (a small embedded reference for the calibrations): each copy is handed on by its manifest and
+    loads in the devkit with the dataset's samples and weather in its scans; the dataset is untouched."""
     import hashlib
     import json
 
@@ -195,6 +198,12 @@ def test_your_own_dataset_through_dvc_repro_and_exp_run(tiny_world, tmp_path: Pa
     repo = tmp_path / "repo"
     params = yaml.safe_load((REPO / "params.yaml").read_text())
     params["world"]["version"] = tiny_world.params.world.version
+    params["reference"].update({"frames_per_split": 2})  # as the severity test: a small reference, quick calibrations
+    params["reference"]["lidar"]["firings_per_ring"] = 360
+    params["reference"]["camera"]["image_scale"] = 0.25
+    params["calibrate_fog"].update({"num_bootstrap": 20, "max_nelder_mead": 5, "fine_points": [3, 3],
+                                    "camera_frames": 2})
+    params["particles"].update({"validation_regions": 1, "validation_max_particles": 20000})
     _project_repo(repo, params)
     subprocess.run(["git", "add", "-A"], cwd=repo, check=True)
     subprocess.run(["git", "commit", "-q", "-m", "init"], cwd=repo, check=True)
@@ -209,6 +218,21 @@ def test_your_own_dataset_through_dvc_repro_and_exp_run(tiny_world, tmp_path: Pa
     fields = json.loads((repo / "data" / "particles" / "fields.json").read_text())
     assert sorted(f["scene"] for f in fields["snow"]) == sorted(manifest["scenes"])
     status = _dvc(repo, "status", "world", "particles")
+    assert status.returncode == 0 and "changed" not in status.stdout, status.stdout
+    run = _dvc(repo, "repro", "simulate_summary")  # on to every weather copy
+    assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-3000:]
+    clear = open_nuscenes(real, manifest["version"])
+    for condition in CONDITIONS:
+        for alignment in ALIGNMENTS:
+            handoff = json.loads((repo / "data" / "manifests" / f"simulate-{condition}-{alignment}.json").read_text())
+            root = Path(handoff["dataroot"])
+            root = root if root.is_absolute() else repo / root
+            assert handoff["source"] == "simulate" and root == repo / "data" / "simulate" / f"{condition}-{alignment}"
+            copy = open_nuscenes(root, manifest["version"])
+            assert [s["token"] for s in copy.sample] == [s["token"] for s in clear.sample]
+            lidar = copy.get("sample_data", copy.sample[0]["data"]["LIDAR_TOP"])["filename"]
+            assert (root / lidar).read_bytes() != (real / lidar).read_bytes(), (condition, alignment)
+    status = _dvc(repo, "status", "simulate_summary")
     assert status.returncode == 0 and "changed" not in status.stdout, status.stdout
     after = {str(p.relative_to(real)): hashlib.sha256(p.read_bytes()).hexdigest() for p in real.rglob("*")
              if p.is_file()}
