@@ -21,6 +21,10 @@ Workloads:
   rings);
 - the ratio threshold: 3e-4 … 3e-2 for snow and rain (counts, mean intensity change of the kept points).
 
+Fields: snow falls at 1.5 m/s; rain at the default fall speed of its rate (the Marshall-Palmer median-volume drop's,
+`rain_field_fall_speed`: 6.6 m/s at 50 mm/h), so the joint keyframe + sweeps workload shows why `simulate` runs fast
+rain scan by scan (`weatheralign.simulate.observe.JOINT_DRIFT_MAX_M`).
+
 The sensor (`_lidar`): the synthetic world's HDL-32E-like `LidarModel` (3 mrad divergence, τ_H = 10 ns, detector floor
 0.5 on 0..255, its 32 x 1085 firing grid) with each workload's maximum range and intensity model (the synthetic
 world's for its scan, Hahner's raw ``1/r²`` for STF); beams without return come from the stored firing columns of the
@@ -55,7 +59,6 @@ SNOW_REFERENCE_35K = 30.0  # Hahner et al. 2022 code, 27-34 s per 35k-point scan
 SNOW_REFERENCE_120K = 88.0  # ... and 88 s on a 120k-point HDL-64 scan
 RAIN_REFERENCE_25MMH = 4.2  # LISA, 3.3-5.2 s per 35k-point scan at 25 mm/h
 SNOW_VELOCITY = 1.5
-RAIN_VELOCITY = 2.0
 DIVERGENCE_RAD = 3e-3
 PULSE_HALF_WIDTH_S = 10e-9
 NOISE_FLOOR = 0.5
@@ -128,12 +131,13 @@ def _ring_subset(scan: LidarScan, keep_rings: int) -> LidarScan:
 
 def _field(spec: dict, t_ref: float):
     from weatheralign.medium import ParticleField, RainSizeDistribution, SnowSizeDistribution, fall_velocity
+    from weatheralign.medium.distributions import rain_field_fall_speed
 
     if spec["medium"] == "snow":
         return ParticleField(spec.get("seed", 11), SnowSizeDistribution(spec["rate"], SNOW_VELOCITY),
                              velocity=fall_velocity(SNOW_VELOCITY), t_ref=t_ref, cell_size=2.0)
     return ParticleField(spec.get("seed", 11), RainSizeDistribution(spec["rate"]),
-                         velocity=fall_velocity(RAIN_VELOCITY), t_ref=t_ref, cell_size=1.0)
+                         velocity=fall_velocity(rain_field_fall_speed(spec["rate"])), t_ref=t_ref, cell_size=1.0)
 
 
 def _lidar(spec: dict, columns_stored: bool):
