@@ -190,10 +190,12 @@ class ExponentialSizeDistribution:
         b = self.d_max if d_hi is None else min(max(float(d_hi), self.d_min), self.d_max)
         return a, max(a, b)
 
-    def _partial_moment(self, k: int, a: float, b: float) -> float:
-        """``∫_a^b D^k exp(-lam D) dD`` [m^(k+1)] (upper incomplete gamma, stable for any a, b)."""
-        la, lb = self.lam * a, self.lam * b
-        return float(gamma_fn(k + 1) / self.lam ** (k + 1) * (gammaincc(k + 1, la) - gammaincc(k + 1, lb)))
+    def _partial_moment(self, k: int, a: float, b: float | F64) -> float | F64:
+        """``∫_a^b D^k exp(-lam D) dD`` [m^(k+1)] (upper incomplete gamma, stable for any a, b; elementwise for an
+        array ``b``)."""
+        la, lb = self.lam * a, self.lam * np.asarray(b, dtype=np.float64)
+        moment = gamma_fn(k + 1) / self.lam ** (k + 1) * (gammaincc(k + 1, la) - gammaincc(k + 1, lb))
+        return float(moment) if moment.ndim == 0 else moment
 
     def number_density(self, d_lo: float | None = None, d_hi: float | None = None) -> float:
         """Particles per m³ with diameter in ``[d_lo, d_hi]`` ∩ support (default: the whole support)."""
@@ -248,8 +250,7 @@ class ExponentialSizeDistribution:
         """`extinction` of the particles with diameter at most ``d_hi`` [m], elementwise over an array (float64, shape
         of ``d_hi``): ``extinction(d_hi=x)`` for every ``x``, in one vectorised pass."""
         b = np.clip(np.asarray(d_hi, dtype=np.float64), self.d_min, self.d_max)
-        moment = gamma_fn(3) / self.lam ** 3 * (gammaincc(3, self.lam * self.d_min) - gammaincc(3, self.lam * b))
-        return q_ext * math.pi / 4.0 * self.n0 * moment
+        return q_ext * math.pi / 4.0 * self.n0 * np.asarray(self._partial_moment(2, self.d_min, b))
 
     def truncated(self, min_diameter: float) -> "ExponentialSizeDistribution":
         """The same spectrum restricted to ``[max(d_min, min_diameter), d_max]`` (same n0: the particles of at least
