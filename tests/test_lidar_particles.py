@@ -807,3 +807,89 @@ def test_detector_noise_decides_weak_particle_echoes_with_the_gaussian_probabili
     clear = simulate_particle_list(target, _particles([5.0, 5.0, 5.0], 1e-3), (0, 0, 0), lidar=noisy_lidar,
                                    reflectivity=SNOW_REFLECTIVITY)
     assert np.all(clear.input_labels == ParticleLabel.UNCHANGED)
+
+
+# ------------------------------------------------------------------------------ the unresolved particles' echo
+
+
+def _brute_continuum(length: float, cross_section: float, extinction: float, lidar: LidarModel, rho: float
+                     ) -> tuple[float, float]:
+    """(peak, position on the receiver axis) of ``∫_0^{min(R, L)} a(s) sin²(π (R - s) / c τ_H) ds`` by direct sums
+    on a 0.5 mm grid in s and a 1 mm grid in R (the slow reference of `unresolved_continuum`)."""
+    sensor, model = lidar.pulse, lidar.intensity
+    pl = sensor.pulse_length
+    h = 5e-4
+    s = np.arange(h / 2, min(length, 40.0), h)
+    xi = np.clip((s - sensor.r1) / (sensor.r2 - sensor.r1), 0.0, 1.0)
+    a = model.scale * rho * cross_section * xi / s ** 2 * np.exp(-2.0 * extinction * s)
+    R = np.arange(0.0, min(length, 40.0) + pl, 1e-3)
+    best, at = -1.0, 0.0
+    for r in R:
+        m = (s <= r) & (s >= r - pl)
+        w = float(np.sum(a[m] * np.sin(np.pi * (r - s[m]) / pl) ** 2) * h)
+        if w > best:
+            best, at = w, r
+    return best, at
+
+
+@pytest.mark.parametrize("length", [0.95, 1.6, 3.0, 6.5, 60.0])
+def test_unresolved_continuum_is_the_peak_of_the_brute_force_waveform(length):
+    from weatheralign.lidar.particles.api import _Options, unresolved_continuum
+
+    opt = _Options.of(LIDAR, RAIN_REFLECTIVITY, KEEP)
+    cont = unresolved_continuum(np.array([0.0, 100.0]), np.array([3e-3]), np.array([0.02]), opt)
+    i = min(int(length / cont.step), len(cont.peak) - 1)
+    want, at = _brute_continuum(cont.step * i, 3e-3, 0.02, LIDAR, RAIN_REFLECTIVITY)
+    assert cont.peak[i] == pytest.approx(want, rel=5e-3)  # 2 cm cells on the 10 cm overlap ramp
+    assert cont.peak_r[i] == pytest.approx(at, abs=0.03)
+    # the table ends past the untruncated peak: longer beams take its last entry, the global maximum
+    full, _ = _brute_continuum(60.0, 3e-3, 0.02, LIDAR, RAIN_REFLECTIVITY)
+    assert cont.peak[-1] == pytest.approx(full, rel=2e-3) and cont.peak.max() == cont.peak[-1]
+
+
+def test_the_unresolved_echo_masks_a_fainter_far_particle_and_is_read_like_one():
+    """A strongest-return receiver reports the strongest crest of everything it receives: behind the unresolved
+    particles' continuum (peak a few metres out) a faint particle at 12 m is not reported; without the continuum it
+    is; a bright target beats the continuum. The continuum's echo carries no particle id and the table's intensity."""
+    lidar = make_lidar(noise_floor=0.0)
+    beams = _beams([0, 0, 0], [[1, 0, 0], [0, 1, 0], [0, -1, 0]], [0.0, 0.0, 30.0], [0.0, 0.0, 40.0],
+                   has_return=[False, False, True], max_range=50.0)
+    w = 12.0 * math.tan(1.5e-3)
+    parts = _particles([[12.0, 0.0, 0.0]], [2 * w * 0.3], ids=[7])  # 9 % of the first beam at 12 m
+    bare = simulate_particle_list(beams, parts, lidar=lidar, reflectivity=RAIN_REFLECTIVITY, intensity_max=255.0)
+    assert bare.beam_particle.tolist() == [7, -1, -1]
+    assert bare.beam_range[0] == pytest.approx(12.0, abs=1e-6)
+    res = simulate_particle_list(beams, parts, lidar=lidar, reflectivity=RAIN_REFLECTIVITY, intensity_max=255.0,
+                                 unresolved_cross_section=0.02)
+    from weatheralign.lidar.particles.api import _Options, unresolved_continuum
+
+    cont = unresolved_continuum(np.array([0.0, 31.0]), np.array([0.02]), np.array([0.0]),
+                                _Options.of(lidar, RAIN_REFLECTIVITY, KEEP))
+    r_c = cont.peak_r[-1] - 0.5 * lidar.pulse.pulse_length
+    assert res.beam_label.tolist() == [ParticleLabel.SCATTERED, ParticleLabel.SCATTERED, ParticleLabel.UNCHANGED]
+    assert res.beam_particle.tolist() == [-1, -1, -1]
+    np.testing.assert_allclose(res.beam_range[:2], r_c, atol=1e-9)
+    want = cont.peak[-1] * r_c ** 2 * float(lidar.intensity.gain(r_c))
+    # the particle's pulse (12..18 m on the receiver axis) does not reach the continuum's crest (~7 m)
+    np.testing.assert_allclose(res.beam_intensity[:2], want, rtol=1e-9)
+    assert res.beam_range[2] == 30.0
+
+
+def test_weather_echoes_nearer_than_the_minimum_range_are_not_reported():
+    """A particle filling the beam at 0.95 m, inside a 1 m minimum range: the sensor reports nothing there (the
+    target behind it decides); with a 0.5 m minimum range the particle is reported."""
+    beams = _beams([0, 0, 0], [[1, 0, 0], [0, 1, 0]], [20.0, 0.0], [30.0, 0.0], has_return=[True, False],
+                   max_range=50.0)
+    w = 0.95 * math.tan(1.5e-3)
+    parts = _particles([[0.95, 0.0, 0.0], [0.0, 0.95, 0.0]], [0.6 * w, 2.2 * w], ids=[1, 2])
+    out = {}
+    for min_range in (1.0, 0.5):
+        lidar = make_lidar(noise_floor=0.5, min_range_m=min_range)
+        out[min_range] = simulate_particle_list(beams, parts, lidar=lidar, reflectivity=SNOW_REFLECTIVITY,
+                                                intensity_max=255.0)
+    near = out[0.5]
+    assert near.beam_label.tolist() == [ParticleLabel.SCATTERED, ParticleLabel.SCATTERED]
+    assert np.all(near.beam_range < 1.0)
+    far = out[1.0]
+    assert far.beam_label.tolist() == [ParticleLabel.ATTENUATED, ParticleLabel.NO_ECHO]
+    assert far.beam_range[0] == 20.0

@@ -19,8 +19,8 @@ from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel
 from weatheralign.lidar.particles.beam_index import (empty_hits, field_hits, index_beams, list_hits, range_shells,
                                                      rank_cutoffs, reachable_cells, shell_edges)
 from weatheralign.lidar.particles.response import response_kernel
-from weatheralign.lidar.particles.records import (BeamOutcome, BeamTargets, HitArrays, Medium, ParticleBatch,
-                                                  PulseParams)
+from weatheralign.lidar.particles.records import (BeamOutcome, BeamTargets, Continuum, HitArrays, Medium,
+                                                  ParticleBatch, PulseParams)
 from weatheralign.lidar.fog import soft_target_response
 from weatheralign.medium.distributions import RAIN_REFLECTIVITY, SNOW_REFLECTIVITY  # noqa: F401  (re-exported)
 from weatheralign.medium.fog import FogMedium
@@ -148,13 +148,15 @@ class _Options:
     intensity_noise_std: float = 0.0
     intensity_noise_rel: float = 0.0
     range_noise_std: float = 0.0
+    min_range: float = 0.0
 
     @staticmethod
     def of(lidar: LidarModel, reflectivity: float, keep_tolerance: float) -> "_Options":
         """The options of ``lidar`` (its pulse, intensity model, detector floor and noise) for particles of
         ``reflectivity``."""
         return _Options(reflectivity, lidar.pulse, lidar.intensity, lidar.noise_floor, keep_tolerance,
-                        lidar.intensity_noise_std, lidar.intensity_noise_rel, lidar.range_noise_std_m)
+                        lidar.intensity_noise_std, lidar.intensity_noise_rel, lidar.range_noise_std_m,
+                        lidar.min_range_m)
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.reflectivity) and 0.0 <= self.reflectivity <= 1.0):
@@ -178,13 +180,79 @@ def beam_noise_keys(beams: Beams) -> NDArray[np.uint64]:
     return detector_noise_keys(beams.times, beams.directions, beams.ring)
 
 
-def _respond(beams: Beams, hits: HitArrays, edges: F64, alphas: F64, opt: _Options) -> _Response:
+NO_CONTINUUM = Continuum(step=1.0, peak=np.zeros(1), peak_r=np.zeros(1), cum0=np.zeros(2), cumc=np.zeros(2),
+                         cums=np.zeros(2))
+"""No unresolved particles' echo (all particles resolved, or fog alone)."""
+
+CONTINUUM_STEP = 0.02
+"""Grid step [m] of the unresolved particles' waveform and of its table over beam lengths."""
+
+
+def _medium(edges: F64, alphas: F64) -> Medium:
+    return Medium(edges=edges, alphas=alphas, tau_edges=np.concatenate([[0.0], np.cumsum(alphas * np.diff(edges))]))
+
+
+def unresolved_continuum(edges: F64, cross_section: F64, alphas: F64, opt: _Options,
+                         step: float = CONTINUUM_STEP) -> Continuum:
+    """The echo of the unresolved particles as a beam receives it, tabulated over the beam's length.
+
+    The particles a range shell leaves unresolved cover ``cross_section[k]`` (K,) [m²/m³ = 1/m] of the beam per metre
+    in shell k (``edges`` (K+1,) [m]): their geometric cross-section density, ``field.unresolved_extinction / 2``. As
+    the resolved particles' pulses, each reflects ``scale ρ`` per unit share (`IntensityModel`), so their raw
+    amplitude density at axial distance s is ``a(s) = scale ρ cross_section(s) ξ(s) / s² · exp(-2 τ(s))`` (``τ``:
+    the one-way depth of the bulk extinction ``alphas`` (K,), as on every echo), and a beam ending at L receives
+    the smooth waveform ``W_L(R) = ∫_0^{min(R, L)} a(s) sin²(π (R - s) / (c τ_H)) ds`` (on ``[R - c τ_H, R]``),
+    the continuum the exact process (`weatheralign.reference.lidar_particles_exact`) sums with its sub-ray echoes.
+    Returns ``C(L) = max_R W_L(R)`` and its position on ``L = i · step``, ``i = 0 ..`` until L passes the position of
+    the untruncated waveform's maximum (beyond it ``C`` is that maximum: ``W_L <= W``). Midpoint rule on ``step``
+    cells, sums of ``a``, ``a cos ωs``, ``a sin ωs`` (``sin² = (1 - cos ω(R - s)) / 2``, ω = 2π / (c τ_H)).
+    """
+    pl = opt.sensor.pulse_length
+    top = float(edges[-1]) if math.isfinite(edges[-1]) else float(edges[-2])
+    n = max(int(math.ceil(top / step)), 1)
+    mid = (np.arange(n) + 0.5) * step
+    k = np.clip(np.searchsorted(edges, mid, side="right") - 1, 0, len(cross_section) - 1)
+    medium = _medium(edges, alphas)
+    tau = medium.tau_edges[k] + alphas[k] * (mid - edges[k])
+    xi = np.clip((mid - opt.sensor.r1) / (opt.sensor.r2 - opt.sensor.r1), 0.0, 1.0)
+    amp = (opt.intensity_model.scale * opt.reflectivity) * cross_section[k] * xi / (mid * mid) * np.exp(-2.0 * tau)
+    if not np.any(amp > 0.0):
+        return NO_CONTINUUM
+    omega = 2.0 * math.pi / pl
+    cum = [np.concatenate([[0.0], np.cumsum(amp * w * step)]) for w in (1.0, np.cos(omega * mid), np.sin(omega * mid))]
+
+    def between(a: F64, b: F64) -> list[F64]:  # ∫_a^b of a, a cos, a sin (a <= b on [0, n step], interpolated)
+        return [np.interp(b, np.arange(n + 1) * step, c) - np.interp(a, np.arange(n + 1) * step, c) for c in cum]
+
+    def wave(R: F64, L: F64) -> F64:
+        lo, hi = np.clip(R - pl, 0.0, n * step), np.clip(np.minimum(R, L), 0.0, n * step)
+        s0, sc, ss = between(lo, np.maximum(hi, lo))
+        return 0.5 * s0 - 0.5 * (np.cos(omega * R) * sc + np.sin(omega * R) * ss)
+
+    R = np.arange(int(math.ceil((n * step + pl) / step)) + 1) * step
+    W = wave(R, np.full(len(R), np.inf))  # untruncated
+    count = int(np.argmax(W)) + 2  # L = R[i]: up to just past the untruncated maximum
+    run_max = np.maximum.accumulate(W[:count])  # max over R <= L: untouched by the truncation at L
+    run_at = R[np.maximum.accumulate(np.where(W[:count] >= run_max, np.arange(count), 0))]
+    L = R[:count, None]
+    taps = np.arange(1, int(math.ceil(pl / step)) + 1) * step  # R in (L, L + c τ_H]
+    after = wave(L + taps[None, :], L)
+    j = np.argmax(after, axis=1)
+    tail = after[np.arange(count), j]
+    peak = np.maximum(run_max, tail)
+    peak_r = np.where(tail > run_max, R[:count] + taps[j], run_at)
+    return Continuum(step=float(step), peak=np.maximum(peak, 0.0), peak_r=peak_r, cum0=cum[0], cumc=cum[1],
+                     cums=cum[2])
+
+
+def _respond(beams: Beams, hits: HitArrays, edges: F64, alphas: F64, opt: _Options,
+             continuum: Continuum = NO_CONTINUUM) -> _Response:
     """Run the response kernel on the sorted ``hits`` with the bulk extinction ``alphas`` (K,) [1/m] on the range
-    shells ``edges`` (K+1,) [m]."""
+    shells ``edges`` (K+1,) [m] and the unresolved particles' echo ``continuum``."""
     n = len(beams)
     hit_off = np.zeros(n + 1, dtype=np.int64)
     np.cumsum(np.bincount(hits.beam, minlength=n), out=hit_off[1:])
-    medium = Medium(edges=edges, alphas=alphas, tau_edges=np.concatenate([[0.0], np.cumsum(alphas * np.diff(edges))]))
+    medium = _medium(edges, alphas)
     ratios = np.zeros(len(hits.beam))
     outcome = BeamOutcome(state=np.empty(n, dtype=np.uint8), range=np.empty(n), intensity=np.empty(n),
                           dom=np.empty(n, dtype=np.int64))
@@ -197,8 +265,8 @@ def _respond(beams: Beams, hits: HitArrays, edges: F64, alphas: F64, opt: _Optio
                         part_gain=model.scale * opt.reflectivity, r_ref=model.r_ref, falloff=model.falloff,
                         keep_tol=opt.keep_tolerance, floor=-1.0 if opt.noise_floor is None else float(opt.noise_floor),
                         saturation=opt.sensor.saturation, grid_n=SAMPLE_GRID, noise_std=opt.intensity_noise_std,
-                        noise_rel=opt.intensity_noise_rel, range_noise=opt.range_noise_std)
-    n_sampled = response_kernel(hits, hit_off, targets, pulse, medium, ratios, outcome)
+                        noise_rel=opt.intensity_noise_rel, range_noise=opt.range_noise_std, min_range=opt.min_range)
+    n_sampled = response_kernel(hits, hit_off, targets, pulse, medium, continuum, ratios, outcome)
     return _Response(outcome, ratios, int(n_sampled))
 
 
@@ -401,6 +469,7 @@ def simulate_particles(
     columns: object = "auto",
     reconstruct: bool = True,
     unresolved_extinction_factor: float = 0.25,
+    unresolved_echo: bool = True,
     shell_ratio: float = SHELL_RATIO,
     first_shell: float = FIRST_SHELL,
     max_particles_per_shell: int = DEFAULT_MAX_PARTICLES,
@@ -434,6 +503,12 @@ def simulate_particles(
             (a monostatic beam is hidden where it is shadowed) — so the result does not depend on
             ``ratio_threshold`` (measured: mean intensity change and counts stay put from 3e-4 to 3e-2); 1.0 is
             two-way Beer–Lambert with the medium's Q_ext = 2 extinction (the fog model's convention).
+        unresolved_echo: the unresolved particles also return light, as a smooth waveform peaking a few metres out
+            (`unresolved_continuum`); where its peak beats the pulse sum's, the beam reads it (a SCATTERED point
+            without particle id, or nothing if it is under the floor: then the target's own echo decides). Weak and
+            rarely detected, it matters because a strongest-return receiver never reports a weaker echo behind it:
+            without it rain's faint far drops on open beams come back 2-3x too often (against the reference's exact
+            waveform). False: particle and target pulses alone.
         shell_ratio, first_shell: geometric range shells (``[0, first, first·ratio, ...]`` [m]).
         max_particles_per_shell: refuse a shell query expecting more particles (raise ``ratio_threshold``).
 
@@ -444,8 +519,8 @@ def simulate_particles(
         [scan], field, lidar=lidar, reflectivity=reflectivity, fog=fog, ratio_threshold=ratio_threshold,
         attenuation=attenuation, keep_tolerance=keep_tolerance, T_global_lidar=T_global_lidar,
         intensity_max=intensity_max, columns=columns, reconstruct=reconstruct,
-        unresolved_extinction_factor=unresolved_extinction_factor, shell_ratio=shell_ratio, first_shell=first_shell,
-        max_particles_per_shell=max_particles_per_shell)[0]
+        unresolved_extinction_factor=unresolved_extinction_factor, unresolved_echo=unresolved_echo,
+        shell_ratio=shell_ratio, first_shell=first_shell, max_particles_per_shell=max_particles_per_shell)[0]
 
 
 def _joined_beams(parts: list[Beams]) -> tuple[Beams, I64]:
@@ -495,6 +570,7 @@ def simulate_particle_scans(
     columns: object = "auto",
     reconstruct: bool = True,
     unresolved_extinction_factor: float = 0.25,
+    unresolved_echo: bool = True,
     shell_ratio: float = SHELL_RATIO,
     first_shell: float = FIRST_SHELL,
     max_particles_per_shell: int = DEFAULT_MAX_PARTICLES,
@@ -538,8 +614,8 @@ def simulate_particle_scans(
         joint: dict = {}
     else:
         hits, response, joint = _field_response(beams, field, opt, fog, float(ratio_threshold), attenuation,
-                                                unresolved_extinction_factor, shell_ratio, first_shell,
-                                                max_particles_per_shell)
+                                                unresolved_extinction_factor, unresolved_echo, shell_ratio,
+                                                first_shell, max_particles_per_shell)
     results = []
     for (b, pts, T_out, imax), b0 in zip(inputs, offsets[:-1]):
         part_hits, part_response = _scan_part(b, int(b0), hits, response)
@@ -548,11 +624,12 @@ def simulate_particle_scans(
 
 
 def _field_response(beams: Beams, field: ParticleField, opt: _Options, fog: FogMedium | None, ratio_threshold: float,
-                    attenuation: bool, unresolved_extinction_factor: float, shell_ratio: float, first_shell: float,
-                    max_particles_per_shell: int) -> tuple[HitArrays, _Response, dict]:
+                    attenuation: bool, unresolved_extinction_factor: float, unresolved_echo: bool,
+                    shell_ratio: float, first_shell: float, max_particles_per_shell: int
+                    ) -> tuple[HitArrays, _Response, dict]:
     """The hits of the resolved particles of ``field`` on ``beams``, sorted by beam then range, the per-beam response
-    (with the unresolved particles' and the fog's extinction, and the fog's backscatter) and the run's diagnostics
-    (range shells, reference time, particles, origin spread)."""
+    (with the unresolved particles' and the fog's extinction, the unresolved particles' echo, and the fog's
+    backscatter) and the run's diagnostics (range shells, reference time, particles, origin spread)."""
     fog_alpha = 0.0 if fog is None else fog.alpha
     index = index_beams(beams)
     vel = field.velocity_array
@@ -564,10 +641,8 @@ def _field_response(beams: Beams, field: ParticleField, opt: _Options, fog: FogM
     sq = math.sqrt(ratio_threshold)
     s_near = np.maximum(0.0, edges[:-1] - e_all - r_max - 0.05)
     thresholds = 2.0 * index.beams.tanh * s_near * sq  # min diameter per shell [m]
-    if attenuation:
-        alphas = np.array([field.unresolved_extinction(m) for m in thresholds]) * unresolved_extinction_factor
-    else:
-        alphas = np.zeros(len(thresholds))
+    unresolved = np.array([field.unresolved_extinction(m) for m in thresholds])  # Q_ext = 2 [1/m]
+    alphas = unresolved * unresolved_extinction_factor if attenuation else np.zeros(len(thresholds))
     alphas = alphas + fog_alpha if fog_alpha > 0.0 else alphas
     # shells whose threshold leaves no particle (rank cut-off < 0: beyond the largest diameter) need no cells
     empty_from = np.flatnonzero(rank_cutoffs(field, thresholds)[1] < 0.0)
@@ -584,7 +659,8 @@ def _field_response(beams: Beams, field: ParticleField, opt: _Options, fog: FogM
                "cells": int(shell_off[k + 1] - shell_off[k]), "particles": int(per_shell[k, 0]),
                "hits": int(per_shell[k, 1]), "unresolved_extinction": float(alphas[k])}
               for k in range(len(thresholds))]
-    response = _respond(beams, hits, edges, alphas, opt)
+    continuum = unresolved_continuum(edges, 0.5 * unresolved, alphas, opt) if unresolved_echo else NO_CONTINUUM
+    response = _respond(beams, hits, edges, alphas, opt, continuum)
     if fog is not None and fog_alpha > 0.0:
         _fog_backscatter(beams, response, fog, opt)
     return hits, response, {"shells": shells, "t_ref": index.t_ref, "particles": sum(x["particles"] for x in shells),
@@ -599,6 +675,7 @@ def simulate_particle_list(
     lidar: LidarModel,
     reflectivity: float,
     extinction: float = 0.0,
+    unresolved_cross_section: float = 0.0,
     keep_tolerance: float = KEEP_TOLERANCE,
     T_global_lidar: F64 | None = None,
     intensity_max: float | None = None,
@@ -607,16 +684,21 @@ def simulate_particle_list(
 ) -> ParticleResult:
     """The same beam model with an explicit particle list (all resolved) and a homogeneous bulk ``extinction``
     [1/m] applied two-way (``exp(-2 α s)`` on every echo): ``particles`` (global positions at ``particles.t``) move
-    with ``velocity`` (3,) [m/s]. For tests, hand-placed scenes, or particles from elsewhere; other arguments as in
+    with ``velocity`` (3,) [m/s]. ``unresolved_cross_section`` [m²/m³]: unresolved particles of that geometric
+    cross-section density everywhere, whose echo (`unresolved_continuum`) competes with the pulses (their extinction
+    is ``extinction``'s to set). For tests, hand-placed scenes, or particles from elsewhere; other arguments as in
     `simulate_particles`."""
     beams, points, T_out, imax = _inputs(scan, lidar=lidar, T_global_lidar=T_global_lidar,
                                          intensity_max=intensity_max, columns=columns, reconstruct=reconstruct)
     opt = _Options.of(lidar, reflectivity, keep_tolerance)
     if not (math.isfinite(extinction) and extinction >= 0.0):
         raise ValueError(f"extinction = {extinction!r}; expected a finite value >= 0 [1/m]")
+    if not (math.isfinite(unresolved_cross_section) and unresolved_cross_section >= 0.0):
+        raise ValueError(f"unresolved_cross_section = {unresolved_cross_section!r}; expected a finite value >= 0 "
+                         f"[m²/m³]")
     stats: dict = {"num_beams": len(beams), "num_beams_without_return": len(beams) - beams.num_returns,
                    "particles": len(particles)}
-    if (len(particles) == 0 and extinction == 0.0) or len(beams) == 0:
+    if (len(particles) == 0 and extinction == 0.0 and unresolved_cross_section == 0.0) or len(beams) == 0:
         return _identity(beams, points, imax, stats)
     vel = np.asarray(velocity, dtype=np.float64).reshape(3)
     index = index_beams(beams)
@@ -624,5 +706,8 @@ def simulate_particle_list(
     batch = ParticleBatch(pos=pos, radius=0.5 * np.asarray(particles.diameters, dtype=np.float64),
                           ids=np.asarray(particles.ids, dtype=np.int64), vel=vel, t_part=float(particles.t))
     hits = list_hits(index, batch, range_shells(np.array([0.0, math.inf]), np.zeros(1)))  # all resolved
-    response = _respond(beams, hits, np.array([0.0, 1e300]), np.array([float(extinction)]), opt)
+    edges, alphas = np.array([0.0, float(beams.lengths.max()) + 1.0]), np.array([float(extinction)])
+    continuum = (unresolved_continuum(edges, np.array([float(unresolved_cross_section)]), alphas, opt)
+                 if unresolved_cross_section > 0.0 else NO_CONTINUUM)
+    response = _respond(beams, hits, np.array([0.0, 1e300]), alphas, opt, continuum)
     return _assemble(beams, points, T_out, imax, hits, response, stats)

@@ -221,6 +221,23 @@ class PulseParams(NamedTuple):
     noise_std: float  # detector intensity noise of a new echo: std sqrt(noise_std² + (noise_rel · peak)²) (0..255)
     noise_rel: float
     range_noise: float  # range noise std of a new echo [m], clipped at ±2 σ
+    min_range: float  # a new echo measured nearer than this [m] is not reported (the sensor's minimum range)
+
+
+class Continuum(NamedTuple):
+    """The unresolved particles' backscatter as a beam receives it (`api.unresolved_continuum`): the strongest peak
+    of their smooth waveform for a beam ending at range ``L = i · step`` (entry i; longer beams take the last entry),
+    in raw power units, and that peak's position on the receiver axis [m]; and the running integrals of their
+    amplitude density ``a(s)`` on the cells ``[j step, (j+1) step)`` (``cum0[j] = ∫_0^{j step} a``, ``cumc``,
+    ``cums`` the same of ``a cos ωs``, ``a sin ωs``, ω = 2π / (c τ_H)), from which the waveform anywhere follows.
+    ``peak`` all 0: no continuum."""
+
+    step: float  # [m]
+    peak: F64  # (N,) raw peak power
+    peak_r: F64  # (N,) its position on the receiver axis [m] (the measured range is this minus c τ_H / 2)
+    cum0: F64  # (M+1,) running integrals on the s grid
+    cumc: F64  # (M+1,)
+    cums: F64  # (M+1,)
 
 
 class Medium(NamedTuple):

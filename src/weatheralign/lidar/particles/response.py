@@ -64,6 +64,64 @@ def _keep_or_lost(val, floor, i0):  # pragma: no cover
     return WeatherLabel.LOST if (floor >= 0.0 and val < floor and val < i0) else WeatherLabel.ATTENUATED
 
 
+@njit(nogil=True, cache=True, inline="always")
+def _continuum_at(length, continuum):  # pragma: no cover
+    """``(P, R)``: the raw peak power of the unresolved particles' waveform for a beam ending at ``length`` [m] and
+    its position on the receiver axis (`Continuum`, the entry at or below ``length``)."""
+    n = continuum.peak.shape[0]
+    i = int(length / continuum.step) if length > 0.0 else 0
+    i = min(max(i, 0), n - 1)
+    return continuum.peak[i], continuum.peak_r[i]
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _reading(val, r_out, key, noise_std, noise_rel, range_noise, saturation, length):  # pragma: no cover
+    """The detector's reading of a new echo of intensity ``val`` at range ``r_out``: noise from the beam's stream
+    ``key`` on both (range noise clipped at ±2 σ), clipped to ``[0, saturation]`` and ``[0, length]``."""
+    z_int, z_range = normal_pair(key)
+    val = min(max(val + math.sqrt(noise_std * noise_std + (noise_rel * val) ** 2) * z_int, 0.0), saturation)
+    r_out = min(max(r_out + range_noise * min(max(z_range, -2.0), 2.0), 0.0), length)
+    return val, r_out
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _pulse_sum_at(x, starts, amps, m, pulse_len):  # pragma: no cover
+    """The first ``m`` summed pulses at ``x`` on the receiver axis (raw power)."""
+    p = 0.0
+    for j in range(m):
+        d = x - starts[j]
+        if amps[j] > 0.0 and 0.0 <= d <= pulse_len:
+            p += amps[j] * math.sin(math.pi * d / pulse_len) ** 2
+    return p
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _running(cum, x, step):  # pragma: no cover
+    """``cum`` (M+1,) on nodes ``j · step``, linearly interpolated at ``x`` in ``[0, M step]``."""
+    u = x / step
+    i = min(int(u), cum.shape[0] - 2)
+    f = u - i
+    return cum[i] + f * (cum[i + 1] - cum[i])
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _continuum_wave(R, length, continuum, pulse_len):  # pragma: no cover
+    """The unresolved particles' waveform at ``R`` on the receiver axis for a beam ending at ``length`` [m]:
+    ``∫_{max(0, R - c τ_H)}^{min(R, length)} a(s) sin²(π (R - s) / (c τ_H)) ds`` from the running integrals of
+    `Continuum` (``sin² = (1 - cos ω(R - s)) / 2``)."""
+    top = (continuum.cum0.shape[0] - 1) * continuum.step
+    lo = min(max(R - pulse_len, 0.0), top)
+    hi = min(max(min(R, length), 0.0), top)
+    if hi <= lo:
+        return 0.0
+    step = continuum.step
+    s0 = _running(continuum.cum0, hi, step) - _running(continuum.cum0, lo, step)
+    sc = _running(continuum.cumc, hi, step) - _running(continuum.cumc, lo, step)
+    ss = _running(continuum.cums, hi, step) - _running(continuum.cums, lo, step)
+    omega = 2.0 * math.pi / pulse_len
+    return max(0.5 * s0 - 0.5 * (math.cos(omega * R) * sc + math.sin(omega * R) * ss), 0.0)
+
+
 @njit(nogil=True, cache=True)
 def _peak(starts, amps, m, length, bp, cs, sn):  # pragma: no cover
     """Maximum ``(R*, P*)`` of ``sum_k amps[k] sin²(π (R - starts[k]) / length)`` (each term on
@@ -233,11 +291,13 @@ def _uncovered_count(cx, cy, a, x_lo, step_x, y_lo, step_y, grid_n, over, n_over
 
 
 @njit(nogil=True, cache=True)
-def response_kernel(hits, hit_off, beams, pulse, medium, ratio, out):  # pragma: no cover
+def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):  # pragma: no cover
     """Per beam: occlusion ratios of its hits (written to ``ratio`` (H,)), the summed pulse, its peak and the outcome.
 
     ``hits`` (`HitArrays`, sorted by beam then range; beam b's are rows ``hit_off[b]:hit_off[b+1]``, ``hit_off``
-    (B+1,)), ``beams`` (`BeamTargets`), ``pulse`` (`PulseParams`), ``medium`` (`Medium`). ``out`` (`BeamOutcome`):
+    (B+1,)), ``beams`` (`BeamTargets`), ``pulse`` (`PulseParams`), ``medium`` (`Medium`), ``continuum``
+    (`Continuum`: the unresolved particles' echo, which competes with the pulse sum's peak by its own peak and, when
+    stronger, is read like a particle echo, without particle id). ``out`` (`BeamOutcome`):
     ``state`` a `WeatherLabel`: UNCHANGED keep the input bit for bit, ATTENUATED keep the position with
     ``out.intensity``, SCATTERED moved to ``out.range`` (dominant hit ``out.dom``), LOST, NO_ECHO nothing detected
     (beam without return). Intensities are on the 0..255 scale. Returns the number of hits whose ratio was sampled on
@@ -245,7 +305,8 @@ def response_kernel(hits, hit_off, beams, pulse, medium, ratio, out):  # pragma:
 
     A particle echo is a new measurement: the detector's noise (``pulse.noise_std``, ``noise_rel``, ``range_noise``;
     the beam's stream ``beams.noise_key``) is added to its peak and range before the floor decides whether it is
-    detected. A target kept at its range keeps the noise of its clear measurement (scaled with it).
+    detected; an echo measured nearer than ``pulse.min_range`` is not. A target kept at its range keeps the noise of
+    its clear measurement (scaled with it).
     """
     h_s, h_u1, h_u2, h_a, h_ratio = hits.s, hits.u1, hits.u2, hits.a, ratio
     has_ret, lengths, i0 = beams.has_ret, beams.lengths, beams.i0
@@ -253,6 +314,7 @@ def response_kernel(hits, hit_off, beams, pulse, medium, ratio, out):  # pragma:
     r_ref, falloff = pulse.r_ref, pulse.falloff
     keep_tol, floor, saturation, grid_n = pulse.keep_tol, pulse.floor, pulse.saturation, pulse.grid_n
     noise_std, noise_rel, range_noise, noise_key = pulse.noise_std, pulse.noise_rel, pulse.range_noise, beams.noise_key
+    min_range = pulse.min_range
     noisy = noise_std > 0.0 or noise_rel > 0.0 or range_noise > 0.0
     out_state, out_range, out_int, out_dom = out.state, out.range, out.intensity, out.dom
     n_beams = lengths.shape[0]
@@ -277,7 +339,11 @@ def response_kernel(hits, hit_off, beams, pulse, medium, ratio, out):  # pragma:
         out_range[b] = np.nan
         out_int[b] = 0.0
         tau_target = _optical_depth(length, medium) if ret else 0.0
-        if k_hits == 0:
+        c_peak, c_r = _continuum_at(length, continuum)
+        if c_peak > 0.0 and k_hits == 0 and ret and length > 0.0:  # the target alone beats the unresolved echo?
+            if c_peak <= i0[b] * math.exp(-2.0 * tau_target) / (length * length * _gain(length, r_ref, falloff)):
+                c_peak = 0.0
+        if k_hits == 0 and c_peak <= 0.0:  # no echo competes with the target's
             if not ret:
                 out_state[b] = WeatherLabel.NO_ECHO
                 continue
@@ -343,6 +409,37 @@ def response_kernel(hits, hit_off, beams, pulse, medium, ratio, out):  # pragma:
             amps[m] = i0[b] / (length * length * g0) * remaining * math.exp(-2.0 * tau_target)
             m += 1
         r_peak, p_peak = _peak(starts, amps, m, pulse_len, work_bp, work_c, work_s)
+        continuum_wins = False
+        if c_peak > 0.0:  # the received waveform is the pulse sum plus the unresolved particles' continuum
+            if p_peak > 0.0:
+                p_peak += _continuum_wave(r_peak, length, continuum, pulse_len)
+            c_peak += _pulse_sum_at(c_r, starts, amps, m, pulse_len)
+            continuum_wins = c_peak > p_peak
+        if continuum_wins:  # the continuum's crest is the strongest: read it
+            r_c = max(c_r - 0.5 * pulse_len, 1e-9)
+            val = min(c_peak * r_c * r_c * _gain(r_c, r_ref, falloff), saturation)
+            if noisy:
+                val, r_c = _reading(val, r_c, noise_key[b], noise_std, noise_rel, range_noise, saturation, length)
+            if (floor < 0.0 or val >= floor) and r_c >= min_range:
+                out_state[b] = WeatherLabel.SCATTERED
+                out_range[b] = r_c
+                out_int[b] = val
+                continue
+            if not ret:
+                out_state[b] = WeatherLabel.NO_ECHO
+                continue
+            if length <= 0.0:
+                out_state[b] = WeatherLabel.UNCHANGED
+                out_range[b] = length
+                out_int[b] = i0[b]
+                continue
+            # undetected: the target's own echo decides (as behind an undetectable particle echo)
+            g0 = _gain(length, r_ref, falloff)
+            val_t = min(_pulse_sum_at(length + 0.5 * pulse_len, starts, amps, m, pulse_len) * length * length * g0, saturation)
+            out_range[b] = length
+            out_int[b] = val_t
+            out_state[b] = _keep_or_lost(val_t, floor, i0[b])
+            continue
         if p_peak <= 0.0:
             if ret and remaining > 0.0:  # a zero-intensity target, no visible particle: stays at zero
                 out_state[b] = WeatherLabel.ATTENUATED
@@ -373,23 +470,15 @@ def response_kernel(hits, hit_off, beams, pulse, medium, ratio, out):  # pragma:
         g1 = _gain(max(r_out, 1e-9), r_ref, falloff)
         val = min(p_peak * r_out * r_out * g1, saturation)
         if noisy and dom >= 0:  # the detector's reading of the particle echo
-            z_int, z_range = normal_pair(noise_key[b])
-            val = min(max(val + math.sqrt(noise_std * noise_std + (noise_rel * val) ** 2) * z_int, 0.0), saturation)
-            r_out = min(max(r_out + range_noise * min(max(z_range, -2.0), 2.0), 0.0), length)
-        if dom < 0 or (floor >= 0.0 and val < floor):
+            val, r_out = _reading(val, r_out, noise_key[b], noise_std, noise_rel, range_noise, saturation, length)
+        if dom < 0 or (floor >= 0.0 and val < floor) or r_out < min_range:
             if not ret:
                 out_state[b] = WeatherLabel.NO_ECHO
                 continue
             # the strongest echo is a particle's but undetectable: the target's own echo decides (summed waveform
             # at the target's pulse peak), lost only if the weather pushed it below the floor
-            x_t = length + 0.5 * pulse_len
-            p_t = 0.0
-            for j in range(m):
-                x = x_t - starts[j]
-                if amps[j] > 0.0 and 0.0 <= x <= pulse_len:
-                    p_t += amps[j] * math.sin(math.pi * x / pulse_len) ** 2
             g0 = _gain(length, r_ref, falloff)
-            val_t = min(p_t * length * length * g0, saturation)
+            val_t = min(_pulse_sum_at(length + 0.5 * pulse_len, starts, amps, m, pulse_len) * length * length * g0, saturation)
             out_range[b] = length
             out_int[b] = val_t
             out_state[b] = _keep_or_lost(val_t, floor, i0[b])
