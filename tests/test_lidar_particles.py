@@ -893,3 +893,53 @@ def test_weather_echoes_nearer_than_the_minimum_range_are_not_reported():
     far = out[1.0]
     assert far.beam_label.tolist() == [ParticleLabel.ATTENUATED, ParticleLabel.NO_ECHO]
     assert far.beam_range[0] == 20.0
+
+
+def _ring_beams(ranges, intensities, rings=None) -> Beams:
+    """Beams of consecutive firings along +x..+y (0.2° apart) from the origin; nan range = no return."""
+    r = np.asarray(ranges, dtype=np.float64)
+    n = len(r)
+    az = np.radians(0.2 * np.arange(n))
+    d = np.stack([np.cos(az), np.sin(az), np.zeros(n)], 1)
+    has = np.isfinite(r)
+    pidx = np.full(n, -1)
+    pidx[has] = np.arange(int(has.sum()))
+    ring = np.zeros(n, np.float32) if rings is None else np.asarray(rings, np.float32)
+    return Beams(np.zeros((n, 3)), d, 1e-4 * np.arange(n), np.where(has, r, 100.0), has,
+                 np.where(has, np.asarray(intensities, np.float64), 0.0), ring, pidx, 3e-3, 100.0)
+
+
+def test_faint_surfaces_fill_short_runs_between_returns_of_a_surface_at_the_floor():
+    from weatheralign.lidar.beams import MAX_FAINT_RUN, with_faint_surfaces
+
+    nan = np.nan
+    #            surface at the floor, 3 missing       | bright | far apart | run too long             | other ring
+    ranges = [30.0, 30.2, nan, nan, nan, 31.0, 20.0, nan, 20.0, 10.0, nan, 14.0, 15.0] + [nan] * (MAX_FAINT_RUN + 1) \
+        + [15.0, 15.0, nan]
+    inten = [1.2, 1.5, 0, 0, 0, 2.0, 50.0, 0, 50.0, 1.0, 0, 1.0, 1.0] + [0] * (MAX_FAINT_RUN + 1) + [1.0, 1.0, 0]
+    rings = [0] * (len(ranges) - 1) + [1]
+    beams = _ring_beams(ranges, inten, rings)
+    out = with_faint_surfaces(beams, noise_floor=1.0)
+    np.testing.assert_allclose(out.lengths[2:5], [30.4, 30.6, 30.8])
+    np.testing.assert_allclose(out.intensity0[2:5], 0.5)
+    untouched = np.r_[7, 10, np.arange(13, 13 + MAX_FAINT_RUN + 1), len(ranges) - 1]
+    np.testing.assert_array_equal(out.lengths[untouched], 100.0)
+    np.testing.assert_array_equal(out.intensity0[untouched], 0.0)
+    np.testing.assert_array_equal(out.has_return, beams.has_return)
+    assert with_faint_surfaces(beams, noise_floor=None) is beams
+
+
+def test_a_faint_surface_hides_a_weaker_particle_echo_in_front_of_it():
+    """A strongest-return receiver whose strongest echo is an undetectable surface reports nothing: a faint drop
+    echo in front of it stays unreported, while on an open beam the same drop is the echo (floor 0, noise-free)."""
+    lidar = make_lidar(noise_floor=0.0)
+    hidden = _beams([0, 0, 0], [[1, 0, 0]], 30.0, 0.5, has_return=[False], max_range=50.0)
+    hidden = Beams(hidden.origins, hidden.directions, hidden.times, np.array([30.0]), hidden.has_return,
+                   np.array([0.5]), hidden.ring, hidden.point_index, hidden.divergence, hidden.max_range)
+    w = 12.0 * math.tan(1.5e-3)
+    parts = _particles([[12.0, 0.0, 0.0]], [2 * w * math.sqrt(0.02)], ids=[3])  # 2 % of the beam at 12 m
+    sky = simulate_particle_list(replace(hidden, lengths=np.array([50.0]), intensity0=np.array([0.0])), parts,
+                                 lidar=lidar, reflectivity=RAIN_REFLECTIVITY, intensity_max=255.0)
+    assert sky.beam_label.tolist() == [ParticleLabel.SCATTERED] and sky.beam_particle.tolist() == [3]
+    res = simulate_particle_list(hidden, parts, lidar=lidar, reflectivity=RAIN_REFLECTIVITY, intensity_max=255.0)
+    assert res.beam_label.tolist() == [ParticleLabel.NO_ECHO] and len(res.points) == 0

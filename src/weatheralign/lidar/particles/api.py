@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 
 from weatheralign.data.frame import LidarScan
 from weatheralign.geometry import invert
-from weatheralign.lidar.beams import Beams, beams_from_scan, detector_noise_keys
+from weatheralign.lidar.beams import Beams, beams_from_scan, detector_noise_keys, with_faint_surfaces
 from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel
 from weatheralign.lidar.particles.beam_index import (empty_hits, field_hits, index_beams, list_hits, range_shells,
                                                      rank_cutoffs, reachable_cells, shell_edges)
@@ -405,10 +405,13 @@ def _identity(beams: Beams, points: NDArray[np.float32], intensity_max: float, s
 
 
 def _inputs(scan: LidarScan | Beams, *, lidar: LidarModel, T_global_lidar: F64 | None, intensity_max: float | None,
-            columns: object, reconstruct: bool) -> tuple[Beams, NDArray, F64, float]:
-    """(beams, input points (N, 5) float32, output frame T_global_out, intensity scale)."""
+            columns: object, reconstruct: bool, faint_surfaces: bool = False) -> tuple[Beams, NDArray, F64, float]:
+    """(beams, input points (N, 5) float32, output frame T_global_out, intensity scale); a scan's beams with its
+    faint surfaces (`with_faint_surfaces`) if ``faint_surfaces``."""
     if isinstance(scan, LidarScan):
         beams = beams_from_scan(scan, lidar=lidar, columns=columns, reconstruct=reconstruct)
+        if faint_surfaces:
+            beams = with_faint_surfaces(beams, lidar.noise_floor)
         T = scan.T_global_lidar if T_global_lidar is None else np.asarray(T_global_lidar, dtype=np.float64)
         return beams, scan.points, T, float(scan.intensity_max)
     if not isinstance(scan, Beams):
@@ -470,6 +473,7 @@ def simulate_particles(
     reconstruct: bool = True,
     unresolved_extinction_factor: float = 0.25,
     unresolved_echo: bool = True,
+    faint_surfaces: bool = True,
     shell_ratio: float = SHELL_RATIO,
     first_shell: float = FIRST_SHELL,
     max_particles_per_shell: int = DEFAULT_MAX_PARTICLES,
@@ -509,6 +513,10 @@ def simulate_particles(
             rarely detected, it matters because a strongest-return receiver never reports a weaker echo behind it:
             without it rain's faint far drops on open beams come back 2-3x too often (against the reference's exact
             waveform). False: particle and target pulses alone.
+        faint_surfaces: a scan's beams without return that lie between two returns of a surface at the detector
+            floor are taken to hit that surface under the floor (`weatheralign.lidar.beams.with_faint_surfaces`):
+            its undetectable echo still outshines weaker weather echoes. False: every beam without return is open
+            to ``max_range``. (`Beams` inputs are used as given.)
         shell_ratio, first_shell: geometric range shells (``[0, first, first·ratio, ...]`` [m]).
         max_particles_per_shell: refuse a shell query expecting more particles (raise ``ratio_threshold``).
 
@@ -520,7 +528,8 @@ def simulate_particles(
         attenuation=attenuation, keep_tolerance=keep_tolerance, T_global_lidar=T_global_lidar,
         intensity_max=intensity_max, columns=columns, reconstruct=reconstruct,
         unresolved_extinction_factor=unresolved_extinction_factor, unresolved_echo=unresolved_echo,
-        shell_ratio=shell_ratio, first_shell=first_shell, max_particles_per_shell=max_particles_per_shell)[0]
+        faint_surfaces=faint_surfaces, shell_ratio=shell_ratio, first_shell=first_shell,
+        max_particles_per_shell=max_particles_per_shell)[0]
 
 
 def _joined_beams(parts: list[Beams]) -> tuple[Beams, I64]:
@@ -571,6 +580,7 @@ def simulate_particle_scans(
     reconstruct: bool = True,
     unresolved_extinction_factor: float = 0.25,
     unresolved_echo: bool = True,
+    faint_surfaces: bool = True,
     shell_ratio: float = SHELL_RATIO,
     first_shell: float = FIRST_SHELL,
     max_particles_per_shell: int = DEFAULT_MAX_PARTICLES,
@@ -587,7 +597,7 @@ def simulate_particle_scans(
     if not scans:
         raise ValueError("simulate_particle_scans: no scans given")
     inputs = [_inputs(s, lidar=lidar, T_global_lidar=T_global_lidar, intensity_max=intensity_max, columns=columns,
-                      reconstruct=reconstruct) for s in scans]
+                      reconstruct=reconstruct, faint_surfaces=faint_surfaces) for s in scans]
     beams, offsets = _joined_beams([i[0] for i in inputs])
     opt = _Options.of(lidar, reflectivity, keep_tolerance)
     if ratio_threshold is None:

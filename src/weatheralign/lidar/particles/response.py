@@ -338,9 +338,10 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
         out_dom[b] = -1
         out_range[b] = np.nan
         out_int[b] = 0.0
-        tau_target = _optical_depth(length, medium) if ret else 0.0
+        hidden = (not ret) and i0[b] > 0.0 and length > 0.0  # a surface under the floor in clear weather
+        tau_target = _optical_depth(length, medium) if (ret or hidden) else 0.0
         c_peak, c_r = _continuum_at(length, continuum)
-        if c_peak > 0.0 and k_hits == 0 and ret and length > 0.0:  # the target alone beats the unresolved echo?
+        if c_peak > 0.0 and k_hits == 0 and (ret or hidden) and length > 0.0:  # the target beats the continuum?
             if c_peak <= i0[b] * math.exp(-2.0 * tau_target) / (length * length * _gain(length, r_ref, falloff)):
                 c_peak = 0.0
         if k_hits == 0 and c_peak <= 0.0:  # no echo competes with the target's
@@ -403,7 +404,7 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
             amps[j] = part_gain * h_ratio[h] * xi / (s * s) * math.exp(
                 -2.0 * _optical_depth(s, medium))
         m = k_hits
-        if ret and length > 0.0:
+        if (ret or hidden) and length > 0.0:
             g0 = _gain(length, r_ref, falloff)
             starts[m] = length
             amps[m] = i0[b] / (length * length * g0) * remaining * math.exp(-2.0 * tau_target)
@@ -449,6 +450,9 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
                 out_state[b] = WeatherLabel.LOST if ret else WeatherLabel.NO_ECHO
             continue
         r_meas = r_peak - 0.5 * pulse_len
+        if hidden and abs(r_meas - length) <= keep_tol:  # the undetectable surface is the strongest echo
+            out_state[b] = WeatherLabel.NO_ECHO
+            continue
         if ret and abs(r_meas - length) <= keep_tol:
             g0 = _gain(length, r_ref, falloff)
             val = min(p_peak * length * length * g0, saturation)
