@@ -96,6 +96,14 @@ def _pulse_sum_at(x, starts, amps, m, pulse_len):  # pragma: no cover
 
 
 @njit(nogil=True, cache=True, inline="always")
+def _target_crest(starts, amps, m, length, pulse_len, r_ref, falloff, saturation):  # pragma: no cover
+    """The intensity (0..255) of the target's own echo, read at its crest ``length + c τ_H / 2`` of the first ``m``
+    summed pulses: the return a receiver reports when the strongest crest is undetectable."""
+    g0 = _gain(length, r_ref, falloff)
+    return min(_pulse_sum_at(length + 0.5 * pulse_len, starts, amps, m, pulse_len) * length * length * g0, saturation)
+
+
+@njit(nogil=True, cache=True, inline="always")
 def _running(cum, x, step):  # pragma: no cover
     """``cum`` (M+1,) on nodes ``j · step``, linearly interpolated at ``x`` in ``[0, M step]``."""
     u = x / step
@@ -435,8 +443,7 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
                 out_int[b] = i0[b]
                 continue
             # undetected: the target's own echo decides (as behind an undetectable particle echo)
-            g0 = _gain(length, r_ref, falloff)
-            val_t = min(_pulse_sum_at(length + 0.5 * pulse_len, starts, amps, m, pulse_len) * length * length * g0, saturation)
+            val_t = _target_crest(starts, amps, m, length, pulse_len, r_ref, falloff, saturation)
             out_range[b] = length
             out_int[b] = val_t
             out_state[b] = _keep_or_lost(val_t, floor, i0[b])
@@ -481,8 +488,7 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
                 continue
             # the strongest echo is a particle's but undetectable: the target's own echo decides (summed waveform
             # at the target's pulse peak), lost only if the weather pushed it below the floor
-            g0 = _gain(length, r_ref, falloff)
-            val_t = min(_pulse_sum_at(length + 0.5 * pulse_len, starts, amps, m, pulse_len) * length * length * g0, saturation)
+            val_t = _target_crest(starts, amps, m, length, pulse_len, r_ref, falloff, saturation)
             out_range[b] = length
             out_int[b] = val_t
             out_state[b] = _keep_or_lost(val_t, floor, i0[b])
