@@ -7,8 +7,9 @@ On real nuScenes data the cameras have no exact depth: `weatheralign.camera.dept
 from the LiDAR (the keyframe and earlier sweeps, `weatheralign.simulate.plan.DEPTH_SWEEPS` in all). Every camera of
 ``--samples`` keyframes spread over the world's scenes is treated as if it had no exact map (``range_path=None``) and
 completed from the world's LiDAR alone, once from the keyframe sweep and once with the sweeps (``load_lidar(...,
-DEPTH_SWEEPS)``, as `weatheralign.simulate.plan.sample_range_maps` loads them), then compared with its
-exact range map:
+DEPTH_SWEEPS)``, as `weatheralign.simulate.plan.sample_range_maps` loads them), nearer where the ego's own body
+(the world manifest's rig) meets the ray, as that function does on real data, then compared with its exact range
+map:
 
 - depth: AbsRel, RMSE [m], delta < 1.25 on pixels finite in both; the same within ``--edge-px`` of exact depth edges
   (neighbouring pixels whose ray lengths differ by more than a factor 1.25, sky included);
@@ -255,6 +256,14 @@ def _fog(image: NDArray[np.uint8], rng: F32, alpha: float, a_lin: NDArray, refin
     return composite_image(image, transmission(rng, alpha), a_lin, refine)
 
 
+def _ego_body(world: Path) -> Any:
+    """The ego body of the world's sensor rig (its manifest beside the dataroot), None without a manifest."""
+    from weatheralign.manifest import manifest_path, read_manifest
+
+    path = manifest_path(world.parent, "world")
+    return read_manifest(path).sensors.ego_body if path.is_file() else None
+
+
 def run_synthetic(world: Path, count: int, alpha: float, edge_px: int, codes: int) -> dict[str, Any]:
     """All the synthetic-world numbers (see the module docstring); keys ``keyframe`` and ``sweeps``."""
     from weatheralign.camera.depth import camera_range_map
@@ -264,6 +273,7 @@ def run_synthetic(world: Path, count: int, alpha: float, edge_px: int, codes: in
 
     nusc = open_nuscenes(world, "v1.0-mini")
     tokens = pick_samples(nusc, count)
+    ego = _ego_body(world)
     modes = {"keyframe": 1, "sweeps": DEPTH_SWEEPS}  # load_lidar's count includes the keyframe, as the simulator's
     depth = {m: DepthSums() for m in modes}
     depth_edge = {m: DepthSums() for m in modes}
@@ -292,6 +302,8 @@ def run_synthetic(world: Path, count: int, alpha: float, edge_px: int, codes: in
                     warm = True
                 c0, w0 = time.process_time(), time.perf_counter()
                 est[ch] = camera_range_map(blind, scan, images[ch])
+                if ego is not None:  # as `sample_range_maps` on real data: the ego's own body from its geometry
+                    est[ch] = np.minimum(est[ch], ego.camera_ranges(view.K, view.T_ego_cam, view.width, view.height))
                 cpu[mode].append(time.process_time() - c0)
                 wall[mode].append(time.perf_counter() - w0)
                 g = exact[ch]

@@ -20,7 +20,9 @@ from weatheralign.camera.depth import (
     camera_points,
     complete_depth,
     dense_depth,
+    drop_see_through,
     estimate_top_elevation_deg,
+    morphological_fill,
     pixel_ray_norms,
 )
 from weatheralign.camera.fog import (
@@ -402,6 +404,10 @@ def _check_real(frame, channel: str, expected_top: float) -> tuple[DenseDepth, n
     ray = np.linalg.norm(pts.xyz[ok], axis=1)
     rel = np.abs(rng[v[ok], u[ok]] - ray) / ray
     assert np.median(rel) < 0.02
+    # completion never invents a surface farther than every point (an emptied pixel once came back as the farthest
+    # depth + 1 m, and the hole fill spread it over car windows as black patches)
+    cam_z = dd.range / pixel_ray_norms(cam.K, cam.width, cam.height)
+    assert float(cam_z[finite].max()) <= float(z[ok].max()) * 1.005  # rasterised triangles: slight overshoot
     return dd, image
 
 
@@ -420,6 +426,74 @@ def test_dense_depth_on_kitti(kitti_frame):
     dd, image = _check_real(kitti_frame, "image_2", expected_top=2.0)
     _save(fog_image(image, dd.range, 0.04, estimate_airlight([image], [dd.range], neutral=True)),
           "kitti_000008_alpha0.04.png")
+
+
+def test_morphological_fill_stays_within_the_input_depths():
+    """Isolated points (their blobs' rims have mostly empty 5 x 5 windows, which the final median empties) next to
+    one far point: every filled pixel keeps a depth between the nearest and the farthest point."""
+    z = np.zeros((120, 200), np.float32)
+    z[60:120:6, 0:200:3] = 8.0  # ground-like rows
+    for v, u in ((10, 20), (14, 120), (30, 170)):
+        z[v, u] = 5.0  # isolated near points
+    z[40, 60] = 40.0  # one far point
+    out = morphological_fill(z, gap_v=6.0, gap_h=3.0)
+    filled = out > 0
+    assert filled[60:].all()
+    assert float(out[filled].min()) >= 5.0 - 1e-3 and float(out[filled].max()) <= 40.0 + 1e-3
+    near_blobs = np.zeros_like(filled)
+    for v, u in ((10, 20), (14, 120), (30, 170)):
+        near_blobs[v - 3:v + 4, u - 3:u + 4] = True
+    assert np.all(out[near_blobs & filled] < 8.5)  # never the far point's depth
+
+
+def _window_scene(gap_between: bool = False) -> tuple:
+    """A 320 x 180 camera (f = 160 px) and LiDAR rings every 6 rows, points every 3 px, on a wall at z = 15 m with
+    a car body at z = 4 m (rows 70-169, columns 60-259) in front. With a window (rows 90-129, columns 100-219) the
+    LiDAR passed the glass and hit the wall; ``gap_between``: instead of the window, two cars (columns 60-139 and
+    180-259) with the wall visible between them, above the cars too. Returns (points, K, window or gap mask)."""
+    W, H, f = 320, 180, 160.0
+    K = np.array([[f, 0.0, W / 2.0], [0.0, f, H / 2.0], [0.0, 0.0, 1.0]])
+    vv, uu = np.mgrid[2:H:6, 0:W:3].astype(np.float64)
+    car = (vv >= 70) & (vv < 170) & (uu >= 60) & (uu < 260)
+    region = np.zeros((H, W), bool)
+    if gap_between:
+        through = car & (uu >= 140) & (uu < 180)
+        region[70:170, 140:180] = True
+    else:
+        through = (vv >= 90) & (vv < 130) & (uu >= 100) & (uu < 220)
+        region[90:130, 100:220] = True
+    z = np.where(car & ~through, 4.0, 15.0)
+    xyz = np.column_stack([((uu - K[0, 2]) / f * z).ravel(), ((vv - K[1, 2]) / f * z).ravel(), z.ravel()])
+    R_lidar_cam = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+    pts = CameraPoints(xyz=xyz, dt=np.zeros(len(xyz)), R_lidar_cam=R_lidar_cam, up_cam=np.array([0.0, -1.0, 0.0]))
+    return pts, K, region
+
+
+def test_a_car_window_takes_the_cars_depth_not_the_wall_the_lidar_saw_through_it():
+    pts, K, window = _window_scene()
+    z = complete_depth(pts, K, 320, 180, None, top_elevation_deg=30.0).range / pixel_ray_norms(K, 320, 180)
+    assert np.all(np.abs(z[window] - 4.0) < 0.5)  # was the wall's 15 m: a white fog patch on the car
+    assert np.all(np.abs(z[10:60, :] - 15.0) < 0.5)  # the wall above the car is untouched
+    # a real gap between two cars (the wall continues above them) keeps the wall's depth
+    pts, K, gap = _window_scene(gap_between=True)
+    z = complete_depth(pts, K, 320, 180, None, top_elevation_deg=30.0).range / pixel_ray_norms(K, 320, 180)
+    inner = np.zeros_like(gap)
+    inner[75:165, 148:172] = True
+    assert np.all(np.abs(z[inner] - 15.0) < 0.5)
+
+
+def test_drop_see_through_needs_one_surface_on_both_sides():
+    """A far point framed by near points above and below at different depths (branches above, road below) is not
+    seen through glass and stays; framed by one surface on all four sides it goes."""
+    z = np.zeros((100, 100), np.float32)
+    z[50, 50] = 30.0
+    z[50, 40] = z[50, 60] = 6.0  # left and right
+    z[40, 50] = 6.0  # above
+    z[60, 50] = 12.0  # below: another surface
+    assert drop_see_through(z, 6.0, 3.0, 8.0, 1.5, 1.5)[50, 50] == 30.0
+    z[60, 50] = 6.5
+    out = drop_see_through(z, 6.0, 3.0, 8.0, 1.5, 1.5)
+    assert out[50, 50] == 0.0 and np.count_nonzero(out) == 4 and np.count_nonzero(z) == 5  # input unchanged
 
 
 def _crown_scene(with_crown: bool = True) -> tuple:

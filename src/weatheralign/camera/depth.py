@@ -7,11 +7,14 @@ the synthetic world and as Koschmieder's law needs), ``inf`` for sky. Stages (`d
    the scan timestamp) goes to the global frame with the scan's pose and into the camera with the camera's pose at
    its *own* timestamp (``CameraView.T_global_cam``); static points land exactly. Each point keeps its firing time
    relative to the exposure (``LidarScan.point_times``), so points of older sweeps are known as older.
-2. **Z-buffer, ghost and parallax filters** (`sparse_depth`, `drop_occluded`): the nearest point per pixel (pixel
-   centres at integer ``(u, v)``). Points fired within ``stale_s`` of the exposure are fresh; an older point whose
-   depth disagrees with the fresh points around it is a moving object's ghost and is dropped (older sweeps only
-   fill where the fresh sweep has no points). Points that have nearer points both above and below (or left and
-   right) lie behind a foreground surface that the LiDAR, mounted elsewhere, saw past: the camera cannot see them.
+2. **Z-buffer, ghost, parallax and glass filters** (`sparse_depth`, `drop_occluded`, `drop_see_through`): the
+   nearest point per pixel (pixel centres at integer ``(u, v)``). Points fired within ``stale_s`` of the exposure
+   are fresh; an older point whose depth disagrees with the fresh points around it is a moving object's ghost and
+   is dropped (older sweeps only fill where the fresh sweep has no points). Points that have nearer points both
+   above and below (or left and right) lie behind a foreground surface that the LiDAR, mounted elsewhere, saw past:
+   the camera cannot see them. Points framed on all four sides, within many ring gaps, by one nearer surface were
+   seen through it (a car's windows pass the pulse; the camera sees the window): dropped, so the window is filled
+   across from the car body around it.
 3. **Planar interpolation** (`triangulate`): a Delaunay triangulation of the projected points in the image;
    inverse depth is linear in the image over a planar patch, so each triangle whose corners lie on one surface
    (similar depths, or a near-horizontal patch such as the road) is filled exactly for planes. Triangles across
@@ -52,8 +55,8 @@ CPU cores (morphological fill 0.10 s, triangles 0.05 s, refinement ~0.05-0.1 s).
 the dense-fog halo, seams between neighbouring cameras; `reports/benchmarks/depth.json`).
 
 Known limits: buildings beyond the LiDAR's range (100 m) get the farthest depth around, not theirs; a pale, smooth
-facade entirely above the top ring, meeting the sky without a visible edge, can be taken for sky; LiDAR points seen
-through car windows give the window the depth behind it.
+facade entirely above the top ring, meeting the sky without a visible edge, can be taken for sky; a window whose
+frame the LiDAR misses on one side (a side window at the image border) keeps the depth behind it.
 """
 
 from __future__ import annotations
@@ -65,7 +68,7 @@ import cv2
 import numpy as np
 from numba import njit
 from numpy.typing import NDArray
-from scipy.ndimage import median_filter
+from scipy.ndimage import median_filter, minimum_filter1d
 from scipy.spatial import Delaunay, QhullError
 
 from weatheralign.data.frame import CameraView, LidarScan
@@ -92,6 +95,11 @@ class DepthParams:
         ground_height_range_m: ... and its corners differ in height by at most this [m].
         max_edge_gaps: longest triangle edge, in measured vertical point gaps.
         occlusion_ratio: a point is hidden if nearer points (depth below ``z / ratio``) flank it on both sides.
+        see_through_reach_gaps: a point is seen through a surface (a car window) if within this many vertical point
+            gaps it has nearer points above, below, left and right (`drop_see_through`) ...
+        see_through_ratio: ... each nearer than ``z / ratio`` ...
+        see_through_rim_spread: ... with the points above and below within this factor of each other, and those
+            left and right too (one surface around it: a road below a facade, or branches above it, do not count).
         support_gaps: a pixel within this many point gaps of a LiDAR point has LiDAR support (never sky); with an
             image, only along a path inside the point's own image segment (`lidar_support`).
         sky_margin_deg: a ray is above the LiDAR's field of view if its elevation exceeds the top elevation by this.
@@ -118,6 +126,9 @@ class DepthParams:
     ground_height_range_m: float = 0.5
     max_edge_gaps: float = 2.8
     occlusion_ratio: float = 1.1
+    see_through_reach_gaps: float = 25.0
+    see_through_ratio: float = 1.5
+    see_through_rim_spread: float = 1.5
     support_gaps: float = 1.2
     sky_margin_deg: float = 0.0
     stale_s: float = 0.03
@@ -357,6 +368,37 @@ def drop_occluded(z: F32, gap_v: float, gap_h: float, ratio: float) -> F32:
     return out
 
 
+def _one_sided_minima(zz: F32, reach: int, across: int, axis: int) -> tuple[F32, F32]:
+    """Minima of ``zz`` (H, W) over windows ``across`` pixels wide (centred) and ``reach`` pixels long along
+    ``axis`` (0: rows, 1: columns), ending at each pixel (up / left) and starting there (down / right); outside
+    the image counts as inf. Running minima (`scipy.ndimage.minimum_filter1d`): the cost does not grow with reach."""
+    band = minimum_filter1d(zz, across, axis=1 - axis, mode="constant", cval=np.inf)
+    before = minimum_filter1d(band, reach, axis=axis, origin=(reach - 1) // 2, mode="constant", cval=np.inf)
+    after = minimum_filter1d(band, reach, axis=axis, origin=-(reach // 2), mode="constant", cval=np.inf)
+    return before, after
+
+
+def drop_see_through(z: F32, gap_v: float, gap_h: float, reach_gaps: float, ratio: float, spread: float) -> F32:
+    """Remove points that the LiDAR saw through a surface the camera sees (glass: a car's windows pass the pulse
+    to whatever lies behind, while the camera sees the window): points with a nearer point (depth below ``z /
+    ratio``) above, below, left and right within ``reach_gaps`` vertical point gaps, where the nearest depths above
+    and below lie within a factor ``spread`` of each other, and those left and right too (one surface frames the
+    point). `drop_occluded` only looks one or two gaps away; a window spans many. ``z`` (H, W) float32, 0 = empty;
+    returns a filtered copy. The holes left are filled across from the frame (`complete_depth`)."""
+    zz = np.where(z > 0, z, np.inf).astype(np.float32)
+    reach = int(round(reach_gaps * gap_v)) + 1
+    up, down = _one_sided_minima(zz, reach, int(round(gap_h)) | 1, axis=0)
+    left, right = _one_sided_minima(zz, reach, int(round(0.5 * gap_v)) | 1, axis=1)
+    frame_far = np.maximum(np.maximum(up, down), np.maximum(left, right))
+    with np.errstate(invalid="ignore"):  # inf / inf where a side has no point: not framed
+        one_surface = (np.maximum(up, down) <= spread * np.minimum(up, down)) & (
+            np.maximum(left, right) <= spread * np.minimum(left, right))
+    hidden = (z > 0) & (frame_far < zz / np.float32(ratio)) & one_surface
+    out = z.copy()
+    out[hidden] = 0.0
+    return out
+
+
 # ------------------------------------------------------------------------------------------------ triangles
 
 
@@ -440,7 +482,9 @@ def morphological_fill(z: F32, gap_v: float, gap_h: float) -> F32:
     valid = z > 0
     if not valid.any():
         return np.zeros_like(z)
-    z_max = float(z[valid].max()) + 1.0
+    # the farthest point's inverted value (5 m) stays many bilateral colour scales (0.5) above the empty pixels' 0,
+    # which would otherwise pull the far rim of a blob towards the empty value (farther than any point)
+    z_max = float(z[valid].max()) + 5.0
     inv = np.where(valid, np.float32(z_max) - z, 0.0).astype(np.float32)
     kv, kh = 1.2 * gap_v, 1.2 * gap_h
     out = inv.copy()
@@ -462,7 +506,8 @@ def morphological_fill(z: F32, gap_v: float, gap_h: float) -> F32:
         out[empty] = dil[empty]
     filled = out > 0.1
     med = cv2.medianBlur(out, 5)
-    out[filled] = med[filled]
+    smooth = filled & (med > 0.1)  # a pixel whose window is mostly empty keeps its value (the median would empty
+    out[smooth] = med[smooth]      # it, and an empty pixel marked filled came back as the farthest depth, z_max)
     bil = cv2.bilateralFilter(out, 5, 0.5, 2.0)
     out[filled] = bil[filled]
     return np.where(filled, np.float32(z_max) - out, 0.0).astype(np.float32)
@@ -874,6 +919,8 @@ def complete_depth(points: CameraPoints, K: F64, width: int, height: int, image:
     occupied = sp.z > 0
     gap_v, gap_h = point_gaps(occupied)
     z_sparse = drop_occluded(sp.z, gap_v, gap_h, params.occlusion_ratio)
+    z_sparse = drop_see_through(z_sparse, gap_v, gap_h, params.see_through_reach_gaps, params.see_through_ratio,
+                                params.see_through_rim_spread)
     kept = z_sparse[sp.pix[:, 0], sp.pix[:, 1]] > 0
     num = int(kept.sum())
     if num < 3:
