@@ -86,6 +86,17 @@ def fog_metrics(media: ConditionMedia, aligned: bool) -> dict:
             "camera_fog_alpha": cam}
 
 
+def particle_metrics(media: ConditionMedia, aligned: bool) -> dict:
+    """With particles: the LiDAR's rate [mm/h] and the cameras' (mean over scenes when unaligned); nothing
+    otherwise."""
+    if not media.fields:
+        return {}
+    rate = float(np.mean([spec.rate_mm_h for spec in media.fields.values()]))
+    cam = rate if aligned or not media.camera_rate_unaligned else float(np.mean(list(
+        media.camera_rate_unaligned.values())))
+    return {"rate_mm_h": rate, "camera_rate_mm_h": cam}
+
+
 @flow(name="simulate", log_prints=True)
 def simulate_flow(params: Params) -> dict:
     """Write the weather copy of one condition; returns the metrics written to reports/simulate/<name>/."""
@@ -118,7 +129,8 @@ def simulate_flow(params: Params) -> dict:
         records = [r for r, _ in outcomes]
         done_now = sum(1 for _, now in outcomes if now)
         metrics = {"dataroot": display_path(out_root), "source": display_path(src_root), "condition": cfg.condition,
-                   "aligned": cfg.aligned, **fog_metrics(media, cfg.aligned), **summarise(records),
+                   "aligned": cfg.aligned, **fog_metrics(media, cfg.aligned), **particle_metrics(media, cfg.aligned),
+                   **summarise(records),
                    "samples_simulated_this_run": done_now, "files_linked_this_run": completed["linked"],
                    "files_copied_this_run": completed["copied"],
                    "wall_seconds_per_sample_this_run": round(elapsed / done_now, 3) if done_now else None}

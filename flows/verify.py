@@ -19,7 +19,9 @@ snow, rain):
    unaligned features): MMD^2 (unbiased) of the
    reference's weather frames against the aligned and against the unaligned simulation with permutation p-values and
    frame-bootstrap intervals, the paired test of their difference, and the **sensitivity control**: the reference
-   weather frames against themselves with every LiDAR paired with another frame's camera.
+   weather frames against themselves with every LiDAR paired with another frame's camera. Unaligned snow and rain
+   misalign severity and positions (`ParticlePart.camera_rate`); the same tests also run against the unaligned
+   camera at the LiDAR's rate (``mmd_*_positions``: positions alone misaligned).
 
 Writes ``reports/verify/metrics.json`` (``conditions: {<condition>: {...}}`` plus ``classifier_accuracy``,
 ``control_mmd``, ``control_p``), ``reports/verify/table.md`` (the paper's Table 1 regenerated beside the paper's
@@ -73,7 +75,7 @@ def severity_of(params: Params) -> tuple[Severity, dict[str, str]]:
     ``simulate.precipitation_rates`` — and where each rate came from."""
     rates = configured_precipitation_rates(params.simulate, params.particles, params.paths.data)
     return Severity(configured_fog_levels(params.simulate, params.paths.data), rates.rate_mm_h["snow"],
-                    rates.rate_mm_h["rain"], params.particles), rates.source
+                    rates.rate_mm_h["rain"], params.particles, params.simulate.unaligned_rate_factor), rates.source
 
 
 def verified_conditions(ds: ReferenceDataset) -> dict[str, str]:
@@ -104,8 +106,10 @@ def _figure(fig, path: Path, tracker: StageTracker) -> None:
 
 
 def condition_metrics(name: str, ref_feat: np.ndarray, sims: list[SimulatedPair], al_feat: np.ndarray,
-                      un_feat: np.ndarray, control_feat: np.ndarray, params: Params) -> tuple[dict, dict]:
-    """The MMD tests of one condition: (metrics, tests for the figures)."""
+                      un_feat: np.ndarray, control_feat: np.ndarray, params: Params,
+                      pos_feat: np.ndarray | None = None) -> tuple[dict, dict]:
+    """The MMD tests of one condition: (metrics, tests for the figures). ``pos_feat``: the features of the
+    unaligned camera at the LiDAR's rate (positions alone misaligned), tested the same way when given."""
     cfg = params.verify
     kw = {"permutations": cfg.permutations, "resamples": cfg.resamples, "seed": cfg.seed, "confidence": cfg.confidence}
     scale = (ref_feat, al_feat, un_feat)  # one kernel for the condition: aligned - unaligned = the paired difference
@@ -122,6 +126,15 @@ def condition_metrics(name: str, ref_feat: np.ndarray, sims: list[SimulatedPair]
         "reference_reprojection_mean_px": float(reproj.mean()) if len(reproj) else None,
         "reference_reprojection_max_px": float(reproj.max()) if len(reproj) else None,
     }
+    if pos_feat is not None:
+        pos = mmd_test(ref_feat, pos_feat, scale=(ref_feat, al_feat, pos_feat), **kw)
+        pos_diff = paired_mmd_difference(ref_feat, al_feat, pos_feat, **kw)
+        metrics.update({"mmd_unaligned_positions": pos.mmd2, "mmd_unaligned_positions_ci": list(pos.ci),
+                        "mmd_p_unaligned_positions": pos.p_value, "mmd_difference_positions": pos_diff.difference,
+                        "mmd_difference_positions_ci": list(pos_diff.ci),
+                        "mmd_difference_positions_p": pos_diff.p_value})
+        print(f"verify {name}: positions alone misaligned: MMD² {pos.mmd2:.4f} (p {pos.p_value:.3g}), aligned - "
+              f"it {pos_diff.difference:+.4f} (p {pos_diff.p_value:.3g})")
     print(f"verify {name}: MMD² aligned {aligned.mmd2:.4f} (p {aligned.p_value:.3g}), unaligned {unaligned.mmd2:.4f} "
           f"(p {unaligned.p_value:.3g}), difference {diff.difference:+.4f} (p {diff.p_value:.3g}); control "
           f"{control.mmd2:.4f} (p {control.p_value:.3g})")
@@ -184,8 +197,11 @@ def verify_flow(params: Params) -> dict:
             ref_feat = features(ref_inputs)
             al_feat = features(np.stack([s.aligned for s in sims[name]]))
             un_feat = features(np.stack([s.unaligned for s in sims[name]]))
+            pos_feat = (None if any(s.unaligned_positions is None for s in sims[name])
+                        else features(np.stack([s.unaligned_positions for s in sims[name]])))
             control_feat = features(broken_pairs(ref_inputs, seed=cfg.seed))
-            metrics, tests = condition_metrics(name, ref_feat, sims[name], al_feat, un_feat, control_feat, params)
+            metrics, tests = condition_metrics(name, ref_feat, sims[name], al_feat, un_feat, control_feat, params,
+                                               pos_feat)
             ref_hist = IntensityHistograms.from_scans((ds.load_scan(i) for i in ds.ids(level)), ds.intensity_max)
             sim_hist = IntensityHistograms.from_counts(np.stack([s.intensity_counts for s in sims[name]]),
                                                        ds.intensity_max)

@@ -19,7 +19,6 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
-from PIL import Image
 
 from weatheralign.conditions import CONDITIONS
 from weatheralign.config import params_from_dict

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from weatheralign.conditions import CONDITIONS
+from weatheralign.conditions import CONDITIONS, ParticlePart
 from weatheralign.config import params_from_dict
 from weatheralign.data.errors import DataFormatError
 from weatheralign.data.nuscenes import (compressed_extras_relpath, load_frame, load_lidar, open_nuscenes,
@@ -213,6 +213,26 @@ def test_fog_levels_and_unaligned_camera_alpha():
     assert light.for_scene(scenes[1], False).lidar_alpha == 0.01
     # media round-trip through their JSON form
     assert ConditionMedia.from_dict(json.loads(json.dumps(dense.to_dict()))) == dense
+
+
+def test_unaligned_particles_see_the_twin_at_a_rate_of_their_own(world):
+    tw, nusc, fields, frame, airlight, sensors, scenes = world
+    media = _media("snow", scenes, fields)
+    assert ConditionMedia.from_dict(json.loads(json.dumps(media.to_dict()))) == media
+    for scene in scenes:
+        aligned, unaligned = media.for_scene(scene, True), media.for_scene(scene, False)
+        rate = aligned.field.rate_mm_h
+        assert aligned.camera_rate_mm_h is None and aligned.camera_field() == aligned.field.field()
+        assert rate / 3.0 <= unaligned.camera_rate_mm_h <= rate * 3.0  # simulate.unaligned_rate_factor: 3
+        assert unaligned.camera_field().seed == aligned.field.field(aligned=False).seed
+        assert unaligned.camera_field().distribution.snowfall_rate == pytest.approx(unaligned.camera_rate_mm_h)
+        assert unaligned.field == aligned.field  # the LiDAR sees the condition's own field either way
+    spread = [ParticlePart.camera_rate(False, 2.0, 3.0, seed) for seed in range(400)]
+    logs = np.log(np.array(spread) / 2.0) / np.log(3.0)  # ~ U[-1, 1]
+    assert abs(float(logs.mean())) < 0.1 and logs.min() < -0.9 and logs.max() > 0.9
+    assert ParticlePart.camera_rate(True, 2.0, 3.0, 5) == ParticlePart.camera_rate(False, 2.0, 1.0, 5) == 2.0
+    positions_only = _media("snow", scenes, fields, CFG.model_copy(update={"unaligned_rate_factor": 1.0}))
+    assert positions_only.for_scene(scenes[0], False).camera_rate_mm_h == positions_only.fields[scenes[0]].rate_mm_h
 
 
 def test_plan_walks_every_sample_with_its_scene_media(world):

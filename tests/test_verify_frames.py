@@ -5,6 +5,8 @@ pixels that drew them. Skips without ``../shared``."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -88,6 +90,25 @@ def test_simulated_pair_on_a_real_frame(stf_reference, condition: str) -> None:
         assert pair.reprojection_px.max(initial=0.0) < 0.05  # [px]
     again = simulated_pair(ds, STF_ID, CONDITIONS[condition], severity(), lidar, 0.006, (64, 120), seed=0)
     assert np.array_equal(again.aligned, pair.aligned) and np.array_equal(again.unaligned, pair.unaligned)
+    assert pair.unaligned_positions is None  # no rate spread: the unaligned camera already is the positions-only one
+
+
+def test_unaligned_particles_misalign_rate_and_positions_and_keep_the_positions_only_variant(stf_reference) -> None:
+    spread = replace(severity(snow=2.0), unaligned_rate_factor=3.0)
+    media = scene_media(CONDITIONS["snow"], False, STF_ID, spread, seed=0)
+    assert media.field.rate_mm_h == 2.0 and 2.0 / 3.0 <= media.camera_rate_mm_h <= 6.0
+    assert media.camera_rate_mm_h != 2.0
+    twin = media.camera_field()
+    assert twin.seed != media.field.field().seed
+    assert twin.distribution.snowfall_rate == pytest.approx(media.camera_rate_mm_h)
+    pair = simulated_pair(stf_reference, STF_ID, CONDITIONS["snow"], spread, make_lidar(noise_floor=1.0), 0.006,
+                          (64, 120), seed=0)
+    assert pair.unaligned_positions is not None and pair.unaligned_positions.shape == pair.unaligned.shape
+    assert np.array_equal(pair.unaligned_positions[3:], pair.aligned[3:])
+    assert not np.array_equal(pair.unaligned_positions[:3], pair.unaligned[:3])
+    same_rate = simulated_pair(stf_reference, STF_ID, CONDITIONS["snow"], severity(snow=2.0),
+                               make_lidar(noise_floor=1.0), 0.006, (64, 120), seed=0)
+    assert np.array_equal(pair.unaligned_positions, same_rate.unaligned)  # the old definition, exactly
 
 
 def test_displaced_particle_channels_move_only_the_particle_echoes(stf_reference) -> None:

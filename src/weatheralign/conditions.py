@@ -10,10 +10,13 @@ Composition. Media combine without a code path per sensor: the LiDAR sees every 
 the strongest echo, `weatheralign.simulate.observe.observe_lidar`); the cameras see one transmission (the fog's
 Koschmieder term times the unresolved particles') and the resolvable particles pre-fogged by the same fog.
 
-Unaligned. Each medium defines its own independent twin: a fog's cameras see an extinction drawn uniformly between
-the light and dense levels once per scene (`FogPart.camera_alpha`), a particle field's cameras see the field's twin
-of identical statistics and another seed (`weatheralign.medium.conditions.FieldSpec.field`). The LiDAR always sees
-the condition's own media; a mixed condition's unaligned variant twins every medium.
+Unaligned. Each medium defines its own independent twin, misaligned in severity and (for particles) position, as
+sensor-dedicated simulators that each pick their own parameters would be: a fog's cameras see an extinction drawn
+uniformly between the light and dense levels once per scene (`FogPart.camera_alpha`), a particle field's cameras see
+the field's twin of another seed (`weatheralign.medium.conditions.FieldSpec.field`) at a rate drawn log-uniformly
+within ``simulate.unaligned_rate_factor`` of the LiDAR's, once per scene (`ParticlePart.camera_rate`; factor 1: the
+positions alone differ). The LiDAR always sees the condition's own media; a mixed condition's unaligned variant twins
+every medium.
 """
 
 from __future__ import annotations
@@ -64,12 +67,24 @@ class ParticlePart:
         camera_appearance: how the cameras draw them: a name of `weatheralign.camera.splat.APPEARANCES`
             (``snow``, ``rain``, ``rain_weather_edit``).
 
-    Unaligned: the cameras observe the field's independent twin (same statistics, another seed).
+    Unaligned: the cameras observe the field's independent twin (another seed) at a rate of their own, drawn
+    log-uniformly within a factor of the LiDAR's once per scene (`camera_rate`): sensor-dedicated simulators each
+    set their own severity, as the fog's unaligned cameras do.
     """
 
     kind: PrecipitationKind
     lidar_reflectivity: float
     camera_appearance: str
+
+    @staticmethod
+    def camera_rate(aligned: bool, rate_mm_h: float, factor: float, field_seed: int) -> float:
+        """The cameras' rate [mm/h]: ``rate_mm_h`` when aligned (or ``factor`` 1), else ``rate_mm_h ·
+        factor^u`` with ``u ~ U[-1, 1]`` from a hash of the scene's ``field_seed``."""
+        if aligned or factor == 1.0:
+            return rate_mm_h
+        digest = hashlib.sha256(f"{field_seed}/camera_rate".encode()).digest()
+        u = int.from_bytes(digest[:8], "little") / 2.0**64
+        return rate_mm_h * factor ** (2.0 * u - 1.0)
 
 
 @dataclass(frozen=True)

@@ -313,6 +313,8 @@ class SimulateConfig(_Section):
     Snow and rain rates: with ``precipitation_rates: calibrated`` (default) the ``calibrate_precipitation`` stage's
     tuned rates (``<paths.data>/calibrate_precipitation/rates.json``) replace ``particles.<kind>.rate_mm_h`` in every
     scene's field (the media stage applies them); with ``params`` the particles params are used as given.
+    Unaligned snow / rain: the cameras see the field's twin (another seed) at ``rate · unaligned_rate_factor^u``,
+    ``u ~ U[-1, 1]`` once per scene (1: the same rate, positions alone misaligned).
     ``rain_appearance``: how the cameras draw the drops (`weatheralign.camera.splat.APPEARANCES`): ``rain``
     (default) opaque refracting drops whose radiance is their environment's; ``rain_weather_edit`` Weather-edit's
     translucent grey drops (opacity 0.2, grey 0.7).
@@ -329,6 +331,7 @@ class SimulateConfig(_Section):
     fog_beta_light: Annotated[float, Field(ge=0.0, le=1.0)] | None = None
     fog_beta_dense: Annotated[float, Field(ge=0.0, le=1.0)] | None = None
     fog_seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 7
+    unaligned_rate_factor: Annotated[float, Field(ge=1.0, le=100.0)] = 3.0
     rain_appearance: Literal["rain", "rain_weather_edit"] = "rain"
     jpeg_quality: Annotated[int, Field(ge=50, le=100)] = 92
     near_clip_m: Annotated[float, Field(gt=0.0, le=5.0)] = 0.5

@@ -16,11 +16,12 @@ from typing import Any
 
 import numpy as np
 
-from weatheralign.conditions import CONDITIONS, Condition, FogPart
+from weatheralign.conditions import CONDITIONS, Condition, FogPart, ParticlePart
 from weatheralign.config import ParticlesConfig, SimulateConfig
 from weatheralign.data.errors import DataFormatError, read_json_file
 from weatheralign.manifest import FOG_LEVELS_FILE, PRECIPITATION_RATES_FILE
 from weatheralign.medium.conditions import FieldSpec
+from weatheralign.medium.field import ParticleField
 from weatheralign.medium.fog import mor_from_alpha
 
 
@@ -145,7 +146,9 @@ class SceneMedia:
         condition: the `Condition`; aligned: whether the cameras see the LiDAR's media; scene: scene name.
         lidar_alpha, lidar_beta: the LiDAR's fog [1/m], [1/(m sr)] (0 without fog).
         camera_alpha: the cameras' fog extinction [1/m] (aligned: ``lidar_alpha``; 0 without fog).
-        field: the scene's `FieldSpec` (the LiDAR's field; the cameras see ``field.field(aligned)``), or None.
+        field: the scene's `FieldSpec` (the LiDAR's field; the cameras see `camera_field`), or None.
+        camera_rate_mm_h: the unaligned cameras' precipitation rate [mm/h] (`ParticlePart.camera_rate`); None: the
+            field's own.
     """
 
     condition: Condition
@@ -155,11 +158,22 @@ class SceneMedia:
     lidar_beta: float = 0.0
     camera_alpha: float = 0.0
     field: FieldSpec | None = None
+    camera_rate_mm_h: float | None = None
 
     @property
     def has_particles(self) -> bool:
         """A particle field of positive rate exists."""
         return self.field is not None and self.field.rate_mm_h > 0.0
+
+    def camera_field(self) -> ParticleField | None:
+        """The particle field the cameras see: the LiDAR's when aligned, else its twin (another seed) at
+        ``camera_rate_mm_h``; None without particles."""
+        if not self.has_particles:
+            return None
+        if self.aligned:
+            return self.field.field()
+        rate = self.field.rate_mm_h if self.camera_rate_mm_h is None else self.camera_rate_mm_h
+        return replace(self.field, rate_mm_h=rate).field(aligned=False)
 
 
 @dataclass(frozen=True)
@@ -170,11 +184,13 @@ class ConditionMedia:
         condition: the condition's name (a key of `CONDITIONS`).
         fog: ``{"level", "alpha", "beta", "source", "camera_alpha_unaligned": {scene: α}}`` or None.
         fields: ``{scene: FieldSpec}`` or None.
+        camera_rate_unaligned: ``{scene: rate [mm/h]}`` the unaligned cameras' rate (with ``fields``).
     """
 
     condition: str
     fog: dict[str, Any] | None
     fields: dict[str, FieldSpec] | None
+    camera_rate_unaligned: dict[str, float] | None = None
 
     def for_scene(self, scene: str, aligned: bool, rain_appearance: str = "rain") -> SceneMedia:
         """`SceneMedia` of ``scene``.
@@ -195,6 +211,11 @@ class ConditionMedia:
                 raise DataFormatError(f"media of {self.condition}: no particle field for scene {scene!r} (has "
                                       f"{sorted(self.fields)}); rerun the particles and media stages")
             kw["field"] = self.fields[scene]
+            if not aligned:
+                if not self.camera_rate_unaligned or scene not in self.camera_rate_unaligned:
+                    raise DataFormatError(f"media of {self.condition}: no unaligned camera rate for scene {scene!r}; "
+                                          f"rerun the media stage")
+                kw["camera_rate_mm_h"] = self.camera_rate_unaligned[scene]
         return SceneMedia(condition, aligned, scene, **kw)
 
     def rates(self, particles: ParticlesConfig) -> tuple[float, float]:
@@ -208,7 +229,9 @@ class ConditionMedia:
 
     def to_dict(self) -> dict[str, Any]:
         return {"condition": self.condition, "fog": self.fog,
-                "fields": None if self.fields is None else {k: v.to_dict() for k, v in sorted(self.fields.items())}}
+                "fields": None if self.fields is None else {k: v.to_dict() for k, v in sorted(self.fields.items())},
+                "camera_rate_unaligned": None if self.camera_rate_unaligned is None
+                else dict(sorted(self.camera_rate_unaligned.items()))}
 
     @staticmethod
     def from_dict(d: dict[str, Any], where: str = "media") -> "ConditionMedia":
@@ -216,7 +239,9 @@ class ConditionMedia:
             if d["condition"] not in CONDITIONS:
                 raise ValueError(f"unknown condition {d['condition']!r}")
             fields = None if d["fields"] is None else {k: FieldSpec.from_dict(v) for k, v in d["fields"].items()}
-            return ConditionMedia(d["condition"], d["fog"], fields)
+            rates = d.get("camera_rate_unaligned")
+            rates = None if rates is None else {k: float(v) for k, v in rates.items()}
+            return ConditionMedia(d["condition"], d["fog"], fields, rates)
         except (KeyError, TypeError, ValueError) as exc:
             raise DataFormatError(f"{where}: not a valid media file ({exc})") from None
 
@@ -251,6 +276,9 @@ def resolve_media(condition: Condition, cfg: SimulateConfig, scenes: list[str], 
             raise DataFormatError(f"the particles stage's {kind} fields lack scenes {missing}; rerun it")
         per_scene = {s: by_scene[s] if rates is None else replace(by_scene[s], rate_mm_h=rates.rate_mm_h[kind])
                      for s in scenes}
+        camera_rates = {s: ParticlePart.camera_rate(False, spec.rate_mm_h, cfg.unaligned_rate_factor, spec.seed)
+                        for s, spec in per_scene.items()}
+        return ConditionMedia(condition.name, fog, per_scene, camera_rates)
     return ConditionMedia(condition.name, fog, per_scene)
 
 

@@ -16,7 +16,7 @@ How media compose (see `weatheralign.conditions`):
   (real cameras' dense depth; an exact range map is used as it is) and composited with the scene's
   airlight in linear light in one compiled pass (`weatheralign.camera.fog.composite_image`); then the field's
   resolvable particles splatted with exposure streaks (`weatheralign.camera.splat`), pre-fogged by the same fog.
-  Unaligned cameras see the media's twins (`SceneMedia.camera_alpha`, ``field.field(aligned=False)``).
+  Unaligned cameras see the media's twins (`SceneMedia.camera_alpha`, `SceneMedia.camera_field`).
 """
 
 from __future__ import annotations
@@ -191,7 +191,7 @@ def observe_camera(image: NDArray[np.uint8], range_map: NDArray[np.float32], vie
         airlight: (3,) sRGB airlight of the scene; ego_vel: (3,) ego velocity [m/s] (streaks).
     """
     alpha = media.camera_alpha
-    fld = media.field.field(aligned=media.aligned) if media.has_particles else None
+    fld = media.camera_field()
     if alpha <= 0.0 and fld is None:
         return CameraWeather(None, None, 0)
     near = options.near_clip_m

@@ -108,6 +108,7 @@ def copy_fingerprint(run_digest: str, media: SceneMedia, sensors: SensorRig, air
                        else media.condition.particles.camera_appearance,
                        "fog": [media.lidar_alpha, media.lidar_beta, media.camera_alpha],
                        "field": None if media.field is None else media.field.to_dict(),
+                       "camera_rate": media.camera_rate_mm_h,
                        "sensors": sensors.to_dict(), "airlight": list(airlight)}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 

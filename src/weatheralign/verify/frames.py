@@ -7,8 +7,9 @@ projected into the same cells. A *simulated* frame is a clear reference frame ob
 the same observation core as `simulate` (`weatheralign.simulate.observe.observe`): the LiDAR through the reference
 sensor (`reference_lidar_model`, with its detector noise), the camera through the simulation's fog compositing and
 particle splatting. Aligned: the camera sees the LiDAR's media; unaligned: the fog's camera extinction drawn in
-[α_light, α_dense] and the particle field's independent twin, exactly as a `simulate@<condition>-unaligned` copy
-(`weatheralign.conditions`). The LiDAR sees the condition's own media in both, so one LiDAR scan serves both.
+[α_light, α_dense] and the particle field's independent twin at a rate of its own, exactly as a
+`simulate@<condition>-unaligned` copy (`weatheralign.conditions`); for particles also the twin at the LiDAR's rate
+(positions alone misaligned). The LiDAR sees the condition's own media in both, so one LiDAR scan serves both.
 
 Each clear frame is its own "scene": its particle field is seeded from (``seed``, condition, frame id) and starts at
 the frame's time (0 for STF).
@@ -16,14 +17,14 @@ the frame's time (0 for STF).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from weatheralign.calibrate.histograms import frame_counts
 from weatheralign.camera.fog import estimate_airlight
-from weatheralign.conditions import Condition, FogPart
+from weatheralign.conditions import Condition, FogPart, ParticlePart
 from weatheralign.config import ParticlesConfig
 from weatheralign.data.frame import Frame
 from weatheralign.data.stf import CAMERA_CHANNEL
@@ -42,12 +43,14 @@ from weatheralign.verify.features import fused_input, lidar_image_channels
 class Severity:
     """What a simulated condition is made of: the fog ``levels`` in use and the snow / rain rates [mm/h] (water
     equivalent) of the particle fields, with the field physics of ``particles`` (``particles.<kind>.rate_mm_h`` is
-    replaced by the rate given here)."""
+    replaced by the rate given here); ``unaligned_rate_factor``: the unaligned cameras' rate spread
+    (`ParticlePart.camera_rate`, ``simulate.unaligned_rate_factor``; 1: positions alone misaligned)."""
 
     levels: FogLevels
     snow_rate_mm_h: float
     rain_rate_mm_h: float
     particles: ParticlesConfig
+    unaligned_rate_factor: float = 1.0
 
     def particles_at_rates(self) -> ParticlesConfig:
         """``particles`` with the snow and rain rates of this severity."""
@@ -110,7 +113,7 @@ def reference_fused_input(ds: ReferenceDataset, sample_id: str, out_hw: tuple[in
 def scene_media(condition: Condition, aligned: bool, sample_id: str, severity: Severity, seed: int) -> SceneMedia:
     """The media of ``condition`` over the clear frame ``sample_id`` as `simulate` builds them for a scene: the fog
     at its level (unaligned cameras: `FogPart.camera_alpha` from ``seed``), the particle field seeded from
-    (``severity.particles.seed``, kind, frame id)."""
+    (``severity.particles.seed``, kind, frame id) (unaligned cameras: its twin at `ParticlePart.camera_rate`)."""
     kw: dict = {}
     if condition.fog is not None:
         levels = severity.levels
@@ -119,7 +122,11 @@ def scene_media(condition: Condition, aligned: bool, sample_id: str, severity: S
                   camera_alpha=FogPart.camera_alpha(aligned, alpha, levels.alpha["light"], levels.alpha["dense"],
                                                     seed, condition.name, sample_id))
     if condition.particles is not None:
-        kw["field"] = field_spec(severity.particles_at_rates(), condition.particles.kind, sample_id, 0.0)
+        spec = field_spec(severity.particles_at_rates(), condition.particles.kind, sample_id, 0.0)
+        kw["field"] = spec
+        if not aligned:
+            kw["camera_rate_mm_h"] = ParticlePart.camera_rate(False, spec.rate_mm_h, severity.unaligned_rate_factor,
+                                                              spec.seed)
     return SceneMedia(condition, aligned, sample_id, **kw)
 
 
@@ -128,10 +135,12 @@ class SimulatedPair:
     """One clear reference frame through a condition: the ``aligned`` and ``unaligned`` fused inputs (6, h, w), the
     aligned camera image (H, W, 3) uint8 and the clear frame's ray lengths (H, W) [m] (for KID and the visibility
     estimate), the weather scan's intensity histogram row (256,) (`frame_counts`), its point counts per label, and
-    the particles' re-projection errors [px] (aligned)."""
+    the particles' re-projection errors [px] (aligned). ``unaligned_positions``: with particles and a rate spread,
+    the unaligned camera at the LiDAR's rate (positions alone misaligned), else None."""
 
     aligned: NDArray[np.float32]
     unaligned: NDArray[np.float32]
+    unaligned_positions: NDArray[np.float32] | None
     image: NDArray[np.uint8]
     range_map: NDArray[np.float32]
     intensity_counts: NDArray[np.int64]
@@ -153,8 +162,12 @@ def simulated_pair(ds: ReferenceDataset, sample_id: str, condition: Condition, s
     images, ranges = {CAMERA_CHANNEL: image}, {CAMERA_CHANNEL: range_map}
     aligned = observe(frame, images, ranges, scene_media(condition, True, sample_id, severity, seed), rig, airlight,
                       options)
-    unaligned = observe(frame, images, ranges, scene_media(condition, False, sample_id, severity, seed), rig,
-                        airlight, options, lidar=aligned.lidar)
+    unaligned_media = scene_media(condition, False, sample_id, severity, seed)
+    unaligned = observe(frame, images, ranges, unaligned_media, rig, airlight, options, lidar=aligned.lidar)
+    positions = None
+    if unaligned_media.has_particles and unaligned_media.camera_rate_mm_h != unaligned_media.field.rate_mm_h:
+        positions = observe(frame, images, ranges, replace(unaligned_media, camera_rate_mm_h=None), rig, airlight,
+                            options, lidar=aligned.lidar)
     points = aligned.lidar.scan.points
 
     def fused(weather_image: NDArray[np.uint8] | None) -> NDArray[np.float32]:
@@ -163,7 +176,8 @@ def simulated_pair(ds: ReferenceDataset, sample_id: str, condition: Condition, s
 
     weather_image = aligned.cameras[CAMERA_CHANNEL].image
     weather_image = image if weather_image is None else weather_image
-    return SimulatedPair(fused(weather_image), fused(unaligned.cameras[CAMERA_CHANNEL].image), weather_image,
+    return SimulatedPair(fused(weather_image), fused(unaligned.cameras[CAMERA_CHANNEL].image),
+                         None if positions is None else fused(positions.cameras[CAMERA_CHANNEL].image), weather_image,
                          range_map, frame_counts(points[:, 3], ds.intensity_max), dict(aligned.lidar.counts),
                          np.asarray(aligned.reprojection_px, dtype=np.float64))
 

@@ -50,7 +50,10 @@ def table_markdown(metrics: Mapping[str, Any]) -> str:
              f"{metrics['severity']['rain_rate_mm_h']:.3g} mm/h (rates: {_sources(metrics['severity'])}). Weather classifier held-out accuracy "
              f"{metrics['classifier_accuracy']:.3f} ({metrics['classifier_held_out']} frames). MMD² is the unbiased "
              "estimator on the classifier's fused features (Gaussian kernel, median heuristic on the pooled, "
-             "standardised features); p: permutation p-value; brackets: frame-bootstrap interval.", "",
+             "standardised features); p: permutation p-value; brackets: frame-bootstrap interval. Unaligned: the "
+             "camera sees independent media of its own severity (fog: α drawn between the levels; snow / rain: "
+             "another field at a rate within a factor of the LiDAR's); for snow and rain also the positions alone "
+             "(the unaligned camera at the LiDAR's rate).", "",
              "## Ours", "",
              "| | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
 
@@ -66,6 +69,15 @@ def table_markdown(metrics: Mapping[str, Any]) -> str:
                                     f"(p {_p(c['mmd_p_unaligned'])})")
     row("aligned − unaligned (paired)", lambda c: f"{c['mmd_difference']:+.4f}{_ci(c.get('mmd_difference_ci'))} "
                                                   f"(p {_p(c['mmd_difference_p'])})")
+    if any("mmd_unaligned_positions" in c for c in conditions.values()):
+        row("MMD² unaligned, positions alone (same rate)",
+            lambda c: "—" if "mmd_unaligned_positions" not in c else
+            f"{_num(c['mmd_unaligned_positions'])}{_ci(c.get('mmd_unaligned_positions_ci'))} "
+            f"(p {_p(c['mmd_p_unaligned_positions'])})")
+        row("aligned − positions alone (paired)",
+            lambda c: "—" if "mmd_difference_positions" not in c else
+            f"{c['mmd_difference_positions']:+.4f}{_ci(c.get('mmd_difference_positions_ci'))} "
+            f"(p {_p(c['mmd_difference_positions_p'])})")
     row("control: broken pairs", lambda c: f"{_num(c['control_mmd'])} (p {_p(c['control_p'])})")
     row("LiDAR D_KS vs reference", lambda c: f"{_num(c['ks'])} [{c['ks_ci_low']:.3f}, {c['ks_ci_high']:.3f}]")
     row("camera KID", _kid)
