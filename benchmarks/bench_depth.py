@@ -7,9 +7,9 @@ On real nuScenes data the cameras have no exact depth: `weatheralign.camera.dept
 from the LiDAR (the keyframe and earlier sweeps, `weatheralign.simulate.plan.DEPTH_SWEEPS` in all). Every camera of
 ``--samples`` keyframes spread over the world's scenes is treated as if it had no exact map (``range_path=None``) and
 completed from the world's LiDAR alone, once from the keyframe sweep and once with the sweeps (``load_lidar(...,
-DEPTH_SWEEPS)``, as `weatheralign.simulate.plan.sample_range_maps` loads them), nearer where the ego's own body
-(the world manifest's rig) meets the ray, as that function does on real data, then compared with its exact range
-map:
+DEPTH_SWEEPS)``, as `weatheralign.simulate.plan.sample_range_maps` loads them), with the sky the six cameras agree
+on (`consistent_sky`) and nearer where the ego's own body (the world manifest's rig) meets the ray, as that function
+does on real data, then compared with its exact range map:
 
 - depth: AbsRel, RMSE [m], delta < 1.25 on pixels finite in both; the same within ``--edge-px`` of exact depth edges
   (neighbouring pixels whose ray lengths differ by more than a factor 1.25, sky included);
@@ -266,7 +266,7 @@ def _ego_body(world: Path) -> Any:
 
 def run_synthetic(world: Path, count: int, alpha: float, edge_px: int, codes: int) -> dict[str, Any]:
     """All the synthetic-world numbers (see the module docstring); keys ``keyframe`` and ``sweeps``."""
-    from weatheralign.camera.depth import camera_range_map
+    from weatheralign.camera.depth import camera_range_map, consistent_sky
     from weatheralign.camera.fog import estimate_airlight, srgb_to_linear
     from weatheralign.data.nuscenes import load_frame, load_lidar, open_nuscenes
     from weatheralign.simulate.plan import DEPTH_SWEEPS
@@ -302,10 +302,13 @@ def run_synthetic(world: Path, count: int, alpha: float, edge_px: int, codes: in
                     warm = True
                 c0, w0 = time.process_time(), time.perf_counter()
                 est[ch] = camera_range_map(blind, scan, images[ch])
-                if ego is not None:  # as `sample_range_maps` on real data: the ego's own body from its geometry
-                    est[ch] = np.minimum(est[ch], ego.camera_ranges(view.K, view.T_ego_cam, view.width, view.height))
                 cpu[mode].append(time.process_time() - c0)
                 wall[mode].append(time.perf_counter() - w0)
+            # as `sample_range_maps` on real data: the sky the cameras agree on, the ego's body from its geometry
+            est = consistent_sky(views, est)
+            for ch, view in views.items():
+                if ego is not None:
+                    est[ch] = np.minimum(est[ch], ego.camera_ranges(view.K, view.T_ego_cam, view.width, view.height))
                 g = exact[ch]
                 depth[mode].add(est[ch], g, np.ones(g.shape, bool))
                 depth_edge[mode].add(est[ch], g, near(depth_edges(g), edge_px))

@@ -19,6 +19,7 @@ from weatheralign.camera.depth import (
     above_fov_mask,
     camera_points,
     complete_depth,
+    consistent_sky,
     dense_depth,
     drop_see_through,
     estimate_top_elevation_deg,
@@ -494,6 +495,42 @@ def test_drop_see_through_needs_one_surface_on_both_sides():
     z[60, 50] = 6.5
     out = drop_see_through(z, 6.0, 3.0, 8.0, 1.5, 1.5)
     assert out[50, 50] == 0.0 and np.count_nonzero(out) == 4 and np.count_nonzero(z) == 5  # input unchanged
+
+
+def _yawed_view(channel: str, yaw_deg: float, K: np.ndarray, width: int, height: int):
+    """An upright camera (OpenCV axes: x right, y down, z forward) at the ego origin, looking along the ego's x axis
+    turned by ``yaw_deg`` to the left."""
+    from weatheralign.data.frame import CameraView
+
+    c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+    forward, left = np.array([c, s, 0.0]), np.array([-s, c, 0.0])
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([-left, [0.0, 0.0, -1.0], forward])  # camera axes in the ego frame
+    return CameraView(channel, Path("/nonexistent.jpg"), K, width, height, T, np.eye(4), 0.0)
+
+
+def test_neighbouring_cameras_agree_on_the_sky():
+    """Two cameras 60 deg apart (90 deg fields of view: yaw -45..45 and 15..105 deg, 30 deg shared). Where one calls
+    a direction sky and the other a surface, the sky pixel takes the surface's ray length; sky both agree on stays
+    sky; nothing outside the shared field of view changes, and the inputs are not modified."""
+    W, H = 200, 100
+    K = np.array([[100.0, 0.0, 100.0], [0.0, 100.0, 50.0], [0.0, 0.0, 1.0]])
+    views = {"A": _yawed_view("A", 0.0, K, W, H), "B": _yawed_view("B", 60.0, K, W, H)}
+    a = np.full((H, W), 30.0, np.float32)
+    a[:50] = np.inf  # A: the upper half is sky
+    b = np.full((H, W), 30.0, np.float32)
+    b[:30] = np.inf  # B: sky high up; lower, a 30 m facade in its right half (the directions it shares with A)
+    b[30:50, :100] = np.inf
+    ranges = {"A": a, "B": b}
+    before = {k: v.copy() for k, v in ranges.items()}
+    out = consistent_sky(views, ranges)
+    assert all(np.array_equal(ranges[k], before[k]) for k in ranges)
+    assert np.isposinf(out["A"][5, 0])  # yaw 45 deg, high: B's row ~17, sky in both
+    assert out["A"][40, 0] == 30.0  # yaw 45 deg, low: B's row ~43, column ~127: B sees the facade there
+    assert np.isposinf(out["A"][40, W - 1])  # yaw -45 deg: outside B's field of view
+    changed = out["A"] != a
+    assert changed.sum() > 100 and np.all(out["A"][changed] == 30.0) and not changed[50:].any()
+    assert np.array_equal(out["B"], b)  # B's sky is sky for A too, or outside A's view
 
 
 def _crown_scene(with_crown: bool = True) -> tuple:

@@ -40,6 +40,9 @@ the synthetic world and as Koschmieder's law needs), ``inf`` for sky. Stages (`d
    trunk or pole), the region takes the near side of the depths it rests on (`_overhangs`), not the facade behind.
    Holes below it without returns are filled across when one surface surrounds them (dark paint, glass), else from
    the farthest surface around (beyond range, or in the LiDAR's shadow behind a foreground object).
+7. **One sky for all cameras** (`consistent_sky`, called by `weatheralign.simulate.plan.sample_range_maps` on the
+   six completed maps): a direction is sky only where every camera that sees it agrees; otherwise the sky pixel
+   takes the ray length of the camera that sees a surface there (no seam of white sky beside fogged structure).
 
 ``DenseDepth.confidence`` is 1 for planar interpolation between LiDAR points and for sky decided by both the LiDAR
 and the image, 0.5 for the morphological fill / refined edges, 0.25 for upward continuation and nearest fill; it is
@@ -62,6 +65,7 @@ frame the LiDAR misses on one side (a side window at the image border) keeps the
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import cv2
@@ -1038,6 +1042,40 @@ def dense_depth(
     img = camera.load_image() if image is None else image
     return complete_depth(pts, camera.K, camera.width, camera.height, img, top, params)
 
+
+
+def consistent_sky(views: Mapping[str, CameraView], ranges: Mapping[str, F32]) -> dict[str, F32]:
+    """The range maps (H, W) float32 [m], inf = sky, of cameras that see one another's directions, with sky where
+    they agree: a sky pixel of one camera whose viewing direction (rotation only: the cameras' baselines are
+    negligible against sky and far surfaces) another camera sees as a surface takes that camera's ray length there.
+    Each camera completes its depth alone, so the image cues could call the same facade sky in one camera and not in
+    its neighbour: a seam of white sky against fogged structure. Measured on the synthetic world's six cameras with 3
+    sweeps (`benchmarks.bench_depth`): sky disagreement between neighbours 1.16 % -> 0 of their shared pixels,
+    structure taken for sky 0.66 % -> 0.55 %, at the cost of true sky given a surface 3.1 % -> 4.6 %. Decisions use
+    the input maps (order-independent); the inputs are not modified."""
+    out = {ch: np.array(r, dtype=np.float32, copy=True) for ch, r in ranges.items()}
+    for a, view_a in views.items():
+        sky_v, sky_u = np.nonzero(np.isposinf(ranges[a]))
+        if not len(sky_v):
+            continue
+        pix = np.stack([sky_u, sky_v, np.ones(len(sky_u))], axis=1).astype(np.float64)
+        d = pix @ np.linalg.inv(view_a.K).T
+        for b, view_b in views.items():
+            if b == a:
+                continue
+            R = view_b.T_global_cam[:3, :3].T @ view_a.T_global_cam[:3, :3]
+            db = d @ R.T
+            z = db[:, 2]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                p = db @ np.asarray(view_b.K).T
+                ub, vb = np.rint(p[:, 0] / z), np.rint(p[:, 1] / z)
+            ok = (z > 0.05) & (ub >= 0) & (ub < view_b.width) & (vb >= 0) & (vb < view_b.height)
+            if not ok.any():
+                continue
+            rb = ranges[b][vb[ok].astype(np.int64), ub[ok].astype(np.int64)]
+            surface = np.isfinite(rb)
+            out[a][sky_v[ok][surface], sky_u[ok][surface]] = rb[surface]
+    return out
 
 
 def camera_range_map(view: CameraView, lidar: LidarScan, image: NDArray | None = None) -> F32:

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from weatheralign.camera.depth import camera_range_map
+from weatheralign.camera.depth import camera_range_map, consistent_sky
 from weatheralign.camera.fog import estimate_airlight
 from weatheralign.data.frame import Frame
 from weatheralign.data.nuscenes import load_frame, load_lidar
@@ -38,14 +38,18 @@ def sample_range_maps(nusc, frame: Frame, images: dict[str, NDArray[np.uint8]],
                       ego_body: EgoBody | None = None) -> dict[str, NDArray[np.float32]]:
     """Per camera of ``frame`` its (H, W) float32 ray length [m] (inf = sky): the exact range map where the dataset
     stores one (the synthetic world, whose cameras render ``ego_body`` already), else
-    `weatheralign.camera.depth.camera_range_map` from the keyframe and `DEPTH_SWEEPS` earlier sweeps (real data),
-    nearer where a pixel's ray meets the ego's own body (`EgoBody.camera_ranges`: the LiDAR never sees it, so the
-    completion would give it the far scene's depth or sky, and fog or particles would be drawn on the car)."""
+    `weatheralign.camera.depth.camera_range_map` from the keyframe and `DEPTH_SWEEPS` earlier sweeps (real data)
+    with the sky neighbouring cameras agree on (`consistent_sky`), nearer where a pixel's ray meets the ego's own
+    body (`EgoBody.camera_ranges`: the LiDAR never sees it, so the completion would give it the far scene's depth or
+    sky, and fog or particles would be drawn on the car)."""
     exact = all(v.range_path is not None for v in frame.cameras.values())
     depth_lidar = frame.lidar if exact else load_lidar(nusc, nusc.get("sample", frame.token)["data"]["LIDAR_TOP"],
                                                        DEPTH_SWEEPS)
     ranges = {ch: camera_range_map(v, depth_lidar, images[ch]) for ch, v in frame.cameras.items()}
-    if exact or ego_body is None:
+    if exact:
+        return ranges
+    ranges = consistent_sky(frame.cameras, ranges)
+    if ego_body is None:
         return ranges
     return {ch: np.minimum(r, ego_body.camera_ranges(frame.cameras[ch].K, frame.cameras[ch].T_ego_cam, r.shape[1],
                                                      r.shape[0])) for ch, r in ranges.items()}
