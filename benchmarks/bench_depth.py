@@ -176,27 +176,15 @@ def halo_widths(fog_est: NDArray[np.uint8], fog_exact: NDArray[np.uint8], t_exac
     return widths[1:]
 
 
-def _pixel_dirs(K: NDArray, width: int, height: int, stride: int) -> tuple[NDArray, NDArray, NDArray]:
-    """(N, 3) unit camera-frame directions of every ``stride``-th pixel and their (N,) v, u."""
-    vv, uu = np.mgrid[0:height:stride, 0:width:stride]
-    pix = np.stack([uu.ravel(), vv.ravel(), np.ones(uu.size)], axis=1).astype(np.float64)
-    d = pix @ np.linalg.inv(K).T
-    return d / np.linalg.norm(d, axis=1, keepdims=True), vv.ravel(), uu.ravel()
-
-
 def seam_pairs(view_a: Any, view_b: Any, stride: int = SEAM_STRIDE) -> tuple[NDArray, NDArray, NDArray, NDArray]:
     """Pixels (va, ua) of ``view_a`` (every ``stride``-th) whose viewing direction in the world falls inside
-    ``view_b``, and the pixels (vb, ub) of ``view_b`` that direction lands on (rotation only: the same direction)."""
-    d, va, ua = _pixel_dirs(view_a.K, view_a.width, view_a.height, stride)
-    R = view_b.T_global_cam[:3, :3].T @ view_a.T_global_cam[:3, :3]
-    db = d @ R.T
-    z = db[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        p = db @ view_b.K.T
-        ub = np.rint(p[:, 0] / z)
-        vb = np.rint(p[:, 1] / z)
-    ok = (z > 0.05) & (ub >= 0) & (ub < view_b.width) & (vb >= 0) & (vb < view_b.height)
-    return va[ok], ua[ok], vb[ok].astype(np.int64), ub[ok].astype(np.int64)
+    ``view_b``, and the pixels (vb, ub) of ``view_b`` that direction lands on (`pixels_in_view`: rotation only)."""
+    from weatheralign.camera.depth import pixels_in_view
+
+    vv, uu = np.mgrid[0:view_a.height:stride, 0:view_a.width:stride]
+    va, ua = vv.ravel(), uu.ravel()
+    ok, vb, ub = pixels_in_view(view_a, view_b, va, ua)
+    return va[ok], ua[ok], vb, ub
 
 
 def seam_stats(r_a: F32, r_b: F32, idx: tuple[NDArray, NDArray, NDArray, NDArray], alpha: float) -> dict[str, float]:

@@ -349,29 +349,6 @@ def point_gaps(mask: BoolA) -> tuple[float, float]:
     return gaps(joined.T, 75.0), gap_h
 
 
-def drop_occluded(z: F32, gap_v: float, gap_h: float, ratio: float) -> F32:
-    """Remove points that nearer points flank above and below (or left and right): seen by the LiDAR past a
-    foreground surface that hides them from the camera. ``z`` (H, W) float32, 0 = empty; returns a filtered copy."""
-    big = np.float32(np.inf)
-    zz = np.where(z > 0, z, big).astype(np.float32)
-    hv = int(round(1.5 * gap_v)) + 1
-    wv = int(round(gap_h)) | 1
-    hh = int(round(1.5 * gap_h)) + 1
-    wh = int(round(0.5 * gap_v)) | 1
-    k_v = np.ones((hv, wv), np.uint8)
-    k_h = np.ones((wh, hh), np.uint8)
-    border = cv2.BORDER_CONSTANT
-    up = cv2.erode(zz, k_v, anchor=(wv // 2, hv - 1), borderType=border, borderValue=float(big))
-    down = cv2.erode(zz, k_v, anchor=(wv // 2, 0), borderType=border, borderValue=float(big))
-    left = cv2.erode(zz, k_h, anchor=(hh - 1, wh // 2), borderType=border, borderValue=float(big))
-    right = cv2.erode(zz, k_h, anchor=(0, wh // 2), borderType=border, borderValue=float(big))
-    lim = zz / np.float32(ratio)
-    hidden = (z > 0) & (((up < lim) & (down < lim)) | ((left < lim) & (right < lim)))
-    out = z.copy()
-    out[hidden] = 0.0
-    return out
-
-
 def _one_sided_minima(zz: F32, reach: int, across: int, axis: int) -> tuple[F32, F32]:
     """Minima of ``zz`` (H, W) over windows ``across`` pixels wide (centred) and ``reach`` pixels long along
     ``axis`` (0: rows, 1: columns), ending at each pixel (up / left) and starting there (down / right); outside
@@ -380,6 +357,19 @@ def _one_sided_minima(zz: F32, reach: int, across: int, axis: int) -> tuple[F32,
     before = minimum_filter1d(band, reach, axis=axis, origin=(reach - 1) // 2, mode="constant", cval=np.inf)
     after = minimum_filter1d(band, reach, axis=axis, origin=-(reach // 2), mode="constant", cval=np.inf)
     return before, after
+
+
+def drop_occluded(z: F32, gap_v: float, gap_h: float, ratio: float) -> F32:
+    """Remove points that nearer points flank above and below (or left and right): seen by the LiDAR past a
+    foreground surface that hides them from the camera. ``z`` (H, W) float32, 0 = empty; returns a filtered copy."""
+    zz = np.where(z > 0, z, np.inf).astype(np.float32)
+    up, down = _one_sided_minima(zz, int(round(1.5 * gap_v)) + 1, int(round(gap_h)) | 1, axis=0)
+    left, right = _one_sided_minima(zz, int(round(1.5 * gap_h)) + 1, int(round(0.5 * gap_v)) | 1, axis=1)
+    lim = zz / np.float32(ratio)
+    hidden = (z > 0) & (((up < lim) & (down < lim)) | ((left < lim) & (right < lim)))
+    out = z.copy()
+    out[hidden] = 0.0
+    return out
 
 
 def drop_see_through(z: F32, gap_v: float, gap_h: float, reach_gaps: float, ratio: float, spread: float) -> F32:
@@ -1044,6 +1034,23 @@ def dense_depth(
 
 
 
+def pixels_in_view(view_a: CameraView, view_b: CameraView, v: NDArray, u: NDArray
+                   ) -> tuple[BoolA, NDArray[np.int64], NDArray[np.int64]]:
+    """Where the viewing directions of pixels (``v``, ``u``) (N,) of ``view_a`` land in ``view_b`` (rotation only:
+    the same direction from both camera centres, each at its own timestamp's pose): (N,) bool inside ``view_b``'s
+    image and in front of it, and the (vb, ub) pixels (rounded) of those inside."""
+    pix = np.stack([u, v, np.ones(len(u))], axis=1).astype(np.float64)
+    d = pix @ np.linalg.inv(np.asarray(view_a.K)).T
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    db = d @ (view_b.T_global_cam[:3, :3].T @ view_a.T_global_cam[:3, :3]).T
+    z = db[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p = db @ np.asarray(view_b.K).T
+        ub, vb = np.rint(p[:, 0] / z), np.rint(p[:, 1] / z)
+    ok = (z > 0.05) & (ub >= 0) & (ub < view_b.width) & (vb >= 0) & (vb < view_b.height)
+    return ok, vb[ok].astype(np.int64), ub[ok].astype(np.int64)
+
+
 def consistent_sky(views: Mapping[str, CameraView], ranges: Mapping[str, F32]) -> dict[str, F32]:
     """The range maps (H, W) float32 [m], inf = sky, of cameras that see one another's directions, with sky where
     they agree: a sky pixel of one camera whose viewing direction (rotation only: the cameras' baselines are
@@ -1058,21 +1065,13 @@ def consistent_sky(views: Mapping[str, CameraView], ranges: Mapping[str, F32]) -
         sky_v, sky_u = np.nonzero(np.isposinf(ranges[a]))
         if not len(sky_v):
             continue
-        pix = np.stack([sky_u, sky_v, np.ones(len(sky_u))], axis=1).astype(np.float64)
-        d = pix @ np.linalg.inv(view_a.K).T
         for b, view_b in views.items():
             if b == a:
                 continue
-            R = view_b.T_global_cam[:3, :3].T @ view_a.T_global_cam[:3, :3]
-            db = d @ R.T
-            z = db[:, 2]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                p = db @ np.asarray(view_b.K).T
-                ub, vb = np.rint(p[:, 0] / z), np.rint(p[:, 1] / z)
-            ok = (z > 0.05) & (ub >= 0) & (ub < view_b.width) & (vb >= 0) & (vb < view_b.height)
+            ok, vb, ub = pixels_in_view(view_a, view_b, sky_v, sky_u)
             if not ok.any():
                 continue
-            rb = ranges[b][vb[ok].astype(np.int64), ub[ok].astype(np.int64)]
+            rb = ranges[b][vb, ub]
             surface = np.isfinite(rb)
             out[a][sky_v[ok][surface], sky_u[ok][surface]] = rb[surface]
     return out
