@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from weatheralign.verify.classifier import (broken_pairs, fused_features, mismatched_pairs,
+from weatheralign.verify.classifier import (broken_pairs, fused_features, held_out_split, mismatched_pairs,
                                             train_weather_classifier)
 from weatheralign.verify.mmd import mmd_test
 from weatheralign.verify.features import FUSED_CHANNELS
@@ -45,6 +45,26 @@ def test_classifier_learns_toy_weather_and_reports_held_out_frames() -> None:
     assert again.accuracy == report.accuracy and (again.confusion == report.confusion).all()
     with pytest.raises(ValueError, match="labels"):
         train_weather_classifier(x, y + 5, ("clear", "fog", "snow"), steps=1)
+
+
+def test_held_out_split_holds_out_a_share_of_every_stratum_and_the_classifier_never_trains_on_it() -> None:
+    strata = np.repeat([0, 1, 2, 3], [40, 3, 10, 7])
+    train, held = held_out_split(strata, 0.5, seed=3)
+    assert np.array_equal(np.sort(np.concatenate([train, held])), np.arange(len(strata)))
+    assert [int(np.sum(strata[held] == s)) for s in range(4)] == [20, 2, 5, 4]  # round(n/2), at least 2, at most n-1
+    assert np.array_equal(held_out_split(strata, 0.5, seed=3)[1], held)  # seeded
+    assert not np.array_equal(held_out_split(strata, 0.5, seed=4)[1], held)
+    with pytest.raises(ValueError, match="stratum 1 has 2 frames"):
+        held_out_split(np.repeat([0, 1], [5, 2]), 0.5)
+
+    torch.set_num_threads(1)
+    x, y = toy_weather(60)
+    _, report = train_weather_classifier(x, y, ("clear", "fog", "snow"), steps=5, width=4, embedding=4,
+                                         held_out=np.array([7, 3, 3, 50]))
+    assert report.held_out.tolist() == [3, 7, 50] and report.confusion.sum() == 3
+    for bad in (np.array([60]), np.arange(60), np.array([], dtype=np.int64)):
+        with pytest.raises(ValueError, match="held_out must name some but not all"):
+            train_weather_classifier(x, y, ("clear", "fog", "snow"), steps=1, held_out=bad)
 
 
 def test_broken_pairs_keep_both_marginals_and_move_every_lidar() -> None:

@@ -2,8 +2,8 @@
 features it gives, and the sensitivity control's broken pairs (`verify`).
 
 Inputs are (N, 6, h, w) float32 stacks of `weatheralign.verify.features.fused_input`, one per frame and camera,
-labelled with class indices. The held-out frames are drawn per class (scikit-learn's stratified split) and never
-trained on; horizontal flips (all six channels together, so that the sensors stay registered) are the only
+labelled with class indices. The held-out frames are drawn per stratum (`held_out_split`: the reference level in
+`verify`, whose MMDs compare only them) and never trained on; horizontal flips (all six channels together, so that the sensors stay registered) are the only
 augmentation. Deterministic for a seed on the CPU.
 """
 
@@ -17,7 +17,6 @@ import torch
 import torch.nn.functional as F
 from numpy.typing import NDArray
 from sklearn.metrics import confusion_matrix
-from sklearn.model_selection import train_test_split
 from tqdm import tqdm
 
 from weatheralign.verify.features import FUSED_CHANNELS, LIDAR_CHANNELS, WeatherClassifier
@@ -42,12 +41,32 @@ def _check(inputs: NDArray, labels: NDArray, classes: Sequence[str]) -> None:
         raise ValueError(f"labels must be {len(inputs)} class indices in 0..{len(classes) - 1}")
 
 
+def held_out_split(strata: NDArray, fraction: float, seed: int = 0) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """(train, held-out) indices (sorted) of ``len(strata)`` frames: of each stratum, ``round(fraction n)`` frames
+    drawn at random (seeded), but at least two (an unbiased MMD needs two per set) and at most ``n - 1`` (the
+    classifier must see every stratum); so each stratum needs three frames or more."""
+    strata = np.asarray(strata)
+    rng = np.random.default_rng(seed)
+    held = []
+    for value in np.unique(strata):
+        members = np.flatnonzero(strata == value)
+        if len(members) < 3:
+            raise ValueError(f"stratum {value!r} has {len(members)} frames: holding two out for the MMD and training "
+                             f"on the rest needs three or more")
+        count = min(max(2, int(round(fraction * len(members)))), len(members) - 1)
+        held.append(rng.choice(members, size=count, replace=False))
+    held_idx = np.sort(np.concatenate(held)).astype(np.int64)
+    return np.setdiff1d(np.arange(len(strata)), held_idx).astype(np.int64), held_idx
+
+
 def train_weather_classifier(inputs: NDArray, labels: NDArray, classes: Sequence[str], held_out_fraction: float = 0.25,
                              steps: int = 300, batch_size: int = 32, lr: float = 3e-3, seed: int = 0,
                              device: str = "cpu", width: int = 16, embedding: int = 64,
                              correspondence_weight: float = 1.0, displaced: NDArray | None = None,
+                             held_out: NDArray | None = None,
                              progress: bool = False) -> tuple[WeatherClassifier, ClassifierReport]:
-    """Train a `WeatherClassifier` on all frames but a stratified held-out share, report on the held-out ones.
+    """Train a `WeatherClassifier` on all frames but a held-out share, report on the held-out ones: the indices
+    ``held_out`` when given, else a ``held_out_fraction`` of each class (`held_out_split`).
 
     Loss per step: cross-entropy of the weather classes on the batch's true pairs, plus ``correspondence_weight`` x
     the binary cross-entropy of the correspondence logit on the true pairs (label 1) and as many mismatched ones
@@ -59,8 +78,13 @@ def train_weather_classifier(inputs: NDArray, labels: NDArray, classes: Sequence
     ``progress``: a progress bar over the steps with the running loss."""
     inputs, labels = np.asarray(inputs, dtype=np.float32), np.asarray(labels, dtype=np.int64)
     _check(inputs, labels, classes)
-    index = np.arange(len(inputs))
-    train_idx, test_idx = train_test_split(index, test_size=held_out_fraction, random_state=seed, stratify=labels)
+    if held_out is None:
+        train_idx, test_idx = held_out_split(labels, held_out_fraction, seed)
+    else:
+        test_idx = np.unique(np.asarray(held_out, dtype=np.int64))
+        if len(test_idx) == 0 or test_idx[0] < 0 or test_idx[-1] >= len(inputs) or len(test_idx) == len(inputs):
+            raise ValueError(f"held_out must name some but not all of the {len(inputs)} frames")
+        train_idx = np.setdiff1d(np.arange(len(inputs)), test_idx)
     torch.manual_seed(seed)
     rng = np.random.default_rng(seed)
     model = WeatherClassifier(len(classes), width, embedding).to(device)
@@ -155,5 +179,5 @@ def broken_pairs(inputs: NDArray, seed: int = 0) -> NDArray[np.float32]:
     return out
 
 
-__all__ = ["ClassifierReport", "broken_pairs", "fused_features", "mismatched_pairs", "predict_classes",
-           "train_weather_classifier"]
+__all__ = ["ClassifierReport", "broken_pairs", "fused_features", "held_out_split", "mismatched_pairs",
+           "predict_classes", "train_weather_classifier"]
