@@ -58,7 +58,7 @@ def perpendicular_basis(d: F64) -> tuple[F64, F64]:
     return e1, np.cross(d, e1)
 
 
-def _slices(origins: F64, d: F64, az: F64, times: F64, lengths: F64, order: I64,
+def _slices(origins: F64, d: F64, e1: F64, e2: F64, az: F64, times: F64, lengths: F64, order: I64,
             bounds: I64) -> tuple[TimeSlices, F64, F64, dict]:
     """The time slices of the beams ``order[bounds[k]:bounds[k+1]]`` (`slices_kernel`; local ``origins`` (B, 3) [m],
     unit directions ``d`` (B, 3), azimuths ``az`` (B,) [rad], ``times`` (B,) [s], ``lengths`` (B,) [m]): the
@@ -75,7 +75,8 @@ def _slices(origins: F64, d: F64, az: F64, times: F64, lengths: F64, order: I64,
     slices = TimeSlices(orig=orig, time=f["time"], e=f["e"], dt=f["dt"], z_lo=f["z_lo"], z_hi=f["z_hi"],
                         tangent=tangent, wedge=wedge, z0=f["z0"], n_el=n_el, el_base=el_base, beam_base=bounds,
                         run_base=run_base)
-    rays = np.ascontiguousarray(np.column_stack([times[beam], origins[beam], d[beam], lengths[beam]]))
+    rays = np.ascontiguousarray(np.column_stack([times[beam], origins[beam], d[beam], lengths[beam], e1[beam],
+                                                 e2[beam]]))
     return slices, f["az0"], f["span"], dict(el_cum=el_cum, run_at=run_at, run_lo=run_lo, run_start=run_start,
                                              beam=beam, rays=rays, proj=proj)
 
@@ -119,7 +120,7 @@ def index_beams(beams: Beams, t_ref: float | None = None) -> BeamIndex:
     n_slices = int(np.clip(n // _SLICE_BEAMS, 1, _MAX_SLICES))
     bounds = np.linspace(0, n, n_slices + 1).astype(np.int64)
     lengths = np.ascontiguousarray(beams.lengths, dtype=np.float64)
-    slices, az0, span, sorted_beams = _slices(origins, d, az, times, lengths, order, bounds)
+    slices, az0, span, sorted_beams = _slices(origins, d, e1, e2, az, times, lengths, order, bounds)
     e_origin = float(np.linalg.norm(origins, axis=1).max()) if n else 0.0
     n_tb = max(_MIN_TABLE_BINS, 4 * n_slices)
     tb_off, tb_slices = _slice_table(az0, span, n_tb)

@@ -349,8 +349,8 @@ def cells_kernel(query, reach_map, grid, out, out_d):  # pragma: no cover
 @njit(nogil=True, cache=True, inline="always")
 def _exact_hit(px, py, pz, r, pid, jj, beams, rays, beam_of, vel, t_part, out, n):  # pragma: no cover
     """The exact test of the particle at local ``(px, py, pz)`` [m] (at ``t_part``, radius ``r`` [m], id ``pid``)
-    against the beam ``beam_of[jj]`` of row ``jj`` of the `SliceIndex` (``rays`` (B, 8): its firing time, origin,
-    direction and length; `BeamRays` ``beams``: its e1, e2) at its firing time, appended to ``out`` (`HitArrays`) at
+    against the beam ``beam_of[jj]`` of row ``jj`` of the `SliceIndex` (``rays`` (B, 14): its firing time, origin,
+    direction, length, then e1, e2 of its cross-section) at its firing time, appended to ``out`` (`HitArrays`) at
     row ``n`` if it hits (counted, not written, past the capacity); returns the new row count. The expressions of
     the original hit kernel: the same ``s``, ``u1``, ``u2``, ``a`` to the bit."""
     dtb = rays[jj, 0] - t_part
@@ -371,9 +371,8 @@ def _exact_hit(px, py, pz, r, pid, jj, beams, rays, beam_of, vel, t_part, out, n
         out.pid[n] = pid
         out.s[n] = s
         if wb > 0.0:
-            e1, e2 = beams.e1, beams.e2
-            out.u1[n] = (vx * e1[b, 0] + vy * e1[b, 1] + vz * e1[b, 2]) / wb
-            out.u2[n] = (vx * e2[b, 0] + vy * e2[b, 1] + vz * e2[b, 2]) / wb
+            out.u1[n] = (vx * rays[jj, 8] + vy * rays[jj, 9] + vz * rays[jj, 10]) / wb
+            out.u2[n] = (vx * rays[jj, 11] + vy * rays[jj, 12] + vz * rays[jj, 13]) / wb
             out.a[n] = r / wb
         else:  # a pencil beam: any hit covers it
             out.u1[n] = 0.0

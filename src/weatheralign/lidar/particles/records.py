@@ -68,7 +68,7 @@ class SliceIndex(NamedTuple):
     run_lo: NDArray[np.int32]  # (R,) first fine bin of each run of consecutive occupied bins of a slice
     run_start: NDArray[np.int32]  # (R+1,) the beams of run r are rows run_start[r]:run_start[r+1]
     beam: I64  # (B,) beam indices sorted by slice, run, then projection on the slice's tangent
-    rays: F64  # (B, 8) their firing time [s], local origin (x, y, z) [m], unit direction (x, y, z), length [m]
+    rays: F64  # (B, 14) firing time [s], local origin (x, y, z) [m], unit direction (x, y, z), length [m], e1, e2
     proj: F64  # (B,) their projection on their slice's tangent (ascending within a run)
 
 
