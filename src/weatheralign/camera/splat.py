@@ -448,20 +448,32 @@ def unresolved_extinction_profile(medium: ParticleField | ExponentialSizeDistrib
 
 
 # ------------------------------------------------------------------------------------------------------ materialise
-def _frustum_box(K: F64, width: int, height: int, T_global_cam: F64, r0: float, r1: float,
+@njit(nogil=True, cache=True)
+def _frustum_box(K_inv: F64, width: int, height: int, T_global_cam: F64, r0: float, r1: float,
                  margin_px: float) -> tuple[F64, F64]:
     """Axis-aligned global box (lo, hi) (3,) [m] holding every point at ray length in [r0, r1] whose projection lies
-    in the image widened by ``margin_px`` (directions sampled on a 17 x 17 grid, plus 1 % slack)."""
-    us = np.linspace(-margin_px, width - 1 + margin_px, 17)
-    vs = np.linspace(-margin_px, height - 1 + margin_px, 17)
-    uu, vv = np.meshgrid(us, vs)
-    pix = np.stack([uu.ravel(), vv.ravel(), np.ones(uu.size)], axis=0)
-    d = np.linalg.solve(K, pix).T
-    d /= np.linalg.norm(d, axis=1, keepdims=True)
-    d = d @ T_global_cam[:3, :3].T
-    pts = np.concatenate([d * r0, d * r1]) + T_global_cam[:3, 3]
+    in the image widened by ``margin_px`` (directions sampled on a 17 x 17 grid, plus 1 % slack). ``K_inv``: the
+    inverse intrinsics."""
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    step_u = (width - 1 + 2.0 * margin_px) / 16.0
+    step_v = (height - 1 + 2.0 * margin_px) / 16.0
+    for a in range(17):
+        v = -margin_px + a * step_v
+        for b in range(17):
+            u = -margin_px + b * step_u
+            c = np.empty(3)
+            for i in range(3):
+                c[i] = K_inv[i, 0] * u + K_inv[i, 1] * v + K_inv[i, 2]
+            norm = math.sqrt(c[0] * c[0] + c[1] * c[1] + c[2] * c[2])
+            for i in range(3):
+                g = (T_global_cam[i, 0] * c[0] + T_global_cam[i, 1] * c[1] + T_global_cam[i, 2] * c[2]) / norm
+                for r in (r0, r1):
+                    p = g * r + T_global_cam[i, 3]
+                    lo[i] = min(lo[i], p)
+                    hi[i] = max(hi[i], p)
     slack = 0.01 * r1 + 0.01
-    return pts.min(axis=0) - slack, pts.max(axis=0) + slack
+    return lo - slack, hi + slack
 
 
 def materialize_for_camera(field: ParticleField, K: NDArray, width: int, height: int, T_global_cam: NDArray,
@@ -486,6 +498,7 @@ def materialize_for_camera(field: ParticleField, K: NDArray, width: int, height:
     spec = field.spectrum
     r_end = min(float(max_range), max_splat_range(spec.d_max, f, appearance))
     T_cam_global = invert(T_global_cam)
+    K_inv = np.linalg.inv(K)
     pos_parts, dia_parts, id_parts = [], [], []
     r0 = float(near_clip)
     while r0 < r_end:
@@ -495,7 +508,7 @@ def materialize_for_camera(field: ParticleField, K: NDArray, width: int, height:
             break
         sigma = math.sqrt((f * appearance.sigma_per_diameter * spec.d_max / r0) ** 2 + DILATION_PX2)
         margin = min(3.4 * sigma + 0.5 * f * streak_m / r0, max_footprint_px * 3.4 / 3.0) + 1.0
-        lo, hi = _frustum_box(K, width, height, T_global_cam, r0, r1, margin)
+        lo, hi = _frustum_box(K_inv, width, height, T_global_cam, r0, r1, margin)
         p = field.materialize(lo, hi, t, min_diameter=m, max_particles=max_particles)
         if len(p):
             pc = p.positions @ T_cam_global[:3, :3].T + T_cam_global[:3, 3]

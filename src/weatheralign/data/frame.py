@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 from PIL import Image
 
 from weatheralign.data.errors import DataFormatError, require_file
+from weatheralign.float16 import from_float16
 from weatheralign.geometry import apply, interpolate_poses, invert
 
 F64 = NDArray[np.float64]
@@ -178,7 +179,8 @@ class CameraView:
             raise DataFormatError(f"{self.channel}: this dataset has no exact per-pixel range (real data)")
         path = require_file(self.range_path, f"{self.channel} range map")
         try:
-            rng = np.load(path).astype(np.float32)
+            rng = np.load(path)
+            rng = from_float16(rng) if rng.dtype == np.float16 else rng.astype(np.float32)
         except (OSError, ValueError, EOFError) as exc:
             raise DataFormatError(f"{path}: {self.channel} range map is truncated or not a valid .npy array "
                                   f"({type(exc).__name__}: {exc}); expected (H, W) float ray lengths [m]") from None

@@ -25,7 +25,8 @@ from weatheralign.world.layout import Actor, SceneLayout, generate_layout
 from weatheralign.world.objects import ego_rear
 from weatheralign.world.raster import pinhole_depth
 from weatheralign.world.raycast import WorldRaycaster
-from weatheralign.world.render import CameraFrame, LidarSweep, render_camera, render_lidar_sweep, to_float16
+from weatheralign.float16 import to_float16
+from weatheralign.world.render import CameraFrame, LidarSweep, render_camera, render_lidar_sweep
 from weatheralign.sensors import FiringPattern, ego_body_from_params, lidar_model_from_params
 from weatheralign.world.rig import Camera, camera_time_offset, make_cameras
 
