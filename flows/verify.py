@@ -24,7 +24,9 @@ snow, rain):
    unaligned features): MMD^2 (unbiased) of the
    reference's weather frames against the aligned and against the unaligned simulation with permutation p-values and
    frame-bootstrap intervals, the paired test of their difference, and the **sensitivity control**: the reference
-   weather frames against themselves with every LiDAR paired with another frame's camera. Unaligned snow and rain
+   weather frames against themselves with every LiDAR paired with another frame's camera (`paired_mmd_test`: row i
+   of both sets holds frame i's camera, so the null swaps within frames and the statistic leaves each frame's own
+   cross term out; an unpaired permutation test sees a frame's two rows as near-duplicates). Unaligned snow and rain
    misalign severity and positions (`ParticlePart.camera_rate`); the same tests also run against the unaligned
    camera at the LiDAR's rate (``mmd_*_positions``: positions alone misaligned).
 
@@ -65,7 +67,7 @@ from weatheralign.verify.classifier import (broken_pairs, fused_features, held_o
 from weatheralign.verify.figures import (confusion_figure, ecdf_figure, embedding_figure,  # noqa: E402
                                          permutation_figure)
 from weatheralign.verify.frames import Severity, SimulatedPair  # noqa: E402
-from weatheralign.verify.mmd import mmd_test, paired_mmd_difference  # noqa: E402
+from weatheralign.verify.mmd import mmd_test, paired_mmd_difference, paired_mmd_test  # noqa: E402
 from weatheralign.verify.table import table_markdown  # noqa: E402
 
 VERIFIED: dict[str, str] = {"fog_light": "light", "fog_dense": "dense", "snow": "snow", "rain": "rain"}
@@ -120,7 +122,7 @@ def condition_metrics(name: str, ref_feat: np.ndarray, sims: list[SimulatedPair]
     kw = {"permutations": cfg.permutations, "resamples": cfg.resamples, "seed": cfg.seed, "confidence": cfg.confidence}
     scale = (ref_feat, al_feat, un_feat)  # one kernel for the condition: aligned - unaligned = the paired difference
     aligned, unaligned = mmd_test(ref_feat, al_feat, scale=scale, **kw), mmd_test(ref_feat, un_feat, scale=scale, **kw)
-    control = mmd_test(ref_feat, control_feat, scale=scale, **kw)
+    control = paired_mmd_test(ref_feat, control_feat, scale=scale, **kw)  # row i of both: frame i's camera
     diff = paired_mmd_difference(ref_feat, al_feat, un_feat, **kw)
     reproj = np.concatenate([s.reprojection_px for s in sims])
     metrics = {

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from weatheralign.verify.mmd import (gaussian_kernel, median_bandwidth, mmd2_unbiased, mmd_test,
-                                     paired_mmd_difference, standardise)
+                                     paired_mmd_difference, paired_mmd_test, standardise)
 
 
 def slow_mmd2(x: np.ndarray, y: np.ndarray, bandwidth: float) -> float:
@@ -81,6 +81,39 @@ def test_paired_difference_finds_the_closer_set() -> None:
     assert twins.p_value > 0.05
     with pytest.raises(ValueError, match="paired"):
         paired_mmd_difference(reference, close, far[:-1])
+
+
+def slow_paired_mmd2(x: np.ndarray, y: np.ndarray, bandwidth: float) -> float:
+    def k(a, b):
+        return math.exp(-float(np.sum((a - b) ** 2)) / (2 * bandwidth ** 2))
+    n = len(x)
+    return sum(k(x[i], x[j]) + k(y[i], y[j]) - k(x[i], y[j]) - k(x[j], y[i])
+               for i in range(n) for j in range(n) if i != j) / (n * (n - 1))
+
+
+def frames_with_a_shared_part(rng: np.random.Generator, n: int, shift: float) -> tuple[np.ndarray, np.ndarray]:
+    """n frames, each seen twice (x_i, y_i) with a large per-frame part in common (the camera) and a small part of
+    their own; y's own part moved by ``shift`` in every frame (the LiDAR)."""
+    frame = rng.normal(0.0, 3.0, (n, 4))
+    return frame + rng.normal(0.0, 0.3, (n, 4)), frame + rng.normal(0.0, 0.3, (n, 4)) + shift
+
+
+def test_paired_test_is_the_pair_u_statistic_and_sees_what_the_unpaired_test_cannot() -> None:
+    rng = np.random.default_rng(6)
+    x, y = frames_with_a_shared_part(rng, 9, 0.0)
+    result = paired_mmd_test(x, y, permutations=50, resamples=20)
+    (xs, ys), = [standardise(x, y)]
+    assert result.mmd2 == pytest.approx(slow_paired_mmd2(xs, ys, result.bandwidth), rel=1e-12)
+    # a small shift of every frame's second view: invisible between frames, obvious within them
+    x, y = frames_with_a_shared_part(rng, 20, 0.5)
+    paired, unpaired = paired_mmd_test(x, y, permutations=500, resamples=200), mmd_test(x, y, permutations=500)
+    assert paired.p_value < 0.01 < 0.2 < unpaired.p_value and paired.ci[0] > 0
+    p_null = [paired_mmd_test(*frames_with_a_shared_part(rng, 20, 0.0), permutations=200, resamples=0,
+                              seed=k).p_value for k in range(40)]
+    assert np.mean(np.array(p_null) < 0.05) <= 0.15 and 0.3 < np.mean(p_null) < 0.7
+    assert paired_mmd_test(x, y, 50, 20, seed=3) == paired_mmd_test(x, y, 50, 20, seed=3)
+    with pytest.raises(ValueError, match="paired"):
+        paired_mmd_test(x, y[:-1])
 
 
 def test_figures_render(tmp_path) -> None:
