@@ -15,6 +15,9 @@ snow, rain):
    the image and the LiDAR projected into it, with the correspondence objective (`train_weather_classifier`: true
    pairs against another frame's LiDAR, the frame's own LiDAR shifted, and, for snow and rain frames with particle
    echoes in view, the frame's LiDAR with its particle echoes displaced); its penultimate layer is the fused feature.
+   ``verify.classifiers`` classifiers train alike from consecutive seeds; every MMD below uses the mean of their
+   kernels (`pooled_kernel`), so that no single training draw decides a verdict (the control's p-value of each
+   classifier alone is reported beside it);
    ``verify.held_out_fraction`` of every reference level (at least two frames) is held out of its training
    (`held_out_split`): the classifier's accuracy is measured on them, and the MMDs below compare only held-out
    reference frames and simulations of held-out clear frames. (Measured: with the MMD's reference frames among the
@@ -62,7 +65,7 @@ from weatheralign.data.errors import DataFormatError  # noqa: E402
 from weatheralign.reference import (PRECIPITATION_LEVELS, ReferenceDataset, configured_reference,  # noqa: E402
                                     reference_lidar_model)
 from weatheralign.simulate.media import configured_fog_levels, configured_precipitation_rates  # noqa: E402
-from weatheralign.verify.classifier import (broken_pairs, fused_features, held_out_split,  # noqa: E402
+from weatheralign.verify.classifier import (broken_pairs, ensemble_report, fused_features, held_out_split,  # noqa: E402
                                             train_weather_classifier)
 from weatheralign.verify.figures import (confusion_figure, ecdf_figure, embedding_figure,  # noqa: E402
                                          permutation_figure)
@@ -116,13 +119,16 @@ def _figure(fig, path: Path, tracker: StageTracker) -> None:
 def condition_metrics(name: str, ref_feat: np.ndarray, sims: list[SimulatedPair], al_feat: np.ndarray,
                       un_feat: np.ndarray, control_feat: np.ndarray, params: Params,
                       pos_feat: np.ndarray | None = None) -> tuple[dict, dict]:
-    """The MMD tests of one condition: (metrics, tests for the figures). ``pos_feat``: the features of the
+    """The MMD tests of one condition: (metrics, tests for the figures). Features are (classifiers, n, embedding)
+    (`weatheralign.verify.mmd.pooled_kernel`: the classifiers' mean kernel). ``pos_feat``: the features of the
     unaligned camera at the LiDAR's rate (positions alone misaligned), tested the same way when given."""
     cfg = params.verify
     kw = {"permutations": cfg.permutations, "resamples": cfg.resamples, "seed": cfg.seed, "confidence": cfg.confidence}
     scale = (ref_feat, al_feat, un_feat)  # one kernel for the condition: aligned - unaligned = the paired difference
     aligned, unaligned = mmd_test(ref_feat, al_feat, scale=scale, **kw), mmd_test(ref_feat, un_feat, scale=scale, **kw)
     control = paired_mmd_test(ref_feat, control_feat, scale=scale, **kw)  # row i of both: frame i's camera
+    control_each = [paired_mmd_test(ref_feat[m], control_feat[m], scale=[f[m] for f in scale], **kw).p_value
+                    for m in range(len(ref_feat))]  # each classifier alone: the spread over training draws
     diff = paired_mmd_difference(ref_feat, al_feat, un_feat, **kw)
     reproj = np.concatenate([s.reprojection_px for s in sims])
     metrics = {
@@ -130,6 +136,7 @@ def condition_metrics(name: str, ref_feat: np.ndarray, sims: list[SimulatedPair]
         "mmd_unaligned": unaligned.mmd2, "mmd_unaligned_ci": list(unaligned.ci), "mmd_p_unaligned": unaligned.p_value,
         "mmd_difference": diff.difference, "mmd_difference_ci": list(diff.ci), "mmd_difference_p": diff.p_value,
         "control_mmd": control.mmd2, "control_mmd_ci": list(control.ci), "control_p": control.p_value,
+        "control_p_each_classifier": control_each,
         "mmd_bandwidth": aligned.bandwidth,
         "reference_reprojection_mean_px": float(reproj.mean()) if len(reproj) else None,
         "reference_reprojection_max_px": float(reproj.max()) if len(reproj) else None,
@@ -189,18 +196,23 @@ def verify_flow(params: Params) -> dict:
         labels = np.concatenate([np.full(len(real[level]), CLASS_OF_LEVEL[level]) for level in levels])
         nan = np.full((3, *hw), np.nan, dtype=np.float32)
         displaced = np.stack([nan if r[3] is None else r[3] for level in levels for r in real[level]])
-        model, report = train_weather_classifier(
+        trained = [train_weather_classifier(
             inputs, labels, CLASSES, held_out_fraction=cfg.held_out_fraction, steps=cfg.steps,
-            batch_size=cfg.batch_size, lr=cfg.lr, seed=cfg.seed, device=cfg.device,
+            batch_size=cfg.batch_size, lr=cfg.lr, seed=cfg.seed + k, device=cfg.device,
             correspondence_weight=cfg.correspondence_weight, embedding=cfg.embedding, displaced=displaced,
-            held_out=held_idx, progress=show)
+            held_out=held_idx, progress=show) for k in range(cfg.classifiers)]
+        models = [m for m, _ in trained]
+        member_accuracy = [r.accuracy for _, r in trained]
+        report = ensemble_report(models, [r for _, r in trained], inputs, labels, device=cfg.device)
         t_train = time.time()
-        print(f"verify: weather classifier held-out accuracy {report.accuracy:.3f} on {len(report.held_out)} frames "
+        print(f"verify: {len(models)} weather classifiers, held-out accuracy {report.accuracy:.3f} (each "
+              f"{', '.join(f'{a:.3f}' for a in member_accuracy)}) on {len(report.held_out)} frames "
               f"({t_train - t_sim:.0f} s; {int(np.isfinite(displaced).all(axis=(1, 2, 3)).sum())} frames with "
               f"displaced-particle negatives)")
 
         def features(x: np.ndarray) -> np.ndarray:
-            return fused_features(model, x, device=cfg.device)
+            """(classifiers, n, embedding): every classifier's fused features of the inputs x."""
+            return np.stack([fused_features(m, x, device=cfg.device) for m in models])
 
         extractor = feature_extractor(params.calibrate_fog.inception_path, device=params.calibrate_fog.device)
         per_condition: dict[str, dict] = {}
@@ -239,8 +251,9 @@ def verify_flow(params: Params) -> dict:
                 "reprojection_mean_px": sim_report.get("reprojection_mean_px"),
                 "reprojection_max_px": sim_report.get("reprojection_max_px"),
                 **metrics}
-            _figure(embedding_figure({"reference": ref_feat, "aligned": al_feat, "unaligned": un_feat,
-                                      "control": control_feat}, f"{name}: fused features (classifier embedding)"),
+            _figure(embedding_figure({"reference": ref_feat[0], "aligned": al_feat[0], "unaligned": un_feat[0],
+                                      "control": control_feat[0]},
+                                     f"{name}: fused features (embedding of classifier 1 of {len(models)})"),
                     tracker.reports / f"embedding_{name}.png", tracker)
             _figure(permutation_figure(tests, f"{name}: MMD² permutation tests against the reference"),
                     tracker.reports / f"permutations_{name}.png", tracker)
@@ -253,6 +266,7 @@ def verify_flow(params: Params) -> dict:
             "severity": {"fog_levels": severity.levels.source, "snow_rate_mm_h": severity.snow_rate_mm_h,
                          "rain_rate_mm_h": severity.rain_rate_mm_h, "rates": rate_source},
             "classifier_accuracy": report.accuracy, "classifier_held_out": int(len(report.held_out)),
+            "classifiers": len(models), "classifier_accuracy_each": member_accuracy,
             "classifier_confusion": report.confusion.tolist(), "classes": list(CLASSES),
             "control_mmd": min(m["control_mmd"] for m in per_condition.values()),
             "control_p": control_p, "control_detected": bool(control_p < 0.01),

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from weatheralign.verify.classifier import (broken_pairs, fused_features, held_out_split, mismatched_pairs,
-                                            train_weather_classifier)
+from weatheralign.verify.classifier import (broken_pairs, ensemble_report, fused_features, held_out_split,
+                                            mismatched_pairs, train_weather_classifier)
 from weatheralign.verify.mmd import mmd_test
 from weatheralign.verify.features import FUSED_CHANNELS
 
@@ -45,6 +45,24 @@ def test_classifier_learns_toy_weather_and_reports_held_out_frames() -> None:
     assert again.accuracy == report.accuracy and (again.confusion == report.confusion).all()
     with pytest.raises(ValueError, match="labels"):
         train_weather_classifier(x, y + 5, ("clear", "fog", "snow"), steps=1)
+
+
+def test_an_ensemble_report_averages_class_probabilities_on_the_shared_held_out_frames() -> None:
+    torch.set_num_threads(1)
+    x, y = toy_weather(120, seed=3)
+    held = held_out_split(y, 0.25, seed=0)[1]
+    trained = [train_weather_classifier(x, y, ("clear", "fog", "snow"), steps=40, width=8, embedding=8, seed=k,
+                                        held_out=held) for k in range(2)]
+    models, reports = [m for m, _ in trained], [r for _, r in trained]
+    report = ensemble_report(models, reports, x, y)
+    probs = np.mean([torch.softmax(m.eval()(torch.from_numpy(x[held])), dim=1).detach().numpy() for m in models],
+                    axis=0)
+    assert (report.held_out == held).all() and report.confusion.sum() == len(held)
+    assert report.accuracy == pytest.approx(float(np.mean(probs.argmax(axis=1) == y[held])))
+    assert report.final_loss == pytest.approx(np.mean([r.final_loss for r in reports]))
+    other = train_weather_classifier(x, y, ("clear", "fog", "snow"), steps=2, width=8, embedding=8, seed=5)
+    with pytest.raises(ValueError, match="same held-out"):
+        ensemble_report([*models, other[0]], [*reports, other[1]], x, y)
 
 
 def test_held_out_split_holds_out_a_share_of_every_stratum_and_the_classifier_never_trains_on_it() -> None:

@@ -102,6 +102,8 @@ def test_verify_and_rate_calibration_on_an_stf_layout_tree_with_snow_and_rain(tm
     assert metrics["severity"] == {"fog_levels": "params", "snow_rate_mm_h": 2.0, "rain_rate_mm_h": 50.0,
                                    "rates": {"snow": "params", "rain": "params"}}
     assert 0.0 <= metrics["classifier_accuracy"] <= 1.0 and len(metrics["classifier_confusion"]) == 4
+    assert metrics["classifiers"] == 3 and len(metrics["classifier_accuracy_each"]) == 3  # the params' ensemble
+    assert all(len(m["control_p_each_classifier"]) == 3 for m in metrics["conditions"].values())
     table = (reports / "verify" / "table.md").read_text()
     assert "| MMD² aligned |" in table and "The paper" in table and "0.2837" in table
     for name in ("ecdf.png", "confusion.png", "embedding_snow.png", "permutations_rain.png"):

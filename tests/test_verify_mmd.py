@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from weatheralign.verify.mmd import (gaussian_kernel, median_bandwidth, mmd2_unbiased, mmd_test,
-                                     paired_mmd_difference, paired_mmd_test, standardise)
+                                     paired_mmd_difference, paired_mmd_test, pooled_kernel, standardise)
 
 
 def slow_mmd2(x: np.ndarray, y: np.ndarray, bandwidth: float) -> float:
@@ -114,6 +114,29 @@ def test_paired_test_is_the_pair_u_statistic_and_sees_what_the_unpaired_test_can
     assert paired_mmd_test(x, y, 50, 20, seed=3) == paired_mmd_test(x, y, 50, 20, seed=3)
     with pytest.raises(ValueError, match="paired"):
         paired_mmd_test(x, y[:-1])
+
+
+def test_an_ensemble_of_feature_extractors_averages_their_statistics() -> None:
+    """(M, n, d) sets: every statistic is the mean over the members' own (each standardised with its own bandwidth),
+    under one shared permutation; one member is the plain test."""
+    rng = np.random.default_rng(8)
+    x, y = rng.normal(size=(3, 12, 4)), rng.normal(0.4, 1.0, (3, 12, 4))
+    members = [mmd_test(x[m], y[m], permutations=100, resamples=0) for m in range(3)]
+    ensemble = mmd_test(x, y, permutations=100, resamples=0)
+    assert ensemble.mmd2 == pytest.approx(np.mean([t.mmd2 for t in members]), rel=1e-12)
+    assert ensemble.bandwidth == pytest.approx(np.mean([t.bandwidth for t in members]), rel=1e-12)
+    one = mmd_test(x[:1], y[:1], permutations=100, resamples=30)
+    assert one == mmd_test(x[0], y[0], permutations=100, resamples=30)
+    paired = [paired_mmd_test(x[m], y[m], permutations=50, resamples=0).mmd2 for m in range(3)]
+    assert paired_mmd_test(x, y, permutations=50, resamples=0).mmd2 == pytest.approx(np.mean(paired), rel=1e-12)
+    diffs = [paired_mmd_difference(x[m, :6], x[m, 6:], y[m, :6], permutations=20, resamples=0).difference
+             for m in range(3)]
+    assert paired_mmd_difference(x[:, :6], x[:, 6:], y[:, :6], permutations=20,
+                                 resamples=0).difference == pytest.approx(np.mean(diffs), rel=1e-12)
+    K, _ = pooled_kernel((x, y))
+    assert K.shape == (24, 24) and np.allclose(np.diag(K), 1.0) and np.allclose(K, K.T)
+    with pytest.raises(ValueError, match="feature extractors"):
+        pooled_kernel((x, y[:2]))
 
 
 def test_figures_render(tmp_path) -> None:

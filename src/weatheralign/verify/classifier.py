@@ -124,6 +124,23 @@ def train_weather_classifier(inputs: NDArray, labels: NDArray, classes: Sequence
                                    float(loss.detach()))
 
 
+def ensemble_report(models: Sequence[WeatherClassifier], reports: Sequence[ClassifierReport], inputs: NDArray,
+                    labels: NDArray, device: str = "cpu") -> ClassifierReport:
+    """The held-out report of classifiers trained on one split (their ``reports`` share the held-out frames): class
+    probabilities averaged over ``models``; the final loss is their mean."""
+    held = reports[0].held_out
+    if any(not np.array_equal(r.held_out, held) for r in reports) or len(models) != len(reports) or not models:
+        raise ValueError("an ensemble report needs one report per model, all on the same held-out frames")
+    x = np.asarray(inputs, dtype=np.float32)[held]
+    probs = np.mean([torch.softmax(torch.from_numpy(_batches(m, x, "forward", 64, device)), dim=1).numpy()
+                     for m in models], axis=0)
+    classes = reports[0].classes
+    confusion = confusion_matrix(np.asarray(labels)[held], probs.argmax(axis=1),
+                                 labels=np.arange(len(classes))).astype(np.int64)
+    return ClassifierReport(classes, float(np.trace(confusion) / max(confusion.sum(), 1)), confusion, held,
+                            float(np.mean([r.final_loss for r in reports])))
+
+
 def mismatched_pairs(x: torch.Tensor, rng: np.random.Generator, displaced: torch.Tensor | None = None
                      ) -> torch.Tensor:
     """(B, 6, h, w) fused inputs (B >= 2) with their LiDAR channels mismatched: the first half take the LiDAR of the
@@ -179,5 +196,5 @@ def broken_pairs(inputs: NDArray, seed: int = 0) -> NDArray[np.float32]:
     return out
 
 
-__all__ = ["ClassifierReport", "broken_pairs", "fused_features", "held_out_split", "mismatched_pairs",
+__all__ = ["ClassifierReport", "broken_pairs", "ensemble_report", "fused_features", "held_out_split", "mismatched_pairs",
            "predict_classes", "train_weather_classifier"]

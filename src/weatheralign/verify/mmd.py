@@ -10,6 +10,10 @@ Conventions (stated once, used everywhere here):
 * Gaussian kernel ``k(x, y) = exp(-|x - y|^2 / (2 l^2))`` with ``l`` the median Euclidean distance between distinct
   pooled, standardised vectors (the median heuristic; Gretton et al. 2012), computed with scikit-learn's
   ``pairwise_distances`` / ``rbf_kernel`` once per comparison: every permutation and resample reuses that matrix.
+* Several feature extractors (M independently trained classifiers, sets given as (M, n, d)): each member is
+  standardised and given its bandwidth on its own, and the kernel is the mean of the members' kernels
+  (`pooled_kernel`), so every statistic is the mean of the members' statistics under one shared permutation or
+  resample: training noise averages out, the features are not widened.
 * MMD^2 is the unbiased U-statistic (Gretton et al. 2012, eq. 3): the within-set means exclude the diagonal. It can be
   slightly negative when the distributions agree.
 * Permutation p-value: ``(1 + #{permuted >= observed}) / (1 + permutations)`` (never 0).
@@ -17,7 +21,7 @@ Conventions (stated once, used everywhere here):
   matrix; percentile interval. (A resampled frame that appears twice adds kernel value 1 pairs: the interval is a
   little wide of the estimator's own spread when sets are small.)
 
-Shapes: feature sets are (n, d) float arrays, one row per frame.
+Shapes: feature sets are (n, d) float arrays, one row per frame, or (M, n, d) for M feature extractors.
 """
 
 from __future__ import annotations
@@ -54,6 +58,35 @@ def _scale_and_bandwidth(sets: Sequence[NDArray], scale: Sequence[NDArray] | Non
     bandwidth of the standardised ``scale`` pool."""
     scale = tuple(sets) if scale is None else tuple(scale)
     return standardise(*sets, using=scale), median_bandwidth(np.concatenate(standardise(*scale)))
+
+
+def _members(sets: Sequence[NDArray]) -> list[F64]:
+    """Feature sets as (M, n_i, d) arrays of one member count M: an (n, d) set is one member."""
+    out = [np.asarray(s, dtype=np.float64) for s in sets]
+    out = [s[None] if s.ndim == 2 else s for s in out]
+    if any(s.ndim != 3 for s in out) or len({s.shape[0] for s in out}) != 1:
+        raise ValueError(f"feature sets must be (n, d), or (M, n, d) for M feature extractors alike, got shapes "
+                         f"{[np.shape(s) for s in sets]}")
+    return out
+
+
+def pooled_kernel(sets: Sequence[NDArray], scale: Sequence[NDArray] | None = None) -> tuple[F64, float]:
+    """The (N, N) kernel matrix over the rows of ``sets`` (concatenated in order) and its length scale. A set is
+    (n, d) features, or (M, n, d): the same frames through M feature extractors (independently trained
+    classifiers), whose members are standardised and given a median-heuristic bandwidth each, with ``scale``'s
+    members (default: ``sets``'); the kernel is the mean of the members' Gaussian kernels (itself a kernel, so
+    every MMD^2 on it is the mean of the members' MMD^2 under one permutation). Returns the mean bandwidth."""
+    members = _members(sets)
+    scale_members = members if scale is None else _members(scale)
+    if scale_members[0].shape[0] != members[0].shape[0]:
+        raise ValueError("scale must have as many feature extractors as the sets")
+    K, widths = None, []
+    for m in range(members[0].shape[0]):
+        scaled, width = _scale_and_bandwidth([s[m] for s in members], [s[m] for s in scale_members])
+        Km = gaussian_kernel(np.concatenate(scaled), width)
+        K = Km if K is None else K + Km
+        widths.append(width)
+    return K / len(widths), float(np.mean(widths))
 
 
 def median_bandwidth(z: NDArray) -> float:
@@ -127,10 +160,9 @@ def mmd_test(x: NDArray, y: NDArray, permutations: int = 1000, resamples: int = 
     """Two-sample MMD test of feature sets ``x`` (m, d) and ``y`` (n, d) under the module's conventions; ``scale``:
     the sets whose pool sets the standardisation and the bandwidth (default: x and y), so that several tests share
     one kernel."""
-    (xs, ys), bandwidth = _scale_and_bandwidth((x, y), scale)
-    z = np.concatenate([xs, ys])
-    K = gaussian_kernel(z, bandwidth)
-    m, n = len(xs), len(ys)
+    K, bandwidth = pooled_kernel((x, y), scale)
+    m = _members((x,))[0].shape[1]
+    n = len(K) - m
     observed = mmd2_unbiased(K, m)
     rng = np.random.default_rng(seed)
     null = np.empty(permutations)
@@ -168,12 +200,11 @@ def paired_mmd_test(x: NDArray, y: NDArray, permutations: int = 1000, resamples:
     camera); the null swaps x_i and y_i at random (exchangeable within a pair when the features are blind to what
     differs); the bootstrap resamples pairs. An unpaired permutation would put both rows of a frame in one set and so
     inflate its null with the frame's self-similarity. Kernel and standardisation as `mmd_test` (``scale``)."""
-    if np.shape(x) != np.shape(y) or len(x) < 2:
+    if np.shape(x) != np.shape(y) or np.shape(x)[-2] < 2:
         raise ValueError(f"paired sets need the same shape and two frames or more, got {np.shape(x)} and "
                          f"{np.shape(y)}")
-    (xs, ys), bandwidth = _scale_and_bandwidth((x, y), scale)
-    K = gaussian_kernel(np.concatenate([xs, ys]), bandwidth)
-    n = len(xs)
+    K, bandwidth = pooled_kernel((x, y), scale)
+    n = len(K) // 2
     x_rows, y_rows = np.arange(n), n + np.arange(n)
     observed = float(_paired_mmd2(K, x_rows[None], y_rows[None])[0])
     rng = np.random.default_rng(seed)
@@ -208,12 +239,11 @@ def paired_mmd_difference(reference: NDArray, a: NDArray, b: NDArray, permutatio
     """Is ``a`` (n, d) closer to ``reference`` (r, d) than its paired set ``b`` (n, d)? All three standardised
     together, one kernel (median heuristic over the three) for both MMDs: ``mmd2_a`` and ``mmd2_b`` equal
     `mmd_test` of each against the reference with ``scale=(reference, a, b)``."""
-    if len(a) != len(b):
-        raise ValueError(f"paired sets need one row per frame in both: {len(a)} vs {len(b)}")
-    (rs, as_, bs), bandwidth = _scale_and_bandwidth((reference, a, b), None)
-    z = np.concatenate([rs, as_, bs])
-    K = gaussian_kernel(z, bandwidth)
-    r, n = len(rs), len(as_)
+    if np.shape(a) != np.shape(b):
+        raise ValueError(f"paired sets need one row per frame in both: {np.shape(a)} vs {np.shape(b)}")
+    K, bandwidth = pooled_kernel((reference, a, b))
+    n = np.shape(a)[-2]
+    r = len(K) - 2 * n
     ref_idx = np.arange(r)
 
     def to_reference(rows: NDArray, ref: NDArray = ref_idx) -> float:
@@ -241,4 +271,4 @@ def paired_mmd_difference(reference: NDArray, a: NDArray, b: NDArray, permutatio
 
 
 __all__ = ["MmdTest", "PairedMmdDifference", "gaussian_kernel", "median_bandwidth", "mmd2_unbiased", "mmd_test",
-           "paired_mmd_difference", "paired_mmd_test", "percentile_interval", "standardise"]
+           "paired_mmd_difference", "paired_mmd_test", "percentile_interval", "pooled_kernel", "standardise"]
