@@ -93,12 +93,15 @@ def _single(cam_point, diameter=0.08, ident=7, T=None, img=None, rmap=None, **kw
 @pytest.mark.parametrize("skew", [0.0, 0.7])  # K[0, 1]: a skewed pixel grid
 @pytest.mark.parametrize("max_footprint_px", [64.0, 2.0])  # 2 px: the footprint cap path
 def test_fast_matches_naive(scene: int, appearance: ParticleAppearance, exposure_s: float, fog_alpha: float,
-                            with_unresolved: bool, skew: float, max_footprint_px: float) -> None:
+                            with_unresolved: bool, skew: float, max_footprint_px: float,
+                            own_velocities: bool = False) -> None:
     T, pos, dia, ids, img, rmap = _random_scene(scene)
     prof = unresolved_extinction_profile(SnowSizeDistribution(2.0, 1.5).spectrum(), 40.0, appearance)
     kw = dict(exposure_s=exposure_s, appearance=appearance, fog_alpha=fog_alpha, airlight=(0.6, 0.7, 0.8),
               unresolved=prof if with_unresolved else None, near_clip=0.5, max_footprint_px=max_footprint_px)
     v_field, v_cam = (1.0, 0.5, -1.5), (8.0, -2.0, 0.0)
+    if own_velocities:  # every particle its own velocity (rain drops falling at their own speeds)
+        v_field = np.random.default_rng(scene).uniform(-9.0, 9.0, (len(ids), 3))
     K = K_SMALL.copy()
     K[0, 1] = skew
     fast = render_particles(img, rmap, K, T, pos, dia, ids, v_field, v_cam, **kw)
@@ -111,6 +114,15 @@ def test_fast_matches_naive(scene: int, appearance: ParticleAppearance, exposure
     assert np.abs(fast.image - img).max() > 0.05  # particles are actually there
     np.testing.assert_array_equal(fast.drawn, ~np.isnan(cent[:, 0]))
     np.testing.assert_allclose(fast.centroids[fast.drawn], cent[fast.drawn], atol=1e-6)
+
+
+@pytest.mark.parametrize("scene", [0, 1])
+@pytest.mark.parametrize("appearance", [SNOW, RAIN], ids=["snow", "rain"])
+@pytest.mark.parametrize("fog_alpha", [0.0, 0.3])
+@pytest.mark.parametrize("max_footprint_px", [64.0, 2.0])
+def test_fast_matches_naive_with_a_velocity_per_particle(scene: int, appearance: ParticleAppearance,
+                                                         fog_alpha: float, max_footprint_px: float) -> None:
+    test_fast_matches_naive(scene, appearance, 0.02, fog_alpha, True, 0.7, max_footprint_px, own_velocities=True)
 
 
 def test_naive_detects_a_wrong_kernel(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -177,6 +189,24 @@ def test_streak_follows_relative_motion_and_conserves_energy() -> None:
     assert width(a_moving, 1) <= width(a_still, 1)  # not along v
     # without the opacity scaling the energy would grow by the area ratio (the test would fail)
     assert still.opacity[0] / moving.opacity[0] > 3.0
+
+
+def test_each_particle_streaks_with_its_own_velocity() -> None:
+    """(N, 3) velocities: each particle is drawn exactly as alone with its velocity; a bad shape is refused."""
+    T = _pose(0.0, (0.0, 0.0, 0.0))
+    pos = _points_in_view(T, np.array([[-0.3, 0.0, 1.5], [0.3, 0.0, 1.5]]))
+    img, rmap = np.zeros((H, W, 3), np.float32), np.full((H, W), np.inf, np.float32)
+    look = ParticleAppearance("test", opacity=0.9, grey=1.0)
+    velocities = np.array([[0.0, 0.0, -2.0], [0.0, 0.0, -9.0]])
+    both = render_particles(img, rmap, K_SMALL, T, pos, [0.02, 0.02], [1, 2], velocities, (0, 0, 0),
+                            exposure_s=0.02, appearance=look)
+    for i in range(2):
+        alone = render_particles(img, rmap, K_SMALL, T, pos[i:i + 1], [0.02], [i + 1], velocities[i], (0, 0, 0),
+                                 exposure_s=0.02, appearance=look)
+        assert both.opacity[i] == alone.opacity[0] and both.alpha_sum[i] == pytest.approx(alone.alpha_sum[0])
+    assert both.opacity[1] < 0.5 * both.opacity[0]  # the faster drop: a longer, fainter streak
+    with pytest.raises(ValueError, match="velocity_global"):
+        render_particles(img, rmap, K_SMALL, T, pos, [0.02, 0.02], [1, 2], velocities[:1], (0, 0, 0))
 
 
 @pytest.mark.parametrize("speed", [0.0, 2.0, 6.6, 12.0])  # m/s across the view: streaks of 0, 10, 33, 60 px

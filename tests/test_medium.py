@@ -156,6 +156,28 @@ def test_median_volume_diameter_is_the_median_of_the_cameras_streak_energy() -> 
     assert 2.0 < rain_field_fall_speed(1.0) < rain_field_fall_speed(10.0) < rain_field_fall_speed(200.0) < 9.65
 
 
+def test_drops_streak_at_their_own_fall_speed_and_the_field_moves_at_the_median_volume_drops() -> None:
+    """Rain from drop size: each drop's exposure velocity is the wind plus its own terminal speed (Atlas / Gunn-Kinzer
+    9.65 - 10.3 exp(-600 D)), and the D0 drop's equals the field's velocity; snow and the paper's fixed rain speed
+    keep the field's one velocity for every particle."""
+    from weatheralign.medium.conditions import FieldSpec
+
+    rain = FieldSpec("rain", "s", 1, 50.0, None, "marshall_palmer", (1.5, -0.5), 0.0, -1.0, 20.0, 2.0, 0.0005)
+    d = np.array([0.0005, 0.001, rain_median_volume_diameter(50.0), 0.004])
+    v = rain.drop_velocities(d)
+    assert rain.per_drop_fall and v.shape == (4, 3) and (v[:, :2] == (1.5, -0.5)).all()
+    np.testing.assert_allclose(-v[:, 2], 9.65 - 10.3 * np.exp(-600.0 * d), rtol=1e-12)
+    assert np.all(np.diff(-v[:, 2]) > 0)  # bigger drops fall faster
+    np.testing.assert_allclose(v[2], rain.field().velocity_array, rtol=1e-12)
+    preset = dataclasses.replace(rain, terminal_velocity_m_s=2.0)
+    snow = FieldSpec("snow", "s", 1, 2.0, 1.5, "gunn_marshall", (0.0, 0.0), 0.0, -1.0, 20.0, 4.0)
+    for spec in (preset, snow):
+        assert not spec.per_drop_fall
+        assert (spec.drop_velocities(d) == spec.field().velocity_array).all()
+    with pytest.raises(ValueError, match="diameters"):
+        rain.drop_velocities(np.array([[0.001]]))
+
+
 def test_partial_extinction_adds_up() -> None:
     spec = RAIN.spectrum()
     m = 1e-3

@@ -277,10 +277,11 @@ PAPER_RAIN_FALL_M_S = 2.0
 class RainConfig(_Section):
     """Rain (LISA): Marshall-Palmer drops from the rain rate, one fall velocity for the field, wind.
 
-    ``terminal_velocity_m_s``: None (default) = from drop size: the terminal speed of the spectrum's median-volume
-    drop at the field's rate (`weatheralign.medium.distributions.rain_field_fall_speed`: 4.8 / 6.6 / 7.1 m/s at
-    5 / 50 / 100 mm/h), which follows a tuned rate; a number = that fixed speed (`PAPER_RAIN_FALL_M_S` = 2.0: the
-    paper's preset)."""
+    ``terminal_velocity_m_s``: None (default) = from drop size: the field moves at the terminal speed of the
+    spectrum's median-volume drop at the field's rate (`weatheralign.medium.distributions.rain_field_fall_speed`:
+    4.8 / 6.6 / 7.1 m/s at 5 / 50 / 100 mm/h), which follows a tuned rate, and in a camera's exposure each drop
+    streaks at its own diameter's terminal speed (`weatheralign.medium.conditions.FieldSpec.drop_velocities`); a
+    number = that fixed speed for the field and every drop (`PAPER_RAIN_FALL_M_S` = 2.0: the paper's preset)."""
 
     rate_mm_h: Annotated[float, Field(gt=0.0, le=300.0)] = 50.0
     terminal_velocity_m_s: Annotated[float, Field(ge=0.5, le=12.0)] | None = None
@@ -472,7 +473,7 @@ class ReferenceConfig(_Section):
     split_files: ReferenceSplitFiles = ReferenceSplitFiles()
     intensity_max: Literal[1.0, 255.0] = 255.0
     seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 4049
-    frames_per_split: Annotated[int, Field(ge=1, le=500)] = 40
+    frames_per_split: Annotated[int, Field(ge=1, le=500)] = 80
     alpha_light: tuple[float, float] = (0.006, 0.016)
     alpha_dense: tuple[float, float] = (0.03, 0.07)
     beta_factor: tuple[float, float] = (1.0, 2.0)

@@ -5,8 +5,10 @@ world position at the camera's own timestamp (taken as the middle of the exposur
 approximation ``Σ2D = J W Σ Wᵀ Jᵀ + 0.3 I`` and composited front to back in ray-length order against the scene's
 per-pixel ray length (``docs/physics.md`` section 4). On top of Weather-edit's recipe:
 
-- exposure streaks: during the exposure ``T_e`` a particle moves ``s = (v_field - v_camera) T_e`` relative to the
-  camera (translation only; the camera's rotation during 5 ms is neglected); its 3-D covariance gains the covariance
+- exposure streaks: during the exposure ``T_e`` a particle moves ``s = (v - v_camera) T_e`` relative to the
+  camera, ``v`` the field's velocity or the particle's own (rain drops fall at their own diameter's terminal speed
+  within the exposure, `weatheralign.medium.conditions.FieldSpec.drop_velocities`; translation only; the camera's
+  rotation during 5 ms is neglected); its 3-D covariance gains the covariance
   of a uniform segment, ``s sᵀ / 12``, and its opacity is scaled by ``sqrt(det Σ2D / det Σ'2D)`` so that its
   integrated alpha (the "energy" ``o · 2π sqrt(det Σ2D)``) stays that of the still particle;
 - photometric rain (Garg & Nayar 2004, 2007): a drop is an opaque sphere whose radiance is what it refracts from
@@ -544,14 +546,15 @@ def _prepare_kernel(pos: NDArray, cov: NDArray, opac0: NDArray, R: NDArray, tr: 
                     keep_area: bool, centroid_q: float, u0: NDArray, v0: NDArray, ca: NDArray, cb: NDArray, cc: NDArray,
                     opac: NDArray, qmax: NDArray, qwin: NDArray, ell: NDArray, rx: NDArray, ry: NDArray,
                     status: NDArray, capped: NDArray, in_frame: NDArray) -> None:
-    """Per particle: camera-frame position, EWA conic ``(ca, cb, cc)`` of ``Σ'2D⁻¹`` (streak, dilation, cap
+    """Per particle: camera-frame position, EWA conic ``(ca, cb, cc)`` of ``Σ'2D⁻¹`` (its streak ``streak[i]``
+    (N, 3) [m, global frame], dilation, cap
     included), opacity after the streak (with ``keep_area`` also after the dilation), the Mahalanobis² bound
     ``qmax`` of alpha >= 1/255 (off-screen test), the centroid window ``qwin = max(qmax, centroid_q)`` and its half
     extents (``rx``, ``ry``; ``in_frame``: the whole window inside the image) and a status (ok / near-clipped / too
     faint / off screen)."""
     fx, sk, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
-    sx, sy, sz = streak[0], streak[1], streak[2]
     for i in range(pos.shape[0]):
+        sx, sy, sz = streak[i, 0], streak[i, 1], streak[i, 2]
         px, py, pz = pos[i, 0], pos[i, 1], pos[i, 2]
         x = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + tr[0]
         y = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + tr[1]
@@ -733,6 +736,17 @@ class SplatResult:
     counts: dict[str, int]
 
 
+def _velocities(value: NDArray | tuple, n: int) -> F64:
+    """(n, 3) particle velocities [m/s] from one (3,) velocity or (n, 3) of their own."""
+    v = np.asarray(value, dtype=np.float64)
+    if v.shape == (3,):
+        v = np.broadcast_to(v, (n, 3))
+    if v.shape != (n, 3) or not np.all(np.isfinite(v)):
+        raise ValueError(f"velocity_global of shape {np.shape(value)} is invalid: expected (3,) or ({n}, 3) finite "
+                         f"velocities [m/s]")
+    return v
+
+
 def _vec(name: str, value: NDArray | tuple, n: int) -> F64:
     v = np.asarray(value, dtype=np.float64)
     if v.shape != (n,) or not np.all(np.isfinite(v)):
@@ -755,7 +769,7 @@ def render_particles(image_linear: NDArray, range_map: NDArray, K: NDArray, T_ca
         T_cam_global: (4, 4) global -> camera (OpenCV axes) at the camera timestamp.
         positions_global: (N, 3) particle positions [m] at the camera timestamp (middle of the exposure).
         diameters: (N,) [m]; ids: (N,) int64 particle ids (attributes and tie-breaks derive from them).
-        velocity_global: (3,) particle velocity [m/s] (``field.velocity_array``).
+        velocity_global: (3,) particle velocity [m/s] (``field.velocity_array``), or (N, 3) one per particle.
         camera_velocity_global: (3,) camera (ego) velocity [m/s], for the relative motion.
         exposure_s: exposure time [s] (streak length ``|v_rel| exposure_s``); 0 = no motion blur.
         appearance: `SNOW`, `RAIN`, `RAIN_WEATHER_EDIT` or any `ParticleAppearance` (an ``environment`` radiance
@@ -786,7 +800,7 @@ def render_particles(image_linear: NDArray, range_map: NDArray, K: NDArray, T_ca
     ids = np.ascontiguousarray(ids, dtype=np.int64)
     if dia.shape != (n,) or ids.shape != (n,):
         raise ValueError(f"diameters {dia.shape} and ids {ids.shape} must be ({n},)")
-    v_rel = _vec("velocity_global", velocity_global, 3) - _vec("camera_velocity_global", camera_velocity_global, 3)
+    v_rel = _velocities(velocity_global, n) - _vec("camera_velocity_global", camera_velocity_global, 3)
     air = _vec("airlight", airlight, 3)
     if not (exposure_s >= 0.0 and fog_alpha >= 0.0 and near_clip > 0.0 and max_footprint_px >= 2.0):
         raise ValueError("need exposure_s >= 0, fog_alpha >= 0, near_clip > 0, max_footprint_px >= 2")
@@ -799,7 +813,7 @@ def render_particles(image_linear: NDArray, range_map: NDArray, K: NDArray, T_ca
 
     cov, opac0, grey = particle_attributes(ids, dia, appearance)
     R = np.ascontiguousarray(T[:3, :3])
-    streak = v_rel * float(exposure_s)  # global frame (the kernel projects with J W)
+    streak = np.ascontiguousarray(v_rel * float(exposure_s))  # (N, 3) global frame (the kernel projects with J W)
     u0, v0, ca, cb, cc, qmax, qwin, rx, ry = (np.zeros(n) for _ in range(9))
     opac = np.full(n, np.nan)
     ell = np.empty(n)
@@ -863,7 +877,8 @@ def _naive(image_linear: NDArray, range_map: NDArray, K: NDArray, T_cam_global: 
     pos = np.asarray(positions_global, dtype=np.float64).reshape(-1, 3)
     ids = np.asarray(ids, dtype=np.int64)
     cov, opac0, grey = particle_attributes(ids, diameters, appearance)
-    s = Rm @ (np.asarray(velocity_global, float) - np.asarray(camera_velocity_global, float)) * exposure_s
+    streaks = (np.broadcast_to(np.asarray(velocity_global, float), pos.shape)
+               - np.asarray(camera_velocity_global, float)) @ Rm.T * exposure_s  # (N, 3) camera frame
     air = np.asarray(airlight, dtype=np.float64)
     radiance = np.asarray(appearance.tint, dtype=np.float64)
     if appearance.radiance == "environment":  # half the image's mean radiance, half the sky (airlight)
@@ -885,7 +900,7 @@ def _naive(image_linear: NDArray, range_map: NDArray, K: NDArray, T_cam_global: 
                       [0.0, K[1, 1] / z, -K[1, 1] * y / z**2]])
         S_cam = Rm @ cov[i] @ Rm.T
         S2 = J @ S_cam @ J.T + DILATION_PX2 * np.eye(2)
-        S2s = J @ (S_cam + np.outer(s, s) / 12.0) @ J.T + DILATION_PX2 * np.eye(2)
+        S2s = J @ (S_cam + np.outer(streaks[i], streaks[i]) / 12.0) @ J.T + DILATION_PX2 * np.eye(2)
         lam, vec = np.linalg.eigh(S2s)
         lam = np.minimum(lam, (max_footprint_px / 3.0) ** 2)
         S2s = vec @ np.diag(lam) @ vec.T

@@ -8,7 +8,9 @@ ablation gives the cameras ``unaligned_seed(seed)``: a field of identical statis
 Fall speed. A field has one velocity, set here once for every sensor. Snow falls at its configured speed; rain at
 its configured speed, or by default (``terminal_velocity_m_s: None``) at the terminal speed of the Marshall-Palmer
 median-volume drop at the field's own rate (`weatheralign.medium.distributions.rain_field_fall_speed`), so a rate
-replaced by the calibration (the media stage) falls at its own speed.
+replaced by the calibration (the media stage) falls at its own speed. In that default each drop's camera streak is
+drawn at its own diameter's terminal speed (`FieldSpec.drop_velocities`); its position, which every sensor shares,
+moves with the field.
 """
 
 from __future__ import annotations
@@ -17,8 +19,12 @@ import hashlib
 from dataclasses import asdict, dataclass
 from typing import Literal
 
+import numpy as np
+from numpy.typing import NDArray
+
 from weatheralign.config import ParticlesConfig
-from weatheralign.medium.distributions import RainSizeDistribution, SnowSizeDistribution, rain_field_fall_speed
+from weatheralign.medium.distributions import (RainSizeDistribution, SnowSizeDistribution, rain_field_fall_speed,
+                                               rain_terminal_velocity)
 from weatheralign.medium.field import ParticleField, fall_velocity, unaligned_seed
 
 Precipitation = Literal["snow", "rain"]
@@ -61,6 +67,27 @@ class FieldSpec:
             raise ValueError(f"{self.condition} field of scene {self.scene!r}: terminal_velocity_m_s = None is "
                              f"invalid: only rain derives its fall speed from drop size")
         return rain_field_fall_speed(self.rate_mm_h)
+
+    @property
+    def per_drop_fall(self) -> bool:
+        """Rain whose fall speed comes from drop size (``terminal_velocity_m_s`` None): the field moves at the
+        median-volume drop's speed, and within a camera's exposure each drop falls at its own (`drop_velocities`)."""
+        return self.condition == "rain" and self.terminal_velocity_m_s is None
+
+    def drop_velocities(self, diameters: NDArray) -> NDArray[np.float64]:
+        """(N, 3) velocity [m/s] of particles of ``diameters`` (N,) [m] within a camera's exposure (their streaks):
+        with `per_drop_fall` the horizontal wind and each drop's own terminal fall speed (`rain_terminal_velocity`,
+        the fall-speed law the field's speed comes from), else the field's one velocity. Positions stay the field's,
+        shared by every sensor: a drop's own speed only shapes its streak."""
+        d = np.asarray(diameters, dtype=np.float64)
+        if d.ndim != 1 or not np.all(np.isfinite(d)) or (d < 0).any():
+            raise ValueError(f"diameters must be (N,) finite and >= 0 [m], got shape {d.shape}")
+        if not self.per_drop_fall:
+            return np.tile(np.asarray(fall_velocity(self.fall_speed_m_s, self.wind_m_s)), (len(d), 1))
+        out = np.empty((len(d), 3))
+        out[:, 0], out[:, 1] = self.wind_m_s
+        out[:, 2] = -rain_terminal_velocity(d)
+        return out
 
     def field(self, aligned: bool = True) -> ParticleField:
         """The field; ``aligned=False`` gives the independent twin of identical statistics."""

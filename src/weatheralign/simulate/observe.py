@@ -208,11 +208,15 @@ def observe_camera(image: NDArray[np.uint8], range_map: NDArray[np.float32], vie
         return CameraWeather(composite_image(image, t, a_lin, refine), None, 0)
     background = composite_image(image, t, a_lin, refine, encode=False)
     T_global_cam = view.T_global_cam
-    v_rel = fld.velocity_array - np.asarray(ego_vel, dtype=np.float64)
+    spec = media.field
+    # the fastest streak: the field's velocity, or the extremes of the drops' own (speed is monotone in diameter)
+    extremes = spec.drop_velocities(np.array([spec.min_diameter_m, fld.spectrum.d_max]))
+    v_rel = np.linalg.norm(extremes - np.asarray(ego_vel, dtype=np.float64), axis=1).max()
     parts = materialize_for_camera(fld, view.K, view.width, view.height, T_global_cam, view.timestamp, look,
-                                   near_clip=near, streak_m=float(np.linalg.norm(v_rel)) * camera.exposure_s)
+                                   near_clip=near, streak_m=float(v_rel) * camera.exposure_s)
     res = render_particles(background, range_map, view.K, invert(T_global_cam), parts.positions,
-                           parts.diameters, parts.ids, fld.velocity_array, ego_vel, exposure_s=camera.exposure_s,
+                           parts.diameters, parts.ids, spec.drop_velocities(parts.diameters), ego_vel,
+                           exposure_s=camera.exposure_s,
                            appearance=look, fog_alpha=alpha, airlight=a_lin, unresolved=profile, near_clip=near)
     cp = CameraParticles(view.channel, view.K, T_global_cam, view.timestamp, view.width, view.height, parts.ids,
                          res.centroids, res.drawn & res.unoccluded & res.in_frame, range_map, profile.r_end)
