@@ -106,6 +106,8 @@ def test_verify_and_rate_calibration_on_an_stf_layout_tree_with_snow_and_rain(tm
     assert all(len(m["control_p_each_classifier"]) == 3 for m in metrics["conditions"].values())
     table = (reports / "verify" / "table.md").read_text()
     assert "| MMD² aligned |" in table and "The paper" in table and "0.2837" in table
+    control_row = next(line for line in table.splitlines() if line.startswith("| control: broken pairs |"))
+    assert "3 weather classifier(s)" in table and control_row.count("[") == 4  # each classifier's p per weather
     for name in ("ecdf.png", "confusion.png", "embedding_snow.png", "permutations_rain.png"):
         assert (reports / "verify" / name).is_file()
 

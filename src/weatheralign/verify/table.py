@@ -47,10 +47,13 @@ def table_markdown(metrics: Mapping[str, Any]) -> str:
     lines = ["# Table 1 regenerated: re-projection error and MMD of fused features", "",
              f"Reference: `{metrics.get('reference_source')}` ({metrics.get('reference_root')}); severity: fog levels "
              f"from {metrics['severity']['fog_levels']}, snow {metrics['severity']['snow_rate_mm_h']:.3g} mm/h, rain "
-             f"{metrics['severity']['rain_rate_mm_h']:.3g} mm/h (rates: {_sources(metrics['severity'])}). Weather classifier held-out accuracy "
+             f"{metrics['severity']['rain_rate_mm_h']:.3g} mm/h (rates: {_sources(metrics['severity'])}). "
+             f"{metrics.get('classifiers', 1)} weather classifier(s), held-out accuracy "
              f"{metrics['classifier_accuracy']:.3f} ({metrics['classifier_held_out']} frames). MMD² is the unbiased "
-             "estimator on the classifier's fused features (Gaussian kernel, median heuristic on the pooled, "
-             "standardised features); p: permutation p-value; brackets: frame-bootstrap interval. Unaligned: the "
+             "estimator on the classifiers' fused features (Gaussian kernel, median heuristic on the pooled, "
+             "standardised features of each classifier, the kernels averaged over the classifiers); p: permutation "
+             "p-value; brackets: frame-bootstrap interval; the control is a paired test (a frame's camera with its own "
+             "LiDAR and with another frame's; the p-value of each classifier alone in brackets). Unaligned: the "
              "camera sees independent media of its own severity (fog: α drawn between the levels; snow / rain: "
              "another field at a rate within a factor of the LiDAR's); for snow and rain also the positions alone "
              "(the unaligned camera at the LiDAR's rate).", "",
@@ -78,7 +81,9 @@ def table_markdown(metrics: Mapping[str, Any]) -> str:
             lambda c: "—" if "mmd_difference_positions" not in c else
             f"{c['mmd_difference_positions']:+.4f}{_ci(c.get('mmd_difference_positions_ci'))} "
             f"(p {_p(c['mmd_difference_positions_p'])})")
-    row("control: broken pairs", lambda c: f"{_num(c['control_mmd'])} (p {_p(c['control_p'])})")
+    row("control: broken pairs", lambda c: f"{_num(c['control_mmd'])} (p {_p(c['control_p'])})" + (
+        " [" + ", ".join(_p(p) for p in c["control_p_each_classifier"]) + "]"
+        if len(c.get("control_p_each_classifier", ())) > 1 else ""))
     row("LiDAR D_KS vs reference", lambda c: f"{_num(c['ks'])} [{c['ks_ci_low']:.3f}, {c['ks_ci_high']:.3f}]")
     row("camera KID", _kid)
     row("camera visibility ratio", lambda c: _num(c.get("camera_visibility_ratio"), 3))
