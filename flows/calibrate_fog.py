@@ -6,15 +6,18 @@ synthetic reference, or a Seeing Through Fog root) and, per fog level (``light``
 1. LiDAR: fogs the reference's clear scans with every cell of the paper's (alpha, beta) grid (one mapped Prefect
    task per cell, `weatheralign.calibrate.lidar.evaluate_cell`), refines around the best cell and bootstraps D_KS
    over frames (`finish_level`); the detector floor and pulse are the reference LiDAR's (`reference_lidar_model`);
-2. camera: fogs the reference's clear images at the tuned alpha with the simulation's camera fog (`fog_image`, one
-   neutral airlight per frame as in `simulate`) and compares the visibility estimated from image + depth with that
-   of the reference's foggy images (`camera_visibility_ratio`), plus KID on features of a pretrained CNN
-   (EfficientNet-Lite0 from the package registry, or ``calibrate_fog.inception_path``: a local TorchScript
-   Inception).
+2. camera: the fog's airlight. Fog scatters the day's ambient light, so its brightness is not the clear scene's sky:
+   each foggy reference image's sky over the clear reference images' median sky (linear luminance) gives the
+   level's airlight gains (`weatheralign.camera.fog.airlight_gains`), from which `simulate` draws one per scene;
+3. camera check: fogs the reference's clear images at the tuned alpha with the simulation's camera fog (`fog_image`,
+   each frame's clear-sky airlight times a drawn gain, as in `simulate`) and compares the visibility estimated from
+   image + depth with that of the reference's foggy images (`camera_visibility_ratio`), plus KID on features of a
+   pretrained CNN (EfficientNet-Lite0 from the package registry, or ``calibrate_fog.inception_path``: a local
+   TorchScript Inception).
 
-Writes ``<paths.data>/calibrate_fog/fog_levels.json`` (``{level: {alpha, beta, mor, ks}}``: what the fog conditions
-of `simulate` read), ``reports/calibrate_fog/metrics.json`` (per level ``alpha, beta, mor, ks, ks_ci_low,
-ks_ci_high, camera_visibility_ratio, kid, kid_std, kid_backbone``, ...) and figures (ECDF with the reference's
+Writes ``<paths.data>/calibrate_fog/fog_levels.json`` (``{level: {alpha, beta, mor, ks, airlight_gains}}``: what
+the fog conditions of `simulate` read), ``reports/calibrate_fog/metrics.json`` (per level ``alpha, beta, mor, ks,
+ks_ci_low, ks_ci_high, camera_visibility_ratio, kid, kid_std, kid_backbone, airlight_gain_median``, ...) and figures (ECDF with the reference's
 bootstrap band, KS over the grid, reference vs simulated images), also logged to MLflow. The synthetic reference's
 sealed truth is never read here.
 """
@@ -43,7 +46,9 @@ from weatheralign.calibrate.histograms import IntensityHistograms  # noqa: E402
 from weatheralign.calibrate.kid import feature_extractor, kid_from_features  # noqa: E402
 from weatheralign.calibrate.lidar import (GridResult, LevelCalibration, fog_frames, finish_level,  # noqa: E402
                                           grid_cells)
-from weatheralign.camera.fog import estimate_airlight, fog_image  # noqa: E402
+from weatheralign.camera.fog import (airlight_gains, estimate_airlight, fog_airlight, fog_image,  # noqa: E402
+                                     linear_to_srgb, sky_airlight)
+from weatheralign.conditions import FogPart  # noqa: E402
 from weatheralign.config import Params  # noqa: E402
 from weatheralign.reference import FOG_LEVELS, ReferenceDataset, configured_reference, reference_lidar_model  # noqa: E402
 from weatheralign.sensors import LidarModel  # noqa: E402
@@ -77,9 +82,27 @@ def camera_sets(ds: ReferenceDataset, params: Params) -> dict[str, list[tuple[np
     return out
 
 
-def simulated_fog_images(clear: list[tuple[np.ndarray, np.ndarray]], alpha: float) -> list[np.ndarray]:
-    """The clear reference images fogged at ``alpha`` by the simulation's camera fog (one airlight per frame)."""
-    return [fog_image(img, rng, alpha, estimate_airlight([img], [rng]), refine=True) for img, rng in clear]
+def simulated_fog_images(clear: list[tuple[np.ndarray, np.ndarray]], alpha: float, gains: tuple[float, ...],
+                         seed: int, level: str) -> list[np.ndarray]:
+    """The clear reference images fogged at ``alpha`` by the simulation's camera fog: each frame's clear-sky airlight
+    times a gain of the level's ``gains`` drawn per frame (`FogPart.airlight_gain`), as `simulate` does per scene."""
+    out = []
+    for k, (img, rng) in enumerate(clear):
+        gain = FogPart.airlight_gain(gains, seed, level, str(k))
+        airlight = linear_to_srgb(fog_airlight(estimate_airlight([img], [rng]), gain))
+        out.append(fog_image(img, rng, alpha, airlight, refine=True))
+    return out
+
+
+def level_airlight_gains(clear: list[tuple[np.ndarray, np.ndarray]], foggy: list[tuple[np.ndarray, np.ndarray]],
+                         exact_ranges: bool) -> tuple[float, ...]:
+    """The fog level's airlight gains (`airlight_gains`): each foggy reference image's sky over the clear
+    reference images' median sky, in linear light. The foggy images' sky comes from their exact range maps
+    (``exact_ranges``: the synthetic reference), else from the dark channel (`sky_airlight` without ranges): a
+    LiDAR in fog loses its far returns, so the sky of a dense depth from a foggy scan would take in fogged
+    buildings."""
+    return airlight_gains([sky_airlight([img], [rng] if exact_ranges else None) for img, rng in foggy],
+                          [sky_airlight([img], [rng]) for img, rng in clear])
 
 
 def camera_figure(ref: list[np.ndarray], sim: list[np.ndarray], level: str, alpha: float, path: Path) -> None:
@@ -126,7 +149,8 @@ def calibrate_fog_flow(params: Params) -> dict:
             t_level = time.time()
             result, reference = lidar_level(ds, frames, level, params, sensor)
             ref_images = [img for img, _ in cams[level]]
-            sim_images = simulated_fog_images(cams["clear"], result.alpha)
+            gains = level_airlight_gains(cams["clear"], cams[level], ds.load_range(ds.ids(level)[0]) is not None)
+            sim_images = simulated_fog_images(cams["clear"], result.alpha, gains, cfg.seed, level)
             visibility = camera_visibility_ratio(sim_images, [r for _, r in cams["clear"]], ref_images,
                                                  [r for _, r in cams[level]])
             ref_features = extractor(ref_images)
@@ -135,8 +159,12 @@ def calibrate_fog_flow(params: Params) -> dict:
             metrics[level] = {**result.metrics(), "beta_identified": result.beta_identified,
                               **visibility.metrics(), "kid": kid.mean, "kid_std": kid.std,
                               "kid_backbone": kid.backbone, "kid_clear_vs_reference": kid_clear.mean,
+                              "airlight_gain_median": float(np.median(gains)), "airlight_gain_min": min(gains),
+                              "airlight_gain_max": max(gains),
+                              "airlight_frames": len(gains) if gains != (1.0,) else 0,
                               "seconds": round(time.time() - t_level, 2)}
-            levels[level] = {"alpha": result.alpha, "beta": result.beta, "mor": result.mor, "ks": result.ks}
+            levels[level] = {"alpha": result.alpha, "beta": result.beta, "mor": result.mor, "ks": result.ks,
+                             "airlight_gains": list(gains)}
             for name, fig in ((f"ecdf_{level}.png", level_ecdf_figure(result, reference, level=level)),
                               (f"ks_grid_{level}.png", ks_heatmap(result.grid, level=level,
                                                                    refined=(result.alpha, result.beta_factor)))):

@@ -35,6 +35,7 @@ from weatheralign.calibrate.lidar import (
     CellResult,
     GridResult,
     beta_from_factor,
+    bootstrap_alpha,
     calibrate_level,
     evaluate_cell,
     fog_frames,
@@ -242,11 +243,34 @@ def test_search_recovers_a_hidden_off_grid_medium(clear_synthetic, alpha, factor
     else:  # light fog: no point turns into a fog echo within range, beta is not identified
         assert not res.beta_identified
     m = res.metrics()
-    for key in ("alpha", "beta", "mor", "ks", "ks_ci_low", "ks_ci_high"):
+    for key in ("alpha", "beta", "mor", "ks", "ks_ci_low", "ks_ci_high", "alpha_ci_low", "alpha_ci_high"):
         assert math.isfinite(m[key])
+    # the frame-bootstrap interval of alpha* holds alpha* and, widened by its grid's step (1.4 %), the hidden alpha
+    step = math.exp(2.0 * math.log(1.5) / 60)
+    assert res.alpha_ci_low <= res.alpha <= res.alpha_ci_high
+    assert res.alpha_ci_low / step <= alpha <= res.alpha_ci_high * step
+    assert res.alpha_ci_high / res.alpha_ci_low < 1.1  # 16 statistically identical frames: a narrow interval
     print(f"alpha {alpha} factor {factor}: alpha* {res.alpha:.5f} factor* {res.beta_factor:.3f} "
           f"D {res.ks:.4f} [{res.ks_ci_low:.4f}, {res.ks_ci_high:.4f}] grid {res.grid.best_alpha} "
           f"{res.grid.best_beta_factor} D {res.grid.best_ks:.4f}; {elapsed:.1f} s")
+
+
+def test_alpha_interval_narrows_with_more_frames_and_is_seeded():
+    """More frames on both sides, a narrower interval of alpha*; same seed, same interval."""
+    alpha, factor = 0.04, 1.5
+    widths = []
+    for n in (4, 16):
+        clear = fog_frames([_synthetic_scan(s) for s in range(n)])
+        reference = _foggy_reference([_synthetic_scan(700 + s) for s in range(n)], alpha, factor)
+        lo, hi = bootstrap_alpha(clear, reference, alpha, factor, noise_floor=0.5, sensor=SENSOR, num_resamples=100,
+                                 rng=3)
+        assert lo <= alpha <= hi
+        assert (lo, hi) == bootstrap_alpha(clear, reference, alpha, factor, noise_floor=0.5, sensor=SENSOR,
+                                           num_resamples=100, rng=3)
+        widths.append(hi - lo)
+    assert widths[1] < 0.75 * widths[0], widths
+    with pytest.raises(ValueError, match="span"):
+        bootstrap_alpha(clear, reference, alpha, factor, noise_floor=0.5, sensor=SENSOR, span=1.0)
 
 
 def test_search_on_real_stf_scans():

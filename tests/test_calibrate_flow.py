@@ -97,6 +97,9 @@ def test_calibrate_fog_flow_on_an_stf_layout_tree(tmp_path: Path) -> None:
         for key in ("alpha", "beta", "mor", "camera_visibility_ratio", "kid", "kid_backbone"):
             assert key in m
         assert m["kid_backbone"] == "efficientnet_lite0"
+        # the foggy images' sky is the airlight the tree was fogged with, the clear image's sky's luminance: gain 1
+        assert len(levels[level]["airlight_gains"]) == m["airlight_frames"] == 2
+        assert levels[level]["airlight_gains"] == pytest.approx([1.0, 1.0], abs=0.02)
     assert levels["dense"]["alpha"] > levels["light"]["alpha"]
     for name in ("ecdf_light.png", "ks_grid_dense.png", "camera_dense.png"):
         assert (reports / "calibrate_fog" / name).is_file()

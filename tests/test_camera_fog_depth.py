@@ -27,15 +27,20 @@ from weatheralign.camera.depth import (
     pixel_ray_norms,
 )
 from weatheralign.camera.fog import (
+    CLIPPED,
     NEUTRAL_AIRLIGHT,
+    airlight_gains,
+    airlight_luminance,
     composite,
     composite_image,
     decode_srgb_u8,
     encode_srgb_u8,
     estimate_airlight,
+    fog_airlight,
     fog_image,
     linear_to_srgb,
     refine_transmission,
+    sky_airlight,
     srgb_to_linear,
     transmission,
 )
@@ -183,6 +188,38 @@ def test_airlight_without_ranges_uses_the_dark_channel_of_the_sky():
     assert np.allclose(A, np.array(sky) / 255.0, atol=2 / 255)
     dark, _ = _scene(sky, cameras_with_sky=())
     assert np.allclose(estimate_airlight(dark), NEUTRAL_AIRLIGHT)  # nothing bright enough to be sky
+
+
+def test_airlight_gains_are_the_foggy_skies_over_the_clear_sky():
+    """Each foggy frame's sky luminance over the clear frames' median, in linear light, sorted; frames without sky
+    do not vote; nothing to compare keeps the clear sky's airlight (1)."""
+    clear_sky, fog_skies = (150, 170, 200), (170, 205, 230)
+    clear = [_sky_of_one_camera(clear_sky) for _ in range(3)]
+    fog = [_sky_of_one_camera((v, v, v)) for v in fog_skies]
+    no_sky = _sky_of_one_camera(clear_sky, with_sky=False)
+    assert no_sky is None
+    gains = airlight_gains([fog[2], no_sky, fog[0], fog[1]], clear + [no_sky])
+    base = airlight_luminance(np.array(clear_sky) / 255.0)
+    expected = sorted(float(srgb_to_linear(v / 255.0)) / base for v in fog_skies)
+    assert gains == pytest.approx(expected, abs=2e-3)
+    assert airlight_gains([no_sky], clear) == airlight_gains(fog, [no_sky]) == (1.0,)
+    # the fog's airlight: gain 1 is the clear sky's own, brighter gains stop short of white
+    A = np.full(3, 0.7)
+    assert np.array_equal(fog_airlight(A, 1.0), srgb_to_linear(A))
+    assert fog_airlight(A, 10.0) == pytest.approx(np.full(3, srgb_to_linear(CLIPPED)))
+    with pytest.raises(ValueError, match="gain"):
+        fog_airlight(A, 0.0)
+
+
+def _sky_of_one_camera(sky: tuple[int, int, int], with_sky: bool = True) -> np.ndarray | None:
+    """`sky_airlight` of one 60 x 80 camera whose top 30 rows are sky of colour ``sky`` (or a wall) over a grey
+    road."""
+    img = np.full((60, 80, 3), 90, np.uint8)
+    rng = np.full((60, 80), 12.0, np.float32)
+    if with_sky:
+        img[:30] = sky
+        rng[:30] = np.inf
+    return sky_airlight([img], [rng])
 
 
 @pytest.mark.parametrize("with_ranges", [True, False])

@@ -48,6 +48,9 @@ def test_redam_table_reports_the_error_against_the_hidden_truth():
     assert row.startswith("| light | 0.011 | 0.01 | +10.0% |") and "0.0200 [0.0100, 0.0500]" in row
     assert len(table.splitlines()) == 3  # the non-level entry is skipped
     assert "| — |" in redam_table({"light": level}, None)  # real data: no hidden truth
+    with_interval = redam_table({"light": {**level, "alpha_ci_low": 0.0095, "alpha_ci_high": 0.0121,
+                                           "airlight_gain_median": 1.04}}, None).splitlines()[2]
+    assert with_interval.startswith("| light | 0.011 [0.0095, 0.0121] | — |") and with_interval.endswith("| 1.040 |")
 
 
 def test_rate_table_reports_the_error_against_the_hidden_rate():

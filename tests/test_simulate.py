@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from weatheralign.camera.fog import CLIPPED, encode_srgb_u8, srgb_to_linear
 from weatheralign.conditions import CONDITIONS, ParticlePart
 from weatheralign.config import params_from_dict
 from weatheralign.data.errors import DataFormatError
@@ -349,6 +350,47 @@ def test_fog_levels_from_the_calibration_file(tmp_path):
     path.write_text("{not json")
     with pytest.raises(DataFormatError, match="not valid JSON"):
         calibrated_fog_levels(path)
+
+
+def test_calibrated_airlight_gains_reach_each_scene_alike_for_both_cameras(tmp_path):
+    """The calibration's airlight gains: read and validated, one drawn per scene (deterministic, every gain used),
+    the same for the aligned and the unaligned cameras; a file without them keeps the clear sky's airlight."""
+    path = tmp_path / "fog_levels.json"
+    gains = [0.8, 1.0, 1.25]
+    path.write_text(json.dumps({"light": {"alpha": 0.008, "beta": 0.0002},
+                                "dense": {"alpha": 0.03, "beta": 0.001, "airlight_gains": gains}}))
+    tuned = calibrated_fog_levels(path)
+    assert tuned.airlight_gains == {"light": (1.0,), "dense": (0.8, 1.0, 1.25)}
+    scenes = [f"scene-{i:04d}" for i in range(60)]
+    media = resolve_media(CONDITIONS["fog_dense"], CFG, scenes, tuned, None)
+    drawn = [media.for_scene(s, True).airlight_gain for s in scenes]
+    assert set(drawn) == set(gains)
+    assert drawn == [media.for_scene(s, False).airlight_gain for s in scenes]
+    assert drawn == [resolve_media(CONDITIONS["fog_dense"], CFG, scenes, tuned, None).for_scene(s, True).airlight_gain
+                     for s in scenes]
+    assert {media.for_scene(s, True).airlight_gain for s in scenes} != {1.0}
+    light = resolve_media(CONDITIONS["fog_light"], CFG, scenes, tuned, None)
+    assert {light.for_scene(s, True).airlight_gain for s in scenes} == {1.0}
+    assert ConditionMedia.from_dict(json.loads(json.dumps(media.to_dict()))) == media
+    for bad in ([], [0.0], ["x"], 1.2):
+        path.write_text(json.dumps({"light": {"alpha": 0.008, "beta": 0.0002},
+                                    "dense": {"alpha": 0.03, "beta": 0.001, "airlight_gains": bad}}))
+        with pytest.raises(DataFormatError, match="dense.airlight_gains"):
+            calibrated_fog_levels(path)
+
+
+def test_the_fogs_sky_is_the_clear_sky_times_the_airlight_gain(world):
+    """Where the camera sees sky (infinite ray length), dense fog shows its airlight alone: the scene's clear-sky
+    airlight times the scene's gain, in linear light (and a gain of 1 is the clear sky's own)."""
+    tw, nusc, fields, frame, airlight, sensors, scenes = world
+    images, ranges = _inputs(frame)
+    fog = _media("fog_dense", scenes, None).for_scene(scenes[0], True)
+    ch = next(c for c in images if np.isinf(ranges[c]).sum() > 1000)
+    sky = np.isinf(ranges[ch])
+    for gain in (1.0, 0.7, 1.3):
+        out = observe(frame, images, ranges, replace(fog, airlight_gain=gain), sensors, np.asarray(airlight), OPTIONS)
+        expected = encode_srgb_u8(np.minimum(srgb_to_linear(np.asarray(airlight)) * gain, srgb_to_linear(CLIPPED)))
+        assert np.abs(out.cameras[ch].image[sky].astype(int) - expected.astype(int)).max() <= 1, gain
 
 
 def test_the_nearest_sweeps_through_the_same_medium(world, tmp_path):

@@ -40,7 +40,8 @@ class FogPart:
     """A homogeneous fog at one of the tuned levels (its (α, β) come from the calibrate_fog stage or params).
 
     Unaligned: the cameras' extinction is drawn uniformly in ``[α_light, α_dense]``, once per scene
-    (`camera_alpha`), independently of the LiDAR's level.
+    (`camera_alpha`), independently of the LiDAR's level. The fog's airlight (its brightness relative to the clear
+    sky) is drawn once per scene from the level's calibrated spread (`airlight_gain`), the same for both.
     """
 
     level: FogLevel
@@ -55,6 +56,16 @@ class FogPart:
         digest = hashlib.sha256(f"{seed}/{condition}/{scene}/camera".encode()).digest()
         u = int.from_bytes(digest[:8], "little") / 2.0**64
         return alpha_light + u * (alpha_dense - alpha_light)
+
+    @staticmethod
+    def airlight_gain(gains: tuple[float, ...], seed: int, condition: str, scene: str) -> float:
+        """The fog's airlight relative to the scene's clear sky: one of the level's calibrated ``gains``
+        (`weatheralign.camera.fog.airlight_gains`), picked uniformly by a hash of (``seed``, ``condition``,
+        ``scene``). Aligned and unaligned cameras get the same one: it is the day's light, not the fog's severity."""
+        if not gains:
+            raise ValueError("airlight_gain: no gains; expected at least one (1.0: the clear sky's airlight)")
+        digest = hashlib.sha256(f"{seed}/{condition}/{scene}/airlight".encode()).digest()
+        return float(gains[int.from_bytes(digest[:8], "little") % len(gains)])
 
 
 @dataclass(frozen=True)

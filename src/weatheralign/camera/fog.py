@@ -160,21 +160,8 @@ def estimate_airlight(
     *,
     neutral: bool = True,
 ) -> NDArray[np.float64]:
-    """One airlight for a whole scene, pooled over all its cameras.
-
-    Rules, in order:
-      1. Where a range map is known (synthetic world: exact; real data: `weatheralign.camera.depth.dense_depth`),
-         its unsaturated sky pixels (``+inf``, every channel below `CLIPPED`) of **all** cameras are pooled and the
-         airlight is their per-channel median colour, if there are at least `SKY_MIN_PIXELS` of them.
-      2. Otherwise, over the images without a range map: the dark channel (`dark_channel`) of the upper half of every
-         image (sky is above the horizon of a level camera) is pooled over its unsaturated pixels, the top 0.1 %
-         brightest are the candidates and the airlight is their per-channel median colour; if even those are dark
-         (dark channel below `DARK_CHANNEL_MIN_SKY`) the scene shows no sky.
-      3. No sky (range maps without enough unsaturated sky pixels, or rule 2's dark candidates): neutral grey
-         `NEUTRAL_AIRLIGHT`.
-
-    Saturated pixels never vote, so the airlight is never clipped white: an overexposed sky (real cameras' clouds)
-    says only that the sky is brighter than the sensor's range, not how bright fog would be.
+    """One airlight for a whole scene, pooled over all its cameras: `sky_airlight`, or the neutral grey
+    `NEUTRAL_AIRLIGHT` where the scene shows no sky.
 
     Args:
         images: the scene's camera images, each (H, W, 3) uint8 sRGB or float sRGB in [0, 1] (sizes may differ).
@@ -184,6 +171,33 @@ def estimate_airlight(
 
     Returns:
         (3,) float64 sRGB-encoded airlight in [0, 1] (decode with `srgb_to_linear` for radiance).
+    """
+    A = sky_airlight(images, ranges, neutral=neutral)
+    return np.full(3, NEUTRAL_AIRLIGHT) if A is None else A
+
+
+def sky_airlight(
+    images: Sequence[NDArray],
+    ranges: Sequence[NDArray | None] | None = None,
+    *,
+    neutral: bool = True,
+) -> NDArray[np.float64] | None:
+    """The airlight of a scene's visible sky, or None where it shows none.
+
+    Rules, in order:
+      1. Where a range map is known (synthetic world: exact; real data: `weatheralign.camera.depth.dense_depth`),
+         its unsaturated sky pixels (``+inf``, every channel below `CLIPPED`) of **all** cameras are pooled and the
+         airlight is their per-channel median colour, if there are at least `SKY_MIN_PIXELS` of them.
+      2. Otherwise, over the images without a range map: the dark channel (`dark_channel`) of the upper half of every
+         image (sky is above the horizon of a level camera) is pooled over its unsaturated pixels, the top 0.1 %
+         brightest are the candidates and the airlight is their per-channel median colour; if even those are dark
+         (dark channel below `DARK_CHANNEL_MIN_SKY`) the scene shows no sky.
+      3. No sky (range maps without enough unsaturated sky pixels, or rule 2's dark candidates): None.
+
+    Saturated pixels never vote, so the airlight is never clipped white: an overexposed sky (real cameras' clouds)
+    says only that the sky is brighter than the sensor's range, not how bright fog would be.
+
+    Args and the returned colour: as `estimate_airlight`.
     """
     if len(images) == 0:
         raise ValueError("estimate_airlight: no images")
@@ -210,11 +224,44 @@ def estimate_airlight(
     else:
         A = None
     if A is None:
-        A = np.full(3, NEUTRAL_AIRLIGHT)
+        return None
     if neutral:
-        y = float(np.dot([0.2126, 0.7152, 0.0722], srgb_to_linear(A)))
-        A = np.full(3, float(linear_to_srgb(y)))
+        A = np.full(3, float(linear_to_srgb(airlight_luminance(A))))
     return A
+
+
+def airlight_luminance(airlight: NDArray | Sequence[float]) -> float:
+    """Linear-light luminance (Rec. 709 weights) of an sRGB-encoded airlight (3,)."""
+    return float(np.dot([0.2126, 0.7152, 0.0722], srgb_to_linear(_check_airlight(airlight))))
+
+
+def airlight_gains(fog_airlights: Sequence[NDArray | None], clear_airlights: Sequence[NDArray | None]
+                   ) -> tuple[float, ...]:
+    """How bright a fog's airlight is relative to the clear sky of the same camera: each foggy frame's airlight
+    luminance over the median clear-sky luminance, in linear light (sorted ascending).
+
+    Airlight is the ambient light that the droplets scatter: it depends on the day's illumination, not on the clear
+    scene's sky, and a reference recorded in fog shows how it spreads from frame to frame. Frames without visible
+    sky (None) do not vote; no vote on either side gives ``(1.0,)`` (the clear sky's own airlight).
+
+    Args:
+        fog_airlights: per foggy reference frame, `sky_airlight` of its image (or None).
+        clear_airlights: per clear reference frame of the same camera, `sky_airlight` (or None).
+    """
+    fog = [airlight_luminance(a) for a in fog_airlights if a is not None]
+    clear = [airlight_luminance(a) for a in clear_airlights if a is not None]
+    if not fog or not clear or float(np.median(clear)) <= 0.0:
+        return (1.0,)
+    base = float(np.median(clear))
+    return tuple(sorted(y / base for y in fog))
+
+
+def fog_airlight(airlight: NDArray | Sequence[float], gain: float) -> NDArray[np.float64]:
+    """(3,) linear-light airlight of a fog whose airlight is ``gain`` times the scene's sRGB ``airlight``
+    (`airlight_gains`), capped at the sRGB code `CLIPPED` so that fog is never white."""
+    if not (math.isfinite(gain) and gain > 0.0):
+        raise ValueError(f"fog_airlight: gain = {gain!r}; expected a finite factor > 0")
+    return np.minimum(srgb_to_linear(_check_airlight(airlight)) * float(gain), float(srgb_to_linear(CLIPPED)))
 
 
 def _dark_channel_airlight(images: Sequence[F32]) -> NDArray[np.float64] | None:

@@ -40,20 +40,23 @@ def reprojection_table(simulate: dict[str, Any]) -> str:
 
 
 def redam_table(calibrate: dict[str, Any], truth: dict[str, Any] | None) -> str:
-    """ReDAM per fog level (``reports/calibrate_fog/metrics.json``): the tuned LiDAR parameters, D_KS with its
-    interval, the camera's check (KID and visibility ratio), and, for the synthetic reference, the hidden truth it
-    was tuned blind to (relative error of the tuned α)."""
-    lines = ["| level | tuned α [1/m] | hidden α [1/m] | α error | tuned β [1/(m sr)] | hidden β | D_KS [interval] | "
-             "KID | camera visibility ratio |", "| --- | ---: | ---: | ---: | ---: | ---: | --- | ---: | ---: |"]
+    """ReDAM per fog level (``reports/calibrate_fog/metrics.json``): the tuned LiDAR parameters (α with its
+    frame-bootstrap interval), D_KS with its interval, the camera's check (KID, visibility ratio, the fog's airlight
+    gain over the clear sky), and, for the synthetic reference, the hidden truth it was tuned blind to (relative
+    error of the tuned α)."""
+    lines = ["| level | tuned α [1/m] [interval] | hidden α [1/m] | α error | tuned β [1/(m sr)] | hidden β | "
+             "D_KS [interval] | KID | camera visibility ratio | airlight gain (median) |",
+             "| --- | --- | ---: | ---: | ---: | ---: | --- | ---: | ---: | ---: |"]
     for level, m in calibrate.items():
         if not isinstance(m, dict) or "alpha" not in m:
             continue
         hidden = (truth or {}).get(level, {})
         err = (m["alpha"] / hidden["alpha"] - 1.0) if hidden.get("alpha") else None
-        lines.append(f"| {level} | {m['alpha']:.4g} | {_num(hidden.get('alpha'), '.4g')} | "
+        interval = f" [{m['alpha_ci_low']:.4g}, {m['alpha_ci_high']:.4g}]" if "alpha_ci_low" in m else ""
+        lines.append(f"| {level} | {m['alpha']:.4g}{interval} | {_num(hidden.get('alpha'), '.4g')} | "
                      f"{'—' if err is None else f'{err:+.1%}'} | {m['beta']:.3g} | {_num(hidden.get('beta'), '.3g')} "
                      f"| {m['ks']:.4f} [{m['ks_ci_low']:.4f}, {m['ks_ci_high']:.4f}] | {_num(m.get('kid'), '.4f')} | "
-                     f"{_num(m.get('camera_visibility_ratio'))} |")
+                     f"{_num(m.get('camera_visibility_ratio'))} | {_num(m.get('airlight_gain_median'))} |")
     return "\n".join(lines)
 
 

@@ -10,7 +10,7 @@ cameras' unaligned fog extinction per scene, and the particle field of every sce
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -28,11 +28,15 @@ from weatheralign.medium.fog import mor_from_alpha
 
 @dataclass(frozen=True)
 class FogLevels:
-    """(α [1/m], β [1/(m sr)]) of the light and dense levels and where they came from."""
+    """(α [1/m], β [1/(m sr)]) of the light and dense levels, each level's airlight gains (the fog's airlight over the
+    clear sky's, `weatheralign.camera.fog.airlight_gains`; ``(1.0,)``: the clear sky's own) and where they came
+    from."""
 
     alpha: dict[str, float]
     beta: dict[str, float]
     source: str
+    airlight_gains: dict[str, tuple[float, ...]] = field(
+        default_factory=lambda: {"light": (1.0,), "dense": (1.0,)})
 
 
 def params_fog_levels(cfg: SimulateConfig) -> FogLevels:
@@ -44,18 +48,22 @@ def params_fog_levels(cfg: SimulateConfig) -> FogLevels:
 
 
 def calibrated_fog_levels(path: Path) -> FogLevels:
-    """The tuned levels in ``path`` (`FOG_LEVELS_FILE`).
+    """The tuned levels in ``path`` (`FOG_LEVELS_FILE`); a level without ``airlight_gains`` keeps the clear sky's
+    airlight (``(1.0,)``).
 
     Raises:
         DataFormatError: missing or unreadable file, a missing level or key, a non-positive alpha, a negative beta,
-            or a light level denser than the dense one.
+            airlight gains that are not a non-empty list of positive numbers, or a light level denser than the dense
+            one.
     """
     path = Path(path)
     levels = read_json_file(path, "run the calibrate_fog stage first (dvc repro calibrate_fog) or set "
                                   "simulate.fog_levels=params to use the literature levels")
-    alpha, beta = {}, {}
+    alpha, beta, gains = {}, {}, {}
     for level in ("light", "dense"):
         entry = levels.get(level) if isinstance(levels, dict) else None
+        gains[level] = _airlight_gains(entry.get("airlight_gains", [1.0]) if isinstance(entry, dict) else [1.0],
+                                       f"{path}: {level}.airlight_gains")
         for key, out in (("alpha", alpha), ("beta", beta)):
             v = entry.get(key) if isinstance(entry, dict) else None
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
@@ -66,7 +74,14 @@ def calibrated_fog_levels(path: Path) -> FogLevels:
                                   f"{beta[level]}")
     if alpha["light"] > alpha["dense"]:
         raise DataFormatError(f"{path}: light.alpha {alpha['light']} exceeds dense.alpha {alpha['dense']}")
-    return FogLevels(alpha, beta, "calibrated")
+    return FogLevels(alpha, beta, "calibrated", gains)
+
+
+def _airlight_gains(value: Any, where: str) -> tuple[float, ...]:
+    if not isinstance(value, list) or not value or any(
+            isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v <= 0.0 for v in value):
+        raise DataFormatError(f"{where} = {value!r}; expected a non-empty list of positive numbers")
+    return tuple(float(v) for v in value)
 
 
 def configured_fog_levels(cfg: SimulateConfig, data: Path) -> FogLevels:
@@ -149,6 +164,8 @@ class SceneMedia:
         field: the scene's `FieldSpec` (the LiDAR's field; the cameras see `camera_field`), or None.
         camera_rate_mm_h: the unaligned cameras' precipitation rate [mm/h] (`ParticlePart.camera_rate`); None: the
             field's own.
+        airlight_gain: the fog's airlight over the scene's clear-sky airlight (`FogPart.airlight_gain`; 1 without
+            fog).
     """
 
     condition: Condition
@@ -159,6 +176,7 @@ class SceneMedia:
     camera_alpha: float = 0.0
     field: FieldSpec | None = None
     camera_rate_mm_h: float | None = None
+    airlight_gain: float = 1.0
 
     @property
     def has_particles(self) -> bool:
@@ -182,7 +200,8 @@ class ConditionMedia:
 
     Attributes:
         condition: the condition's name (a key of `CONDITIONS`).
-        fog: ``{"level", "alpha", "beta", "source", "camera_alpha_unaligned": {scene: α}}`` or None.
+        fog: ``{"level", "alpha", "beta", "source", "camera_alpha_unaligned": {scene: α}, "airlight_gain":
+            {scene: gain}}`` or None (media without ``airlight_gain``: 1, the clear sky's airlight).
         fields: ``{scene: FieldSpec}`` or None.
         camera_rate_unaligned: ``{scene: rate [mm/h]}`` the unaligned cameras' rate (with ``fields``).
     """
@@ -205,7 +224,8 @@ class ConditionMedia:
             if scene not in unaligned:
                 raise DataFormatError(f"media of {self.condition}: no fog for scene {scene!r}; rerun the media stage")
             kw.update(lidar_alpha=self.fog["alpha"], lidar_beta=self.fog["beta"],
-                      camera_alpha=self.fog["alpha"] if aligned else unaligned[scene])
+                      camera_alpha=self.fog["alpha"] if aligned else unaligned[scene],
+                      airlight_gain=float(self.fog.get("airlight_gain", {}).get(scene, 1.0)))
         if self.fields is not None:
             if scene not in self.fields:
                 raise DataFormatError(f"media of {self.condition}: no particle field for scene {scene!r} (has "
@@ -264,7 +284,9 @@ def resolve_media(condition: Condition, cfg: SimulateConfig, scenes: list[str], 
         fog = {"level": level, "alpha": alpha, "beta": fog_levels.beta[level], "source": fog_levels.source,
                "camera_alpha_unaligned": {
                    s: FogPart.camera_alpha(False, alpha, fog_levels.alpha["light"], fog_levels.alpha["dense"],
-                                           cfg.fog_seed, condition.name, s) for s in scenes}}
+                                           cfg.fog_seed, condition.name, s) for s in scenes},
+               "airlight_gain": {s: FogPart.airlight_gain(fog_levels.airlight_gains[level], cfg.fog_seed,
+                                                          condition.name, s) for s in scenes}}
     per_scene = None
     if condition.particles is not None:
         kind = condition.particles.kind

@@ -13,8 +13,9 @@ How media compose (see `weatheralign.conditions`):
   and lets the fog's backscatter compete with the strongest echo of each beam. The sensor is the dataset's `LidarModel`.
 - Cameras (`observe_camera`), each at its own timestamp and ego pose: one transmission per pixel, the fog's
   ``exp(-α ℓ)`` times the unresolved particles' ``exp(-τ_u(ℓ))``, guided-filtered where the ray lengths are estimated
-  (real cameras' dense depth; an exact range map is used as it is) and composited with the scene's
-  airlight in linear light in one compiled pass (`weatheralign.camera.fog.composite_image`); then the field's
+  (real cameras' dense depth; an exact range map is used as it is) and composited with the fog's
+  airlight (the scene's clear-sky airlight times the scene's calibrated gain, `SceneMedia.airlight_gain`) in linear
+  light in one compiled pass (`weatheralign.camera.fog.composite_image`); then the field's
   resolvable particles splatted with exposure streaks (`weatheralign.camera.splat`), pre-fogged by the same fog.
   Unaligned cameras see the media's twins (`SceneMedia.camera_alpha`, `SceneMedia.camera_field`).
 """
@@ -27,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from weatheralign.camera.fog import composite_image, encode_srgb_u8, srgb_to_linear
+from weatheralign.camera.fog import composite_image, encode_srgb_u8, fog_airlight
 from weatheralign.camera.fog import transmission as fog_transmission
 from weatheralign.camera.splat import (APPEARANCES, focal_px, materialize_for_camera, render_particles,
                                        unresolved_extinction_profile)
@@ -188,7 +189,8 @@ def observe_camera(image: NDArray[np.uint8], range_map: NDArray[np.float32], vie
     Args:
         image: (H, W, 3) uint8 sRGB clear image; range_map: (H, W) float32 ray length [m], inf = sky.
         view: the camera's geometry at its timestamp (K, size, pose); camera: its model (exposure).
-        airlight: (3,) sRGB airlight of the scene; ego_vel: (3,) ego velocity [m/s] (streaks).
+        airlight: (3,) sRGB airlight of the scene's clear sky (the fog's: times ``media.airlight_gain``,
+            `fog_airlight`); ego_vel: (3,) ego velocity [m/s] (streaks).
     """
     alpha = media.camera_alpha
     fld = media.camera_field()
@@ -202,7 +204,7 @@ def observe_camera(image: NDArray[np.uint8], range_map: NDArray[np.float32], vie
         profile = unresolved_extinction_profile(fld, focal_px(view.K), look, near_clip=near)
         t_particles = profile.transmission(range_map)
         t = t_particles if t is None else t * t_particles
-    a_lin = srgb_to_linear(np.asarray(airlight, dtype=np.float64))
+    a_lin = fog_airlight(airlight, media.airlight_gain)
     refine = options.refine_transmission and view.range_path is None  # exact depth needs no edge-aware smoothing
     if fld is None:
         return CameraWeather(composite_image(image, t, a_lin, refine), None, 0)

@@ -112,7 +112,8 @@ def reference_fused_input(ds: ReferenceDataset, sample_id: str, out_hw: tuple[in
 
 def scene_media(condition: Condition, aligned: bool, sample_id: str, severity: Severity, seed: int) -> SceneMedia:
     """The media of ``condition`` over the clear frame ``sample_id`` as `simulate` builds them for a scene: the fog
-    at its level (unaligned cameras: `FogPart.camera_alpha` from ``seed``), the particle field seeded from
+    at its level (unaligned cameras: `FogPart.camera_alpha` from ``seed``) with its airlight gain
+    (`FogPart.airlight_gain`, both cameras), the particle field seeded from
     (``severity.particles.seed``, kind, frame id) (unaligned cameras: its twin at `ParticlePart.camera_rate`)."""
     kw: dict = {}
     if condition.fog is not None:
@@ -120,7 +121,9 @@ def scene_media(condition: Condition, aligned: bool, sample_id: str, severity: S
         alpha = levels.alpha[condition.fog.level]
         kw.update(lidar_alpha=alpha, lidar_beta=levels.beta[condition.fog.level],
                   camera_alpha=FogPart.camera_alpha(aligned, alpha, levels.alpha["light"], levels.alpha["dense"],
-                                                    seed, condition.name, sample_id))
+                                                    seed, condition.name, sample_id),
+                  airlight_gain=FogPart.airlight_gain(levels.airlight_gains[condition.fog.level], seed,
+                                                      condition.name, sample_id))
     if condition.particles is not None:
         spec = field_spec(severity.particles_at_rates(), condition.particles.kind, sample_id, 0.0)
         kw["field"] = spec
