@@ -83,14 +83,16 @@ def camera_sets(ds: ReferenceDataset, params: Params) -> dict[str, list[tuple[np
 
 
 def simulated_fog_images(clear: list[tuple[np.ndarray, np.ndarray]], alpha: float, gains: tuple[float, ...],
-                         seed: int, level: str) -> list[np.ndarray]:
+                         seed: int, level: str, exact_ranges: bool) -> list[np.ndarray]:
     """The clear reference images fogged at ``alpha`` by the simulation's camera fog: each frame's clear-sky airlight
-    times a gain of the level's ``gains`` drawn per frame (`FogPart.airlight_gain`), as `simulate` does per scene."""
+    times a gain of the level's ``gains`` drawn per frame (`FogPart.airlight_gain`), as `simulate` does per scene;
+    the transmission edge-refined only where the ray lengths are estimated (not ``exact_ranges``), as in
+    `simulate` (on exact depth the guided filter would only blur the fog across depth edges)."""
     out = []
     for k, (img, rng) in enumerate(clear):
         gain = FogPart.airlight_gain(gains, seed, level, str(k))
         airlight = linear_to_srgb(fog_airlight(estimate_airlight([img], [rng]), gain))
-        out.append(fog_image(img, rng, alpha, airlight, refine=True))
+        out.append(fog_image(img, rng, alpha, airlight, refine=not exact_ranges))
     return out
 
 
@@ -150,7 +152,8 @@ def calibrate_fog_flow(params: Params) -> dict:
             result, reference = lidar_level(ds, frames, level, params, sensor)
             ref_images = [img for img, _ in cams[level]]
             gains = level_airlight_gains(cams["clear"], cams[level], ds.load_range(ds.ids(level)[0]) is not None)
-            sim_images = simulated_fog_images(cams["clear"], result.alpha, gains, cfg.seed, level)
+            sim_images = simulated_fog_images(cams["clear"], result.alpha, gains, cfg.seed, level,
+                                              ds.load_range(ds.ids("clear")[0]) is not None)
             visibility = camera_visibility_ratio(sim_images, [r for _, r in cams["clear"]], ref_images,
                                                  [r for _, r in cams[level]])
             ref_features = extractor(ref_images)
