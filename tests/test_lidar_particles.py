@@ -943,3 +943,27 @@ def test_a_faint_surface_hides_a_weaker_particle_echo_in_front_of_it():
     assert sky.beam_label.tolist() == [ParticleLabel.SCATTERED] and sky.beam_particle.tolist() == [3]
     res = simulate_particle_list(hidden, parts, lidar=lidar, reflectivity=RAIN_REFLECTIVITY, intensity_max=255.0)
     assert res.beam_label.tolist() == [ParticleLabel.NO_ECHO] and len(res.points) == 0
+
+
+def test_noise_keys_ignore_ulp_differences_of_a_direction_and_tell_beams_apart():
+    """A beam's detector-noise key survives its direction being computed a few ULPs differently (reconstructed beams
+    without return differed by up to 8.9e-16 between processes on the same input, which had changed their noise
+    draws and the copy's bytes); beams that differ in direction, ring or time get different keys."""
+    from weatheralign.lidar.beams import detector_noise_keys
+    rng = np.random.default_rng(5)
+    d = rng.normal(size=(20000, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    times = np.full(len(d), 1.5e9 + 0.25)
+    ring = rng.integers(0, 64, len(d)).astype(np.float32)
+    keys = detector_noise_keys(times, d, ring)
+    wobbled = d.copy()
+    for _ in range(4):
+        wobbled = np.nextafter(wobbled, np.where(rng.random(d.shape) < 0.5, -np.inf, np.inf))
+    assert np.abs(wobbled - d).max() > 0.0
+    assert np.array_equal(detector_noise_keys(times, wobbled, ring), keys)
+    assert len(np.unique(keys)) == len(keys)
+    step = d.copy()
+    step[:, 0] += 1e-3  # a neighbouring beam of the same laser at the same time
+    assert not np.any(detector_noise_keys(times, step, ring) == keys)
+    assert not np.any(detector_noise_keys(times, d, ring + 1) == keys)
+    assert not np.any(detector_noise_keys(np.nextafter(times, np.inf), d, ring) == keys)

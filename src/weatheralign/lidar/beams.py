@@ -207,13 +207,20 @@ _KEY_MULTIPLIERS = np.array([0x9E3779B97F4A7C15, 0xBF58476D1CE4E5B9, 0x94D049BB1
                               0xA0761D6478BD642F], dtype=np.uint64)
 
 
+KEY_DIRECTION_QUANTUM = 2.0 ** -16
+"""Grid of the direction components in a beam's noise key (15 µrad, far below any beam spacing): a direction computed
+a few ULPs differently (a reconstructed beam without return: measured up to 8.9e-16 apart between processes on the
+same input) keeps its key, so its noise draws, and the copy's bytes, do not change from run to run."""
+
+
 def detector_noise_keys(times: NDArray, directions: NDArray, ring: NDArray) -> NDArray[np.uint64]:
     """(B,) the detector-noise stream of each beam (`weatheralign.medium.field.normal_pair` draws from it): the bits of
-    its firing time [s] (B,), unit direction (B, 3) and ring (B,), each times an odd constant, summed (mod 2^64). A
-    beam reads the same noise in every run and condition (the sensor's noise, not the weather's; a scan simulated
-    alone or with its sweeps alike), and beams differ in one of them."""
+    its firing time [s] (B,), its unit direction (B, 3) rounded to `KEY_DIRECTION_QUANTUM` and its ring (B,), each
+    times an odd constant, summed (mod 2^64). A beam reads the same noise in every run and condition (the sensor's
+    noise, not the weather's; a scan simulated alone or with its sweeps alike), and beams differ in one of them."""
+    quantised = np.rint(np.ascontiguousarray(directions, dtype=np.float64) / KEY_DIRECTION_QUANTUM).astype(np.int64)
     parts = np.column_stack([np.ascontiguousarray(times, dtype=np.float64).view(np.uint64),
-                             np.ascontiguousarray(directions, dtype=np.float64).view(np.uint64).reshape(-1, 3),
+                             quantised.view(np.uint64).reshape(-1, 3),
                              np.asarray(ring).astype(np.uint64)])
     return (parts * _KEY_MULTIPLIERS).sum(axis=1, dtype=np.uint64)
 
