@@ -56,6 +56,8 @@ from weatheralign.calibrate.histograms import (
     NUM_BINS,
     IntensityHistograms,
     KsBootstrap,
+    _as_generator,
+    _check_bootstrap_args,
     bootstrap_ks,
     ks_statistic,
 )
@@ -543,14 +545,12 @@ def bootstrap_alpha(
     """
     if not (span > 1.0 and points >= 3):
         raise ValueError(f"bootstrap_alpha: span = {span!r}, points = {points!r}; expected span > 1, points >= 3")
+    _check_bootstrap_args(num_resamples, confidence)
     grid = alpha * np.exp(np.linspace(-math.log(span), math.log(span), int(points)))
     sims = np.stack([simulated_histograms(frames, a, beta_from_factor(a, beta_factor), noise_floor=noise_floor,
                                           sensor=sensor).counts for a in grid]).astype(np.float64)  # (A, F, 256)
     ref = reference.counts.astype(np.float64)
-    gen = np.random.default_rng(rng) if not isinstance(rng, np.random.Generator) else rng
-    if num_resamples < 10 or not 0.0 < confidence < 1.0:
-        raise ValueError(f"bootstrap_alpha: num_resamples = {num_resamples}, confidence = {confidence}; expected "
-                         f">= 10 resamples and a confidence in (0, 1)")
+    gen = _as_generator(rng)
     best = np.empty(num_resamples)
     for b in range(num_resamples):
         w_sim = np.bincount(gen.integers(0, sims.shape[1], sims.shape[1]), minlength=sims.shape[1])
