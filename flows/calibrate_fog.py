@@ -140,7 +140,8 @@ def calibrate_fog_flow(params: Params) -> dict:
         sensor = reference_lidar_model(params, ds)
         tracker.log_params({"calibrate_fog": cfg.model_dump(mode="json"), "reference.source": params.reference.source,
                             "reference_lidar": sensor.to_dict()})
-        frames = fog_frames(ds.load_scan(i) for i in ds.ids("clear"))
+        frames = fog_frames((ds.load_scan(i) for i in ds.ids("clear")), noise_std=sensor.intensity_noise_std,
+                            noise_rel=sensor.intensity_noise_rel)
         extractor = feature_extractor(cfg.inception_path, device=cfg.device)
         cams = camera_sets(ds, params)
         clear_features = extractor([img for img, _ in cams["clear"]])

@@ -201,6 +201,17 @@ def test_simulated_histograms_equal_binned_simulate_fog_with_beam_origins():
         assert fast == full  # the fog's randomness never changes an intensity
     lost = simulated_histograms(frames, 0.1, 0.0, noise_floor=5.0, sensor=SENSOR)
     assert lost.num_points < frames.num_points  # LOST returns leave the histogram
+    # a detector with intensity noise: the frames carry each beam's normal, drawn as simulate_fog draws it
+    noisy = make_lidar(pulse=SENSOR, noise_floor=2.0, range_noise_std_m=0.05, intensity_noise_std=1.5,
+                       intensity_noise_rel=0.03)
+    loud = fog_frames(scans, noise_std=1.5, noise_rel=0.03)
+    for alpha, beta in [(0.02, 1e-4), (0.08, 1.2e-3)]:
+        fast = simulated_histograms(loud, alpha, beta, noise_floor=2.0, sensor=SENSOR)
+        full = IntensityHistograms.from_scans(simulate_fog(s, alpha, beta, lidar=noisy).apply_to(s) for s in scans)
+        assert fast == full
+        assert fast != simulated_histograms(frames, alpha, beta, noise_floor=2.0, sensor=SENSOR)
+    with pytest.raises(ValueError, match="normals"):
+        replace(loud, normals=None)
     assert beta_from_factor(0.04, 2.0) == pytest.approx(paper_beta_grid(0.04)[-1], rel=1e-12)
 
 
@@ -253,6 +264,22 @@ def test_search_recovers_a_hidden_off_grid_medium(clear_synthetic, alpha, factor
     print(f"alpha {alpha} factor {factor}: alpha* {res.alpha:.5f} factor* {res.beta_factor:.3f} "
           f"D {res.ks:.4f} [{res.ks_ci_low:.4f}, {res.ks_ci_high:.4f}] grid {res.grid.best_alpha} "
           f"{res.grid.best_beta_factor} D {res.grid.best_ks:.4f}; {elapsed:.1f} s")
+
+
+def test_search_through_a_noisy_detector_recovers_the_medium():
+    """Reference fogged and read through a detector with intensity noise (σ_0 = 1.5, rel 3 %, floor 2): the search
+    on clear frames read through the same detector recovers α within 5 %."""
+    alpha, factor = 0.05, 1.5
+    noisy = make_lidar(pulse=SENSOR, noise_floor=2.0, range_noise_std_m=0.05, intensity_noise_std=1.5,
+                       intensity_noise_rel=0.03)
+    reference = IntensityHistograms.from_scans(
+        simulate_fog(s, alpha, beta_from_factor(alpha, factor), lidar=noisy).apply_to(s)
+        for s in (_synthetic_scan(700 + k) for k in range(16)))
+    frames = fog_frames([_synthetic_scan(s) for s in range(16)], noise_std=1.5, noise_rel=0.03)
+    res = calibrate_level(frames, reference, noise_floor=2.0, sensor=SENSOR, num_bootstrap=100)
+    assert res.alpha == pytest.approx(alpha, rel=0.05)
+    assert res.alpha_ci_low <= res.alpha <= res.alpha_ci_high
+    assert res.ks <= 0.01
 
 
 def test_alpha_interval_narrows_with_more_frames_and_is_seeded():

@@ -21,11 +21,12 @@ from scipy.spatial.transform import Rotation
 
 from weatheralign.data.frame import LidarScan
 from weatheralign.lidar import FogLabel, c_a_p0_from_intensity, hard_target_power, overlap
-from weatheralign.lidar.beams import beam_origins
+from weatheralign.lidar.beams import beam_origins, point_noise_keys
 from weatheralign.lidar.fog import (
     REFERENCE_CODE_BETA,
     fog_intensities,
     fog_point_arrays,
+    intensity_normals,
     simulate_fog,
     soft_target_response,
 )
@@ -354,6 +355,78 @@ def test_fog_echoes_get_the_sensors_range_noise_bounded_and_deterministic() -> N
         simulate_fog(scan, -0.1, 0.0, lidar=_lidar(sensor=sensor))
     with pytest.raises(ValueError):
         simulate_fog(scan, 0.1, float("nan"), lidar=_lidar(sensor=sensor))
+
+
+def test_detector_intensity_noise_has_the_missing_variance_of_each_reading() -> None:
+    """A noisy detector (σ_0, rel) reads every changed return again. A fog echo is a new reading: mean ``i_soft``,
+    variance ``σ_0² + (rel · i_soft)²``. An attenuated target carries its clear reading's noise scaled by ``T²`` and
+    gets the missing ``σ_0² (1 - T⁴)``, so its total variance is a fogged reading's. Unchanged points (α = 0) and a
+    noise-free detector give the exact old values; the floor decides on the reading."""
+    n = 40_000
+    keys = np.random.default_rng(7).integers(0, 2**63, n, dtype=np.uint64)
+    z = intensity_normals(keys)
+    assert abs(z.mean()) < 4.0 / math.sqrt(n) and abs(z.std() - 1.0) < 0.02
+    s0, rel = 2.0, 0.05
+    for r, i0, alpha, beta in ((100.0, 250.0, 0.06, default_beta(0.06)),  # dense fog: the fog echo wins
+                               (20.0, 80.0, 0.03, 0.0)):  # no backscatter: the attenuated target
+        r0, i0s = np.full(n, r), np.full(n, i0, np.float32)
+        quiet = fog_intensities(r0, i0s, alpha, beta, sensor=SENSOR, noise_floor=None)
+        loud = fog_intensities(r0, i0s, alpha, beta, sensor=SENSOR, noise_floor=None, noise_std=s0, noise_rel=rel,
+                               noise_normals=z)
+        np.testing.assert_array_equal(quiet.labels, loud.labels)
+        mean = quiet.intensity[0]
+        if beta > 0.0:
+            assert (quiet.labels == FogLabel.SCATTERED).all()
+            var = s0 ** 2 + (rel * mean) ** 2
+        else:
+            assert (quiet.labels == FogLabel.ATTENUATED).all()
+            var = s0 ** 2 * (1.0 - math.exp(-4.0 * alpha * r))
+        assert loud.intensity.mean() == pytest.approx(mean, abs=4.0 * math.sqrt(var / n))
+        assert loud.intensity.std() == pytest.approx(math.sqrt(var), rel=0.02)
+        expected = mean + math.sqrt(var) * z
+        assert (expected > 0.0).all()  # nothing clipped at 0 here
+        np.testing.assert_allclose(loud.intensity, expected, rtol=1e-12)
+    # α = 0: the clear reading stands, bit for bit; a noise-free detector is the old model
+    clear = fog_intensities(np.full(n, 30.0), np.full(n, 50.0, np.float32), 0.0, 0.0, sensor=SENSOR, noise_floor=None,
+                            noise_std=s0, noise_rel=rel, noise_normals=z)
+    assert (clear.labels == FogLabel.UNCHANGED).all() and (clear.intensity == 50.0).all()
+    # the floor decides on the reading: attenuated to the floor itself, about half the readings fall below it
+    r = 40.0
+    floor = float(np.float32(math.exp(-2.0 * 0.03 * r) * 10.0))
+    weak = fog_intensities(np.full(n, r), np.full(n, 10.0, np.float32), 0.03, 0.0, sensor=SENSOR, noise_floor=floor,
+                           noise_std=s0, noise_rel=rel, noise_normals=z)
+    assert 0.45 < np.mean(weak.labels == FogLabel.LOST) < 0.55
+    assert (weak.intensity[weak.labels != FogLabel.LOST] >= floor).all()
+    with pytest.raises(ValueError, match="noise_normals"):
+        fog_intensities(np.full(3, r), np.full(3, 10.0, np.float32), 0.03, 0.0, sensor=SENSOR, noise_floor=None,
+                        noise_std=s0)
+    with pytest.raises(ValueError, match="noise"):
+        fog_intensities(np.full(3, r), np.full(3, 10.0, np.float32), 0.03, 0.0, sensor=SENSOR, noise_floor=None,
+                        noise_std=-1.0)
+
+
+def test_simulate_fog_reads_through_the_sensors_intensity_noise_deterministically() -> None:
+    """`simulate_fog` draws each beam's reading from its own noise stream (`point_noise_keys`): the same scan gives
+    the same bytes, and the array-level model with those normals gives the same intensities and decisions."""
+    scan = _scan(n=20000, seed=11, moving=True)
+    origins = beam_origins(scan, "scan")
+    lidar = make_lidar(pulse=SENSOR, max_range_m=SENSOR.max_range, noise_floor=2.0, intensity_noise_std=1.5,
+                       intensity_noise_rel=0.03)
+    alpha, beta = 0.06, default_beta(0.06)
+    res = simulate_fog(scan, alpha, beta, lidar=lidar)
+    _check_sane(scan, res, SENSOR, origins)
+    assert simulate_fog(scan, alpha, beta, lidar=lidar).points.tobytes() == res.points.tobytes()
+    quiet = simulate_fog(scan, alpha, beta, lidar=replace(lidar, intensity_noise_std=0.0, intensity_noise_rel=0.0))
+    changed = res.input_labels != FogLabel.UNCHANGED
+    assert changed.sum() > 10_000
+    both = np.intersect1d(res.source_index, quiet.source_index)
+    assert not np.array_equal(res.points[np.searchsorted(res.source_index, both), 3],
+                              quiet.points[np.searchsorted(quiet.source_index, both), 3])
+    r0 = np.linalg.norm(scan.points[:, :3].astype(np.float64) - origins, axis=1)
+    arr = fog_intensities(r0, scan.points[:, 3], alpha, beta, sensor=SENSOR, noise_floor=2.0, noise_std=1.5,
+                          noise_rel=0.03, noise_normals=intensity_normals(point_noise_keys(scan)))
+    np.testing.assert_array_equal(arr.labels, res.input_labels)
+    np.testing.assert_array_equal(arr.intensity[res.source_index].astype(np.float32), res.points[:, 3])
 
 
 def test_noise_floor_drops_undetectable_returns() -> None:

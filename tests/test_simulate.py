@@ -496,7 +496,8 @@ def test_fog_snow_lidar_is_the_composition_of_its_media(world):
     """fog_snow's LiDAR: fog's attenuation and backscatter plus the flakes' echoes in one response. With the field
     emptied it is exactly fog (same labels and points as simulate_fog); with the fog removed, exactly snow; with
     both, flakes still scatter (with ids) and fog echoes appear (without ids), and fewer flakes are seen than in snow
-    alone (the fog attenuates their echoes)."""
+    alone (the fog attenuates their echoes). Dense fog's echoes land where `simulate_fog` puts them (the particle path
+    once reported them at the raw power peak, 1.5 m farther)."""
     tw, nusc, fields, frame, _, sensors, scenes = world
     scan = frame.lidar
     mixed = _media("fog_snow", scenes, fields).for_scene(scenes[0], True)
@@ -504,6 +505,12 @@ def test_fog_snow_lidar_is_the_composition_of_its_media(world):
     no_field = replace(mixed, field=replace(mixed.field, rate_mm_h=0.0))
     a = observe_lidar(scan, no_field, sensors.lidar)
     fog = simulate_fog(scan, mixed.lidar_alpha, mixed.lidar_beta, lidar=sensors.lidar)
+    assert np.array_equal(a.labels, fog.labels) and np.array_equal(a.scan.points, fog.points)
+    # dense fog: its echoes too, reported by both paths at the peak minus c tau_H / 2 with each beam's range noise
+    dense = replace(no_field, lidar_alpha=0.06, lidar_beta=0.046 * 0.06 / np.log(20.0))
+    a = observe_lidar(scan, dense, sensors.lidar)
+    fog = simulate_fog(scan, dense.lidar_alpha, dense.lidar_beta, lidar=sensors.lidar)
+    assert (fog.labels == 2).sum() > 100
     assert np.array_equal(a.labels, fog.labels) and np.array_equal(a.scan.points, fog.points)
     no_fog = replace(mixed, lidar_alpha=0.0, lidar_beta=0.0, camera_alpha=0.0)
     b, c = observe_lidar(scan, no_fog, sensors.lidar), observe_lidar(scan, snow, sensors.lidar)

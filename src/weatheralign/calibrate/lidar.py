@@ -10,11 +10,13 @@ the scan's intensity scale, the pulse sensor and the detector **noise floor** (L
 cloud, so they leave the histogram). `fog_frames` therefore reduces the clear scans once to ``(R_0, i_0)`` per point
 (origins from `weatheralign.lidar.beams.beam_origins`, as `simulate_fog` does) and `simulated_histograms` runs the public
 `fog_intensities` on them, casts to float32 (the point-cloud dtype) and bins: the histograms are identical to binning
-``simulate_fog(scan, α, β, lidar=...).points[:, 3]`` with the same pulse and floor (tested). The only randomness of
-the fog model is the optional range jitter of fog echoes, which moves points along their rays and never changes an
-intensity: the objective is a deterministic function of ``(α, β)`` - common random numbers hold trivially, and no
-seed enters the search. The noise floor and pulse must be the reference LiDAR's
-(`weatheralign.reference.reference_lidar_model`), hence required arguments.
+``simulate_fog(scan, α, β, lidar=...).points[:, 3]`` with the same pulse and floor (tested). The fog model's randomness is
+the detector's: the range jitter of fog echoes, which never changes an intensity, and the intensity noise of each
+reading (`weatheralign.lidar.fog.fog_intensities`), whose normals are drawn once per point from its beam's noise
+stream (`FogFrames.normals`, the same draws as `simulate_fog`): every ``(α, β)`` is evaluated on the same normals
+(common random numbers), so the objective is a deterministic function of ``(α, β)`` and no seed enters the search.
+The noise floor and pulse must be the reference LiDAR's (`weatheralign.reference.reference_lidar_model`), hence
+required arguments, and so must its intensity noise (`fog_frames`' ``noise_std`` / ``noise_rel``).
 
 Search (`calibrate_level`):
 1. the paper's grid (`PAPER_ALPHAS` x `PAPER_BETA_FACTORS`, ``β = 0.023·factor/MOR``, ``MOR = ln 20 / α``), one
@@ -45,7 +47,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numba import njit
@@ -63,7 +65,8 @@ from weatheralign.calibrate.histograms import (
 )
 from weatheralign.data.frame import LidarScan
 from weatheralign.lidar.beams import beam_origins
-from weatheralign.lidar.fog import FogLabel, fog_intensities, soft_target_response
+from weatheralign.lidar.beams import point_noise_keys
+from weatheralign.lidar.fog import FogLabel, fog_intensities, intensity_normals, soft_target_response
 from weatheralign.sensors import PulseSensor
 from weatheralign.medium.fog import LN20, PAPER_BETA_FACTORS, mor_from_alpha
 
@@ -90,25 +93,40 @@ def beta_from_factor(alpha: float, factor: float) -> float:
 
 @dataclass(frozen=True)
 class FogFrames:
-    """Clear scans reduced to what the fog's intensity outcome depends on (picklable; ~12 bytes per point).
+    """Clear scans reduced to what the fog's intensity outcome depends on (picklable; ~12 bytes per point, 20 with
+    detector noise).
 
     Attributes:
         r0: (N,) float64 range of every point from its beam origin [m], all frames concatenated.
         i0: (N,) float32 clear intensity on ``0..intensity_max``.
         offsets: (F + 1,) int64 start of each frame in ``r0`` / ``i0`` (``offsets[-1] = N``).
         intensity_max: the scans' intensity scale (255.0 or 1.0).
+        noise_std, noise_rel: the intensity noise of the detector that reads the fogged scans (0..255 scale; see
+            `weatheralign.lidar.fog.fog_intensities`); 0, 0: noise-free.
+        normals: (N,) float64 the standard normal of each point's reading (`intensity_normals` of its beam's noise
+            stream, as `simulate_fog` draws it), or None when noise-free.
     """
 
     r0: F64
     i0: NDArray[np.float32]
     offsets: NDArray[np.int64]
     intensity_max: float
+    noise_std: float = 0.0
+    noise_rel: float = 0.0
+    normals: F64 | None = None
 
     def __post_init__(self) -> None:
         n = len(self.r0)
         off = np.asarray(self.offsets)
         if self.r0.shape != (n,) or self.i0.shape != (n,):
             raise ValueError(f"FogFrames: r0 {self.r0.shape} and i0 {self.i0.shape} must be equal 1-D arrays")
+        if not (math.isfinite(self.noise_std) and self.noise_std >= 0.0 and math.isfinite(self.noise_rel)
+                and self.noise_rel >= 0.0):
+            raise ValueError(f"FogFrames: noise_std = {self.noise_std!r}, noise_rel = {self.noise_rel!r}; expected "
+                             f"finite values >= 0")
+        if (self.noise_std > 0.0 or self.noise_rel > 0.0) and (self.normals is None or self.normals.shape != (n,)):
+            raise ValueError(f"FogFrames: a noisy detector needs normals of shape ({n},), got "
+                             f"{None if self.normals is None else self.normals.shape}")
         if off.ndim != 1 or len(off) < 2 or off[0] != 0 or off[-1] != n or (np.diff(off) < 0).any():
             raise ValueError(f"FogFrames: offsets must be non-decreasing from 0 to N = {n} with at least one frame")
         if self.intensity_max not in (1.0, 255.0):
@@ -144,17 +162,22 @@ def point_ranges(points: NDArray[np.float32], origins: NDArray | None) -> F64:
     return np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])
 
 
-def fog_frames(scans: Iterable[LidarScan]) -> FogFrames:
-    """Reduce clear scans (a sequence or any iterable, consumed once) to `FogFrames`.
+def fog_frames(scans: Iterable[LidarScan], *, noise_std: float = 0.0, noise_rel: float = 0.0) -> FogFrames:
+    """Reduce clear scans (a sequence or any iterable, consumed once) to `FogFrames`, read through a detector of
+    intensity noise ``noise_std`` (0..255 scale) and ``noise_rel`` (the sensor's ``intensity_noise_std`` /
+    ``intensity_noise_rel``).
 
     Each point's range is taken from its own beam origin (`weatheralign.lidar.beams.beam_origins`: a moving ego's sensor moves during
-    the sweep; None -> the frame origin), exactly as `simulate_fog` computes it.
+    the sweep; None -> the frame origin), exactly as `simulate_fog` computes it, and so is its noise
+    (`weatheralign.lidar.beams.point_noise_keys`).
 
     Raises:
         ValueError: no scans, or scans of different intensity scales.
     """
     r0s: list[F64] = []
     i0s: list[NDArray[np.float32]] = []
+    normals: list[F64] = []
+    noisy = noise_std > 0.0 or noise_rel > 0.0
     scale: float | None = None
     for k, scan in enumerate(scans):
         if scale is None:
@@ -162,11 +185,17 @@ def fog_frames(scans: Iterable[LidarScan]) -> FogFrames:
         elif float(scan.intensity_max) != scale:
             raise ValueError(f"fog_frames: scan {k} has intensity_max = {scan.intensity_max}, the first {scale}; "
                              f"expected one scale")
-        r0s.append(point_ranges(scan.points, beam_origins(scan, "scan")))
+        origins = beam_origins(scan, "scan")
+        r0s.append(point_ranges(scan.points, origins))
         i0s.append(np.ascontiguousarray(scan.points[:, 3], dtype=np.float32))
+        if noisy:
+            normals.append(intensity_normals(point_noise_keys(scan)))
     if scale is None:
         raise ValueError("fog_frames: no scans; expected at least one clear LidarScan")
-    return fog_frames_from_arrays(r0s, i0s, scale)
+    frames = fog_frames_from_arrays(r0s, i0s, scale)
+    if not noisy:
+        return frames
+    return replace(frames, noise_std=float(noise_std), noise_rel=float(noise_rel), normals=np.concatenate(normals))
 
 
 def fog_frames_from_arrays(
@@ -217,9 +246,9 @@ def simulated_histograms(
 ) -> IntensityHistograms:
     """Per-frame intensity histograms of the clear ``frames`` fogged with ``(alpha, beta)``.
 
-    Equal to binning ``simulate_fog(scan, alpha, beta, lidar=<pulse sensor, floor noise_floor>).points[:, 3]`` of
-    every scan (any range noise / seed). ~0.1 s for 3.3 M points; releases the GIL (numba), so cells run in
-    parallel threads.
+    Equal to binning ``simulate_fog(scan, alpha, beta, lidar=<pulse sensor, floor noise_floor, the frames' intensity
+    noise>).points[:, 3]`` of every scan (any range noise). ~0.1 s for 3.3 M points; releases the GIL (numba), so
+    cells run in parallel threads.
 
     Args:
         frames: clear scans (`fog_frames`).
@@ -228,7 +257,8 @@ def simulated_histograms(
         sensor: the pulse sensor of the simulation.
     """
     res = fog_intensities(frames.r0, frames.i0, alpha, beta, intensity_max=frames.intensity_max, sensor=sensor,
-                          noise_floor=noise_floor, response=soft_target_response(alpha, sensor))
+                          noise_floor=noise_floor, response=soft_target_response(alpha, sensor),
+                          noise_std=frames.noise_std, noise_rel=frames.noise_rel, noise_normals=frames.normals)
     counts = np.zeros((frames.num_frames, NUM_BINS), dtype=np.int64)
     _bin_frames(res.intensity, res.labels, frames.offsets, 255.0 / frames.intensity_max, np.uint8(FogLabel.LOST),
                 counts)

@@ -465,6 +465,28 @@ def with_faint_surfaces(beams: Beams, noise_floor: float | None) -> Beams:
                  beams.point_index, beams.divergence, beams.max_range)
 
 
+def point_rays(scan: LidarScan) -> tuple[F64, F64, F64]:
+    """Each point's beam in the global frame: origins (N, 3) [m] (`beam_origins`), unit directions (N, 3) and lengths
+    (N,) [m]; a point at its beam origin gets direction +x and length 0."""
+    T_gl = scan.T_global_lidar
+    origins = beam_origins(scan)
+    p_global = scan.points[:, :3].astype(np.float64) @ T_gl[:3, :3].T + T_gl[:3, 3]
+    v = p_global - origins
+    lengths = np.linalg.norm(v, axis=1)
+    good = lengths > 1e-9
+    directions = np.zeros((len(v), 3))
+    directions[:, 0] = 1.0
+    directions[good] = v[good] / lengths[good, None]
+    return origins, directions, np.where(good, lengths, 0.0)
+
+
+def point_noise_keys(scan: LidarScan) -> NDArray[np.uint64]:
+    """(N,) the detector-noise stream of each point's beam: `detector_noise_keys` of its firing time, its global
+    direction (`point_rays`) and its ring, exactly the keys `beams_from_scan`'s beams carry, so the fog alone and the
+    particle model read a beam with the same draws."""
+    return detector_noise_keys(scan_times(scan), point_rays(scan)[1], scan.points[:, 4])
+
+
 def beams_from_scan(scan: LidarScan, *, lidar: "LidarModel", no_return_directions: NoReturnBeams | None = None,
                     columns: NDArray | str | None = "auto", reconstruct: bool = True,
                     gap_factor: float = DEFAULT_GAP_FACTOR) -> Beams:
@@ -489,17 +511,8 @@ def beams_from_scan(scan: LidarScan, *, lidar: "LidarModel", no_return_direction
     max_range = float(lidar.max_range_m)
     pts = scan.points
     n = len(pts)
-    T_gl = scan.T_global_lidar
     times = scan_times(scan)
-    origins = beam_origins(scan)
-    p_global = pts[:, :3].astype(np.float64) @ T_gl[:3, :3].T + T_gl[:3, 3]
-    v = p_global - origins
-    lengths = np.linalg.norm(v, axis=1)
-    good = lengths > 1e-9
-    directions = np.zeros((n, 3))
-    directions[:, 0] = 1.0
-    directions[good] = v[good] / lengths[good, None]
-    lengths = np.where(good, lengths, 0.0)
+    origins, directions, lengths = point_rays(scan)
 
     if no_return_directions is None:
         if isinstance(columns, str) and columns == "auto":

@@ -8,7 +8,12 @@ attenuates every hard-target return two-way, ``i_hard = exp(-2 α R_0) i_0``, an
 Its maximum over the receiver's range axis ``R <= R_0`` (the published table generator searches only there) is the
 fog response ``I(R_0)`` [s/m²] at ``R_fog``; ``i_soft = min(I(R_0) i_0 R_0² β / β_0, saturation)``.
 If ``i_soft > i_hard`` the point becomes a fog return at ``R_fog`` along its ray, else it keeps its position with
-``i_hard``. ``R_fog`` is the peak on the receiver axis ``R = c t / 2`` as in physics.md (about 4.6 m for α = 0.06),
+``i_hard``. A sensor with intensity noise (``LidarModel.intensity_noise_std`` σ_0 and ``intensity_noise_rel``) reads
+each changed return again: a fog echo is a new reading (std ``sqrt(σ_0² + (rel · i_soft)²)``); an attenuated target's
+``i_0`` already carries its clear reading's noise, scaled by ``T² = exp(-2 α R_0)``, and lacks ``σ_0² (1 - T⁴)`` of
+the fogged reading's variance (the proportional part scales exactly), which is added - without it the returns near the
+detector floor are cut too sharply (on the synthetic reference this biased α* up and doubled the KS distance of light
+fog). The floor then decides on the reading. Normals come from each beam's noise stream (`point_noise_keys`). ``R_fog`` is the peak on the receiver axis ``R = c t / 2`` as in physics.md (about 4.6 m for α = 0.06),
 not shifted by the ``c τ_H / 2`` between pulse start and pulse peak.
 
 How ``I(R_0)`` is computed for any α (no tables snapped to 9 values): for ``R <= R_0`` every scatterer ``r <= R``
@@ -47,7 +52,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from weatheralign.data.frame import LidarScan
 from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel
-from weatheralign.lidar.beams import beam_origins, detector_noise_keys, scan_times
+from weatheralign.lidar.beams import beam_origins, point_noise_keys
 from weatheralign.lidar.pulse import SPEED_OF_LIGHT, PulseSensor, overlap
 from weatheralign.medium.field import normal_pair
 from weatheralign.medium.fog import DEFAULT_BETA_MOR, LN20
@@ -173,6 +178,9 @@ def fog_intensities(
     sensor: PulseSensor,
     noise_floor: float | None,
     response: SoftTargetResponse | None = None,
+    noise_std: float = 0.0,
+    noise_rel: float = 0.0,
+    noise_normals: ArrayLike | None = None,
 ) -> FogIntensities:
     """Hard attenuation vs fog echo for points at ranges ``r0`` (N,) [m] with clear intensities ``i0`` (N,).
 
@@ -186,20 +194,35 @@ def fog_intensities(
             the floor and (as float32) below its clear intensity: points already under the floor in clear weather were
             detected nevertheless, so only a return the weather weakened further is dropped.
         response: a precomputed `soft_target_response` of this ``alpha`` (e.g. when sweeping β), or None.
+        noise_std, noise_rel: the detector's intensity noise (`weatheralign.sensors.LidarModel.intensity_noise_std`
+            on the 0..255 scale, ``intensity_noise_rel``); 0, 0: a noise-free reading. A fog echo is a new reading:
+            Gaussian noise of std ``sqrt(noise_std² + (noise_rel · i_soft)²)``. An attenuated target's clear
+            intensity carries its clear reading's noise, scaled by the two-way transmission ``T² = exp(-2 α R_0)``;
+            the reading in fog lacks the variance ``noise_std² (1 - T⁴)`` (the signal-proportional part scales
+            exactly), which is added. Readings are clipped to ``[0, intensity_max]`` before the floor decides.
+        noise_normals: (N,) the standard normal of each point's reading (`intensity_normals` of its beam's
+            `point_noise_keys`, as `simulate_fog` draws it); required when a noise is on.
 
     Returns:
         `FogIntensities`. The label of a non-scattered point is UNCHANGED when its float32 intensity is bit-identical
         to the input's, else ATTENUATED.
     """
-    params = _kernel_params(alpha, beta, intensity_max, sensor, noise_floor, response)
+    params = _kernel_params(alpha, beta, intensity_max, sensor, noise_floor, response, noise_std, noise_rel)
     r0 = np.ascontiguousarray(r0, dtype=np.float64).ravel()
     i0 = np.ascontiguousarray(i0, dtype=np.float32).ravel()
     if r0.shape != i0.shape:
         raise ValueError(f"fog_intensities: r0 {r0.shape} and i0 {i0.shape} differ")
+    if noise_std > 0.0 or noise_rel > 0.0:
+        if noise_normals is None or np.shape(noise_normals) != r0.shape:
+            raise ValueError(f"fog_intensities: intensity noise needs noise_normals of shape {r0.shape} "
+                             f"(intensity_normals), got {None if noise_normals is None else np.shape(noise_normals)}")
+        normals = np.ascontiguousarray(noise_normals, dtype=np.float64)
+    else:
+        normals = np.zeros(0)
     intensity = np.empty(len(r0))
     labels = np.empty(len(r0), dtype=np.uint8)
     r_fog = np.empty(len(r0))
-    _intensity_kernel(r0, i0, *params, intensity, labels, r_fog)
+    _intensity_kernel(r0, i0, *params, normals, intensity, labels, r_fog)
     return FogIntensities(intensity=intensity, labels=labels, r_fog=r_fog)
 
 
@@ -210,27 +233,51 @@ def _kernel_params(
     sensor: PulseSensor,
     noise_floor: float | None,
     response: SoftTargetResponse | None,
+    noise_std: float = 0.0,
+    noise_rel: float = 0.0,
 ) -> tuple:
-    """The scalar/array arguments shared by the numba kernels, validated."""
+    """The scalar/array arguments shared by the numba kernels, validated (the saturation, floor and noise std given on
+    the 0..255 scale converted to the scan's)."""
     _check_medium(alpha, beta)
     if intensity_max not in (1.0, 255.0):
         raise ValueError(f"fog: intensity_max must be 1.0 or 255.0, got {intensity_max!r}")
     if noise_floor is not None and not (math.isfinite(noise_floor) and noise_floor >= 0.0):
         raise ValueError(f"fog: noise_floor = {noise_floor!r}; expected None or a finite value >= 0 (0..255 scale)")
+    for name, value in (("intensity noise std", noise_std), ("intensity noise rel", noise_rel)):
+        if not (math.isfinite(value) and value >= 0.0):
+            raise ValueError(f"fog: {name} = {value!r}; expected a finite value >= 0")
     if response is None:
         response = soft_target_response(alpha, sensor)
     elif response.alpha != alpha:
         raise ValueError(f"fog: response is for alpha = {response.alpha}, not {alpha}")
     grid = response.r_grid
-    saturation = sensor.saturation * intensity_max / 255.0
-    floor = -1.0 if noise_floor is None else noise_floor * intensity_max / 255.0
+    scale = intensity_max / 255.0
+    saturation = sensor.saturation * scale
+    floor = -1.0 if noise_floor is None else noise_floor * scale
     return (float(grid[0]), float(grid[1] - grid[0]), response.g, response.r_peak, response.g_peak, float(alpha),
-            float(beta) / sensor.beta_0, saturation, floor)
+            float(beta) / sensor.beta_0, saturation, floor, float(noise_std) * scale, float(noise_rel),
+            float(intensity_max))
+
+
+def _noise_keys(noise_keys: NDArray | None, n: int, needed: bool) -> NDArray[np.uint64]:
+    """The beams' noise streams as the kernels take them: (n,) uint64 when a noise is on, else (0,).
+
+    Raises:
+        ValueError: a noise is on and ``noise_keys`` is not (n,).
+    """
+    if not needed:
+        return np.zeros(0, dtype=np.uint64)
+    if noise_keys is None or np.shape(noise_keys) != (n,):
+        raise ValueError(f"fog: detector noise needs noise_keys of shape ({n},) (detector_noise_keys), got "
+                         f"{None if noise_keys is None else np.shape(noise_keys)}")
+    return np.ascontiguousarray(noise_keys, dtype=np.uint64)
 
 
 @njit(cache=True, nogil=True)
-def _fog_one(r0, i0, r_start, dr, g, r_peak, g_peak, alpha, soft_gain, saturation, floor):  # pragma: no cover
-    """(intensity, label, r_fog) of one return: the scalar model of `fog_intensities` (float64, float32 i0)."""
+def _fog_one(r0, i0, r_start, dr, g, r_peak, g_peak, alpha, soft_gain, saturation, floor, noise_std, noise_rel,
+             full_scale, z):  # pragma: no cover
+    """(intensity, label, r_fog) of one return: the scalar model of `fog_intensities` (float64, float32 i0), ``z``
+    the standard normal of its intensity reading."""
     if r0 >= r_peak:
         integral = g_peak
         r_fog = r_peak
@@ -248,24 +295,52 @@ def _fog_one(r0, i0, r_start, dr, g, r_peak, g_peak, alpha, soft_gain, saturatio
                 integral = g[j] + frac * (g[j + 1] - g[j])
             integral = min(integral, g_peak)
     i0_64 = np.float64(i0)
-    i_hard = math.exp(-2.0 * alpha * r0) * i0_64
+    two_way = math.exp(-2.0 * alpha * r0)
+    i_hard = two_way * i0_64
     i_soft = min(integral * i0_64 * r0 * r0 * soft_gain, saturation)
     if i_soft > i_hard:
         out, label = i_soft, 2
+        std = math.sqrt(noise_std * noise_std + (noise_rel * i_soft) ** 2)
     else:
         out = i_hard
         label = 0 if np.float32(i_hard) == i0 else 1
+        std = noise_std * math.sqrt(max(1.0 - two_way * two_way, 0.0))
+    if label != 0 and std > 0.0:
+        out = min(max(out + std * z, 0.0), full_scale)
     if label != 0 and floor >= 0.0 and out < floor and np.float32(out) < i0:
         label = 3
     return out, label, r_fog
 
 
 @njit(cache=True, nogil=True)
-def _intensity_kernel(r0, i0, r_start, dr, g, r_peak, g_peak, alpha, soft_gain, saturation, floor,
-                      intensity, labels, r_fog):  # pragma: no cover
+def _intensity_kernel(r0, i0, r_start, dr, g, r_peak, g_peak, alpha, soft_gain, saturation, floor, noise_std,
+                      noise_rel, full_scale, normals, intensity, labels, r_fog):  # pragma: no cover
+    noisy = normals.shape[0] > 0
     for n in range(len(r0)):
         intensity[n], labels[n], r_fog[n] = _fog_one(r0[n], i0[n], r_start, dr, g, r_peak, g_peak, alpha,
-                                                    soft_gain, saturation, floor)
+                                                    soft_gain, saturation, floor, noise_std, noise_rel, full_scale,
+                                                    normals[n] if noisy else 0.0)
+
+
+@njit(cache=True, nogil=True)
+def _normals_kernel(keys, out):  # pragma: no cover
+    for n in range(len(keys)):
+        out[n, 0], out[n, 1] = normal_pair(keys[n])
+
+
+def reading_normals(noise_keys: ArrayLike) -> F64:
+    """(N, 2) the standard normals of each beam's reading from its noise stream ``noise_keys`` (N,): intensity, range
+    (`normal_pair`, as every weather echo draws them)."""
+    keys = np.ascontiguousarray(noise_keys, dtype=np.uint64).ravel()
+    out = np.empty((len(keys), 2))
+    _normals_kernel(keys, out)
+    return out
+
+
+def intensity_normals(noise_keys: ArrayLike) -> F64:
+    """(N,) the standard normal of each beam's intensity reading (`reading_normals`' first, as `simulate_fog` draws
+    it): `fog_intensities`' ``noise_normals``."""
+    return np.ascontiguousarray(reading_normals(noise_keys)[:, 0])
 
 
 @njit(cache=True, nogil=True)
@@ -281,11 +356,13 @@ def _reported_range(r_fog, r0, half_length, range_sigma, key, r1, max_range):  #
 
 
 @njit(cache=True, nogil=True)
-def _points_kernel(points, origins, r_start, dr, g, r_peak, g_peak, alpha, soft_gain, saturation, floor,
-                   half_length, range_sigma, keys, r1, max_range, out, labels, r0_out, r_fog_out):  # pragma: no cover
+def _points_kernel(points, origins, r_start, dr, g, r_peak, g_peak, alpha, soft_gain, saturation, floor, noise_std,
+                   noise_rel, full_scale, half_length, range_sigma, keys, r1, max_range, out, labels, r0_out,
+                   r_fog_out):  # pragma: no cover
     """Fog every row of ``points`` (N, 5) float32 into ``out`` (a copy of ``points``); origins (N, 3) or (0, 3);
-    keys (N,) the beams' noise streams (read only when ``range_sigma > 0``)."""
+    keys (N,) the beams' noise streams, or (0,) for a noise-free detector."""
     has_origin = origins.shape[0] > 0
+    noisy = keys.shape[0] > 0
     for n in range(points.shape[0]):
         ox = oy = oz = 0.0
         if has_origin:
@@ -294,16 +371,17 @@ def _points_kernel(points, origins, r_start, dr, g, r_peak, g_peak, alpha, soft_
         dy = np.float64(points[n, 1]) - oy
         dz = np.float64(points[n, 2]) - oz
         r0 = math.sqrt(dx * dx + dy * dy + dz * dz)
+        key = keys[n] if noisy else np.uint64(0)
+        z = normal_pair(key)[0] if noisy and (noise_std > 0.0 or noise_rel > 0.0) else 0.0
         value, label, r_fog = _fog_one(r0, points[n, 3], r_start, dr, g, r_peak, g_peak, alpha, soft_gain,
-                                       saturation, floor)
+                                       saturation, floor, noise_std, noise_rel, full_scale, z)
         labels[n] = label
         r0_out[n] = r0
         r_fog_out[n] = r_fog
         if label == 1:
             out[n, 3] = value
         elif label == 2:
-            f = _reported_range(r_fog, r0, half_length, range_sigma, keys[n] if range_sigma > 0.0 else np.uint64(0),
-                                r1, max_range) / r0
+            f = _reported_range(r_fog, r0, half_length, range_sigma, key, r1, max_range) / r0
             out[n, 0] = ox + dx * f
             out[n, 1] = oy + dy * f
             out[n, 2] = oz + dz * f
@@ -365,6 +443,8 @@ def fog_point_arrays(
     range_noise_std: float = 0.0,
     noise_keys: NDArray[np.uint64] | None = None,
     response: SoftTargetResponse | None = None,
+    noise_std: float = 0.0,
+    noise_rel: float = 0.0,
 ) -> FogResult:
     """Fog on a bare point array (the array-level core of `simulate_fog`).
 
@@ -376,8 +456,9 @@ def fog_point_arrays(
         sensor: pulse parameters (τ_H, overlap, β_0, max range, saturation).
         noise_floor: detector floor on the 0..255 scale, or None (see `fog_intensities`).
         range_noise_std: the sensor's Gaussian range noise [m] of a new (fog) echo, clipped at ±2σ; 0: none.
-        noise_keys: (N,) each point's beam noise stream (`detector_noise_keys`); required when ``range_noise_std > 0``.
+        noise_keys: (N,) each point's beam noise stream (`point_noise_keys`); required when a noise is on.
         response: precomputed `soft_target_response` of ``alpha``, or None.
+        noise_std, noise_rel: the detector's intensity noise (see `fog_intensities`).
 
     A SCATTERED point moves along its ray to the range the receiver reports for the fog echo: the power peak
     ``R_fog`` minus ``c τ_H / 2`` (the hard targets' convention), plus the range noise, inside
@@ -392,14 +473,8 @@ def fog_point_arrays(
     n = len(points)
     if not (math.isfinite(range_noise_std) and range_noise_std >= 0.0):
         raise ValueError(f"fog: range_noise_std = {range_noise_std!r}; expected a finite standard deviation >= 0 m")
-    if range_noise_std > 0.0:
-        if noise_keys is None or np.shape(noise_keys) != (n,):
-            raise ValueError(f"fog: range noise needs noise_keys of shape ({n},) (detector_noise_keys), got "
-                             f"{None if noise_keys is None else np.shape(noise_keys)}")
-        keys = np.ascontiguousarray(noise_keys, dtype=np.uint64)
-    else:
-        keys = np.zeros(0, dtype=np.uint64)
-    params = _kernel_params(alpha, beta, intensity_max, sensor, noise_floor, response)
+    keys = _noise_keys(noise_keys, n, range_noise_std > 0.0 or noise_std > 0.0 or noise_rel > 0.0)
+    params = _kernel_params(alpha, beta, intensity_max, sensor, noise_floor, response, noise_std, noise_rel)
     if origins is None:
         origins = np.zeros((0, 3))
     else:
@@ -443,18 +518,17 @@ def simulate_fog(
         scan: the clear scan (any intensity scale; the result keeps it).
         alpha: extinction [1/m] (``MOR = ln 20 / α``); 0 returns the input unchanged when ``beta`` is 0 too.
         beta: backscatter [1/(m sr)], e.g. `default_beta` (0.046 / MOR).
-        lidar: the sensor (`weatheralign.sensors.LidarModel`): its pulse, its detector noise floor (0..255) and the
-            range noise of a new echo (``range_noise_std_m``; each beam's stream from its firing time, direction and
-            ring: the same scan gives the same bytes).
+        lidar: the sensor (`weatheralign.sensors.LidarModel`): its pulse, its detector noise floor (0..255), its
+            intensity noise (``intensity_noise_std``, ``intensity_noise_rel``; see `fog_intensities`) and the range
+            noise of a new echo (``range_noise_std_m``); each beam's noise from its own stream (`point_noise_keys`:
+            firing time, direction and ring), so the same scan gives the same bytes.
 
     Returns:
         `FogResult` (use ``result.apply_to(scan)`` for a `LidarScan`).
     """
     origins = beam_origins(scan, "scan")
-    keys = None
-    if lidar.range_noise_std_m > 0.0:
-        ray = scan.points[:, :3].astype(np.float64) - (0.0 if origins is None else origins)
-        norm = np.linalg.norm(ray, axis=1, keepdims=True)
-        keys = detector_noise_keys(scan_times(scan), ray / np.where(norm > 0.0, norm, 1.0), scan.points[:, 4])
+    noisy = lidar.range_noise_std_m > 0.0 or lidar.intensity_noise_std > 0.0 or lidar.intensity_noise_rel > 0.0
+    keys = point_noise_keys(scan) if noisy else None
     return fog_point_arrays(scan.points, origins, alpha, beta, intensity_max=scan.intensity_max, sensor=lidar.pulse,
-                            noise_floor=lidar.noise_floor, range_noise_std=lidar.range_noise_std_m, noise_keys=keys)
+                            noise_floor=lidar.noise_floor, range_noise_std=lidar.range_noise_std_m, noise_keys=keys,
+                            noise_std=lidar.intensity_noise_std, noise_rel=lidar.intensity_noise_rel)

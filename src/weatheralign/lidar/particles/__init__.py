@@ -15,7 +15,8 @@ attenuated by the bulk extinction of the unresolved particles (below). Between c
 is a constant plus one sinusoid of period ``c τ_H``, so its maximum is found exactly (no receiver grid); the measured
 range is the peak position minus ``c τ_H / 2`` (as in Hahner's code). A peak within ``keep_tolerance`` (0.2 m) of
 ``R_0`` keeps the point where it is with the peak intensity (ATTENUATED, or UNCHANGED if its float32 intensity is
-bit-identical); otherwise the point moves along its beam to the measured range (SCATTERED, with the id of the particle
+bit-identical; a detector with intensity noise reads it again: its clear intensity's noise scaled with the signal
+lacks ``σ_0² (1 - k²)`` of the reading's variance at transmission ``k``, added as in the fog model); otherwise the point moves along its beam to the measured range (SCATTERED, with the id of the particle
 contributing most at the peak). A particle echo below the detector noise floor is not detected: the target's own
 echo then decides, and a return the weather pushed below the floor is LOST (points that were below the floor in clear
 weather were detected nevertheless and are kept, as in the fog model). Beams without return can return a particle:

@@ -21,7 +21,7 @@ from weatheralign.lidar.particles.beam_index import (empty_hits, field_hits, ind
 from weatheralign.lidar.particles.response import response_kernel
 from weatheralign.lidar.particles.records import (BeamOutcome, BeamTargets, Continuum, HitArrays, Medium,
                                                   ParticleBatch, PulseParams)
-from weatheralign.lidar.fog import soft_target_response
+from weatheralign.lidar.fog import reading_normals, soft_target_response
 from weatheralign.medium.distributions import RAIN_REFLECTIVITY, SNOW_REFLECTIVITY  # noqa: F401  (re-exported)
 from weatheralign.medium.fog import FogMedium
 from weatheralign.sensors import IntensityModel, LidarModel, PulseSensor
@@ -282,10 +282,13 @@ def _fog_backscatter(beams: Beams, response: _Response, fog: FogMedium, opt: _Op
     beam's clear ``i_0 R_0²`` and ``β / β_0``) is a smooth waveform peaking a few metres from the sensor; the pulse
     sum of the particles and the target peaks at their ranges. The detector reports the larger peak: where the fog's
     exceeds the beam's echo (attenuated target, particle echo, or an echo pushed below the floor), the beam becomes a
-    fog echo (SCATTERED, no particle id), LOST if that echo is under the floor and below ``i_0`` — the fog model's
-    rule, so with no particles this is exactly `simulate_fog`. Beams without return have no ``i_0`` and get none,
-    as in the fog model. The two waveforms are compared by their peaks, not summed: exact where they do not overlap
-    in range (a particle within ~1.5 m of the fog peak, or a target nearer than R*, is the only case they do).
+    fog echo (SCATTERED, no particle id), read as `simulate_fog` reads it (the detector's intensity noise; reported at
+    ``R_fog - c τ_H / 2`` plus the range noise, inside ``[r1, min(R_0, max_range)]``), LOST if that reading is under
+    the floor and below ``i_0`` — the fog model's rule, so with no particles and a noise-free detector this is exactly
+    `simulate_fog` (with noise: the same model, each beam's draws from its own stream). Beams without return have no
+    ``i_0`` and get none, as in the fog model. The two waveforms are compared by their peaks, not summed: exact where
+    they do not overlap in range (a particle within ~1.5 m of the fog peak, or a target nearer than R*, is the only
+    case they do).
     """
     out = response.outcome
     ret = np.flatnonzero(beams.has_return & (beams.lengths > 0.0))
@@ -293,19 +296,53 @@ def _fog_backscatter(beams: Beams, response: _Response, fog: FogMedium, opt: _Op
         return
     r0 = beams.lengths[ret]
     i0 = beams.intensity0[ret]
-    table = soft_target_response(fog.alpha, opt.sensor)
+    sensor = opt.sensor
+    table = soft_target_response(fog.alpha, sensor)
     value, r_fog = table(r0)
-    i_soft = np.minimum(value * i0 * r0 * r0 * (fog.beta / opt.sensor.beta_0), opt.sensor.saturation)
+    i_soft = np.minimum(value * i0 * r0 * r0 * (fog.beta / sensor.beta_0), sensor.saturation)
     state = out.state[ret]
     current = np.where(state == WeatherLabel.UNCHANGED, i0, out.intensity[ret])
-    wins = i_soft > current
-    floor = -1.0 if opt.noise_floor is None else float(opt.noise_floor)
-    lost = wins & (floor >= 0.0) & (i_soft < floor) & (i_soft.astype(np.float32) < i0.astype(np.float32))
+    wins = np.flatnonzero(i_soft > current)
+    if not len(wins):
+        return
     b = ret[wins]
-    out.state[b] = np.where(lost[wins], WeatherLabel.LOST, WeatherLabel.SCATTERED)
-    out.range[b] = r_fog[wins]
-    out.intensity[b] = i_soft[wins]
+    reading, reported = i_soft[wins], r_fog[wins] - 0.5 * sensor.pulse_length
+    noisy = opt.intensity_noise_std > 0.0 or opt.intensity_noise_rel > 0.0 or opt.range_noise_std > 0.0
+    if noisy:
+        z = reading_normals(beam_noise_keys(beams)[b])
+        std = np.sqrt(opt.intensity_noise_std ** 2 + (opt.intensity_noise_rel * reading) ** 2)
+        reading = np.clip(reading + std * z[:, 0], 0.0, sensor.saturation)
+        reported = reported + opt.range_noise_std * np.clip(z[:, 1], -2.0, 2.0)
+    reported = np.clip(reported, sensor.r1, np.minimum(r0[wins], sensor.max_range))
+    floor = -1.0 if opt.noise_floor is None else float(opt.noise_floor)
+    lost = (floor >= 0.0) & (reading < floor) & (reading.astype(np.float32) < i0[wins].astype(np.float32))
+    out.state[b] = np.where(lost, WeatherLabel.LOST, WeatherLabel.SCATTERED)
+    out.range[b] = reported
+    out.intensity[b] = reading
     out.dom[b] = -1
+
+
+def _read_attenuated(beams: Beams, response: _Response, opt: _Options) -> None:
+    """The detector's reading of each target kept at its range (ATTENUATED, in place on ``response.outcome``): its
+    clear intensity ``i_0`` carries its clear reading's noise, scaled with the signal by the transmission ``k =
+    i / i_0``; the reading lacks ``σ_0² (1 - k²)`` of its variance (``intensity_noise_std`` σ_0; the proportional
+    part scales exactly), added from the beam's noise stream (the first normal, unused by a kept target), as
+    `weatheralign.lidar.fog` does. A reading the weather pushed below the floor (and below ``i_0``) is LOST."""
+    if opt.intensity_noise_std <= 0.0:
+        return
+    out = response.outcome
+    b = np.flatnonzero((out.state == WeatherLabel.ATTENUATED) & beams.has_return & (beams.intensity0 > 0.0))
+    if not len(b):
+        return
+    i0 = beams.intensity0[b]
+    k = np.minimum(out.intensity[b] / i0, 1.0)
+    std = opt.intensity_noise_std * np.sqrt(np.maximum(1.0 - k * k, 0.0))
+    reading = np.clip(out.intensity[b] + std * reading_normals(beam_noise_keys(beams)[b])[:, 0], 0.0,
+                      opt.sensor.saturation)
+    out.intensity[b] = reading
+    if opt.noise_floor is not None:
+        lost = (reading < opt.noise_floor) & (reading.astype(np.float32) < i0.astype(np.float32))
+        out.state[b[lost]] = WeatherLabel.LOST
 
 
 def _assemble(beams: Beams, points: NDArray[np.float32], T_global_out: F64, intensity_max: float, hits: HitArrays,
@@ -621,6 +658,7 @@ def simulate_particle_scans(
         hits = empty_hits()
         response = _respond(beams, hits, np.array([0.0, 1e300]), np.array([fog_alpha]), opt)
         _fog_backscatter(beams, response, fog, opt)
+        _read_attenuated(beams, response, opt)
         joint: dict = {}
     else:
         hits, response, joint = _field_response(beams, field, opt, fog, float(ratio_threshold), attenuation,
@@ -673,6 +711,7 @@ def _field_response(beams: Beams, field: ParticleField, opt: _Options, fog: FogM
     response = _respond(beams, hits, edges, alphas, opt, continuum)
     if fog is not None and fog_alpha > 0.0:
         _fog_backscatter(beams, response, fog, opt)
+    _read_attenuated(beams, response, opt)
     return hits, response, {"shells": shells, "t_ref": index.t_ref, "particles": sum(x["particles"] for x in shells),
                             "origin_spread": index.e_origin}
 
@@ -720,4 +759,5 @@ def simulate_particle_list(
     continuum = (unresolved_continuum(edges, np.array([float(unresolved_cross_section)]), alphas, opt)
                  if unresolved_cross_section > 0.0 else NO_CONTINUUM)
     response = _respond(beams, hits, np.array([0.0, 1e300]), alphas, opt, continuum)
+    _read_attenuated(beams, response, opt)
     return _assemble(beams, points, T_out, imax, hits, response, stats)

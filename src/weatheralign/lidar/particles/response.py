@@ -314,7 +314,8 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
     A particle echo is a new measurement: the detector's noise (``pulse.noise_std``, ``noise_rel``, ``range_noise``;
     the beam's stream ``beams.noise_key``) is added to its peak and range before the floor decides whether it is
     detected; an echo measured nearer than ``pulse.min_range`` is not. A target kept at its range keeps the noise of
-    its clear measurement (scaled with it).
+    its clear measurement (scaled with it) here; the reading's missing variance is added afterwards
+    (`weatheralign.lidar.particles.api._read_attenuated`).
     """
     h_s, h_u1, h_u2, h_a, h_ratio = hits.s, hits.u1, hits.u2, hits.a, ratio
     has_ret, lengths, i0 = beams.has_ret, beams.lengths, beams.i0
