@@ -5,10 +5,11 @@ frames of ``../shared/data/real`` (dense depth from their own scans: what a user
 condition of `weatheralign.conditions.CONDITIONS`, aligned, at the tuned fog levels and precipitation rates of the
 last pipeline run (``<data>/calibrate_fog/fog_levels.json``, ``<data>/calibrate_precipitation/rates.json``; the
 params' values where those are absent). The real snowy STF frame stands beside the simulated snow as the real
-reference. Figures: ``reports/benchmarks/real_weather_<frame>.png`` (clean, then one tile per condition). Numbers per frame and condition, in
-``reports/benchmarks/real_weather.json``: the share of the top quarter clipped at 255 (white sky), the mean sRGB
-change over sky and over structure, the contrast left over structure (fog must grey structure with depth, not
-paint it white), particles drawn and scattered LiDAR echoes, re-projection error, CPU seconds.
+reference. Figures: ``reports/benchmarks/real_weather_<frame>.png`` (clean, then one tile per condition). Numbers
+per frame and condition, in ``reports/benchmarks/real_weather.json``: the share of the top quarter clipped at 255
+(white sky), the mean sRGB change over sky and over structure, the contrast left over structure (fog must grey
+structure with depth, not paint it white), particles drawn and scattered LiDAR echoes, re-projection error, CPU
+seconds.
 """
 
 from __future__ import annotations

@@ -21,8 +21,11 @@ from weatheralign.sensors import EgoBody
 from weatheralign.simulate.media import ConditionMedia, SceneMedia
 
 DEPTH_SWEEPS = 3
-"""Earlier LiDAR sweeps aggregated with the keyframe for the cameras' dense depth where the dataset has no exact
-range maps (real data; nuScenes: 3 HDL-32E sweeps cover ~2 % of an image)."""
+"""LiDAR scans aggregated for the cameras' dense depth where the dataset has no exact range maps (real data): the
+keyframe and its 2 earlier sweeps (`load_lidar` counts the keyframe; nuScenes: 3 HDL-32E sweeps cover ~2 % of an
+image). Not all the sweeps a keyframe has: on 8 x 6 cameras of the synthetic world (exact depth, ego body masked)
+AbsRel is 0.029 with 1 scan, 0.028 with 2, 0.029 with 3, 0.035 with 5 and 0.047 with 10, since older sweeps add
+moving objects' ghosts and parallax faster than they fill gaps (2 and 3 are equal within the sampling noise)."""
 
 
 @dataclass(frozen=True)
@@ -38,7 +41,7 @@ def sample_range_maps(nusc, frame: Frame, images: dict[str, NDArray[np.uint8]],
                       ego_body: EgoBody | None = None) -> dict[str, NDArray[np.float32]]:
     """Per camera of ``frame`` its (H, W) float32 ray length [m] (inf = sky): the exact range map where the dataset
     stores one (the synthetic world, whose cameras render ``ego_body`` already), else
-    `weatheralign.camera.depth.camera_range_map` from the keyframe and `DEPTH_SWEEPS` earlier sweeps (real data)
+    `weatheralign.camera.depth.camera_range_map` from `DEPTH_SWEEPS` scans, the keyframe and earlier sweeps (real data)
     with the sky neighbouring cameras agree on (`consistent_sky`), nearer where a pixel's ray meets the ego's own
     body (`EgoBody.camera_ranges`: the LiDAR never sees it, so the completion would give it the far scene's depth or
     sky, and fog or particles would be drawn on the car)."""
