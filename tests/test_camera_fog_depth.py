@@ -16,15 +16,18 @@ from PIL import Image
 from weatheralign.camera.depth import (
     CameraPoints,
     DenseDepth,
+    DepthParams,
     above_fov_mask,
     camera_points,
     complete_depth,
     consistent_sky,
     dense_depth,
+    drop_parallax,
     drop_see_through,
     estimate_top_elevation_deg,
     morphological_fill,
     pixel_ray_norms,
+    triangulate,
 )
 from weatheralign.camera.fog import (
     CLIPPED,
@@ -662,3 +665,45 @@ def test_a_pale_facade_above_the_top_ring_is_not_sky():
     assert not dd.sky.any()
     z_est = dd.range / pixel_ray_norms(K, W, H)
     assert np.all(np.abs(z_est[:40] - 20.0) < 0.5)  # continued upwards
+
+
+def test_far_points_the_lidar_saw_over_an_upright_surface_are_dropped_not_those_over_the_ground():
+    """The LiDAR 0.33 m above the camera (nuScenes CAM_FRONT) sees over a car's rear (z = 14 m, rings at rows 512,
+    524, 536) to a facade at 40 m; in the camera (f = 1266 px) the facade's points land f h (1/14 - 1/40) = 19.4 px
+    below the ray's image at the car, so a facade ring 12 px above the car's top ring is more likely on the car than
+    beside it, one 36 px above is seen. Over the ground (rings at the road's rows for 14 m and 12 m) nothing
+    hides it."""
+    K = np.array([[1266.0, 0.0, 800.0], [0.0, 1266.0, 450.0], [0.0, 0.0, 1.0]])
+    origin = np.array([0.0, -0.33, 0.0])
+    z = np.zeros((900, 1600), np.float32)
+    z[500, 790:811:4] = 40.0  # 12 px above the car's top ring
+    z[476, 790:811:4] = 40.0  # 36 px above
+    for row in (512, 524, 536):
+        z[row, 790:811:2] = 14.0
+    out = drop_parallax(z, origin, K, gap_v=12.0, gap_h=2.0, ratio=1.1, min_depth_m=1.0)
+    assert not out[500].any() and np.array_equal(out[476], z[476])
+    assert np.array_equal(out[512:], z[512:]) and np.count_nonzero(z) == 6 + 6 + 3 * 11  # input unchanged
+    # the same facade ring above the road: the road's rings come nearer as fast as they drop, no surface rises
+    ground = np.zeros_like(z)
+    ground[500, 790:811:4] = 40.0
+    for depth in (14.0, 12.0, 10.0):
+        ground[int(round(450 + 1266.0 * 1.5 / depth)), 790:811:2] = depth
+    assert np.array_equal(drop_parallax(ground, origin, K, 12.0, 2.0, 1.1, 1.0), ground)
+    # no offset, no filter
+    assert np.array_equal(drop_parallax(z, np.zeros(3), K, 12.0, 2.0, 1.1, 1.0), z)
+
+
+def test_a_level_triangle_spanning_a_depth_jump_is_not_ground():
+    """Three points at one height 0.3 m below the camera, two on a car's top at 14 m and one on a surface 44 m
+    away (seen over the car): a level triangle, but no road rises so fast in depth between neighbouring rings
+    (ratio 3.1 > ``ground_depth_ratio`` 2): not filled. The same triangle at 14 / 20 m (ratio 1.4) is road-like."""
+    K = np.array([[1266.0, 0.0, 800.0], [0.0, 1266.0, 450.0], [0.0, 0.0, 1.0]])
+    up = np.array([0.0, -1.0, 0.0])
+
+    def filled(far: float) -> int:
+        xyz = np.array([[-0.4, 0.3, 14.0], [0.4, 0.3, 14.0], [0.0, 0.3, far]])
+        uv = (xyz / xyz[:, 2:]) @ K.T
+        return int(np.count_nonzero(triangulate(uv[:, :2], xyz, up, 900, 1600, 200.0, DepthParams())))
+
+    assert filled(44.0) == 0
+    assert filled(20.0) > 100

@@ -14,7 +14,8 @@ the synthetic world and as Koschmieder's law needs), ``inf`` for sky. Stages (`d
    above and below (or left and right) lie behind a foreground surface that the LiDAR, mounted elsewhere, saw past:
    the camera cannot see them. Points framed on all four sides, within many ring gaps, by one nearer surface were
    seen through it (a car's windows pass the pulse; the camera sees the window): dropped, so the window is filled
-   across from the car body around it.
+   across from the car body around it. Far points just above the top ring of a nearer upright surface, within the
+   parallax of a LiDAR mounted above the camera, were seen over it (`drop_parallax`): dropped too.
 3. **Planar interpolation** (`triangulate`): a Delaunay triangulation of the projected points in the image;
    inverse depth is linear in the image over a planar patch, so each triangle whose corners lie on one surface
    (similar depths, or a near-horizontal patch such as the road) is filled exactly for planes. Triangles across
@@ -49,8 +50,8 @@ and the image, 0.5 for the morphological fill / refined edges, 0.25 for upward c
 0.5 for sky without an image. ``valid`` is ``confidence >= 0.5``.
 
 Accuracy and cost (`benchmarks/bench_depth.py`: 12 samples x 6 cameras of the synthetic world, 1600 x 900, against
-the exact ray length, the ego's body from its geometry, after `consistent_sky`): AbsRel 0.030 with the keyframe alone,
-0.028 with 3 HDL-32E sweeps (0.19 / 0.18 within 10 px of depth edges); 95 % of the true sky is inf, 0.33 % of the
+the exact ray length, the ego's body from its geometry, after `consistent_sky`): AbsRel 0.029 with the keyframe alone,
+0.028 with 3 HDL-32E sweeps (0.18 / 0.17 within 10 px of depth edges); 95 % of the true sky is inf, 0.33 % of the
 structure is taken for sky; ~0.32 s per image on 2 shared CPU cores (morphological fill 0.10 s, triangles 0.05 s,
 refinement ~0.05-0.1 s).
 
@@ -96,7 +97,9 @@ class DepthParams:
             mounts, e.g. 79 points at z ~0.5 m on the top rows of the STF sample).
         same_surface_ratio: a triangle is one surface if its corner depths differ by at most this factor.
         ground_tilt_deg: ... or if its 3-D normal is within this angle of the ego's up axis (road, pavement)
-        ground_height_range_m: ... and its corners differ in height by at most this [m].
+        ground_height_range_m: ... and its corners differ in height by at most this [m] ...
+        ground_depth_ratio: ... and in camera z by at most this factor (a level triangle from a car's top to a
+            surface far behind it, seen over the car, is no road).
         max_edge_gaps: longest triangle edge, in measured vertical point gaps.
         occlusion_ratio: a point is hidden if nearer points (depth below ``z / ratio``) flank it on both sides.
         see_through_reach_gaps: a point is seen through a surface (a car window) if within this many vertical point
@@ -128,6 +131,7 @@ class DepthParams:
     same_surface_ratio: float = 1.15
     ground_tilt_deg: float = 12.0
     ground_height_range_m: float = 0.5
+    ground_depth_ratio: float = 2.0
     max_edge_gaps: float = 2.8
     occlusion_ratio: float = 1.1
     see_through_reach_gaps: float = 25.0
@@ -178,12 +182,15 @@ class CameraPoints:
         dt: (N,) float64 firing time minus exposure time [s] (0 where unknown).
         R_lidar_cam: (3, 3) rotation camera -> LiDAR frame (for the field-of-view test).
         up_cam: (3,) the ego's up axis in camera coordinates.
+        lidar_origin_cam: (3,) the LiDAR's origin in camera coordinates [m] (for `drop_parallax`); None: unknown,
+            no parallax filter.
     """
 
     xyz: F64
     dt: F64
     R_lidar_cam: F64
     up_cam: F64
+    lidar_origin_cam: F64 | None = None
 
 
 # ------------------------------------------------------------------------------------------------ geometry
@@ -199,7 +206,8 @@ def camera_points(scan: LidarScan, camera: CameraView) -> CameraPoints:
     xyz = scan.points[:, :3].astype(np.float64) @ T_cam_lidar[:3, :3].T + T_cam_lidar[:3, 3]
     dt = scan.point_times() - camera.timestamp
     return CameraPoints(xyz=xyz, dt=dt, R_lidar_cam=T_cam_lidar[:3, :3].T.copy(),
-                        up_cam=(camera.T_ego_cam[:3, :3].T @ np.array([0.0, 0.0, 1.0])))
+                        up_cam=(camera.T_ego_cam[:3, :3].T @ np.array([0.0, 0.0, 1.0])),
+                        lidar_origin_cam=T_cam_lidar[:3, 3].copy())
 
 
 def estimate_top_elevation_deg(scan: LidarScan, min_range_m: float = 8.0) -> float:
@@ -372,6 +380,73 @@ def drop_occluded(z: F32, gap_v: float, gap_h: float, ratio: float) -> F32:
     return out
 
 
+@njit(cache=True, nogil=True)
+def _first_point_below(z: NDArray, v: int, u: int, z_max: float, half_width: int, max_rows: int
+                       ) -> tuple[int, float]:
+    """(row, z) of the first row below (``v``, ``u``), within ``max_rows`` rows and ``half_width`` columns either
+    side, holding a point of ``z`` (H, W) (0 = empty) nearer than ``z_max`` (its nearest such point); (-1, 0) if
+    none."""
+    H, W = z.shape
+    for r in range(v + 1, min(H, v + 1 + max_rows)):
+        best = 0.0
+        for c in range(max(0, u - half_width), min(W, u + half_width + 1)):
+            zq = z[r, c]
+            if 0.0 < zq < z_max and (best == 0.0 or zq < best):
+                best = zq
+        if best > 0.0:
+            return r, best
+    return -1, 0.0
+
+
+@njit(cache=True, nogil=True)
+def _parallax_hidden(z: NDArray, shift_v: float, fy: float, cy: float, ratio: float, half_width: int,
+                     min_depth: float, ring_rows: int, out: NDArray) -> None:
+    """Mark in ``out`` (H, W) bool the points of ``z`` (H, W) float32 (0 = empty) whose first nearer point below
+    (nearer than ``z / ratio``) lies within their parallax distance ``shift_v (1 / z_q - 1 / z_p)`` [px] and on an
+    upright surface: the next point below it (within ``ring_rows``) rises at least as much as it comes nearer."""
+    H, W = z.shape
+    for v in range(H):
+        for u in range(W):
+            zp = z[v, u]
+            if zp <= 0.0:
+                continue
+            reach = int(shift_v * (1.0 / min_depth - 1.0 / zp)) + 1
+            rq, zq = _first_point_below(z, v, u, zp / ratio, half_width, reach)
+            if rq < 0 or rq - v > shift_v * (1.0 / zq - 1.0 / zp):
+                continue
+            r2, z2 = _first_point_below(z, rq, u, np.inf, half_width, ring_rows)
+            if r2 >= 0 and abs((r2 - cy) * z2 - (rq - cy) * zq) / fy >= abs(zq - z2):
+                out[v, u] = True
+
+
+def drop_parallax(z: F32, origin_cam: F64, K: F64, gap_v: float, gap_h: float, ratio: float,
+                  min_depth_m: float) -> F32:
+    """Remove far points just above the top edge of a nearer upright surface, where the LiDAR, mounted above the
+    camera, looks over the surface and the camera cannot. ``z`` (H, W) float32 camera z, 0 = empty; ``origin_cam``
+    (3,) the LiDAR's origin in camera coordinates [m]; returns a filtered copy.
+
+    A LiDAR ray passing over the top of a surface at depth ``z_q`` reaches the background at ``z_p``; in the camera
+    that point lands ``f h (1 / z_q - 1 / z_p)`` pixels below the ray's image at ``z_q`` (``h``: the LiDAR's height
+    above the camera; nuScenes CAM_FRONT: 0.33 m, so the road 40 m ahead seen over a car roof at 14 m lands 12 px
+    below the roof's edge, on the car's rear window). The surface's top lies between that ray and the first ring
+    that hits the surface, so where that ring is nearer in the image than the parallax distance the point is more
+    likely hidden than seen: dropped, and the image-guided fill decides where the edge lies. Only an upright surface
+    (the point below the ring's point rises at least as much as it comes nearer) can hide it: the ground before a
+    wall keeps the wall's foot. Only the vertical offset is modelled: older sweeps were fired from elsewhere along
+    the road, which changes the horizontal parallax. `drop_occluded` needs nearer points on both sides; this needs
+    one, at a known distance."""
+    shift_v = -float(K[1, 1]) * float(np.asarray(origin_cam, dtype=np.float64)[1])
+    out = z.copy()
+    if shift_v < 1e-3:
+        return out
+    hidden = np.zeros(z.shape, np.bool_)
+    _parallax_hidden(np.ascontiguousarray(z, dtype=np.float32), shift_v, float(K[1, 1]), float(K[1, 2]),
+                     float(ratio), max(0, int(round(gap_h / 2))), float(min_depth_m),
+                     max(2, int(round(2 * gap_v))), hidden)
+    out[hidden] = 0.0
+    return out
+
+
 def drop_see_through(z: F32, gap_v: float, gap_h: float, reach_gaps: float, ratio: float, spread: float) -> F32:
     """Remove points that the LiDAR saw through a surface the camera sees (glass: a car's windows pass the pulse
     to whatever lies behind, while the camera sees the window): points with a nearer point (depth below ``z /
@@ -449,7 +524,8 @@ def triangulate(uv: F64, xyz: F64, up_cam: F64, height: int, width: int, max_edg
     n_norm = np.linalg.norm(n, axis=1)
     h = P @ up_cam
     flat = (np.abs(n @ up_cam) >= math.cos(math.radians(params.ground_tilt_deg)) * np.maximum(n_norm, 1e-12)) & (
-        h.max(axis=1) - h.min(axis=1) <= params.ground_height_range_m)
+        h.max(axis=1) - h.min(axis=1) <= params.ground_height_range_m) & (
+        zt.max(axis=1) <= params.ground_depth_ratio * zt.min(axis=1))
     keep = (longest <= max_edge_px) & (same | flat)
     _raster_inverse_depth(tri, uv, (1.0 / z).astype(np.float64), keep, out)
     return out
@@ -918,6 +994,9 @@ def complete_depth(points: CameraPoints, K: F64, width: int, height: int, image:
     z_sparse = drop_occluded(sp.z, gap_v, gap_h, params.occlusion_ratio)
     z_sparse = drop_see_through(z_sparse, gap_v, gap_h, params.see_through_reach_gaps, params.see_through_ratio,
                                 params.see_through_rim_spread)
+    if points.lidar_origin_cam is not None:
+        z_sparse = drop_parallax(z_sparse, points.lidar_origin_cam, K, gap_v, gap_h, params.occlusion_ratio,
+                                 params.min_depth_m)
     kept = z_sparse[sp.pix[:, 0], sp.pix[:, 1]] > 0
     num = int(kept.sum())
     if num < 3:
@@ -1030,7 +1109,8 @@ def dense_depth(
         T_cam_lidar = invert(camera.T_ego_cam) @ np.asarray(T_ego_lidar, dtype=np.float64)
         pts = CameraPoints(xyz=xyz[:, :3] @ T_cam_lidar[:3, :3].T + T_cam_lidar[:3, 3], dt=np.zeros(len(xyz)),
                            R_lidar_cam=T_cam_lidar[:3, :3].T.copy(),
-                           up_cam=camera.T_ego_cam[:3, :3].T @ np.array([0.0, 0.0, 1.0]))
+                           up_cam=camera.T_ego_cam[:3, :3].T @ np.array([0.0, 0.0, 1.0]),
+                           lidar_origin_cam=T_cam_lidar[:3, 3].copy())
         top = float(lidar_top_elevation_deg)
     img = camera.load_image() if image is None else image
     return complete_depth(pts, camera.K, camera.width, camera.height, img, top, params)
