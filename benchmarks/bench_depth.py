@@ -50,6 +50,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from benchmarks.common import REAL, real_frames
 from weatheralign.atomic import write_json
 
 REPO = Path(__file__).resolve().parents[1]
@@ -57,8 +58,6 @@ REPORT = REPO / "reports" / "benchmarks" / "depth.json"
 FIGURE = REPO / "reports" / "benchmarks" / "depth.png"
 FIGURE_REAL = REPO / "reports" / "benchmarks" / "depth_real.png"
 WORLD_ROOT = REPO / "data" / "world"
-REAL_ROOT = REPO.parent / "shared" / "data" / "real"
-STF_ID = "2019-09-11_19-13-44_00960"
 EDGE_RATIO = 1.25
 T_EDGE = 0.1
 SEAM_DT = 0.05
@@ -373,18 +372,11 @@ def run_real(root: Path, alpha: float) -> tuple[dict[str, Any], list[NDArray[np.
     """Held-out-point errors and fog previews (rows: clean | estimated depth | dense fog) of the STF and KITTI
     frames that exist under ``root``."""
     from weatheralign.camera.fog import estimate_airlight, srgb_to_linear
-    from weatheralign.data.kitti import load_kitti_frame
-    from weatheralign.data.stf import load_stf_frame
 
-    frames = {}
-    if (root / "stf").is_dir():
-        frames["stf"] = load_stf_frame(root / "stf", STF_ID)
-    if (root / "kitti").is_dir():
-        k = root / "kitti"
-        frames["kitti"] = load_kitti_frame(k / "000008.bin", k / "000008.png", k / "calib.json")
     out: dict[str, Any] = {}
     rows = []
-    for name, frame in frames.items():
+    for name, load in real_frames(root).items():
+        frame = load()
         metrics, rng, cpu = holdout_eval(frame)
         image = next(iter(frame.cameras.values())).load_image()
         a_lin = srgb_to_linear(estimate_airlight([image], [rng]))
@@ -439,7 +431,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--alpha", type=float, default=0.05, help="fog extinction for halo and seams [1/m]")
     parser.add_argument("--edge-px", type=int, default=10, help="band around exact depth edges [px]")
     parser.add_argument("--halo-codes", type=int, default=8, help="sRGB code difference that counts as halo")
-    parser.add_argument("--real", type=Path, default=REAL_ROOT, help="folder of the shared real frames")
+    parser.add_argument("--real", type=Path, default=REAL, help="folder of the shared real frames")
     parser.add_argument("--out", type=Path, default=REPORT)
     args = parser.parse_args(argv)
     c0, w0 = time.process_time(), time.perf_counter()

@@ -9,7 +9,7 @@ reference. Figures: ``reports/benchmarks/real_weather_<frame>.png`` (clean, then
 per frame and condition, in ``reports/benchmarks/real_weather.json``: the share of the top quarter clipped at 255
 (white sky), the mean sRGB change over sky and over structure, the contrast left over structure (fog must grey
 structure with depth, not paint it white), particles drawn and scattered LiDAR echoes, re-projection error, CPU
-seconds.
+and wall seconds.
 """
 
 from __future__ import annotations
@@ -17,64 +17,40 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from PIL import Image, ImageDraw
 
+from benchmarks.common import REAL, REPO, real_frames
 from weatheralign.atomic import write_json
 
-REPO = Path(__file__).resolve().parents[1]
-REAL = REPO.parent / "shared" / "data" / "real"
 OUT = REPO / "reports" / "benchmarks"
-STF_ID = "2019-09-11_19-13-44_00960"
 STF_SNOW = "cam_stereo_left_lut_2018-02-12_15-39-23_00100_snow.png"
 
 
-def _levels_and_rates(data: Path) -> tuple[Any, Any, str]:
+def _levels_and_rates(params: Any, data: Path) -> tuple[Any, Any, str]:
     """(FogLevels, PrecipitationRates, where they came from): the last run's tuned values, else the params'."""
-    from weatheralign.config import params_from_dict
-    from weatheralign.simulate.media import (calibrated_fog_levels, calibrated_precipitation_rates,
+    from weatheralign.manifest import FOG_LEVELS_FILE, PRECIPITATION_RATES_FILE
+    from weatheralign.simulate.media import (configured_fog_levels, configured_precipitation_rates,
                                              params_fog_levels, params_precipitation_rates)
-    params = params_from_dict({})
-    fog_file = data / "calibrate_fog" / "fog_levels.json"
-    rate_file = data / "calibrate_precipitation" / "rates.json"
-    levels = calibrated_fog_levels(fog_file) if fog_file.is_file() else params_fog_levels(params.simulate)
-    rates = (calibrated_precipitation_rates(rate_file, params.particles) if rate_file.is_file()
-             else params_precipitation_rates(params.particles))
+    levels = (configured_fog_levels(params.simulate, data) if (data / FOG_LEVELS_FILE).is_file()
+              else params_fog_levels(params.simulate))
+    rates = (configured_precipitation_rates(params.simulate, params.particles, data)
+             if (data / PRECIPITATION_RATES_FILE).is_file() else params_precipitation_rates(params.particles))
     return levels, rates, f"fog: {levels.source}, rates: {rates.source}"
 
 
-def real_frames() -> dict[str, Callable[[], Any]]:
-    from weatheralign.data.kitti import load_kitti_frame
-    from weatheralign.data.stf import load_stf_frame
-    k = REAL / "kitti"
-    return {"stf": lambda: load_stf_frame(REAL / "stf", STF_ID),
-            "kitti": lambda: load_kitti_frame(k / "000008.bin", k / "000008.png", k / "calib.json")}
-
-
-def frame_media(condition: str, frame_name: str, t_ref: float, levels: Any, rates: Any) -> Any:
-    """`SceneMedia` of ``condition`` (aligned) over a one-frame scene: the tuned fog level with the median airlight
-    gain, the particle field at the tuned rate."""
-    from dataclasses import replace
-
+def frame_media(params: Any, condition: str, scene: str, t_ref: float, levels: Any, rates: Any) -> Any:
+    """`SceneMedia` of ``condition`` (aligned) over a one-frame ``scene``, as the media stage resolves it (tuned fog
+    level and its airlight gain drawn for the scene, particle field at the tuned rate)."""
     from weatheralign.conditions import CONDITIONS
-    from weatheralign.config import params_from_dict
     from weatheralign.medium.conditions import field_spec
-    from weatheralign.simulate.media import SceneMedia
+    from weatheralign.simulate.media import resolve_media
 
-    params = params_from_dict({})
-    cond = CONDITIONS[condition]
-    kw: dict[str, Any] = {}
-    if cond.fog is not None:
-        lv = cond.fog.level
-        kw.update(lidar_alpha=levels.alpha[lv], lidar_beta=levels.beta[lv], camera_alpha=levels.alpha[lv],
-                  airlight_gain=float(np.median(levels.airlight_gains[lv])))
-    if cond.particles is not None:
-        kind = cond.particles.kind
-        spec = field_spec(params.particles, kind, f"real-{frame_name}", t_ref)
-        kw["field"] = replace(spec, rate_mm_h=rates.rate_mm_h[kind])
-    return SceneMedia(cond, True, f"real-{frame_name}", **kw)
+    fields = {kind: [field_spec(params.particles, kind, scene, t_ref)] for kind in ("snow", "rain")}
+    media = resolve_media(CONDITIONS[condition], params.simulate, [scene], levels, fields, rates)
+    return media.for_scene(scene, True, params.simulate.rain_appearance)
 
 
 def image_stats(clean: np.ndarray, out: np.ndarray, rng: np.ndarray) -> dict[str, float]:
@@ -112,15 +88,14 @@ def grid(tiles: list[np.ndarray], cols: int, width: int) -> np.ndarray:
     return np.concatenate(rows, 0)
 
 
-def run_frame(name: str, frame: Any, levels: Any, rates: Any) -> tuple[list[dict[str, Any]], list[np.ndarray]]:
+def run_frame(params: Any, name: str, frame: Any, levels: Any, rates: Any
+              ) -> tuple[list[dict[str, Any]], list[np.ndarray]]:
     from weatheralign.camera.depth import camera_range_map
     from weatheralign.camera.fog import estimate_airlight
     from weatheralign.conditions import CONDITIONS
-    from weatheralign.config import params_from_dict
     from weatheralign.sensors import SensorRig, camera_models, estimate_lidar_model
     from weatheralign.simulate.observe import ObserveOptions, observe
 
-    params = params_from_dict({})
     channel, view = next(iter(frame.cameras.items()))
     image = view.load_image()
     t0 = time.process_time()
@@ -132,14 +107,14 @@ def run_frame(name: str, frame: Any, levels: Any, rates: Any) -> tuple[list[dict
     rows: list[dict[str, Any]] = []
     tiles = [label(image, f"{name}: clean")]
     for condition in CONDITIONS:
-        media = frame_media(condition, name, frame.lidar.timestamp, levels, rates)
-        t0 = time.process_time()
+        media = frame_media(params, condition, f"real-{name}", frame.lidar.timestamp, levels, rates)
+        t0, w0 = time.process_time(), time.perf_counter()
         fw = observe(frame, {channel: image}, {channel: rng}, media, sensors, airlight, ObserveOptions(threads=1))
-        cpu = time.process_time() - t0
+        cpu, wall = time.process_time() - t0, time.perf_counter() - w0
         out = fw.cameras[channel].image
         out = image if out is None else out
         e = fw.reprojection_px
-        row = {"frame": name, "condition": condition, "cpu_s": cpu, "depth_cpu_s": depth_cpu,
+        row = {"frame": name, "condition": condition, "cpu_s": cpu, "wall_s": wall, "depth_cpu_s": depth_cpu,
                "camera_alpha": media.camera_alpha, "rate_mm_h": None if media.field is None else media.field.rate_mm_h,
                "particles_drawn": fw.cameras[channel].drawn, "lidar_scattered": fw.lidar.counts["SCATTERED"],
                "reprojection_mean_px": float(e.mean()) if e.size else None,
@@ -152,17 +127,21 @@ def run_frame(name: str, frame: Any, levels: Any, rates: Any) -> tuple[list[dict
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
+    from weatheralign.config import params_from_dict
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=REPO / "data", help="the pipeline's data folder (tuned levels)")
     parser.add_argument("--out", type=Path, default=OUT)
     args = parser.parse_args(argv)
-    if not REAL.is_dir():
-        print(f"{REAL} not found: nothing to render")
+    frames = real_frames()
+    if not frames:
+        print(f"{REAL}: no real frames, nothing to render")
         return {}
-    levels, rates, source = _levels_and_rates(args.data)
+    params = params_from_dict({})
+    levels, rates, source = _levels_and_rates(params, args.data)
     result: dict[str, Any] = {"source": source, "frames": []}
-    for name, load in real_frames().items():
-        rows, tiles = run_frame(name, load(), levels, rates)
+    for name, load in frames.items():
+        rows, tiles = run_frame(params, name, load(), levels, rates)
         result["frames"] += rows
         if name == "stf" and (REAL / "stf" / STF_SNOW).is_file():
             tiles.append(label(np.asarray(Image.open(REAL / "stf" / STF_SNOW).convert("RGB")),
@@ -173,7 +152,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             print(f"{name:6s} {r['condition']:10s} clipped top {r['top_quarter_clipped']:.3f} "
                   f"(clean {r['top_quarter_clipped_clean']:.3f})  d sky {r['mean_change_sky']}  "
                   f"d struct {r['mean_change_structure']:.1f}  contrast {r['structure_contrast_ratio']:.2f}  "
-                  f"drawn {r['particles_drawn']}  scattered {r['lidar_scattered']}  {r['cpu_s']:.2f} CPU-s")
+                  f"drawn {r['particles_drawn']}  scattered {r['lidar_scattered']}  {r['cpu_s']:.2f} CPU-s "
+                  f"{r['wall_s']:.2f} s")
     write_json(args.out / "real_weather.json", result, indent=2)
     return result
 

@@ -28,13 +28,12 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.common import merge_entries
+from benchmarks.common import merge_entries, real_frames
 from weatheralign.atomic import write_json
 from weatheralign.conditions import ALIGNMENTS, CONDITIONS, variant_name
 
 REPO = Path(__file__).resolve().parents[1]
 REPORT = REPO / "reports" / "benchmarks" / "simulate.json"
-REAL = REPO.parent / "shared" / "data" / "real"
 ALL = [variant_name(c, a == ALIGNMENTS[0]) for c in CONDITIONS for a in ALIGNMENTS]
 TARGET_ALL_SECONDS = 20 * 60
 MULTICORRUPT = "MultiCorrupt: 12 h of LiDAR snow for nuScenes (34,149 samples) on 32 CPUs"
@@ -113,21 +112,14 @@ def real_reprojection() -> list[dict[str, Any]]:
     from weatheralign.camera.depth import camera_range_map
     from weatheralign.camera.fog import estimate_airlight
     from weatheralign.config import params_from_dict
-    from weatheralign.data.kitti import load_kitti_frame
-    from weatheralign.data.stf import load_stf_frame
     from weatheralign.medium.conditions import field_spec
     from weatheralign.sensors import SensorRig, camera_models, estimate_lidar_model
     from weatheralign.simulate.media import SceneMedia
     from weatheralign.simulate.observe import ObserveOptions, observe
 
-    if not REAL.is_dir():
-        return []
     params = params_from_dict({})
-    frames = {"stf": lambda: load_stf_frame(REAL / "stf", "2019-09-11_19-13-44_00960"),
-              "kitti": lambda: load_kitti_frame(REAL / "kitti" / "000008.bin", REAL / "kitti" / "000008.png",
-                                                REAL / "kitti" / "calib.json")}
     out = []
-    for name, load in frames.items():
+    for name, load in real_frames().items():
         frame = load()
         spec = field_spec(params.particles, "snow", f"real-{name}", frame.lidar.timestamp)
         sensors = SensorRig(estimate_lidar_model([frame.lidar], rotation_hz=10.0),

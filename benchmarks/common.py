@@ -1,4 +1,5 @@
-"""Helpers shared by the benchmark scripts: result-file merging and isolated worker processes."""
+"""Helpers shared by the benchmark scripts: result-file merging, isolated worker processes, the shared real
+frames."""
 
 from __future__ import annotations
 
@@ -6,9 +7,12 @@ import json
 import subprocess
 import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 REPO = Path(__file__).resolve().parents[1]
+REAL = REPO.parent / "shared" / "data" / "real"
+STF_ID = "2019-09-11_19-13-44_00960"
+"""The clear Seeing Through Fog frame of ``../shared/data/real/stf``."""
 
 
 def merge_entries(path: Path, entries: list[dict[str, Any]]) -> Any:
@@ -29,3 +33,18 @@ def run_worker(module: str, spec: dict) -> dict:
     if proc.returncode != 0:
         raise RuntimeError(f"worker failed for {spec['workload']}:\n{proc.stderr[-4000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def real_frames(root: Path = REAL) -> dict[str, Callable[[], Any]]:
+    """Loaders of the shared real frames under ``root`` that exist: ``stf`` (HDL-64 + stereo-left camera) and
+    ``kitti`` (HDL-64 + left colour camera), each giving a `weatheralign.data.frame.Frame`."""
+    from weatheralign.data.kitti import load_kitti_frame
+    from weatheralign.data.stf import load_stf_frame
+
+    k = root / "kitti"
+    frames: dict[str, Callable[[], Any]] = {}
+    if (root / "stf").is_dir():
+        frames["stf"] = lambda: load_stf_frame(root / "stf", STF_ID)
+    if k.is_dir():
+        frames["kitti"] = lambda: load_kitti_frame(k / "000008.bin", k / "000008.png", k / "calib.json")
+    return frames
