@@ -13,6 +13,9 @@ from weatheralign.world.build import SampleResult
 from weatheralign.world.dataset import finalize, render_or_resume, sample_jobs
 
 REPO = Path(__file__).resolve().parents[1]
+# Limit on a whole pipeline run inside a test (dvc repro of several stages): a guard against a hang, not a speed
+# check: 2-core machines here differ by up to 2x in speed, and 900 s was hit once beside other work.
+HANG_GUARD_S = 2400
 SHARED_REAL = REPO.parent / "shared" / "data" / "real"
 
 # full-resolution cameras: pixel-exact cross-sensor checks need nuScenes' real pixel size

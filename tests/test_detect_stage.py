@@ -18,7 +18,7 @@ from weatheralign.data.nuscenes import load_frame, open_nuscenes
 from weatheralign.manifest import DatasetManifest, dataset_digest, manifest_path, write_manifest
 from weatheralign.sensors import SensorRig, camera_models, lidar_model_from_params
 
-from .conftest import REPO, write_params_file
+from .conftest import HANG_GUARD_S, REPO, write_params_file
 
 DETECT = {"finetune_conditions": ["snow"], "image_size": [32, 64], "batch_size": 1, "pretrain_steps": 4,
           "finetune_steps": 2, "eval_every": 2, "num_bootstrap": 10, "score_threshold": 0.0, "max_detections": 50}
@@ -52,7 +52,7 @@ def _stage_env(tiny_world, tmp: Path, root: Path, source: str):
 
     def run() -> subprocess.CompletedProcess:
         return subprocess.run([sys.executable, "-m", "flows.detect", "--params", str(params)], cwd=REPO,
-                              capture_output=True, text=True, timeout=900, env=env)
+                              capture_output=True, text=True, timeout=HANG_GUARD_S, env=env)
 
     return data, reports, run
 

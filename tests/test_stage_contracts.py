@@ -18,6 +18,8 @@ from weatheralign.conditions import ALIGNMENTS, CONDITIONS
 from weatheralign.data.nuscenes import open_nuscenes
 from weatheralign.provenance import stage_code
 
+from .conftest import HANG_GUARD_S
+
 REPO = Path(__file__).resolve().parents[1]
 DVC = yaml.safe_load((REPO / "dvc.yaml").read_text())["stages"]
 PROJECT_PACKAGES = ("weatheralign", "flows", "tasks")
@@ -132,7 +134,7 @@ def _dvc(repo: Path, *args: str) -> subprocess.CompletedProcess:
            "PYTHONPATH": f"{repo / 'src'}:{repo}", "PREFECT_LOGGING_LEVEL": "WARNING",
            "MLFLOW_TRACKING_URI": f"sqlite:///{repo / 'mlflow.db'}"}
     return subprocess.run([str(Path(sys.executable).parent / "dvc"), *args], cwd=repo, capture_output=True,
-                          text=True, timeout=900, env=env)
+                          text=True, timeout=HANG_GUARD_S, env=env)
 
 
 def _project_repo(repo: Path, params: dict) -> None:

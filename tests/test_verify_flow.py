@@ -28,7 +28,7 @@ from weatheralign.simulate.media import FogLevels
 from weatheralign.simulate.observe import observe
 from weatheralign.verify.frames import Severity, scene_media
 
-from .conftest import REPO
+from .conftest import HANG_GUARD_S, REPO
 
 STF = REPO.parent / "shared" / "data" / "real" / "stf"
 STF_ID = "2019-09-11_19-13-44_00960"
@@ -86,7 +86,7 @@ def test_verify_and_rate_calibration_on_an_stf_layout_tree_with_snow_and_rain(tm
             "verify.image_hw=[32, 64]", "verify.permutations=100", "verify.resamples=20", "verify.batch_size=4",
             "reference.sensor_overrides.noise_floor=1.0"]
     run = subprocess.run([sys.executable, "-m", "flows.verify", *[a for s in sets for a in ("--set", s)]],
-                         cwd=REPO, capture_output=True, text=True, timeout=900,
+                         cwd=REPO, capture_output=True, text=True, timeout=HANG_GUARD_S,
                          env={**os.environ, "PYTHONPATH": str(REPO), "PREFECT_LOGGING_LEVEL": "WARNING"})
     assert run.returncode == 0, run.stderr[-3000:]
     metrics = json.loads((reports / "verify" / "metrics.json").read_text())
@@ -114,7 +114,7 @@ def test_verify_and_rate_calibration_on_an_stf_layout_tree_with_snow_and_rain(tm
     calibrate = subprocess.run([sys.executable, "-m", "flows.calibrate_precipitation",
                                 *[a for s in sets[:6] + sets[-1:] + ["calibrate_precipitation.num_bootstrap=100"]
                                   for a in ("--set", s)]],
-                               cwd=REPO, capture_output=True, text=True, timeout=900,
+                               cwd=REPO, capture_output=True, text=True, timeout=HANG_GUARD_S,
                                env={**os.environ, "PYTHONPATH": str(REPO), "PREFECT_LOGGING_LEVEL": "WARNING"})
     assert calibrate.returncode == 0, calibrate.stderr[-3000:]
     rates = json.loads((data / "calibrate_precipitation" / "rates.json").read_text())
