@@ -203,10 +203,16 @@ def camera_points(scan: LidarScan, camera: CameraView) -> CameraPoints:
     camera sees it at ``inv(T_global_cam(t_cam))`` of that. Firing times come from ``scan.point_times()``.
     """
     T_cam_lidar = invert(camera.T_global_cam) @ scan.T_global_lidar
-    xyz = scan.points[:, :3].astype(np.float64) @ T_cam_lidar[:3, :3].T + T_cam_lidar[:3, 3]
-    dt = scan.point_times() - camera.timestamp
-    return CameraPoints(xyz=xyz, dt=dt, R_lidar_cam=T_cam_lidar[:3, :3].T.copy(),
-                        up_cam=(camera.T_ego_cam[:3, :3].T @ np.array([0.0, 0.0, 1.0])),
+    return _points_in_camera(scan.points[:, :3].astype(np.float64), scan.point_times() - camera.timestamp,
+                             T_cam_lidar, camera)
+
+
+def _points_in_camera(xyz_lidar: F64, dt: F64, T_cam_lidar: F64, camera: CameraView) -> CameraPoints:
+    """`CameraPoints` of LiDAR-frame points ``xyz_lidar`` (N, 3) [m] with firing-time offsets ``dt`` (N,) [s], through
+    the 4x4 ``T_cam_lidar``."""
+    return CameraPoints(xyz=xyz_lidar @ T_cam_lidar[:3, :3].T + T_cam_lidar[:3, 3], dt=dt,
+                        R_lidar_cam=T_cam_lidar[:3, :3].T.copy(),
+                        up_cam=camera.T_ego_cam[:3, :3].T @ np.array([0.0, 0.0, 1.0]),
                         lidar_origin_cam=T_cam_lidar[:3, 3].copy())
 
 
@@ -1107,10 +1113,7 @@ def dense_depth(
         if T_ego_lidar is None or lidar_top_elevation_deg is None:
             raise ValueError("dense_depth with a point array needs T_ego_lidar and lidar_top_elevation_deg")
         T_cam_lidar = invert(camera.T_ego_cam) @ np.asarray(T_ego_lidar, dtype=np.float64)
-        pts = CameraPoints(xyz=xyz[:, :3] @ T_cam_lidar[:3, :3].T + T_cam_lidar[:3, 3], dt=np.zeros(len(xyz)),
-                           R_lidar_cam=T_cam_lidar[:3, :3].T.copy(),
-                           up_cam=camera.T_ego_cam[:3, :3].T @ np.array([0.0, 0.0, 1.0]),
-                           lidar_origin_cam=T_cam_lidar[:3, 3].copy())
+        pts = _points_in_camera(xyz[:, :3], np.zeros(len(xyz)), T_cam_lidar, camera)
         top = float(lidar_top_elevation_deg)
     img = camera.load_image() if image is None else image
     return complete_depth(pts, camera.K, camera.width, camera.height, img, top, params)
