@@ -14,6 +14,7 @@ from prefect.futures import PrefectFuture, as_completed
 from prefect.task_runners import TaskRunner, ThreadPoolTaskRunner
 from tqdm import tqdm
 
+from weatheralign.atomic import DiskFullError
 from weatheralign.config import ConfigError, Params, load_params
 from weatheralign.data.errors import DataFormatError
 
@@ -32,8 +33,8 @@ def parse_stage_args(stage: str, argv: Sequence[str] | None = None) -> Params:
         raise SystemExit(2) from None
 
 
-EXPECTED_ERRORS = (DataFormatError, ConfigError)
-"""Errors about the user's data or params: one clear line, no traceback (unless ``WEATHERALIGN_VERBOSE=1``)."""
+EXPECTED_ERRORS = (DataFormatError, ConfigError, DiskFullError)
+"""Errors about the user's data, params or disk: one clear line, no traceback (unless ``WEATHERALIGN_VERBOSE=1``)."""
 
 
 class _NoTracebackForExpectedErrors(logging.Filter):
@@ -46,6 +47,10 @@ class _NoTracebackForExpectedErrors(logging.Filter):
             return False
         message = record.getMessage()
         return not any(f"{cls.__name__}(" in message or f"{cls.__name__}:" in message for cls in EXPECTED_ERRORS)
+
+
+def _verbose() -> bool:
+    return os.environ.get("WEATHERALIGN_VERBOSE") == "1"
 
 
 def _quiet_console() -> None:
@@ -64,14 +69,15 @@ def run_stage(flow: Any, params: Params, runner: Literal["processes", "threads"]
     (`task_runner`), on a thread pool of ``run.max_workers`` (tasks that share large in-memory inputs and release
     the interpreter lock), or None for the flow's default.
 
-    A `DataFormatError` or `ConfigError` ends the stage with ``error: <message>`` on stderr and exit code 2, without
-    Prefect's traceback on the console (set ``WEATHERALIGN_VERBOSE=1`` to see it; the Prefect UI has it anyway).
+    A `DataFormatError`, `ConfigError` or `DiskFullError` (`EXPECTED_ERRORS`), raised in the flow or in a task on a
+    worker process, ends the stage with ``error: <message>`` on stderr and exit code 2, without Prefect's traceback
+    on the console (set ``WEATHERALIGN_VERBOSE=1`` to see it; the Prefect UI has it anyway).
     """
     from prefect.settings import PREFECT_API_URL, temporary_settings
 
     from flows.api_server import install_signal_handlers, prefect_api
 
-    verbose = os.environ.get("WEATHERALIGN_VERBOSE") == "1"
+    verbose = _verbose()
     install_signal_handlers()
     if not verbose:
         _quiet_console()
@@ -97,10 +103,22 @@ def worker_environment() -> contextlib.AbstractContextManager:
     (one BLAS / OpenMP thread per worker) without its ``MALLOC_TRIM_THRESHOLD_=65536``. glibc freezes the mmap
     threshold at 128 KiB once any malloc threshold is set explicitly, so every image-sized array becomes a fresh
     mmap whose pages fault in zero-filled: measured +0.38 CPU-s per fog sample (0.59 -> 0.97, two thirds of it system
-    time)."""
+    time). Each worker also preloads this module (`dask_setup`), so that its console follows the one-line-error
+    rule."""
     import dask
 
-    return dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None})
+    preload = [*dask.config.get("distributed.worker.preload", []), __name__]
+    return dask.config.set({"distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None,
+                            "distributed.worker.preload": list(dict.fromkeys(preload))})
+
+
+def dask_setup(worker: Any) -> None:
+    """Dask's preload hook, run in each worker process as it starts (`worker_environment`): unless
+    ``WEATHERALIGN_VERBOSE=1``, the worker's console drops Prefect's records of an expected error (`EXPECTED_ERRORS`)
+    as the stage's own does, so that a task failing on bad data ends in the stage's one line, not in the worker's
+    traceback (the Prefect API keeps it)."""
+    if not _verbose():
+        _quiet_console()
 
 
 SHARED_DASK_ENV = "WEATHERALIGN_DASK_ADDRESS"

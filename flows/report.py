@@ -16,7 +16,7 @@ from typing import Any
 from prefect import flow
 
 from flows.common import parse_stage_args, run_stage
-from tasks.tracking import StageTracker, tracking_uri
+from tasks.tracking import StageTracker, tracking_client
 from weatheralign import atomic
 from weatheralign.config import Params
 from weatheralign.data.errors import read_json_file
@@ -66,9 +66,7 @@ def stage_seconds(params: Params) -> dict[str, float]:
     tracked."""
     if not params.tracking.enabled:
         return {}
-    from mlflow.tracking import MlflowClient
-
-    client = MlflowClient(tracking_uri=tracking_uri(params, Path.cwd()))
+    client = tracking_client(params, Path.cwd())
     exp = client.get_experiment_by_name(params.tracking.experiment)
     if exp is None:
         return {}

@@ -60,7 +60,7 @@ def _summarise_real(params: Params) -> tuple[Path, dict]:
     assert cfg.nuscenes_dataroot is not None
     nusc = open_nuscenes(cfg.nuscenes_dataroot, cfg.version)
     t0 = time.time()
-    check = check_dataset(nusc, Path(cfg.nuscenes_dataroot), params.run.max_workers)
+    check = check_dataset(nusc, params.run.max_workers)
     check.raise_if_bad(Path(cfg.nuscenes_dataroot))  # every bad file at once, before any later stage writes
     counts: dict[str, int] = {}
     for ann in nusc.sample_annotation:

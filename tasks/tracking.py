@@ -10,12 +10,16 @@ so the MLflow UI groups and filters the ablations by tag; metric names never con
 
 MLflow is used through `MlflowClient` (no active-run global state); the store is a sqlite file in the repository
 unless ``tracking.mlflow_uri`` or ``MLFLOW_TRACKING_URI`` say otherwise, artifacts go to ``mlartifacts/`` beside it.
+A sqlite store is checked when a stage starts (`check_tracking_store`): one that cannot be written or is not a
+database ends the stage at once with one line naming the file and ``tracking.mlflow_uri``.
 Detector checkpoints are saved as MLflow PyTorch models and registered in the model registry (`ChildRun.log_model`).
 """
 
 from __future__ import annotations
 
+import errno
 import os
+import sqlite3
 import subprocess
 import tempfile
 import time
@@ -23,7 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from weatheralign import atomic
-from weatheralign.config import Params
+from weatheralign.config import ConfigError, Params
 
 TAG_KEYS = ("stage", "kind", "weather", "alignment", "severity", "model", "pipeline_id", "git_commit",
             "dvc_experiment")
@@ -91,6 +95,84 @@ def tracking_uri(params: Params, repo: Path) -> str:
     return params.tracking.mlflow_uri or os.environ.get("MLFLOW_TRACKING_URI") or f"sqlite:///{repo / 'mlflow.db'}"
 
 
+STORE_LOCK_TIMEOUT_S = 60.0
+"""How long [s] the store check waits for another process's write lock on the sqlite store (another stage's run
+writing to it is no fault)."""
+SQLITE_PREFIX = "sqlite:///"
+
+
+def sqlite_store_path(uri: str) -> Path | None:
+    """The database file of a ``sqlite:///<path>`` tracking URI (relative paths from the working directory, as
+    SQLAlchemy reads them); None for any other store (a server, a file store, an in-memory database)."""
+    if not uri.startswith(SQLITE_PREFIX):
+        return None
+    path = uri[len(SQLITE_PREFIX):].split("?", 1)[0]
+    return Path(path).absolute() if path and path != ":memory:" else None
+
+
+def _probe_sqlite_write(path: Path) -> None:
+    """Open the existing sqlite database ``path`` for writing and write to it in a transaction that is rolled back
+    (a real write: it needs the file and its folder, for the journal, to be writable, which a permission check cannot
+    tell for root); raises `sqlite3.Error` when it cannot."""
+    con = sqlite3.connect(f"{path.as_uri()}?mode=rw", uri=True, timeout=STORE_LOCK_TIMEOUT_S, isolation_level=None)
+    try:
+        con.execute("BEGIN IMMEDIATE")
+        con.execute("CREATE TABLE weatheralign_write_probe (x INTEGER)")
+        con.execute("ROLLBACK")
+    finally:
+        con.close()
+
+
+def _probe_new_store(path: Path) -> None:
+    """Make sure the store ``path`` (not there yet) can be created: its folder made if missing, a file written in it;
+    raises OSError when it cannot (``ENOTDIR`` naming the file that stands where a folder should be)."""
+    existing = next(folder for folder in path.parents if folder.exists())
+    if not existing.is_dir():
+        raise NotADirectoryError(errno.ENOTDIR, os.strerror(errno.ENOTDIR), str(existing))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryFile(dir=path.parent):
+        pass
+
+
+def check_tracking_store(uri: str) -> None:
+    """Fail fast, in one line, on a sqlite tracking store MLflow could not use: a file or folder that cannot be
+    written (MLflow would retry, then end in a traceback of hundreds of lines) or a file that is not an SQLite
+    database (an SQLAlchemy traceback); other stores are left to MLflow.
+
+    Raises:
+        ConfigError: naming the database file and the params key ``tracking.mlflow_uri``.
+    """
+    path = sqlite_store_path(uri)
+    if path is None:
+        return
+    advice = (f"or point tracking.mlflow_uri (now {uri}) at another sqlite:///<file>, or set tracking.enabled: "
+              f"false")
+    try:
+        if path.exists():
+            _probe_sqlite_write(path)
+        else:
+            _probe_new_store(path)
+    except sqlite3.OperationalError as exc:
+        raise ConfigError(f"{path}: the MLflow tracking store cannot be written ({exc}); make the file and its "
+                          f"folder writable, {advice}") from None
+    except sqlite3.DatabaseError as exc:
+        raise ConfigError(f"{path}: the MLflow tracking store is not a valid SQLite database ({exc}); move it away "
+                          f"(MLflow starts a new one), {advice}") from None
+    except OSError as exc:
+        where = f": {exc.filename}" if exc.errno == errno.ENOTDIR and exc.filename else ""
+        raise ConfigError(f"{path}: the MLflow tracking store cannot be created ({exc.strerror}{where}); its folder "
+                          f"{path.parent} must be a writable folder, {advice}") from None
+
+
+def tracking_client(params: Params, repo: Path) -> Any:
+    """An `MlflowClient` of the store `tracking_uri` names, checked first (`check_tracking_store`)."""
+    from mlflow.tracking import MlflowClient
+
+    uri = tracking_uri(params, repo)
+    check_tracking_store(uri)
+    return MlflowClient(tracking_uri=uri)
+
+
 class StageTracker:
     """Context manager around one stage run. ``finish(metrics)`` writes metrics.json and logs to MLflow.
 
@@ -118,9 +200,7 @@ class StageTracker:
         self.reports.mkdir(parents=True, exist_ok=True)
         if not self.params.tracking.enabled:
             return self
-        from mlflow.tracking import MlflowClient
-
-        self.client = MlflowClient(tracking_uri=tracking_uri(self.params, self.repo))
+        self.client = tracking_client(self.params, self.repo)
         exp_name = self.params.tracking.experiment
         exp = self.client.get_experiment_by_name(exp_name)
         self.experiment_id = exp.experiment_id if exp else self.client.create_experiment(

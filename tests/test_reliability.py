@@ -13,6 +13,7 @@ import json
 import os
 import re
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -690,3 +691,309 @@ def test_a_stage_failing_on_bad_input_prints_one_clear_line(tmp_path):
     verbose = subprocess.run(args, cwd=REPO, env={**env, "WEATHERALIGN_VERBOSE": "1"}, capture_output=True,
                              text=True, timeout=300)
     assert verbose.returncode != 0 and "Traceback" in verbose.stderr
+
+
+# ------------------------------------------------------------------------------- a rerun keeps the user's files
+def test_a_rerun_of_simulate_keeps_the_users_files_in_the_weather_copy(tiny_world, tmp_path):
+    """Before: `finalize_copy` removed every file no table lists, so a rerun silently deleted a user's notes and a
+    folder of their own images inside a weather copy. Now it removes only files the stage recorded as its own."""
+    from weatheralign.simulate.weather_copy import finalize_copy, written_list_path
+
+    version = tiny_world.params.world.version
+    nusc = open_nuscenes(tiny_world.dataroot, version)
+    out = tmp_path / "simulate" / "fog_dense-aligned"
+    finalize_copy(nusc, tiny_world.dataroot, out, version, set())
+    placed = json.loads(written_list_path(out).read_text())["files"]
+    assert placed and all((out / rel).is_file() for rel in placed if (tiny_world.dataroot / rel).is_file())
+    users = {"notes.txt": b"which run was this?\n", "my_images/crop_001.png": b"\x89PNG\r\n\x1a\n" + b"\0" * 64,
+             "samples/CAM_FRONT/my_own_frame.jpg": b"\xff\xd8\xff" + b"\0" * 64, ".draft.tmp": b"half a note"}
+    for rel, data in users.items():
+        (out / rel).parent.mkdir(parents=True, exist_ok=True)
+        (out / rel).write_bytes(data)
+    done = finalize_copy(nusc, tiny_world.dataroot, out, version, set())  # the rerun
+    assert done["removed"] == 0
+    for rel, data in users.items():
+        assert (out / rel).read_bytes() == data, rel
+    assert nusc.sample_data[0]["filename"] in json.loads(written_list_path(out).read_text())["files"]
+    assert "notes.txt" not in json.loads(written_list_path(out).read_text())["files"]
+
+
+# ------------------------------------------------------------------------------------------ image sizes up front
+def _resize_front_image(root: Path, version: str) -> tuple[dict, Path]:
+    """Halve the first sample's CAM_FRONT image in place; returns its sample_data record and path."""
+    from PIL import Image
+
+    _, cam = _key_record(root, version, "CAM_FRONT")
+    path = root / cam["filename"]
+    with Image.open(path) as im:
+        im.resize((im.width // 2, im.height // 2)).save(path, quality=90)
+    return cam, path
+
+
+def test_world_check_names_an_image_whose_size_differs_from_its_table(tiny_world, tmp_path):
+    """Before: the dataset check decoded each image and dropped its size, so a resized image passed and `simulate`
+    failed midway through a half-written copy. Now the check names the file, its size and the table's."""
+    from weatheralign.data.check import check_dataset
+
+    version = tiny_world.params.world.version
+    root = _copy_world(tiny_world, tmp_path, cameras=True)
+    cam, path = _resize_front_image(root, version)
+    check = check_dataset(open_nuscenes(root, version))
+    assert check.errors == (f"{path}: CAM_FRONT image is {cam['width'] // 2}x{cam['height'] // 2}, its sample_data "
+                            f"record {cam['token']} says {cam['width']}x{cam['height']}; expected the image's own "
+                            f"size there",)
+    with pytest.raises(DataFormatError, match="1 problem"):
+        check.raise_if_bad(root)
+
+
+def test_world_check_names_intrinsics_that_do_not_fit_a_resized_image(tiny_world, tmp_path):
+    """An image resized with its table's width / height but not its calibrated intrinsics: the principal point
+    still sits at the centre of the full-size image, which the check names beside the image's size."""
+    from weatheralign.data.check import check_dataset
+
+    version = tiny_world.params.world.version
+    root = _copy_world(tiny_world, tmp_path, cameras=True)
+    cam, path = _resize_front_image(root, version)
+    w, h = cam["width"] // 2, cam["height"] // 2
+
+    def shrink(records: list[dict]) -> None:
+        rec = next(r for r in records if r["token"] == cam["token"])
+        rec["width"], rec["height"] = w, h
+
+    _edit(root, version, "sample_data", shrink)
+    K = next(c["camera_intrinsic"] for c in _tables(root, version, "calibrated_sensor")
+             if c["token"] == cam["calibrated_sensor_token"])
+    (error,) = check_dataset(open_nuscenes(root, version)).errors
+    assert error.startswith(f"{path}: CAM_FRONT image is {w}x{h} as its sample_data record says, but its "
+                            f"calibrated_sensor {cam['calibrated_sensor_token']} camera_intrinsic does not fit it: "
+                            f"the principal point ({K[0][2]:.1f}, {K[1][2]:.1f}) px is the centre of a "
+                            f"{2 * K[0][2]:.0f}x{2 * K[1][2]:.0f} image"), error
+    assert error.endswith("rescale camera_intrinsic with the image") and "\n" not in error
+
+
+# ------------------------------------------------------------------------------------------- the tracking store
+def _store_error(db: Path, tmp_path: Path) -> str:
+    """The message a stage start gives for the sqlite store ``db`` (`StageTracker.__enter__`)."""
+    from tasks.tracking import StageTracker
+    from weatheralign.config import ConfigError
+
+    params = params_from_dict({"paths": {"reports": str(tmp_path / "reports")},
+                               "tracking": {"mlflow_uri": f"sqlite:///{db}"}})
+    with pytest.raises(ConfigError) as err, StageTracker(params, "world", repo=tmp_path):
+        pass
+    return str(err.value)
+
+
+def test_a_corrupt_tracking_store_fails_at_stage_start_in_one_line(tmp_path):
+    """Before: an SQLAlchemy traceback naming neither the file nor the params key. Now one line names both."""
+    db = tmp_path / "mlflow.db"
+    db.write_bytes(b"this was an MLflow store once\n" * 100)
+    msg = _store_error(db, tmp_path)
+    assert msg.startswith(f"{db}: the MLflow tracking store is not a valid SQLite database (file is not a database)")
+    assert "tracking.mlflow_uri" in msg and "\n" not in msg
+
+
+def test_a_tracking_store_under_a_file_fails_at_stage_start_in_one_line(tmp_path):
+    """A store whose folder is a file (a typo in tracking.mlflow_uri): refused by name, whoever runs it."""
+    (tmp_path / "notes").write_text("a file, not a folder\n")
+    db = tmp_path / "notes" / "mlflow.db"
+    msg = _store_error(db, tmp_path)
+    assert msg.startswith(f"{db}: the MLflow tracking store cannot be created (Not a directory: {db.parent}); its "
+                          f"folder {db.parent} must be a writable folder"), msg
+    assert "tracking.mlflow_uri" in msg and "\n" not in msg
+
+
+NOBODY = 65534
+"""The unprivileged user the read-only cases run as when the tests run as root (root writes anything)."""
+
+
+def _store_check_message(uri: str) -> str:
+    """`check_tracking_store`'s message for ``uri`` ("" when it passes)."""
+    from tasks.tracking import check_tracking_store
+    from weatheralign.config import ConfigError
+
+    try:
+        check_tracking_store(uri)
+    except ConfigError as err:
+        return str(err)
+    return ""
+
+
+def _unprivileged_store_check(uri: str) -> str:
+    """`_store_check_message` as the user running the tests or, for root, in a forked child that became `NOBODY`."""
+    if os.geteuid() != 0:
+        return _store_check_message(uri)
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: drop root, check, report through the pipe, exit without pytest's teardown
+        try:
+            os.close(read)
+            os.setgroups([])
+            os.setgid(NOBODY)
+            os.setuid(NOBODY)
+            os.write(write, _store_check_message(uri).encode())
+        except BaseException as exc:  # noqa: BLE001 - reported to the parent instead
+            os.write(write, f"child failed: {exc!r}".encode())
+        finally:
+            os._exit(0)
+    os.close(write)
+    with os.fdopen(read) as pipe:
+        message = pipe.read()
+    os.waitpid(pid, 0)
+    return message
+
+
+@pytest.mark.parametrize("read_only", ["file", "folder"])
+def test_a_read_only_tracking_store_fails_at_stage_start_in_one_line(read_only):
+    """Before: ~100 s of MLflow retries, then a 354-line traceback. Now a real write to the store (not a permission
+    check, which root passes) fails at once, in one line naming the file and tracking.mlflow_uri. As root, the check
+    runs as an unprivileged user on a store it may read but not write."""
+    import sqlite3
+    import tempfile
+
+    with tempfile.TemporaryDirectory(dir="/tmp") as base:  # pytest's folders are private to their owner
+        folder = Path(base) / "tracking"
+        folder.mkdir()
+        db = folder / "mlflow.db"
+        with sqlite3.connect(db) as con:
+            con.execute("CREATE TABLE experiments (name TEXT)")
+        con.close()
+        os.chmod(base, 0o755)
+        os.chmod(db, 0o444 if read_only == "file" else 0o666)
+        os.chmod(folder, 0o555 if read_only == "folder" else 0o777)
+        try:
+            msg = _unprivileged_store_check(f"sqlite:///{db}")
+        finally:
+            os.chmod(folder, 0o755)
+    assert msg.startswith(f"{db}: the MLflow tracking store cannot be written ("), msg
+    assert "tracking.mlflow_uri" in msg and "\n" not in msg
+
+
+def test_a_writable_tracking_store_passes_and_is_unchanged(tmp_path):
+    """The check's write is rolled back: the store's bytes stay as they were; a new store's folder is made."""
+    import sqlite3
+
+    from tasks.tracking import check_tracking_store
+
+    db = tmp_path / "mlflow.db"
+    with sqlite3.connect(db) as con:
+        con.execute("CREATE TABLE experiments (name TEXT)")
+    con.close()
+    before = db.read_bytes()
+    check_tracking_store(f"sqlite:///{db}")
+    assert db.read_bytes() == before and sorted(p.name for p in tmp_path.iterdir()) == ["mlflow.db"]
+    check_tracking_store(f"sqlite:///{tmp_path / 'new' / 'mlflow.db'}")
+    assert (tmp_path / "new").is_dir() and not (tmp_path / "new" / "mlflow.db").exists()
+    check_tracking_store("http://127.0.0.1:5000")  # a server: MLflow's to check
+
+
+# ------------------------------------------------------------------------------------------- one line, not a trace
+def test_a_full_disk_names_the_file_and_the_space_left(tmp_path):
+    """Before: ``OSError: [Errno 28] No space left on device`` with no path. Now every atomic write names the file
+    it was writing and the free space, and the stage prints it as one line (`DiskFullError` is an expected error)."""
+    import pickle
+
+    from flows.common import EXPECTED_ERRORS
+    from weatheralign.atomic import DiskFullError, atomic_path
+
+    if not Path("/dev/full").exists():
+        pytest.skip("no /dev/full here")
+    target = tmp_path / "out" / "scan.pcd.bin"
+    with pytest.raises(DiskFullError) as err, atomic_path(target) as tmp, open("/dev/full", "wb") as full:
+        full.write(b"\0" * 4096)  # the kernel answers ENOSPC, as a full disk does
+    msg = str(err.value)
+    assert re.fullmatch(rf"{re.escape(str(target))}: no space left on the device while writing it \([0-9.]+ MiB "
+                        rf"free on {re.escape(str(target.parent))}'s file system\); free some space there and rerun",
+                        msg), msg
+    assert not tmp.exists() and not target.exists() and err.value.errno == 28
+    assert str(pickle.loads(pickle.dumps(err.value))) == msg  # as a worker process sends it back
+    assert isinstance(err.value, EXPECTED_ERRORS)
+
+
+def test_an_unknown_finetune_condition_fails_at_params_load(tmp_path):
+    """Before: the detect stage started its Prefect server and then failed blaming ``simulate.condition``. Now the
+    params do not load, naming ``detect.finetune_conditions``."""
+    from weatheralign.config import ConfigError, load_params
+
+    from .conftest import REPO, write_params_file
+
+    path = write_params_file(tmp_path / "params.yaml", {"detect": {"finetune_conditions": ["fog_dense", "hail"]}})
+    with pytest.raises(ConfigError) as err:
+        load_params(path)
+    assert str(err.value) == (f"{path}: detect.finetune_conditions = ['fog_dense', 'hail'] is invalid: unknown "
+                              f"condition 'hail': expected names from {list(CONDITIONS)}")
+    with pytest.raises(ConfigError, match=r"^--set detect.finetune_conditions=\[snow, sn0w\]: "
+                                          r"detect.finetune_conditions = \['snow', 'sn0w'\] is invalid: unknown "
+                                          r"condition 'sn0w'"):
+        load_params(REPO / "params.yaml", ["detect.finetune_conditions=[snow, sn0w]"])
+    assert params_from_dict({"detect": {"finetune_conditions": list(CONDITIONS)}}).detect.finetune_conditions
+
+
+def test_a_particle_cell_size_that_does_not_fit_the_layer_fails_at_params_load():
+    """Before: params passed and the particles stage failed in a worker (``cell_size = 0.5 [m] is invalid for a 102.0
+    m layer``). Now the params do not load, naming the cell size and both layer keys; the smallest cell size the
+    message gives builds the field."""
+    from weatheralign.config import ConfigError
+
+    tree = {"particles": {"layer_top_m": 100.0, "rain": {"cell_size_m": 0.5}}}
+    with pytest.raises(ConfigError) as err:
+        params_from_dict(tree)
+    msg = str(err.value)
+    assert msg.startswith("params: particles is invalid: particles.rain.cell_size_m = 0.5 m cuts the 102 m layer "
+                          "(particles.layer_bottom_m = -2.0 to particles.layer_top_m = 100.0) into 204 cells; a "
+                          "particle field holds at most 128 cells over the layer: use cell_size_m >= "), msg
+    spec = field_spec(params_from_dict({}).particles, "rain", "scene", 0.0)
+    with pytest.raises(ValueError, match="at most 128 cells"):  # what the particles stage met
+        replace(spec, z_max=100.0, cell_size=0.5).field()
+    smallest = float(re.search(r">= ([0-9.]+) m", msg)[1])
+    tree["particles"]["rain"]["cell_size_m"] = smallest
+    assert field_spec(params_from_dict(tree).particles, "rain", "scene", 0.0).field().nz == 128
+
+
+WORKER_FAILURE = """
+from prefect import flow, task
+from prefect.cache_policies import NO_CACHE
+
+from flows.common import gather, run_stage
+from weatheralign.config import params_from_dict
+from weatheralign.data.errors import DataFormatError
+
+
+@task(name="read-scan", cache_policy=NO_CACHE, retries=0)
+def read_scan(i: int) -> int:
+    if i == 1:
+        raise DataFormatError("/data/scan_1.pcd.bin: 3 NaN/inf intensities; expected finite intensity on 0..255")
+    return i
+
+
+@flow(name="worker-failure")
+def worker_failure(params) -> list:
+    return gather([read_scan.submit(i) for i in range(3)], "scans", False)
+
+
+run_stage(worker_failure, params_from_dict({"tracking": {"enabled": False}}))
+"""
+
+
+@pytest.mark.flow
+def test_a_worker_task_failing_on_bad_data_prints_one_clear_line(tmp_path):
+    """Before: a task on a Dask worker process that raised a `DataFormatError` printed the worker's Prefect traceback
+    (and a 'Finished in state Failed' line) before the stage's one line. Now each worker preloads the same console
+    filter (`flows.common.dask_setup`); ``WEATHERALIGN_VERBOSE=1`` brings the traceback back."""
+    import subprocess
+    import sys
+
+    from .conftest import REPO
+
+    env = {**{k: v for k, v in os.environ.items() if k not in ("PREFECT_API_URL", "WEATHERALIGN_VERBOSE")},
+           "PYTHONPATH": str(REPO), "PREFECT_HOME": str(tmp_path / "prefect"), "PREFECT_LOGGING_LEVEL": "WARNING"}
+    args = [sys.executable, "-c", WORKER_FAILURE]
+    run = subprocess.run(args, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
+    assert run.returncode == 2, run.stderr[-3000:]
+    errors = [ln for ln in run.stderr.splitlines() if "scan_1.pcd.bin" in ln]
+    assert errors == ["error: /data/scan_1.pcd.bin: 3 NaN/inf intensities; expected finite intensity on 0..255"], \
+        run.stderr[-3000:]
+    assert "Traceback" not in run.stderr and "DataFormatError" not in run.stderr, run.stderr[-3000:]
+    verbose = subprocess.run(args, cwd=tmp_path, env={**env, "WEATHERALIGN_VERBOSE": "1"}, capture_output=True,
+                             text=True, timeout=600)
+    assert verbose.returncode != 0 and "Traceback" in verbose.stderr and "DataFormatError" in verbose.stderr

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from weatheralign import atomic
 from weatheralign.camera.fog import CLIPPED, encode_srgb_u8, srgb_to_linear
 from weatheralign.conditions import CONDITIONS, ParticlePart
 from weatheralign.config import params_from_dict
@@ -31,7 +32,7 @@ from weatheralign.simulate.observe import (JOINT_DRIFT_MAX_M, ObserveOptions, jo
                                           observe_lidar_scans)
 from weatheralign.simulate.plan import SampleJob, plan_jobs, sample_range_maps, scene_airlight
 from weatheralign.simulate.weather_copy import (copy_outputs, finalize_copy, read_weather_record, run_sample, summarise,
-                                                smallest_int_dtype, sweep_records, weather_relpath)
+                                                smallest_int_dtype, sweep_records, weather_relpath, written_list_path)
 
 from .conftest import REPO, write_params_file
 
@@ -191,11 +192,14 @@ def test_resume_skips_finished_samples(world, snow_copy):
     jpeg.write_bytes(good[:1000])
     again, now = run_sample(nusc, tw.dataroot, out, job, sensors, OPTIONS, RUN)
     assert now and jpeg.read_bytes() == good
-    # leftover temporaries of a killed run are removed when the copy is completed
-    leftover = out / "samples" / "CAM_FRONT" / ".x.jpg.abc123.tmp"
+    # leftover temporaries of a killed run's writes are removed when the copy is completed; a user's file is not
+    leftover = jpeg.with_name(f".{jpeg.name}.ab12cd34.tmp")  # named as `atomic.atomic_path` names them
+    users = out / "samples" / "CAM_FRONT" / ".x.jpg.abc123.tmp"
     leftover.write_bytes(b"x")
+    users.write_bytes(b"x")
     finalize_copy(nusc, tw.dataroot, out, tw.params.world.version, copy_outputs(nusc, [frame.token], 0))
-    assert not leftover.exists()
+    assert not leftover.exists() and users.exists()
+    users.unlink()
     # another sensor (a different exposure), another run fingerprint: not a finished sample
     other = SensorRig(sensors.lidar, {k: replace(v, exposure_s=0.004) for k, v in sensors.cameras.items()})
     assert run_sample(nusc, tw.dataroot, out / "x", job, other, OPTIONS, RUN)[1]
@@ -412,9 +416,12 @@ def test_the_nearest_sweeps_through_the_same_medium(world, tmp_path):
     assert run_sample(nusc, tw.dataroot, tmp_path, job, sensors, OPTIONS, RUN, sweeps=1)[1] is False
     version = tw.params.world.version
     stray = tmp_path / "samples" / "LIDAR_TOP" / "an-earlier-input__LIDAR_TOP__1.pcd.bin"  # no table lists it
-    stray.write_bytes(b"\0" * 20)
+    stray.write_bytes(b"\0" * 20)  # placed by a run over an earlier input, which recorded it:
+    atomic.write_json(written_list_path(tmp_path), {"files": [str(stray.relative_to(tmp_path))]})
+    users = tmp_path / "samples" / "LIDAR_TOP" / "my-own-scan.pcd.bin"  # not the stage's: stays
+    users.write_bytes(b"\0" * 20)
     finalize_copy(nusc, tw.dataroot, tmp_path, version, copy_outputs(nusc, [frame.token], 1))
-    assert not stray.exists()
+    assert not stray.exists() and users.exists()
     assert (tmp_path / sweeps[0]["filename"]).samefile(tw.dataroot / sweeps[0]["filename"])
     finalize_copy(nusc, tw.dataroot, tmp_path, version, copy_outputs(nusc, [frame.token], 0))
     assert (tmp_path / sweeps[-1]["filename"]).samefile(tw.dataroot / sweeps[-1]["filename"])

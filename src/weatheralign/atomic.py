@@ -1,10 +1,14 @@
 """Atomic file output: every file is written to a temporary sibling and renamed into place, so an interrupted run
-never leaves a half-written file under its final name."""
+never leaves a half-written file under its final name. A write that finds the disk full raises `DiskFullError`
+naming the file and the space left, not a bare ``[Errno 28] No space left on device``."""
 
 from __future__ import annotations
 
+import errno
 import json
 import os
+import re
+import shutil
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -14,20 +18,72 @@ from typing import Any
 import numpy as np
 
 
+TEMPORARY_NAME = re.compile(r"^\.(?P<target>.+)\.[a-z0-9_]{8}\.tmp$")
+"""The name of an `atomic_path` temporary: ``.<target name>.<8 random characters>.tmp`` (`tempfile.mkstemp`'s)."""
+
+
+class DiskFullError(OSError):
+    """A write found the disk full (``ENOSPC``). Built as ``DiskFullError(errno.ENOSPC, message)``; its text is the
+    message alone (the file, the space left and what to do), one line."""
+
+    def __str__(self) -> str:
+        return str(self.strerror)
+
+
+def free_bytes(folder: Path) -> int | None:
+    """Bytes [B] an unprivileged user may still write on the file system of ``folder`` (its nearest existing
+    ancestor); None if it cannot be asked."""
+    folder = Path(folder)
+    while not folder.exists() and folder != folder.parent:
+        folder = folder.parent
+    try:
+        return shutil.disk_usage(folder).free
+    except OSError:
+        return None
+
+
+def disk_full_error(path: Path) -> DiskFullError:
+    """The `DiskFullError` of a write of ``path`` that found no space left: names the file and the free space [MiB]
+    on its file system."""
+    free = free_bytes(Path(path).parent)
+    left = "unknown" if free is None else f"{free / 2**20:.1f} MiB"
+    return DiskFullError(errno.ENOSPC, f"{path}: no space left on the device while writing it ({left} free on "
+                                       f"{Path(path).parent}'s file system); free some space there and rerun")
+
+
+def temporary_target(path: Path) -> Path | None:
+    """The file that the `atomic_path` temporary ``path`` was to become (beside it); None when ``path`` is not named
+    like one (`TEMPORARY_NAME`)."""
+    match = TEMPORARY_NAME.fullmatch(Path(path).name)
+    return None if match is None else Path(path).with_name(match["target"])
+
+
 @contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
-    """Yield a temporary path beside ``path``; on success it is renamed to ``path``, on error removed."""
+    """Yield a temporary path beside ``path``; on success it is renamed to ``path``, on error removed.
+
+    Raises:
+        DiskFullError: the disk filled up while the folder or the temporary was created or written (naming
+            ``path``).
+    """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:
+        if exc.errno == errno.ENOSPC:
+            raise disk_full_error(path) from None
+        raise
     os.close(fd)
     try:
         yield Path(tmp)
         os.chmod(tmp, 0o644)  # mkstemp creates 0600; outputs are meant to be read by others
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         if os.path.exists(tmp):
             os.unlink(tmp)
+        if isinstance(exc, OSError) and exc.errno == errno.ENOSPC and not isinstance(exc, DiskFullError):
+            raise disk_full_error(path) from None
         raise
 
 

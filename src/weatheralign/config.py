@@ -13,12 +13,15 @@ keys with their defaults.
 
 from __future__ import annotations
 
+import math
 import re
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
 import yaml
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from weatheralign.particle_ids import MAX_Z_CELLS, layer_cells
 
 
 class ConfigError(ValueError):
@@ -300,6 +303,23 @@ class ParticlesConfig(_Section):
     validation_max_particles: Annotated[int, Field(ge=10_000, le=5_000_000)] = 400_000
     snow: SnowConfig = SnowConfig()
     rain: RainConfig = RainConfig()
+
+    @model_validator(mode="after")
+    def _cells_fit_the_layer(self) -> "ParticlesConfig":
+        """Each kind's cells must fit the layer: the particle field cuts the layer into ``round(height / cell_size_m)``
+        cells in z and its ids hold at most `weatheralign.particle_ids.MAX_Z_CELLS` of them."""
+        height = self.layer_top_m - self.layer_bottom_m
+        layer = (f"the {height:g} m layer (particles.layer_bottom_m = {self.layer_bottom_m} to particles.layer_top_m "
+                 f"= {self.layer_top_m})")
+        smallest = math.ceil(height / (MAX_Z_CELLS + 0.5) * 1e3) / 1e3  # [m]: round(height / smallest) <= MAX_Z_CELLS
+        too_small = [(kind, getattr(self, kind).cell_size_m) for kind in ("snow", "rain")
+                     if layer_cells(height, getattr(self, kind).cell_size_m) > MAX_Z_CELLS]
+        if too_small:
+            cuts = "; ".join(f"particles.{kind}.cell_size_m = {cell} m cuts {layer} into {layer_cells(height, cell)} "
+                             f"cells" for kind, cell in too_small)
+            raise ValueError(f"{cuts}; a particle field holds at most {MAX_Z_CELLS} cells over the layer: use "
+                             f"cell_size_m >= {smallest:g} m or a thinner layer")
+        return self
 
 
 class SimulateConfig(_Section):
@@ -613,6 +633,19 @@ class DetectConfig(_Section):
     max_detections: Annotated[int, Field(ge=1, le=1000)] = 200
     num_bootstrap: Annotated[int, Field(ge=10, le=100_000)] = 200
     confidence: Annotated[float, Field(gt=0.5, lt=1.0)] = 0.95
+
+    @field_validator("finetune_conditions")
+    @classmethod
+    def _known_conditions(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        """Every entry a key of `weatheralign.conditions.CONDITIONS` (checked at load, before any stage starts)."""
+        # imported here: weatheralign.conditions imports the medium, which imports this module
+        from weatheralign.conditions import CONDITIONS
+
+        unknown = [name for name in v if name not in CONDITIONS]
+        if unknown:
+            raise ValueError(f"unknown condition{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))}: "
+                             f"expected names from {list(CONDITIONS)}")
+        return v
 
 
 class Params(_Section):

@@ -37,6 +37,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from weatheralign.medium.distributions import ExponentialSizeDistribution, SizeDistribution
+from weatheralign.particle_ids import MAX_PER_CELL, MAX_Z_CELLS, RANK_BITS, XY_BITS, XY_OFFSET, Z_BITS, layer_cells
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -48,12 +49,6 @@ _M2 = np.uint64(0x94D049BB133111EB)
 _S30, _S27, _S31, _S11 = np.uint64(30), np.uint64(27), np.uint64(31), np.uint64(11)
 _TWO_M53 = 2.0**-53
 
-XY_BITS = 20
-Z_BITS = 7
-RANK_BITS = 16
-XY_OFFSET = 1 << (XY_BITS - 1)
-MAX_Z_CELLS = 1 << Z_BITS
-MAX_PER_CELL = 1 << RANK_BITS
 _U_RANK_BITS = np.uint64(RANK_BITS)
 _U_Z_BITS = np.uint64(Z_BITS)
 _U_XY_BITS = np.uint64(XY_BITS)
@@ -323,7 +318,7 @@ class ParticleField:
     @property
     def nz(self) -> int:
         """Number of cells over the layer height."""
-        return max(1, round((self.z_max - self.z_min) / self.cell_size))
+        return layer_cells(self.z_max - self.z_min, self.cell_size)
 
     @property
     def cell_z(self) -> float:

@@ -373,20 +373,89 @@ def copy_outputs(nusc, sample_tokens: list[str], sweeps: int) -> set[str]:
     return {rel for token in sample_tokens for rel in _outputs(nusc, token, sweeps)}
 
 
+def written_list_path(out_root: Path) -> Path:
+    """``<parent>/.progress/<copy name>.written.json``: the relative path of every file the stage placed in the copy
+    (weather files, links and copies of the input's), beside the copy like its resume records."""
+    out_root = Path(out_root)
+    return out_root.parent / PROGRESS_DIR / f"{out_root.name}.written.json"
+
+
+def _inside(rel: str) -> bool:
+    """Whether ``rel`` is a relative path that stays inside the copy (a tampered record must not reach out)."""
+    parts = Path(rel).parts
+    return bool(parts) and not Path(rel).is_absolute() and ".." not in parts
+
+
+def files_written_before(out_root: Path) -> set[str]:
+    """Relative paths of the files earlier runs placed in the copy at ``out_root``: those of its written list
+    (`written_list_path`) and those its per-sample resume records name (empty for a new copy). Only these may be
+    removed: any other file in the copy is the user's."""
+    out_root = Path(out_root)
+    records = [read_record_json(written_list_path(out_root))]
+    records += [read_record_json(p) for p in sorted(progress_dir(out_root).glob("*.json"))]
+    found: set[str] = set()
+    for record in records:
+        files = (record or {}).get("files")
+        if isinstance(files, (list, dict)):
+            found |= {rel for rel in files if isinstance(rel, str) and _inside(rel)}
+    return found
+
+
+def _record_written(out_root: Path, relpaths: set[str]) -> None:
+    atomic.write_json(written_list_path(out_root), {"files": sorted(relpaths)})
+
+
+def _completion_plan(nusc, src_root: Path, version: str, written: set[str]) -> tuple[list[str], list[str]]:
+    """(files to complete from the input, in order: every sensor file the weather did not write with its per-point
+    extras, then ``maps/`` and the ``<version>/`` tables last; stale weather records to remove: those of the scans
+    the weather left clear this time)."""
+    complete, stale = [], []
+    for sd in nusc.sample_data:
+        rel = sd["filename"]
+        if rel in written:
+            continue
+        if sd["sensor_modality"] == "lidar":
+            stale.append(weather_relpath(rel))
+            complete += [extras_relpath(rel), compressed_extras_relpath(rel)]
+        complete.append(rel)
+    for top in ("maps", version):
+        complete += [str(src.relative_to(src_root)) for src in sorted((src_root / top).rglob("*")) if src.is_file()]
+    return complete, stale
+
+
+def _remove_temporaries(out_root: Path, ours: set[str]) -> int:
+    """Remove the `atomic.atomic_path` temporaries a killed run never renamed, of files in ``ours``; returns how
+    many."""
+    removed = 0
+    for leftover in out_root.rglob(".*.tmp"):
+        target = atomic.temporary_target(leftover)
+        if leftover.is_file() and target is not None and str(target.relative_to(out_root)) in ours:
+            leftover.unlink()
+            removed += 1
+    return removed
+
+
 def finalize_copy(nusc, src_root: Path, out_root: Path, version: str, written: set[str]) -> dict[str, int]:
     """Complete the weather copy around the files the weather ``written`` (`copy_outputs`): every other sensor file
     and its per-point extras a hard link to the input's (`link_or_copy`; a stale weather file of an earlier run with
     more sweeps or samples is replaced, its weather record removed), then the ``<version>/`` tables and ``maps/`` the
-    same way (last, so the copy loads only once complete); files no table lists (an earlier input's) are removed.
-    Scans left clear have no weather record (`read_weather_record` gives their identity record).
+    same way (last, so the copy loads only once complete). Scans left clear have no weather record
+    (`read_weather_record` gives their identity record).
+
+    Only files the stage can prove it placed are replaced or removed: those at the paths the input's tables name,
+    and those an earlier run recorded (`files_written_before`): files of an earlier input that no table lists any more
+    are removed, while anything else in the copy (a user's notes, a folder of their own images) is left as it is.
+    Every file placed is recorded in `written_list_path` (before it is placed, so a killed run's files stay known).
 
     Returns ``{"linked": n, "copied": m, "removed": k}``: files completed now (copied where links were refused) and
     stale files removed.
     """
     src_root, out_root = Path(src_root), Path(out_root)
-    for leftover in out_root.rglob(".*.tmp"):  # temporaries of writes a killed run never renamed
-        if leftover.is_file():
-            leftover.unlink()
+    to_complete, stale = _completion_plan(nusc, src_root, version, written)
+    expected = set(written) | set(to_complete)
+    before = files_written_before(out_root)
+    _record_written(out_root, before | expected)
+    _remove_temporaries(out_root, before | expected)
     done = {"linked": 0, "copied": 0, "removed": 0}
 
     def remove(rel: str) -> None:
@@ -405,27 +474,13 @@ def finalize_copy(nusc, src_root: Path, out_root: Path, version: str, written: s
             dst.unlink()  # a weather file of an earlier run, or a copy made where links were refused
         done["copied" if link_or_copy(src, dst) else "linked"] += 1
 
-    expected = set(written)
-    for sd in nusc.sample_data:
-        rel = sd["filename"]
-        if rel in written:
-            continue
-        if sd["sensor_modality"] == "lidar":
-            remove(weather_relpath(rel))
-            complete(extras_relpath(rel))
-            complete(compressed_extras_relpath(rel))
-            expected |= {extras_relpath(rel), compressed_extras_relpath(rel)}
+    for rel in stale:
+        remove(rel)
+    for rel in to_complete:
         complete(rel)
-        expected.add(rel)
-    for top in ("maps", version):
-        for src in sorted((src_root / top).rglob("*")):
-            if src.is_file():
-                complete(str(src.relative_to(src_root)))
-                expected.add(str(src.relative_to(src_root)))
-    for path in sorted(out_root.rglob("*")):  # files of an earlier input no table lists any more
-        if path.is_file() and str(path.relative_to(out_root)) not in expected:
-            path.unlink()
-            done["removed"] += 1
+    for rel in sorted(before - expected):  # the stage's own files of an earlier input that no table lists any more
+        remove(rel)
+    _record_written(out_root, expected)
     return done
 
 
@@ -455,6 +510,6 @@ def summarise(records: list[dict]) -> dict:
 
 
 __all__ = ["JPEG_SUBSAMPLING", "WEATHER_MATERIAL", "DatasetRef", "copy_fingerprint", "copy_outputs",
-           "finalize_copy", "lidar_fingerprint", "link_or_copy", "read_lidar_weather", "read_weather_record",
-           "reusable_lidar", "run_chunk", "run_sample", "smallest_int_dtype",
-           "summarise", "sweep_records", "weather_relpath", "weather_sweeps", "write_sample", "write_scan"]
+           "files_written_before", "finalize_copy", "lidar_fingerprint", "link_or_copy", "read_lidar_weather",
+           "read_weather_record", "reusable_lidar", "run_chunk", "run_sample", "smallest_int_dtype", "summarise",
+           "sweep_records", "weather_relpath", "weather_sweeps", "write_sample", "write_scan", "written_list_path"]
