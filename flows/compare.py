@@ -21,7 +21,8 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def eval_runs(tracking_uri: str, experiment: str, modality: str = "fused") -> list[dict[str, Any]]:
-    """The latest evaluation run per (model, weather, alignment) of ``modality``: dicts of their tags and metrics.
+    """The latest evaluation run per (model, weather, alignment, training seed) of ``modality``: dicts of their tags
+    and metrics.
 
     Raises:
         LookupError: no such experiment, or no evaluation runs in it.
@@ -34,24 +35,25 @@ def eval_runs(tracking_uri: str, experiment: str, modality: str = "fused") -> li
         raise LookupError(f"{tracking_uri}: no MLflow experiment {experiment!r} (run the pipeline first)")
     runs = client.search_runs([exp.experiment_id], f"tags.kind = 'eval' AND tags.modality = '{modality}'",
                               max_results=50000, order_by=["attributes.start_time ASC"])
-    latest: dict[tuple[str, str, str], dict[str, Any]] = {}
+    latest: dict[tuple[str, str, str, str], dict[str, Any]] = {}
     for run in runs:
         tags = run.data.tags
-        latest[(tags.get("model", ""), tags.get("weather", ""), tags.get("alignment", ""))] = {
-            **{k: tags.get(k) for k in ("model", "weather", "alignment")}, **run.data.metrics}
+        latest[(tags.get("model", ""), tags.get("weather", ""), tags.get("alignment", ""), tags.get("seed", ""))] = {
+            **{k: tags.get(k) for k in ("model", "weather", "alignment", "seed")}, **run.data.metrics}
     if not latest:
         raise LookupError(f"{tracking_uri}: no evaluation runs (tags.kind = 'eval') in experiment {experiment!r}")
     return list(latest.values())
 
 
 def comparison(runs: list[dict[str, Any]], metric: str = "map") -> list[tuple[str, str, float, float]]:
-    """(model, weather, aligned, unaligned) ``metric`` for every model and weather evaluated both ways, sorted."""
-    table: dict[tuple[str, str], dict[str, float]] = {}
+    """(model, weather, aligned, unaligned) ``metric`` for every model and weather evaluated both ways, averaged over
+    the training seeds evaluated (as the detect stage's tables), sorted."""
+    table: dict[tuple[str, str], dict[str, list[float]]] = {}
     for r in runs:
         if r["alignment"] in ("aligned", "unaligned") and metric in r:
-            table.setdefault((r["model"], r["weather"]), {})[r["alignment"]] = float(r[metric])
-    return sorted((m, w, v["aligned"], v["unaligned"]) for (m, w), v in table.items()
-                  if "aligned" in v and "unaligned" in v)
+            table.setdefault((r["model"], r["weather"]), {}).setdefault(r["alignment"], []).append(float(r[metric]))
+    return sorted((m, w, sum(v["aligned"]) / len(v["aligned"]), sum(v["unaligned"]) / len(v["unaligned"]))
+                  for (m, w), v in table.items() if "aligned" in v and "unaligned" in v)
 
 
 def render(rows: list[tuple[str, str, float, float]], metric: str) -> str:

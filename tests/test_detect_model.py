@@ -14,8 +14,8 @@ import torch
 from weatheralign.detect.head import (BevGrid, HeadOutputs, NUM_ATTRIBUTES, decode_detections, encode_targets,
                                       valid_attribute_mask)
 from weatheralign.detect.model import (BEVFusionDetector, DepthBins, DetectorConfig, PillarEncoder, bev_cell_indices,
-                                       bev_max_pool, count_parameters, frustum_points, lift_splat, modality_masks,
-                                       project_depth_hint, train_step)
+                                       bev_max_pool, count_parameters, depth_loss, depth_targets, frustum_points,
+                                       lift_splat, modality_masks, project_depth_hint, project_into_cells, train_step)
 from weatheralign.detect.types import ATTRIBUTES, DETECTION_CLASSES, DetectionBatch, SampleDetections
 
 CLS = {name: k for k, name in enumerate(DETECTION_CLASSES)}
@@ -79,7 +79,7 @@ def box_points(box: np.ndarray, count: int, rng: np.random.Generator) -> np.ndar
 def synthetic_batch(boxes: list[np.ndarray], labels: list[list[int]], attributes: list[list[int]], cameras: int = 2,
                     image_hw: tuple[int, int] = (32, 64), points_per_box: int = 150, ground_points: int = 600,
                     seed: int = 0) -> DetectionBatch:
-    """Points on the boxes' sides and on the ground (z = -1.8), uniform random images."""
+    """Points on the boxes' sides and on the ground (z = -1.8), uniform random images and image features."""
     rng = np.random.default_rng(seed)
     batch_size = len(boxes)
     rows = []
@@ -91,8 +91,11 @@ def synthetic_batch(boxes: list[np.ndarray], labels: list[list[int]], attributes
                                      rng.uniform(0, 0.5, len(xyz))]))
     intrinsics, cam_to_lidar = camera_rig(batch_size, cameras, *image_hw)
     generator = torch.Generator().manual_seed(seed)
+    h, w = image_hw
     return DetectionBatch(points=torch.tensor(np.concatenate(rows), dtype=torch.float32),
                           images=torch.rand(batch_size, cameras, 3, *image_hw, generator=generator),
+                          features_s8=torch.rand(batch_size, cameras, 40, h // 8, w // 8, generator=generator),
+                          features_s16=torch.rand(batch_size, cameras, 112, h // 16, w // 16, generator=generator),
                           intrinsics=intrinsics, cam_to_lidar=cam_to_lidar,
                           boxes=[torch.tensor(np.asarray(bx), dtype=torch.float32).reshape(-1, 9) for bx in boxes],
                           labels=[torch.tensor(lb, dtype=torch.int64) for lb in labels],
@@ -203,6 +206,70 @@ def test_lss_bright_pixel_lands_in_the_cell_of_its_hinted_depth() -> None:
     assert torch.allclose(bev[0, :, expected_row, expected_col], torch.full((3,), 7.0))
 
 
+def point_at(K: np.ndarray, T: np.ndarray, row: int, col: int, depth_m: float) -> np.ndarray:
+    """(3,) the LiDAR-frame point at camera depth ``depth_m`` on the ray through feature cell (row, col)'s centre."""
+    pixel = np.array([col * 8 + 3.5, row * 8 + 3.5, 1.0])
+    return T[:3, :3] @ (depth_m * np.linalg.solve(K, pixel)) + T[:3, 3]
+
+
+@pytest.mark.parametrize("scale", [0.95, 1.05])
+def test_depth_hint_and_targets_keep_camera_depth_under_the_scale_augmentation(scale: float) -> None:
+    """The augmentation maps points and ``cam_to_lidar`` by one similarity ``A`` (a scaled rotation): the camera
+    depth of a point is unchanged. Inverting ``cam_to_lidar`` as if it were rigid gave ``scale**2 * z``."""
+    K, T, image_hw = lss_camera()
+    depth = DepthBins(1.0, 41.0, 40)  # 1 m bins
+    row, col, d = 3, 7, 30.5
+    A = np.eye(4)
+    A[:3, :3] = scale * yaw_rotation(0.3)
+    point = A[:3, :3] @ point_at(K, T, row, col, d)
+    points = torch.tensor([[0.0, *point, 0.5, 0.0]], dtype=torch.float32)
+    Kt, Tt = torch.tensor(K, dtype=torch.float32)[None, None], torch.tensor(A @ T, dtype=torch.float32)[None, None]
+    flat, z = project_into_cells(points, Kt, Tt, image_hw, (8, 12), depth)
+    assert flat.tolist() == [row * 12 + col] and float(z[0]) == pytest.approx(d, rel=1e-5)
+    hint = project_depth_hint(points, Kt, Tt, image_hw, (8, 12), depth)
+    assert hint[0, 0, depth.index_of(torch.tensor(d)), row, col] == 1
+    target = depth_targets(points, Kt, Tt, image_hw, (8, 12), depth)
+    assert int(target[0, 0, row, col]) == int(depth.index_of(torch.tensor(d)))
+
+
+def test_depth_targets_take_the_nearest_keyframe_point_of_each_cell() -> None:
+    K, T, image_hw = lss_camera()
+    depth = DepthBins(1.0, 41.0, 20)
+    rows = [[0.0, *point_at(K, T, 3, 7, 20.0), 0.5, 0.0],  # keyframe, far
+            [0.0, *point_at(K, T, 3, 7, 10.0), 0.5, 0.0],  # keyframe, near: the target
+            [0.0, *point_at(K, T, 3, 7, 5.0), 0.5, 0.05],  # an earlier sweep: no target
+            [0.0, *point_at(K, T, 5, 2, 5.0), 0.5, 0.05],
+            [1.0, *point_at(K, T, 1, 1, 8.0), 0.5, 0.0]]  # the second sample's camera
+    points = torch.tensor(rows, dtype=torch.float32)
+    Kt = torch.tensor(K, dtype=torch.float32).expand(2, 1, 3, 3)
+    Tt = torch.tensor(T, dtype=torch.float32).expand(2, 1, 4, 4)
+    target = depth_targets(points, Kt, Tt, image_hw, (8, 12), depth)
+    assert target.shape == (2, 1, 8, 12)
+    assert int(target[0, 0, 3, 7]) == 4 and int(target[1, 0, 1, 1]) == 3  # bins [9, 11) and [7, 9)
+    assert int((target >= 0).sum()) == 2
+
+
+def test_depth_loss_is_zero_at_the_target_and_log_bins_when_uniform() -> None:
+    target = torch.full((1, 2, 3, 4), -1, dtype=torch.long)
+    target[0, 1, 2, 3], target[0, 0, 0, 0] = 5, 0
+    one_hot = torch.zeros(1, 2, 8, 3, 4)
+    one_hot[0, 1, 5, 2, 3] = one_hot[0, 0, 0, 0, 0] = 1.0
+    assert float(depth_loss(one_hot, target)) == pytest.approx(0.0, abs=1e-6)
+    assert float(depth_loss(torch.full((1, 2, 8, 3, 4), 1 / 8), target)) == pytest.approx(math.log(8), rel=1e-6)
+    assert float(depth_loss(one_hot, torch.full_like(target, -1))) == 0.0
+
+
+def test_camera_only_training_learns_depth_from_the_lidar() -> None:
+    """Camera-only steps (no depth hint) lower the depth loss: the depth net learns from the image features."""
+    torch.manual_seed(0)
+    model = BEVFusionDetector(SMALL)
+    batch = two_sample_batch()
+    batch.points[:, 5] = 0.0  # all keyframe points
+    optimizer = torch.optim.AdamW(model.parameters(), lr=4e-3)
+    history = [train_step(model, batch, optimizer, modality="camera")["depth"] for _ in range(40)]
+    assert history[-1] < 0.7 * history[0], (history[0], history[-1])
+
+
 def test_lss_pooling_drops_outside_points_and_conserves_mass() -> None:
     K, T, image_hw = lss_camera()
     feature_hw = (8, 12)
@@ -307,7 +374,8 @@ def test_modality_switches_each_branch_off() -> None:
     torch.manual_seed(0)
     model = BEVFusionDetector(SMALL).eval()
     batch = two_sample_batch()
-    other_images = replace(batch, images=torch.rand_like(batch.images))
+    other_images = replace(batch, features_s8=torch.rand_like(batch.features_s8),
+                           features_s16=torch.rand_like(batch.features_s16))
     shifted = batch.points.clone()
     shifted[:, 1] += 1.5
     other_points = replace(batch, points=shifted)
@@ -328,6 +396,7 @@ def test_an_evaluation_during_training_leaves_the_training_unchanged() -> None:
 
     batch = two_sample_batch()
     samples = [{"points": batch.points[batch.points[:, 0] == b, 1:], "images": (batch.images[b] * 255).to(torch.uint8),
+                "features_s8": batch.features_s8[b].half(), "features_s16": batch.features_s16[b].half(),
                 "intrinsics": batch.intrinsics[b], "cam_to_lidar": batch.cam_to_lidar[b], "boxes": batch.boxes[b],
                 "labels": batch.labels[b], "attributes": batch.attributes[b], "token": batch.tokens[b],
                 "T_global_lidar": torch.eye(4, dtype=torch.float64)} for b in range(2)]
@@ -359,7 +428,7 @@ def test_modality_dropout_drops_one_branch_per_sample_in_training_only() -> None
 def test_default_model_size_and_output_shapes() -> None:
     model = BEVFusionDetector()
     assert 0.4e6 < count_parameters(model) < 1.5e6
-    batch = synthetic_batch([np.zeros((0, 9))], [[]], [[]], cameras=6, image_hw=(96, 176))
+    batch = synthetic_batch([np.zeros((0, 9))], [[]], [[]], cameras=6, image_hw=(128, 352))
     with torch.no_grad():
         outputs = model.eval()(batch)
     assert outputs.heatmap.shape == (1, 10, 64, 64) and outputs.regression.shape == (1, 10, 64, 64)
@@ -376,7 +445,8 @@ def test_overfits_one_small_batch_and_decodes_its_boxes() -> None:
     labels = [[CLS["car"], CLS["pedestrian"], CLS["barrier"]]]
     attributes = [[ATTR["vehicle.moving"], ATTR["pedestrian.moving"], -1]]
     batch = synthetic_batch(boxes, labels, attributes)
-    batch = replace(batch, images=torch.zeros_like(batch.images))  # blank images
+    batch = replace(batch, images=torch.zeros_like(batch.images), features_s8=torch.zeros_like(batch.features_s8),
+                    features_s16=torch.zeros_like(batch.features_s16))  # blank images
     model = BEVFusionDetector(SMALL)
     optimizer = torch.optim.AdamW(model.parameters(), lr=4e-3, weight_decay=0.0)
     history = [train_step(model, batch, optimizer) for _ in range(150)]  # ~45 ms each on 2 idle CPU threads
@@ -444,3 +514,81 @@ def test_cuda_forward_equals_cpu() -> None:
         torch.manual_seed(1)  # the same modality-dropout draws on both devices
         losses.append(train_step(model, batch.to(device), optimizer)["total"])
     assert losses[0] == pytest.approx(losses[1], rel=1e-4)
+
+
+def _training_samples() -> list[dict]:
+    batch = two_sample_batch()
+    return [{"points": batch.points[batch.points[:, 0] == b, 1:], "images": (batch.images[b] * 255).to(torch.uint8),
+             "features_s8": batch.features_s8[b].half(), "features_s16": batch.features_s16[b].half(),
+             "intrinsics": batch.intrinsics[b], "cam_to_lidar": batch.cam_to_lidar[b], "boxes": batch.boxes[b],
+             "labels": batch.labels[b], "attributes": batch.attributes[b], "token": batch.tokens[b],
+             "T_global_lidar": torch.eye(4, dtype=torch.float64)} for b in range(2)]
+
+
+def test_an_interrupted_training_resumes_to_the_same_weights(tmp_path) -> None:
+    """Stopped after step 5 (its state saved at step 4), the training continues from step 4 and ends with the
+    weights and losses of an uninterrupted run; the state file is removed at the end."""
+    from weatheralign.detect import protocol
+
+    samples = _training_samples()
+    config = replace(SMALL, modality_dropout=0.5)
+
+    def trained(resume, on_step=None) -> tuple[dict[str, torch.Tensor], list[dict[str, float]]]:
+        torch.manual_seed(0)
+        model = BEVFusionDetector(config)
+        history = protocol.train(model, samples, 8, 1e-3, 0.01, 1, 0, torch.device("cpu"), show_progress=False,
+                                 on_step=on_step, resume=resume)
+        return model.state_dict(), history
+
+    reference, reference_history = trained(None)
+
+    def stop_at_5(step: int, record: dict[str, float]) -> None:
+        if step == 5:
+            raise KeyboardInterrupt
+
+    resume = protocol.Resume(tmp_path / "model.state.pt", "fingerprint-1", every=2)
+    with pytest.raises(KeyboardInterrupt):
+        trained(resume, stop_at_5)
+    assert resume.path.is_file()
+    assert torch.load(resume.path, weights_only=True)["step"] == 4
+    resumed, history = trained(resume)
+    assert [h["total"] for h in history] == [h["total"] for h in reference_history]
+    assert all(torch.equal(resumed[k], v) for k, v in reference.items())
+    assert not resume.path.exists()
+    other = protocol.Resume(tmp_path / "model.state.pt", "fingerprint-1", every=2)
+    with pytest.raises(KeyboardInterrupt):
+        trained(other, stop_at_5)
+    fresh, _ = trained(protocol.Resume(other.path, "another fingerprint", every=2))  # a stale state is ignored
+    assert all(torch.equal(fresh[k], v) for k, v in reference.items())
+
+
+class _RunsCode:
+    """Unpickling this runs a shell command (what a crafted checkpoint would do)."""
+
+    def __init__(self, marker: str) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        import os
+
+        return (os.system, (f"touch {self.marker}",))
+
+
+def test_a_crafted_checkpoint_cannot_run_code(tmp_path) -> None:
+    """Checkpoints and training states are read as tensors and plain data only: a file whose pickle would run a
+    command is refused and the command never runs."""
+    import pickle
+
+    from weatheralign.detect import protocol
+
+    marker = tmp_path / "ran"
+    crafted = tmp_path / "pretrained.pt"
+    torch.save({"state_dict": BEVFusionDetector(SMALL).state_dict(), "meta": _RunsCode(str(marker))}, crafted)
+    with pytest.raises(pickle.UnpicklingError):
+        protocol.load_checkpoint(crafted, SMALL)
+    state = tmp_path / "model.state.pt"
+    torch.save({"key": "k", "history": _RunsCode(str(marker))}, state)
+    with pytest.raises(pickle.UnpicklingError):
+        protocol.train(BEVFusionDetector(SMALL), _training_samples(), 2, 1e-3, 0.0, 1, 0, torch.device("cpu"),
+                       show_progress=False, resume=protocol.Resume(state, "k"))
+    assert not marker.exists()

@@ -18,9 +18,11 @@ from weatheralign.data.nuscenes import load_frame, open_nuscenes
 from weatheralign.manifest import DatasetManifest, dataset_digest, manifest_path, write_manifest
 from weatheralign.sensors import SensorRig, camera_models, lidar_model_from_params
 
+from flows.detect import camera_weather_set
+
 from .conftest import HANG_GUARD_S, REPO, write_params_file
 
-DETECT = {"finetune_conditions": ["snow"], "image_size": [32, 64], "batch_size": 1, "pretrain_steps": 4,
+DETECT = {"finetune_conditions": ["snow"], "seeds": [0, 1], "image_size": [32, 64], "batch_size": 1, "pretrain_steps": 4,
           "finetune_steps": 2, "eval_every": 2, "num_bootstrap": 10, "score_threshold": 0.0, "max_detections": 50}
 
 
@@ -77,31 +79,40 @@ def test_a_real_layout_dataroot_goes_through_the_same_stage(tiny_world, tmp_path
     done = run()
     assert done.returncode == 0, done.stderr[-4000:]
     metrics = json.loads((reports / "detect" / "metrics.json").read_text())
-    assert set(metrics["models"]["pretrained"]) == {"clean", *(variant_name(c, a) for c in CONDITIONS
-                                                               for a in (True, False))}
+    variants = [variant_name(c, a) for c in CONDITIONS for a in (True, False)]
+    assert set(metrics["models"]["pretrained"]) == {"clean", *variants, *map(camera_weather_set, variants)}
     assert 0.0 <= metrics["models"]["pretrained"]["clean"]["map"] <= 1.0
     assert not (real / "extras").exists()
 
 
 def test_metrics_layout_and_reports(stage_run):
-    _, _, reports, metrics, _ = stage_run
+    _, data, reports, metrics, _ = stage_run
     variants = [variant_name(c, a) for c in CONDITIONS for a in (True, False)]
-    assert set(metrics["models"]) == {"pretrained", "finetuned-snow", "finetuned-snow-mix", "finetuned-snow-unaligned"}
-    assert set(metrics["models"]["pretrained"]) == {"clean", *variants}
+    assert set(metrics["models"]) == {"pretrained", "pretrained-lidar_only", "pretrained-camera_only",
+                                      "pretrained-shuffled_images", "finetuned-snow", "finetuned-snow-mix",
+                                      "finetuned-snow-unaligned"}
+    assert set(metrics["models"]["pretrained"]) == {"clean", *variants, *map(camera_weather_set, variants)}
+    assert metrics["models"]["pretrained"]["clean"]["seeds"] == [0, 1]
+    assert metrics["models"]["finetuned-snow"]["clean"]["seeds"] == [0]
     assert set(metrics["models"]["finetuned-snow"]) == {"clean", "snow-aligned", "snow-unaligned"}
     for evals in metrics["models"].values():
         for m in evals.values():
             assert 0.0 <= m["map"] <= 1.0 and 0.0 <= m["nds"] <= 1.0
-            assert m["map_ci"][0] <= m["map"] + 1e-12 and m["map"] <= m["map_ci"][1] + 1e-12
+            assert m["map"] == pytest.approx(sum(m["map_per_seed"]) / len(m["map_per_seed"]), abs=1e-12)
+            assert m["map_ci"][0] <= max(m["map_per_seed"]) + 1e-12
+            assert min(m["map_per_seed"]) <= m["map_ci"][1] + 1e-12
             assert set(m["per_class_ap"]) == {"car", "truck", "bus", "trailer", "construction_vehicle", "pedestrian",
                                               "motorcycle", "bicycle", "traffic_cone", "barrier"}
-    assert set(metrics["modality_ablation"]) == {"fused", "lidar_only", "camera_only"}
-    for other in ("lidar", "camera"):  # what each sensor adds: fused minus the other sensor alone, on clean val
-        d = metrics["differences"][f"pretrained:clean:fused-{other}:map"]
+    assert set(metrics["modality_ablation"]) == {"fused", "lidar_only", "camera_only", "shuffled_images"}
+    for other, ablated in (("lidar", "lidar_only"), ("camera", "camera_only"), ("shuffled_images", "shuffled_images")):
+        d = metrics["differences"][f"pretrained:clean:fused-{other}:map"]  # fused minus the ablated model on clean val
         assert d["difference"] == pytest.approx(metrics["modality_ablation"]["fused"]["map"]
-                                                - metrics["modality_ablation"][f"{other}_only"]["map"], abs=1e-12)
+                                                - metrics["modality_ablation"][ablated]["map"], abs=1e-12)
     assert "Modality ablation" in (reports / "detect" / "table_alignment.md").read_text()
-    assert [p["step"] for p in metrics["learning_curve"]] == [2, 4]
+    assert {s: [p["step"] for p in curve] for s, curve in metrics["learning_curve"].items()} == {"0": [2, 4],
+                                                                                                 "1": [2, 4]}
+    results = json.loads((data / "detect" / "results" / "seed1" / "pretrained-camera_only" / "clean.json").read_text())
+    assert results["meta"]["use_camera"] and not results["meta"]["use_lidar"]
     for name in ("table_alignment.md", "table_finetune.md", "learning_curve.png", "predictions_bev.png"):
         assert (reports / "detect" / name).stat().st_size > 0
     assert "paper" in (reports / "detect" / "table_alignment.md").read_text()
@@ -130,8 +141,8 @@ def test_mlflow_runs_are_tagged_for_the_ablation(stage_run):
     assert all("map" in r.data.metrics and "nds" in r.data.metrics for r in runs)
     assert {r.data.tags["severity"] for r in runs if r.data.tags["weather"] == "snow"} == {"2 mm/h"}
     trains = client.search_runs([exp.experiment_id], "tags.kind = 'train'")
-    assert {r.data.tags["model"] for r in trains} == {"pretrained", "finetuned-snow", "finetuned-snow-mix",
-                                                      "finetuned-snow-unaligned"}
+    assert {r.data.tags["model"] for r in trains} == {"seed0/pretrained", "seed1/pretrained", "seed0/finetuned-snow",
+                                                      "seed0/finetuned-snow-mix", "seed0/finetuned-snow-unaligned"}
     # one metric name across conditions: the stage run holds no per-condition metric, the differences are runs
     stage = client.search_runs([exp.experiment_id], "tags.stage = 'detect' AND tags.kind = 'stage'")[0]
     assert "parameters" in stage.data.metrics and not any("snow" in k or "clean" in k for k in stage.data.metrics)
@@ -155,17 +166,19 @@ def test_detector_checkpoints_are_registered_mlflow_models(stage_run):
     uri = f"sqlite:///{tmp / 'mlflow.db'}"
     client = MlflowClient(tracking_uri=uri)
     names = {m.name for m in client.search_registered_models()}
-    assert {"weatheralign-detector-pretrained", "weatheralign-detector-finetuned-snow-mix"} <= names
-    version = client.search_model_versions("name = 'weatheralign-detector-finetuned-snow'")[0]
+    assert {"weatheralign-detector-seed0-pretrained", "weatheralign-detector-seed1-pretrained",
+            "weatheralign-detector-seed0-finetuned-snow-mix"} <= names
+    version = client.search_model_versions("name = 'weatheralign-detector-seed0-finetuned-snow'")[0]
     assert version.tags["map.snow-aligned"] and version.tags["nds.clean"]
     run = client.get_run(version.run_id)
-    assert run.data.tags["kind"] == "train" and run.data.tags["model"] == "finetuned-snow"
+    assert run.data.tags["kind"] == "train" and run.data.tags["model"] == "seed0/finetuned-snow"
     mlflow.set_tracking_uri(uri)
     try:
-        loaded = mlflow.pytorch.load_model(f"models:/weatheralign-detector-finetuned-snow/{version.version}")
+        loaded = mlflow.pytorch.load_model(f"models:/weatheralign-detector-seed0-finetuned-snow/{version.version}")
     finally:
         mlflow.set_tracking_uri(None)
-    blob = torch.load(data / "detect" / "models" / "finetuned-snow.pt", map_location="cpu", weights_only=False)
+    blob = torch.load(data / "detect" / "models" / "seed0" / "finetuned-snow.pt", map_location="cpu",
+                      weights_only=True)
     assert loaded.state_dict().keys() == blob["state_dict"].keys()
     assert all(torch.equal(loaded.state_dict()[k], v) for k, v in blob["state_dict"].items())
 
@@ -189,9 +202,10 @@ def test_compare_reads_the_same_numbers_back_from_mlflow(stage_run, capsys):
 
 def test_rerun_resumes_without_training_or_evaluating(stage_run):
     _, data, reports, metrics, run = stage_run
-    checkpoints = {p: p.stat().st_mtime_ns for p in (data / "detect" / "models").glob("*.pt")}
+    checkpoints = {p: p.stat().st_mtime_ns for p in (data / "detect" / "models").rglob("*.pt")}
     evals = {p: p.stat().st_mtime_ns for p in (data / "detect" / "evals").rglob("*.json")}
-    assert len(checkpoints) == 4 and len(evals) == 11 + 2 + 3 * 3
+    assert len(checkpoints) == 2 + 3 and len(evals) == 2 * (11 + 2 + 1 + 10) + 3 * 3
+    assert not list((data / "detect" / "models").rglob("*.state.pt"))  # training states are removed when done
     again = run()
     assert again.returncode == 0, again.stderr[-4000:]
     assert {p: p.stat().st_mtime_ns for p in checkpoints} == checkpoints

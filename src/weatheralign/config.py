@@ -617,7 +617,9 @@ class DetectConfig(_Section):
     finetune_conditions: tuple[Annotated[str, Field(pattern=r"^[a-z][a-z0-9_]*$")], ...] = ("fog_dense", "snow", "rain")
     device: TorchDevice = "cpu"
     seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
-    image_size: tuple[Annotated[int, Field(ge=32, le=900)], Annotated[int, Field(ge=32, le=1600)]] = (96, 176)
+    seeds: tuple[Annotated[int, Field(ge=0, le=2**31 - 1)], ...] = (0, 1, 2)
+    image_size: tuple[Annotated[int, Field(ge=32, le=900, multiple_of=16)],
+                      Annotated[int, Field(ge=32, le=1600, multiple_of=16)]] = (128, 352)
     bev_range_m: Annotated[float, Field(gt=10.0, le=100.0)] = 51.2
     bev_cell_m: Annotated[float, Field(gt=0.1, le=2.0)] = 0.8
     batch_size: Annotated[int, Field(ge=1, le=64)] = 2
@@ -626,7 +628,9 @@ class DetectConfig(_Section):
     lr: Annotated[float, Field(gt=0.0, le=1.0)] = 2e-3
     finetune_lr: Annotated[float, Field(gt=0.0, le=1.0)] = 5e-4
     weight_decay: Annotated[float, Field(ge=0.0, le=1.0)] = 0.01
-    modality_dropout: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.15
+    modality_dropout: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.4
+    depth_loss_weight: Annotated[float, Field(ge=0.0, le=100.0)] = 1.0
+    scene_block: Annotated[int, Field(ge=1, le=10_000)] = 8
     mix_weather_fraction: Annotated[float, Field(gt=0.0, lt=1.0)] = 0.3
     eval_every: Annotated[int, Field(ge=0, le=1_000_000)] = 500
     score_threshold: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.05

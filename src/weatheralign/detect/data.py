@@ -44,18 +44,20 @@ from weatheralign.data.nuscenes import (
     TABLES, compressed_extras_relpath, extras_relpath, load_boxes, load_camera, load_lidar,
     open_nuscenes_cached,
 )
+from weatheralign.detect.image_features import BACKBONE_NAME, image_features
 from weatheralign.detect.types import ATTRIBUTES, DETECTION_CLASSES, DetectionBatch
 from weatheralign.geometry import invert
 from weatheralign.provenance import file_stamps
 
 F64 = NDArray[np.float64]
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2
 """Bump when the cached content or layout changes: every cache folder name changes with it."""
 CAMERA_ORDER: tuple[str, ...] = ("CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT",
                                  "CAM_BACK_RIGHT")
-DEFAULT_IMAGE_SIZE: tuple[int, int] = (96, 176)
-"""(H, W) [px] of cached images: nuScenes' 1600x900 scaled by 0.11 to 176x99, 3 rows cropped off the top."""
+DEFAULT_IMAGE_SIZE: tuple[int, int] = (128, 352)
+"""(H, W) [px] of cached images: nuScenes' 1600x900 scaled by 0.22 to 352x198, 70 rows (mostly sky) cropped off the
+top. Both sides are multiples of 16 (`weatheralign.detect.image_features`)."""
 DEFAULT_SWEEPS = 9
 """Earlier sweeps aggregated with the keyframe (BEVFusion: 9, i.e. 10 sweeps, 0.45 s)."""
 XYZ_QUANTUM_M = 0.01
@@ -68,6 +70,8 @@ SAMPLE_MEMBERS: dict[str, str] = {
     "points_sweep": "(N,) uint8 sweep index (0 = keyframe, k = k-th earlier sweep)",
     "sweep_lags": "(S + 1,) float32 time lag of sweep k behind the keyframe [s] (>= 0)",
     "images": "(C, H, W, 3) uint8 RGB in CAMERA_ORDER",
+    "features_s8": "(C, 40, H/8, W/8) float16 frozen image features at stride 8 (weatheralign.detect.image_features)",
+    "features_s16": "(C, 112, H/16, W/16) float16 frozen image features at stride 16",
     "intrinsics": "(C, 3, 3) float64 pinhole matrices of the cached images [px]",
     "cam_to_lidar": "(C, 4, 4) float64 camera (at its own timestamp) -> keyframe LiDAR frame",
     "T_global_lidar": "(4, 4) float64 keyframe LiDAR frame -> global",
@@ -307,7 +311,7 @@ def _cache_digest(root: Path, version: str, nusc: NuScenes, tokens: Sequence[str
                   sweeps: int) -> str:
     tables = [f"{version}/{t}.json" for t in TABLES]
     files = [f for token in tokens for f in _sample_files(nusc, token, sweeps)]
-    blob = json.dumps({"cache_version": CACHE_VERSION, "dataroot": str(root.resolve()), "version": version,
+    blob = json.dumps({"cache_version": CACHE_VERSION, "backbone": BACKBONE_NAME, "dataroot": str(root.resolve()), "version": version,
                        "tokens": list(tokens), "image_size": list(image_size), "sweeps": sweeps,
                        "tables": file_stamps(root, tables), "files": file_stamps(root, files)})
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
@@ -318,8 +322,8 @@ def _tables_key(root: Path, version: str) -> str:
 
 
 def _check_cache_args(tokens: Sequence[str], image_size: tuple[int, int], sweeps: int) -> None:
-    if len(image_size) != 2 or min(image_size) < 8:
-        raise ValueError(f"image_size must be (H, W) with both >= 8 px, got {image_size}")
+    if len(image_size) != 2 or min(image_size) < 16 or image_size[0] % 16 or image_size[1] % 16:
+        raise ValueError(f"image_size must be (H, W) with both multiples of 16 px, got {image_size}")
     if not 0 <= sweeps <= 255:
         raise ValueError(f"sweeps must be in 0..255, got {sweeps}")
     if not tokens:
@@ -371,6 +375,7 @@ def cache_sample(nusc: NuScenes, token: str, image_size: tuple[int, int], sweeps
         images.append(image)
         intrinsics.append(A @ view.K)
         cam_to_lidar.append(T_lidar_global @ view.T_global_cam)
+    features_s8, features_s16 = image_features(np.stack(images))
     t2 = time.process_time()
     boxes = load_boxes(nusc, sample)
     keep, labels, attributes = _labels(boxes, str(Path(nusc.table_root) / "sample_annotation.json"))
@@ -383,6 +388,8 @@ def cache_sample(nusc: NuScenes, token: str, image_size: tuple[int, int], sweeps
         "points_sweep": sweep_idx[near].astype(np.uint8),
         "sweep_lags": lags,
         "images": np.stack(images),
+        "features_s8": features_s8,
+        "features_s16": features_s16,
         "intrinsics": np.stack(intrinsics),
         "cam_to_lidar": np.stack(cam_to_lidar),
         "T_global_lidar": T_global_lidar,
@@ -438,7 +445,7 @@ def build_cache(dataroot: str | Path, version: str, sample_tokens: Sequence[str]
             stats[a[3]] = _cache_one(*a)
             bar.update()
     else:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
+        with ProcessPoolExecutor(max_workers=workers, initializer=torch.set_num_threads, initargs=(1,)) as pool:
             for a, result in zip(args, pool.map(_cache_one, *zip(*args))):
                 stats[a[3]] = result
                 bar.update()
@@ -539,10 +546,23 @@ def seeded_generator(*keys: int) -> torch.Generator:
     return torch.Generator().manual_seed(int(state[0]))
 
 
+def derangement(n: int, seed: int) -> list[int]:
+    """A seeded permutation of range(n) (n >= 2) without fixed points: sample i takes the images of another
+    sample (the shuffled-image control)."""
+    if n < 2:
+        raise ValueError(f"a derangement needs at least 2 samples, got {n}")
+    generator = seeded_generator(seed, 2)
+    while True:
+        order = torch.randperm(n, generator=generator).tolist()
+        if all(i != j for i, j in enumerate(order)):
+            return order
+
+
 class DetectionDataset(Dataset):
     """The samples of one cache folder (`build_cache`) as dicts of tensors.
 
     A sample: ``points`` (N, 5) float32 ``x, y, z, intensity / 255, time lag [s]``; ``images`` (C, 3, H, W) uint8;
+    ``features_s8`` (C, 40, H/8, W/8) and ``features_s16`` (C, 112, H/16, W/16) float16 frozen image features;
     ``intrinsics`` (C, 3, 3) float32; ``cam_to_lidar`` (C, 4, 4) float32; ``boxes`` (M, 9) float32; ``labels``,
     ``attributes``, ``num_lidar_pts`` (M,) int64; ``T_global_lidar`` (4, 4) float64; ``aug`` (4, 4) float64 the
     augmentation (identity without); ``token`` str.
@@ -556,14 +576,29 @@ class DetectionDataset(Dataset):
         min_lidar_pts: boxes with fewer annotated LiDAR points are dropped (mmdet3d drops those with none).
         point_range: optional ``(x_min, y_min, z_min, x_max, y_max, z_max)`` [m]: after augmentation, points outside
             and boxes whose centre lies outside (in x, y) are dropped.
+        camera_cache: another cache folder of the same samples (e.g. a weather copy's) whose camera images and
+            features replace this one's: the "clean LiDAR + weather cameras" evaluation sets.
+        image_source: optional (N,) sample indices: sample i gets the camera images and features of sample
+            ``image_source[i]`` (its own calibration stays): the shuffled-image control (`derangement`).
     """
 
     def __init__(self, cache: str | Path, augmentation: Augmentation | None = None, seed: int = 0,
-                 min_lidar_pts: int = 1, point_range: Sequence[float] | None = None) -> None:
+                 min_lidar_pts: int = 1, point_range: Sequence[float] | None = None,
+                 camera_cache: str | Path | None = None, image_source: Sequence[int] | None = None) -> None:
         self.folder = Path(cache)
         self.index = read_index(self.folder)
         self.tokens: list[str] = list(self.index["tokens"])
         self.image_size: tuple[int, int] = tuple(self.index["image_size"])
+        self.camera_folder = Path(camera_cache) if camera_cache is not None else self.folder
+        if camera_cache is not None:
+            camera_index = read_index(self.camera_folder)
+            if camera_index["tokens"] != self.tokens or tuple(camera_index["image_size"]) != self.image_size:
+                raise ValueError(f"camera_cache {self.camera_folder} holds other samples or another image size than "
+                                 f"{self.folder}")
+        if image_source is not None and (len(image_source) != len(self.tokens)
+                                         or not all(0 <= int(i) < len(self.tokens) for i in image_source)):
+            raise ValueError(f"image_source must hold {len(self.tokens)} sample indices in 0..{len(self.tokens) - 1}")
+        self.image_source = None if image_source is None else [int(i) for i in image_source]
         self.augmentation = augmentation
         self.seed = seed
         self.epoch = 0
@@ -581,6 +616,10 @@ class DetectionDataset(Dataset):
 
     def __getitem__(self, index: int) -> dict[str, Any]:
         raw = load_cached_sample(self.folder, self.tokens[index])
+        camera_index = index if self.image_source is None else self.image_source[index]
+        if camera_index != index or self.camera_folder != self.folder:
+            camera = load_cached_sample(self.camera_folder, self.tokens[camera_index])
+            raw.update({k: camera[k] for k in ("images", "features_s8", "features_s16")})
         xyz = raw["points_xyz_cm"].T.astype(np.float64) * XYZ_QUANTUM_M
         intensity = raw["points_intensity"].astype(np.float32) / np.float32(255.0)
         lag = raw["sweep_lags"][raw["points_sweep"]]
@@ -601,6 +640,8 @@ class DetectionDataset(Dataset):
             "token": str(raw["token"].reshape(-1)[0]),
             "points": torch.from_numpy(points),
             "images": torch.from_numpy(raw["images"]).permute(0, 3, 1, 2).contiguous(),
+            "features_s8": torch.from_numpy(raw["features_s8"]),
+            "features_s16": torch.from_numpy(raw["features_s16"]),
             "intrinsics": torch.from_numpy(raw["intrinsics"].astype(np.float32)),
             "cam_to_lidar": torch.from_numpy(cam_to_lidar.astype(np.float32)),
             "boxes": torch.from_numpy(boxes[keep].astype(np.float32)),
@@ -619,6 +660,8 @@ def collate(samples: Sequence[dict[str, Any]]) -> DetectionBatch:
               for b, s in enumerate(samples)]
     return DetectionBatch(
         points=torch.cat(points), images=torch.stack([s["images"] for s in samples]).float().div_(255.0),
+        features_s8=torch.stack([s["features_s8"] for s in samples]).float(),
+        features_s16=torch.stack([s["features_s16"] for s in samples]).float(),
         intrinsics=torch.stack([s["intrinsics"] for s in samples]),
         cam_to_lidar=torch.stack([s["cam_to_lidar"] for s in samples]),
         boxes=[s["boxes"] for s in samples], labels=[s["labels"] for s in samples],
@@ -702,7 +745,7 @@ def mixed_dataset(weather_ds: Dataset, clean_ds: Dataset, weather_fraction: floa
 
 
 __all__ = ["Augmentation", "CACHE_VERSION", "CAMERA_ORDER", "DEFAULT_IMAGE_SIZE", "DEFAULT_SWEEPS",
-           "DetectionDataset", "MixedDataset", "MixedSampler", "SAMPLE_MEMBERS", "augment_boxes", "boxes_to_global",
+           "DetectionDataset", "MixedDataset", "derangement", "MixedSampler", "SAMPLE_MEMBERS", "augment_boxes", "boxes_to_global",
            "boxes_to_lidar", "build_cache", "cache_path", "cache_sample", "collate", "decode_camera",
            "load_cached_sample", "mixed_dataset", "points_in_boxes", "read_index", "resize_crop_params",
            "scene_split", "seeded_generator"]

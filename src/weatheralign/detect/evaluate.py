@@ -753,6 +753,79 @@ def paired_differences(gt: EvalBoxes, pred_a: EvalBoxes, pred_b: EvalBoxes,
     return out
 
 
+def scene_blocks(scene_of_sample: Sequence[str], block: int) -> list[NDArray[np.int64]]:
+    """The val samples (in their order, each scene's frames consecutive and in time order) cut into blocks of at most
+    ``block`` consecutive frames of one scene: the units a block bootstrap resamples (neighbouring frames of a scene
+    share objects and weather, so they are not independent draws)."""
+    if block < 1:
+        raise ValueError(f"block = {block}; expected >= 1 frame")
+    blocks: list[NDArray[np.int64]] = []
+    start = 0
+    for i in range(1, len(scene_of_sample) + 1):
+        if i == len(scene_of_sample) or scene_of_sample[i] != scene_of_sample[start] or i - start == block:
+            blocks.append(np.arange(start, i, dtype=np.int64))
+            start = i
+    return blocks
+
+
+def _block_draws(blocks: Sequence[NDArray[np.int64]], n_boot: int, rng: np.random.Generator
+                 ) -> list[NDArray[np.int64]]:
+    """``n_boot`` replicates of ``len(blocks)`` blocks drawn with replacement, concatenated into sample indices."""
+    return [np.concatenate([blocks[b] for b in rng.integers(0, len(blocks), len(blocks))]) for _ in range(n_boot)]
+
+
+@dataclass(frozen=True)
+class SeedBlockEstimate:
+    """A metric averaged over training seeds with its seed x block bootstrap interval: ``value`` the mean over the
+    seeds, ``per_seed`` each seed's value, ``ci`` [lo, hi] at the confidence asked."""
+
+    value: float
+    per_seed: list[float]
+    ci: list[float]
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"value": self.value, "per_seed": self.per_seed, "ci": self.ci}
+
+
+def seed_block_bootstrap(gt: EvalBoxes, preds_a: Sequence[EvalBoxes], preds_b: Sequence[EvalBoxes] | None,
+                         blocks: Sequence[NDArray[np.int64]], metrics: Sequence[Metric] = ("map", "nds"),
+                         n_boot: int = DEFAULT_BOOTSTRAP, seed: int = 0, confidence: float = 0.95
+                         ) -> dict[str, SeedBlockEstimate]:
+    """``metric(a)`` (or ``metric(a) - metric(b)`` on the same samples) averaged over training seeds, with an
+    interval that holds both the training noise and the evaluation set's sampling noise: each replicate draws the
+    seeds with replacement and the scene blocks (`scene_blocks`) with replacement, and averages the drawn seeds'
+    values on the drawn samples (a two-level bootstrap).
+
+    Args:
+        preds_a: one prediction set per training seed; preds_b: None (the metric of a), or the seeds' predictions
+            of the model subtracted, paired seed by seed (same length as ``preds_a``, or one: subtracted from each).
+        blocks: sample indices (into ``gt``'s sample order) of each block.
+    """
+    _check_bootstrap(n_boot, confidence)
+    if not preds_a or (preds_b is not None and len(preds_b) not in (1, len(preds_a))):
+        raise ValueError(f"seed_block_bootstrap: {len(preds_a)} prediction sets of a and "
+                         f"{len(preds_b or [])} of b; expected b to have as many as a, or one")
+    cfg = detection_config()
+    prep_a = [_prepare(gt, p, cfg) for p in preds_a]
+    prep_b = None if preds_b is None else [_prepare(gt, p, cfg) for p in preds_b]
+    columns = [("map", "nds", "map_present").index(m) for m in metrics]
+
+    def value(k: int, draws: NDArray[np.int64] | None) -> NDArray[np.float64]:
+        a = prep_a[k]
+        va = np.array(_summary(a, a.pred_order if draws is None else draws))
+        if prep_b is None:
+            return va
+        b = prep_b[k if len(prep_b) > 1 else 0]
+        return va - np.array(_summary(b, b.pred_order if draws is None else draws))
+
+    per_seed = np.array([value(k, None) for k in range(len(prep_a))])
+    rng = np.random.default_rng(seed)
+    reps = np.array([np.mean([value(k, draws) for k in rng.integers(0, len(prep_a), len(prep_a))], axis=0)
+                     for draws in _block_draws(blocks, n_boot, rng)])
+    return {m: SeedBlockEstimate(float(np.mean(per_seed[:, c])), [float(v) for v in per_seed[:, c]],
+                                 _percentile_interval(reps[:, c], confidence)) for m, c in zip(metrics, columns)}
+
+
 def resistance_ability(nds_weather: float, nds_clean: float) -> float:
     """MultiCorrupt's resistance ability ``RA = NDS_weather / NDS_clean`` (1: no loss under the weather).
 
@@ -769,4 +842,4 @@ def resistance_ability(nds_weather: float, nds_clean: float) -> float:
 
 __all__ = ["DEFAULT_BOOTSTRAP", "DetectionScores", "accumulate", "bootstrap_intervals", "detection_config",
            "ego_positions", "ground_truth", "paired_difference", "paired_differences", "predictions_to_eval_boxes",
-           "resample", "resistance_ability", "score"]
+           "resample", "resistance_ability", "scene_blocks", "score", "seed_block_bootstrap", "SeedBlockEstimate"]

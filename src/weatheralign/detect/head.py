@@ -75,6 +75,8 @@ class HeadOutputs:
     heatmap: Tensor
     regression: Tensor
     attributes: Tensor
+    #: (B, C, D, h, w) the camera branch's depth distributions (None when it did not run), for `depth_loss`
+    camera_depth: Tensor | None = None
 
 
 @dataclass
@@ -118,14 +120,21 @@ def conv_bn_relu(in_channels: int, out_channels: int, stride: int = 1, kernel_si
                          nn.BatchNorm2d(out_channels), nn.ReLU(inplace=True))
 
 
+def conv_gn_relu(in_channels: int, out_channels: int, stride: int = 1, groups: int = 8) -> nn.Sequential:
+    """3x3 conv (no bias) + GroupNorm + ReLU: normalised per sample, so that a sample whose camera or LiDAR branch
+    is zero is normalised the same way in training (mixed batches) and in a single-modality evaluation."""
+    return nn.Sequential(nn.Conv2d(in_channels, out_channels, 3, stride, 1, bias=False),
+                         nn.GroupNorm(groups, out_channels), nn.ReLU(inplace=True))
+
+
 class CenterHead(nn.Module):
-    """CenterPoint's head, slim: a shared 3x3 conv-BN-ReLU, then a final 3x3 conv to the K heatmap logits (bias
+    """CenterPoint's head, slim: a shared 3x3 conv-GroupNorm-ReLU, then a final 3x3 conv to the K heatmap logits (bias
     -2.19) and one to the 10 regression channels + 8 attribute logits. (B, in_channels, H, W) -> `HeadOutputs` at
     (H, W)."""
 
     def __init__(self, in_channels: int, channels: int = 64) -> None:
         super().__init__()
-        self.shared = conv_bn_relu(in_channels, channels)
+        self.shared = conv_gn_relu(in_channels, channels)
         self.heatmap = nn.Conv2d(channels, NUM_CLASSES, 3, padding=1)
         self.box = nn.Conv2d(channels, len(REGRESSION_CHANNELS) + NUM_ATTRIBUTES, 3, padding=1)
         nn.init.constant_(self.heatmap.bias, HEATMAP_BIAS_INIT)

@@ -6,24 +6,27 @@ Structure (every step runs on whatever device the model and batch are on; no cus
    [-51.2, 51.2) m, 0.8 m cells -> 128 x 128): per point x, y, z, intensity, time lag, offsets to the pillar's mean
    and to the pillar's centre -> Linear + BN + ReLU -> max per pillar (``scatter_reduce(amax)``) -> two conv blocks,
    the first at stride 2 -> (B, bev_channels, 64, 64).
-2. Camera branch (`CameraBranch`, BEVFusion's ``DepthLSSTransform``): a small CNN at stride 8 on all C cameras
-   (ImageNet normalisation inside); a depth hint from the batch's LiDAR points projected into each camera (per
-   feature cell the histogram of point depths over the depth bins + an occupancy channel), encoded by a conv and fed
-   with the image features to the depth net -> per cell a softmax over D depth bins and context features; frustum
-   points (u, v, d) unprojected into the LiDAR frame; depth prob x context sum-pooled into the BEV grid with
-   ``index_add_`` (points outside the grid or the z range dropped); a stride-2 conv block -> (B, bev_channels, 64, 64).
-3. `ConvFuser`: concat(camera BEV, LiDAR BEV) -> 3x3 conv + BN + ReLU. ``modality`` ("fused" | "lidar" | "camera")
-   zeroes the other branch (camera-only also drops the LiDAR depth hint); in training, ``modality_dropout`` zeroes
-   one branch of a sample with that probability.
+2. Camera branch (`CameraBranch`, BEVFusion's ``DepthLSSTransform`` with BEVDepth's depth supervision): frozen
+   ImageNet features of each camera (`weatheralign.detect.image_features`, cached with the data) at strides 8 and 16
+   -> a trained FPN neck at stride 8; a depth hint from the batch's LiDAR points projected into each camera (per
+   feature cell the histogram of point depths over the depth bins + an occupancy channel, zero without LiDAR),
+   encoded by a conv and fed with the image features to the depth net -> per cell a softmax over D depth bins and
+   context features; the depth distributions are supervised by the nearest keyframe LiDAR point of each cell
+   (`depth_loss`), so the camera estimates depth on its own when the hint is absent; frustum points (u, v, d)
+   unprojected into the LiDAR frame; depth prob x context sum-pooled into the BEV grid with ``index_add_`` (points
+   outside the grid or the z range dropped); a stride-2 conv block -> (B, bev_channels, 64, 64).
+3. `ConvFuser`: concat(camera BEV, LiDAR BEV) -> 3x3 conv + GroupNorm + ReLU. ``modality`` ("fused" | "lidar" |
+   "camera") zeroes the other branch (camera-only also drops the LiDAR depth hint); in training,
+   ``modality_dropout`` zeroes one branch of a sample with that probability. From here on the normalisation is per
+   sample (GroupNorm), so a camera-only or LiDAR-only sample is normalised alike in mixed training batches and in a
+   single-modality evaluation.
 4. `BevEncoder`: two scales (stride 2 and 4 of the BEV grid), each brought to the head's stride and concatenated.
 5. `CenterHead` (`weatheralign.detect.head`): CenterPoint heatmap + box regression + attribute logits at stride
    ``head_stride`` of the BEV grid (default 2: 1.6 m cells, 64 x 64).
 
-Cost (default config, 0.61 M parameters; batch 2, 6 cameras of 96 x 176, 70k points, torch.set_num_threads(2) on
-two idle cores of an AMD EPYC): ~0.20 s per training step (wall; 0.39 s CPU): forward 0.08 s (LiDAR 0.02, camera
-0.03, fuser + encoder + head 0.025), backward 0.12 s; ``detect`` ~0.065 s. ``head_stride=1`` (0.8 m head cells):
-~0.27 s; ``bev_channels=80``: ~0.24 s. When the cores are shared with other busy processes, two OpenMP threads stall
-each other (seconds per step); one thread then runs a step in ~0.35 s.
+The training augmentation maps points, boxes and ``cam_to_lidar`` by one similarity (a scaled rotation and flips):
+``cam_to_lidar`` is then not rigid, and the LiDAR -> camera map is its full inverse (`lidar_to_camera`), so a point
+keeps its camera depth. Speeds are measured by ``benchmarks/bench_detect.py`` (``reports/benchmarks/detect.json``).
 
 Depths of the camera branch are camera z [m] (not ray lengths); depth bin i covers
 ``[depth_min + i * step, depth_min + (i + 1) * step)`` and its frustum points lie at the bin's centre. Image pixel
@@ -41,14 +44,13 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from weatheralign.detect.head import (BevGrid, CenterHead, HeadOutputs, LossWeights, center_head_loss, conv_bn_relu,
-                                      decode_detections, encode_targets)
+                                      conv_gn_relu, decode_detections, encode_targets)
+from weatheralign.detect.image_features import STRIDE8_CHANNELS, STRIDE16_CHANNELS
 from weatheralign.detect.types import DetectionBatch, SampleDetections
 
 Modality = Literal["fused", "lidar", "camera"]
 MODALITIES: tuple[str, ...] = ("fused", "lidar", "camera")
 IMAGE_STRIDE = 8
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
 PILLAR_POINT_FEATURES = 10  # x, y, z, intensity, time lag, 3 offsets to the pillar mean, 2 offsets to its centre
 
 
@@ -70,7 +72,9 @@ class DetectorConfig:
     head_stride: int = 2
     head_channels: int = 64
     #: training only: probability that a sample loses one branch (camera or LiDAR, equally likely)
-    modality_dropout: float = 0.2
+    modality_dropout: float = 0.4
+    #: weight of the camera depth loss (BEVDepth's LiDAR-supervised depth bins) in the total loss
+    depth_loss_weight: float = 1.0
     min_radius: int = 2
     gaussian_overlap: float = 0.1
     loss_weights: LossWeights = field(default_factory=LossWeights)
@@ -150,9 +154,11 @@ def bev_max_pool(features: Tensor, flat_cells: Tensor, batch_size: int, grid: Be
 
 
 def lidar_to_camera(cam_to_lidar: Tensor) -> Tensor:
-    """(..., 4, 4) rigid camera -> LiDAR transforms -> (..., 3, 4) ``[R^T | -R^T t]`` (LiDAR -> camera)."""
-    rotation_t = cam_to_lidar[..., :3, :3].transpose(-1, -2)
-    return torch.cat([rotation_t, -rotation_t @ cam_to_lidar[..., :3, 3:4]], dim=-1)
+    """(..., 4, 4) camera -> LiDAR transforms -> (..., 3, 4) the top rows of their inverses (LiDAR -> camera).
+
+    The transforms need not be rigid: the training augmentation left-multiplies a scaled rotation (and a flip), and
+    the inverse undoes exactly that, so a point keeps its camera depth whatever the augmentation's scale."""
+    return torch.linalg.inv(cam_to_lidar.double())[..., :3, :].to(cam_to_lidar.dtype)
 
 
 def project_points(xyz: Tensor, intrinsics: Tensor, cam_to_lidar: Tensor) -> Tensor:
@@ -163,35 +169,77 @@ def project_points(xyz: Tensor, intrinsics: Tensor, cam_to_lidar: Tensor) -> Ten
     return (homogeneous @ projection.reshape(-1, 4).T).view(len(xyz), len(intrinsics), 3)
 
 
+def project_into_cells(points: Tensor, intrinsics: Tensor, cam_to_lidar: Tensor, image_hw: tuple[int, int],
+                       feature_hw: tuple[int, int], depth: DepthBins) -> tuple[Tensor, Tensor]:
+    """Where points (P, 6) as in `DetectionBatch` fall in the image-feature cells of their own sample's C cameras:
+    (flat cell indices ``((b * C + c) * h + row) * w + col`` (Q,) int64, camera depths z (Q,) [m]) of the (point,
+    camera) pairs inside the image and the depth range (a point lies in front of one or two of six cameras). The image
+    is ``image_hw`` pixels, the feature map ``feature_hw`` cells of `IMAGE_STRIDE` pixels."""
+    cameras = intrinsics.shape[1]
+    (height, width), (h, w) = image_hw, feature_hw
+    batch_index = points[:, 0].long()
+    flats, depths = [], []
+    for sample in range(intrinsics.shape[0]):
+        rows = torch.nonzero(batch_index == sample).squeeze(1)
+        projected = project_points(points[rows, 1:4].float(), intrinsics[sample], cam_to_lidar[sample])
+        z = projected[..., 2]
+        point, camera = torch.nonzero((z >= depth.min_m) & (z < depth.max_m), as_tuple=True)
+        projected = projected[point, camera]
+        z = projected[:, 2]
+        u, v = projected[:, 0] / z, projected[:, 1] / z
+        valid = (u >= -0.5) & (u < width - 0.5) & (v >= -0.5) & (v < height - 0.5)
+        u, v, z, camera = u[valid], v[valid], z[valid], camera[valid]
+        col = torch.floor((u + 0.5) / IMAGE_STRIDE).long().clamp(0, w - 1)
+        row = torch.floor((v + 0.5) / IMAGE_STRIDE).long().clamp(0, h - 1)
+        flats.append(((sample * cameras + camera) * h + row) * w + col)
+        depths.append(z)
+    if not flats:
+        return torch.zeros(0, dtype=torch.long, device=points.device), torch.zeros(0, device=points.device)
+    return torch.cat(flats), torch.cat(depths)
+
+
 def project_depth_hint(points: Tensor, intrinsics: Tensor, cam_to_lidar: Tensor, image_hw: tuple[int, int],
                        feature_hw: tuple[int, int], depth: DepthBins) -> Tensor:
     """The projected-LiDAR depth hint at the image-feature resolution: (B, C, D + 1, h, w) with channel i < D the
     fraction of the points falling into feature cell (row, col) whose camera depth lies in bin i, channel D 1 where
-    the cell has any point. ``points`` (P, 6) as in `DetectionBatch`; the image is ``image_hw`` pixels, the feature map
-    ``feature_hw`` cells of `IMAGE_STRIDE` pixels. Each sample's points are projected into its own cameras only, and
-    only the (point, camera) pairs in the depth range go on (a point lies in front of one or two of six cameras)."""
+    the cell has any point (`project_into_cells`)."""
     batch_size, cameras = intrinsics.shape[:2]
-    (height, width), (h, w), bins = image_hw, feature_hw, depth.count
+    (h, w), bins = feature_hw, depth.count
     with torch.no_grad():
-        batch_index = points[:, 0].long()
+        flat, z = project_into_cells(points, intrinsics, cam_to_lidar, image_hw, feature_hw, depth)
+        cell, pixel = flat // (h * w), flat % (h * w)
         counts = torch.zeros(batch_size * cameras * bins * h * w, device=points.device)
-        for sample in range(batch_size):
-            rows = torch.nonzero(batch_index == sample).squeeze(1)
-            projected = project_points(points[rows, 1:4].float(), intrinsics[sample], cam_to_lidar[sample])
-            z = projected[..., 2]
-            point, camera = torch.nonzero((z >= depth.min_m) & (z < depth.max_m), as_tuple=True)
-            projected = projected[point, camera]
-            z = projected[:, 2]
-            u, v = projected[:, 0] / z, projected[:, 1] / z
-            valid = (u >= -0.5) & (u < width - 0.5) & (v >= -0.5) & (v < height - 0.5)
-            u, v, z, camera = u[valid], v[valid], z[valid], camera[valid]
-            col = torch.floor((u + 0.5) / IMAGE_STRIDE).long().clamp(0, w - 1)
-            row = torch.floor((v + 0.5) / IMAGE_STRIDE).long().clamp(0, h - 1)
-            flat = (((sample * cameras + camera) * bins + depth.index_of(z)) * h + row) * w + col
-            counts.index_add_(0, flat, torch.ones_like(z))
+        counts.index_add_(0, (cell * bins + depth.index_of(z)) * (h * w) + pixel, torch.ones_like(z))
         counts = counts.view(batch_size, cameras, bins, h, w)
         total = counts.sum(dim=2, keepdim=True)
         return torch.cat([counts / total.clamp_min(1.0), (total > 0).float()], dim=2)
+
+
+def depth_targets(points: Tensor, intrinsics: Tensor, cam_to_lidar: Tensor, image_hw: tuple[int, int],
+                  feature_hw: tuple[int, int], depth: DepthBins) -> Tensor:
+    """BEVDepth's depth supervision: per image-feature cell the depth bin of the nearest keyframe point (time lag
+    0) projected into it, -1 where none: (B, C, h, w) int64. Earlier sweeps are left out: moving objects smear."""
+    batch_size, cameras = intrinsics.shape[:2]
+    h, w = feature_hw
+    with torch.no_grad():
+        keyframe = points[points[:, 5] == 0]
+        flat, z = project_into_cells(keyframe, intrinsics, cam_to_lidar, image_hw, feature_hw, depth)
+        nearest = torch.full((batch_size * cameras * h * w,), float("inf"), device=points.device)
+        nearest = nearest.scatter_reduce(0, flat, z, reduce="amin", include_self=True)
+        target = torch.full(nearest.shape, -1, dtype=torch.long, device=points.device)
+        found = torch.isfinite(nearest)
+        target[found] = depth.index_of(nearest[found])
+        return target.view(batch_size, cameras, h, w)
+
+
+def depth_loss(depth_prob: Tensor, target: Tensor) -> Tensor:
+    """Mean negative log-likelihood of the target bins (B, C, h, w) (-1: no target) under the depth distributions
+    (B, C, D, h, w); 0 when no cell has a target."""
+    valid = target >= 0
+    if not bool(valid.any()):
+        return depth_prob.sum() * 0.0
+    picked = depth_prob.gather(2, target.clamp_min(0).unsqueeze(2)).squeeze(2)
+    return -(picked[valid].clamp_min(1e-6).log()).mean()
 
 
 def frustum_points(intrinsics: Tensor, cam_to_lidar: Tensor, feature_hw: tuple[int, int], depth_centres: Tensor
@@ -277,42 +325,47 @@ class LidarBranch(nn.Module):
         return self.convs(self.pillars(points, batch_size))
 
 
-class ImageBackbone(nn.Module):
-    """(N, 3, H, W) RGB in [0, 1] -> (N, channels, ceil(H/8), ceil(W/8)): ImageNet normalisation, five conv-BN-ReLU
-    blocks (three at stride 2)."""
+class CameraNeck(nn.Module):
+    """The frozen trunk's two levels -> (N, channels, H/8, W/8), an FPN level: 1x1 conv-BN-ReLU laterals, the
+    stride-16 level upsampled (bilinear) onto the stride-8 one and added, a 3x3 conv-BN-ReLU."""
 
-    def __init__(self, channels: int = 64) -> None:
+    def __init__(self, channels: int) -> None:
         super().__init__()
-        self.register_buffer("mean", torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
-        self.layers = nn.Sequential(conv_bn_relu(3, 16, stride=2), conv_bn_relu(16, 32, stride=2),
-                                    conv_bn_relu(32, 32), conv_bn_relu(32, channels, stride=2),
-                                    conv_bn_relu(channels, channels))
+        self.lateral8 = conv_bn_relu(STRIDE8_CHANNELS, channels, kernel_size=1)
+        self.lateral16 = conv_bn_relu(STRIDE16_CHANNELS, channels, kernel_size=1)
+        self.out = conv_bn_relu(channels, channels)
 
-    def forward(self, images: Tensor) -> Tensor:
-        return self.layers((images - self.mean) / self.std)
+    def forward(self, stride8: Tensor, stride16: Tensor) -> Tensor:
+        up = F.interpolate(self.lateral16(stride16), size=stride8.shape[-2:], mode="bilinear", align_corners=False)
+        return self.out(self.lateral8(stride8) + up)
 
 
 class CameraBranch(nn.Module):
-    """BEVFusion's ``DepthLSSTransform``, small: images (B, C, 3, H, W) + LiDAR depth hint -> camera BEV
-    (B, bev_channels, ceil(H_bev/2), ceil(W_bev/2))."""
+    """BEVFusion's ``DepthLSSTransform``, small, on frozen ImageNet features: trunk features (B, C, F, h, w) at
+    strides 8 and 16 + the LiDAR depth hint -> camera BEV (B, bev_channels, ceil(H_bev/2), ceil(W_bev/2)) and the
+    per-cell depth distributions (B, C, D, h, w) that `depth_loss` supervises (BEVDepth).
+
+    The depth net sees the image and the hint; the hint is zero for a sample without LiDAR (camera-only), so the
+    hint encoder has no normalisation (its output for "no hint" is a constant) and the depth net a GroupNorm."""
 
     def __init__(self, config: DetectorConfig) -> None:
         super().__init__()
         self.grid, self.z_range_m, self.depth = config.bev_grid, config.z_range_m, config.depth
         self.context_channels = config.camera_context_channels
-        self.backbone = ImageBackbone(config.image_channels)
-        self.hint_encoder = conv_bn_relu(config.depth_bins + 1, config.hint_channels)
-        self.depth_net = nn.Sequential(conv_bn_relu(config.image_channels + config.hint_channels,
+        self.neck = CameraNeck(config.image_channels)
+        self.hint_encoder = nn.Sequential(nn.Conv2d(config.depth_bins + 1, config.hint_channels, 3, padding=1),
+                                          nn.ReLU(inplace=True))
+        self.depth_net = nn.Sequential(conv_gn_relu(config.image_channels + config.hint_channels,
                                                     config.image_channels),
+                                       conv_gn_relu(config.image_channels, config.image_channels),
                                        nn.Conv2d(config.image_channels, config.depth_bins + self.context_channels, 1))
         self.downsample = conv_bn_relu(self.context_channels, config.bev_channels, stride=2)
 
-    def depth_and_context(self, images: Tensor, hint: Tensor) -> tuple[Tensor, Tensor]:
-        """images (B, C, 3, H, W), hint (B, C, D + 1, h, w) -> depth probabilities (B, C, D, h, w) and context
-        (B, C, F, h, w)."""
-        batch_size, cameras = images.shape[:2]
-        features = self.backbone(images.flatten(0, 1))
+    def depth_and_context(self, stride8: Tensor, stride16: Tensor, hint: Tensor) -> tuple[Tensor, Tensor]:
+        """trunk features (B, C, 40, h, w), (B, C, 112, h/2, w/2), hint (B, C, D + 1, h, w) -> depth
+        probabilities (B, C, D, h, w) and context (B, C, F, h, w)."""
+        batch_size, cameras = stride8.shape[:2]
+        features = self.neck(stride8.flatten(0, 1), stride16.flatten(0, 1))
         hint_features = self.hint_encoder(hint.flatten(0, 1))
         out = self.depth_net(torch.cat([features, hint_features], dim=1))
         bins = self.depth.count
@@ -321,39 +374,44 @@ class CameraBranch(nn.Module):
         return (depth_prob.view(batch_size, cameras, bins, *out.shape[2:]),
                 context.reshape(batch_size, cameras, self.context_channels, *out.shape[2:]))
 
-    def forward(self, images: Tensor, intrinsics: Tensor, cam_to_lidar: Tensor, hint_points: Tensor) -> Tensor:
-        """``hint_points`` (P, 6): the points allowed into the depth hint (none for camera-only samples)."""
-        image_hw = (images.shape[-2], images.shape[-1])
-        feature_hw = (-(-image_hw[0] // IMAGE_STRIDE), -(-image_hw[1] // IMAGE_STRIDE))
-        hint = project_depth_hint(hint_points, intrinsics, cam_to_lidar, image_hw, feature_hw, self.depth)
-        depth_prob, context = self.depth_and_context(images, hint)
+    def forward(self, batch: DetectionBatch, hint_points: Tensor) -> tuple[Tensor, Tensor]:
+        """``hint_points`` (P, 6): the points allowed into the depth hint (none for camera-only samples).
+        Returns the camera BEV and the depth probabilities."""
+        image_hw = (batch.images.shape[-2], batch.images.shape[-1])
+        feature_hw = tuple(batch.features_s8.shape[-2:])
+        hint = project_depth_hint(hint_points, batch.intrinsics, batch.cam_to_lidar, image_hw, feature_hw,
+                                  self.depth)
+        depth_prob, context = self.depth_and_context(batch.features_s8, batch.features_s16, hint)
         with torch.no_grad():
-            geometry = frustum_points(intrinsics, cam_to_lidar, feature_hw, self.depth.centres(images.device))
+            geometry = frustum_points(batch.intrinsics, batch.cam_to_lidar, feature_hw,
+                                      self.depth.centres(batch.features_s8.device))
         bev = lift_splat(depth_prob, context, geometry, self.grid, self.z_range_m)
-        return self.downsample(bev)
+        return self.downsample(bev), depth_prob
 
 
 class ConvFuser(nn.Module):
-    """BEVFusion's ConvFuser: concat(camera BEV, LiDAR BEV) on channels -> 3x3 conv + BN + ReLU."""
+    """BEVFusion's ConvFuser: concat(camera BEV, LiDAR BEV) on channels -> 3x3 conv + GroupNorm + ReLU (per-sample
+    normalisation: a dropped branch is zero, see `conv_gn_relu`)."""
 
     def __init__(self, camera_channels: int, lidar_channels: int, out_channels: int) -> None:
         super().__init__()
-        self.fuse = conv_bn_relu(camera_channels + lidar_channels, out_channels)
+        self.fuse = conv_gn_relu(camera_channels + lidar_channels, out_channels)
 
     def forward(self, camera_bev: Tensor, lidar_bev: Tensor) -> Tensor:
         return self.fuse(torch.cat([camera_bev, lidar_bev], dim=1))
 
 
 class BevEncoder(nn.Module):
-    """Two-scale BEV encoder + FPN (SECOND / SECONDFPN-like): (B, C, h, w) at stride 2 of the BEV grid -> a block at
+    """Two-scale BEV encoder + FPN (SECOND / SECONDFPN-like, GroupNorm: see `conv_gn_relu`): (B, C, h, w) at stride 2
+    of the BEV grid -> a block at
     stride 2 (C channels) and a block at stride 4 (2 C), each brought to ``head_stride`` with C / 2 channels
     (transposed conv, or 1x1 conv at scale 1), concatenated -> (B, C, H / head_stride, W / head_stride)."""
 
     def __init__(self, channels: int, head_stride: int) -> None:
         super().__init__()
-        self.block1 = conv_bn_relu(channels, channels)
-        self.block2 = nn.Sequential(conv_bn_relu(channels, 2 * channels, stride=2),
-                                    conv_bn_relu(2 * channels, 2 * channels))
+        self.block1 = conv_gn_relu(channels, channels)
+        self.block2 = nn.Sequential(conv_gn_relu(channels, 2 * channels, stride=2),
+                                    conv_gn_relu(2 * channels, 2 * channels))
         self.up1 = self._upsample(channels, channels // 2, 2 // head_stride)
         self.up2 = self._upsample(2 * channels, channels - channels // 2, 4 // head_stride)
 
@@ -361,7 +419,7 @@ class BevEncoder(nn.Module):
     def _upsample(in_channels: int, out_channels: int, scale: int) -> nn.Sequential:
         conv = (nn.ConvTranspose2d(in_channels, out_channels, scale, stride=scale, bias=False) if scale > 1
                 else nn.Conv2d(in_channels, out_channels, 1, bias=False))
-        return nn.Sequential(conv, nn.BatchNorm2d(out_channels), nn.ReLU(inplace=True))
+        return nn.Sequential(conv, nn.GroupNorm(8, out_channels), nn.ReLU(inplace=True))
 
     def forward(self, bev: Tensor) -> Tensor:
         x1 = self.block1(bev)
@@ -407,32 +465,45 @@ class BEVFusionDetector(nn.Module):
     def head_grid(self) -> BevGrid:
         return self.config.head_grid
 
-    def fused_bev(self, batch: DetectionBatch, modality: Modality = "fused") -> Tensor:
-        """The fused BEV features (B, bev_channels, ceil(H/2), ceil(W/2)); the branch a sample does not use is zero
-        (and not computed at all for "lidar" / "camera")."""
+    def fused_bev(self, batch: DetectionBatch, modality: Modality = "fused") -> tuple[Tensor, Tensor | None]:
+        """The fused BEV features (B, bev_channels, ceil(H/2), ceil(W/2)) and the camera's depth distributions
+        (B, C, D, h, w) (None for "lidar"); the branch a sample does not use is zero (and not computed at all for
+        "lidar" / "camera")."""
         batch_size, device = batch.batch_size, batch.images.device
         use_lidar, use_camera = modality_masks(modality, batch_size, self.config.modality_dropout, self.training,
                                                device)
         half = (self.config.bev_grid.size + 1) // 2
         zeros = torch.zeros(batch_size, self.config.bev_channels, half, half, device=device)
         lidar_bev = zeros if modality == "camera" else self.lidar(batch.points, batch_size)
+        depth_prob = None
         if modality == "lidar":
             camera_bev = zeros
         else:
             hint_points = batch.points[use_lidar[batch.points[:, 0].long()]]
-            camera_bev = self.camera(batch.images.float(), batch.intrinsics, batch.cam_to_lidar, hint_points)
+            camera_bev, depth_prob = self.camera(batch, hint_points)
         lidar_bev = lidar_bev * use_lidar.view(-1, 1, 1, 1).to(lidar_bev.dtype)
         camera_bev = camera_bev * use_camera.view(-1, 1, 1, 1).to(camera_bev.dtype)
-        return self.fuser(camera_bev, lidar_bev)
+        return self.fuser(camera_bev, lidar_bev), depth_prob
 
     def forward(self, batch: DetectionBatch, modality: Modality = "fused") -> HeadOutputs:
-        return self.head(self.encoder(self.fused_bev(batch, modality)))
+        bev, depth_prob = self.fused_bev(batch, modality)
+        outputs = self.head(self.encoder(bev))
+        outputs.camera_depth = depth_prob
+        return outputs
 
     def loss(self, batch: DetectionBatch, outputs: HeadOutputs) -> dict[str, Tensor]:
-        """Named losses of ``outputs`` against the batch's boxes (`center_head_loss`), ``total`` included."""
+        """Named losses of ``outputs`` against the batch's boxes (`center_head_loss`) and, when the camera branch
+        ran, ``depth`` (`depth_loss` against the batch's keyframe points, weighted by ``depth_loss_weight``);
+        ``total`` included."""
         targets = encode_targets(batch.boxes, batch.labels, batch.attributes, self.head_grid, self.config.min_radius,
                                  self.config.gaussian_overlap)
-        return center_head_loss(outputs, targets, self.config.loss_weights)
+        losses = center_head_loss(outputs, targets, self.config.loss_weights)
+        if outputs.camera_depth is not None:
+            target = depth_targets(batch.points, batch.intrinsics, batch.cam_to_lidar, tuple(batch.images.shape[-2:]),
+                                   tuple(batch.features_s8.shape[-2:]), self.config.depth)
+            losses["depth"] = depth_loss(outputs.camera_depth, target)
+            losses["total"] = losses["total"] + self.config.depth_loss_weight * losses["depth"]
+        return losses
 
     @torch.no_grad()
     def detect(self, batch: DetectionBatch, score_threshold: float = 0.1, max_per_sample: int = 300,
@@ -473,7 +544,7 @@ def train_step(model: BEVFusionDetector, batch: DetectionBatch, optimizer: torch
     return {**{name: float(value.detach()) for name, value in losses.items()}, "grad_norm": float(grad_norm)}
 
 
-__all__ = ["BEVFusionDetector", "BevEncoder", "CameraBranch", "ConvFuser", "DepthBins", "DetectorConfig",
-           "IMAGE_STRIDE", "ImageBackbone", "LidarBranch", "MODALITIES", "Modality", "PillarEncoder",
+__all__ = ["BEVFusionDetector", "BevEncoder", "CameraBranch", "CameraNeck", "ConvFuser", "DepthBins", "DetectorConfig",
+           "IMAGE_STRIDE", "LidarBranch", "depth_loss", "depth_targets", "project_into_cells", "MODALITIES", "Modality", "PillarEncoder",
            "bev_cell_indices", "bev_max_pool", "bev_sum_pool", "count_parameters", "frustum_points",
            "lift_splat", "modality_masks", "project_depth_hint", "project_points", "train_step"]

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 from nuscenes.eval.common.data_classes import EvalBoxes
+from torch import nn
 from torch.utils.data import DataLoader, Dataset, Sampler
 from tqdm import tqdm
 
@@ -50,7 +51,7 @@ PAPER_WEATHER_OF: dict[str, str] = {"snow": "snow", "rain": "rain", "fog_dense":
 def detector_config(cfg: DetectConfig) -> DetectorConfig:
     """The detector's sizes from the stage's params (grid, modality dropout); the rest are `DetectorConfig`'s."""
     return DetectorConfig(bev_range_m=cfg.bev_range_m, bev_cell_m=cfg.bev_cell_m,
-                          modality_dropout=cfg.modality_dropout)
+                          modality_dropout=cfg.modality_dropout, depth_loss_weight=cfg.depth_loss_weight)
 
 
 def point_range(cfg: DetectConfig) -> tuple[float, ...]:
@@ -75,49 +76,107 @@ def resolve_device(name: str) -> torch.device:
 # ------------------------------------------------------------------------------------------------------ training
 
 
-def _epochs(dataset: Dataset, batch_size: int, seed: int, sampler: Sampler | None) -> Iterator[Any]:
-    """Batches of ``dataset`` epoch after epoch: shuffled with a seeded generator (or drawn by ``sampler``), the
-    augmentation draws of each epoch selected with ``set_epoch``."""
+def epoch_batches(n_samples: int, batch_size: int, seed: int, epoch: int, sampler: Sampler | None
+                  ) -> list[list[int]]:
+    """The sample indices of each full batch of ``epoch``: a seeded shuffle of ``range(n_samples)`` (or the draws of
+    ``sampler`` after its ``set_epoch``), cut into batches of ``batch_size`` (the last partial batch dropped)."""
+    if sampler is not None:
+        if hasattr(sampler, "set_epoch"):
+            sampler.set_epoch(epoch)
+        order = list(iter(sampler))
+    else:
+        order = torch.randperm(n_samples, generator=torch.Generator().manual_seed(seed * 100_003 + epoch)).tolist()
+    return [order[i:i + batch_size] for i in range(0, len(order) - batch_size + 1, batch_size)]
+
+
+def _batches(dataset: Dataset, batch_size: int, seed: int, sampler: Sampler | None, skip: int = 0
+             ) -> Iterator[Any]:
+    """Batches of ``dataset`` epoch after epoch (`epoch_batches`; the augmentation draws of each epoch selected with
+    ``set_epoch``), the first ``skip`` batches passed over without loading them (a resumed training)."""
     epoch = 0
     while True:
-        for obj in (dataset, sampler):
-            if hasattr(obj, "set_epoch"):
-                obj.set_epoch(epoch)
-        generator = torch.Generator().manual_seed(seed * 100_003 + epoch)
-        loader = DataLoader(dataset, batch_size=batch_size, shuffle=sampler is None, sampler=sampler,
-                            generator=generator if sampler is None else None, collate_fn=collate, drop_last=True)
-        empty = True
-        for batch in loader:
-            empty = False
-            yield batch
-        if empty:
+        batches = epoch_batches(len(dataset), batch_size, seed, epoch, sampler)
+        if not batches:
             raise ValueError(f"no full batch of {batch_size} in a dataset of {len(dataset)} samples")
+        if skip >= len(batches):
+            skip -= len(batches)
+            epoch += 1
+            continue
+        if hasattr(dataset, "set_epoch"):
+            dataset.set_epoch(epoch)
+        yield from DataLoader(dataset, batch_sampler=batches[skip:], collate_fn=collate)
+        skip = 0
         epoch += 1
+
+
+@dataclass(frozen=True)
+class Resume:
+    """Where a training keeps its state every ``every`` steps (model, optimiser, schedule, random generator, losses;
+    written atomically, tensors and plain data only) and the ``key`` that state must carry to be resumed (the
+    model's fingerprint): a training stopped midway continues from its last saved step with the same result."""
+
+    path: Path
+    key: str
+    every: int = 100
+
+
+def _save_state(resume: Resume, step: int, model: nn.Module, optimizer: torch.optim.Optimizer,
+                scheduler: torch.optim.lr_scheduler.LRScheduler, history: list[dict[str, float]]) -> None:
+    buf = io.BytesIO()
+    torch.save({"key": resume.key, "step": step, "model": {k: v.detach().cpu() for k, v in model.state_dict().items()},
+                "optimizer": optimizer.state_dict(), "scheduler": scheduler.state_dict(),
+                "rng": torch.get_rng_state(), "history": history}, buf)
+    atomic.write_bytes(resume.path, buf.getvalue())
+
+
+def _load_state(resume: Resume | None) -> dict[str, Any] | None:
+    """The saved state of ``resume`` when it exists and carries its key (tensors and plain data only)."""
+    if resume is None or not resume.path.is_file():
+        return None
+    state = torch.load(resume.path, map_location="cpu", weights_only=True)
+    return state if state.get("key") == resume.key else None
 
 
 def train(model: BEVFusionDetector, dataset: Dataset, steps: int, lr: float, weight_decay: float, batch_size: int,
           seed: int, device: torch.device, sampler: Sampler | None = None, desc: str = "train",
-          show_progress: bool = True, on_step: Callable[[int, dict[str, float]], None] | None = None
-          ) -> list[dict[str, float]]:
+          show_progress: bool = True, on_step: Callable[[int, dict[str, float]], dict[str, float] | None] | None = None,
+          resume: Resume | None = None) -> list[dict[str, float]]:
     """``steps`` steps of AdamW with a one-cycle LR (peak ``lr``, 30 % warm-up) on ``dataset`` (or the draws of
     ``sampler``), with a progress bar. Deterministic for a seed on the CPU. Returns each step's losses;
     ``on_step(step, record)`` after each step (1-based), under a fork of the random generators: what it draws (a
-    data loader's base seed, say) leaves the training unchanged, so a learning curve does not change the model."""
+    data loader's base seed, say) leaves the training unchanged, so a learning curve does not change the model; what
+    it returns is added to the step's record. With ``resume``, the state is saved every ``resume.every`` steps and a
+    saved state with the same key is continued (same final weights as an uninterrupted run on the CPU); the state
+    file is removed at the end."""
     torch.manual_seed(seed)
     model.to(device)
     optimizer = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=weight_decay)
     scheduler = torch.optim.lr_scheduler.OneCycleLR(optimizer, max_lr=lr, total_steps=max(steps, 2), pct_start=0.3)
     history: list[dict[str, float]] = []
-    batches = _epochs(dataset, batch_size, seed, sampler)
-    with tqdm(total=steps, desc=desc, disable=not show_progress, unit="step") as bar:
-        for step in range(1, steps + 1):
+    state = _load_state(resume)
+    if state is not None:
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        scheduler.load_state_dict(state["scheduler"])
+        torch.set_rng_state(state["rng"])
+        history = list(state["history"])
+    done = len(history)
+    batches = _batches(dataset, batch_size, seed, sampler, skip=done)
+    with tqdm(total=steps, initial=done, desc=desc, disable=not show_progress, unit="step") as bar:
+        for step in range(done + 1, steps + 1):
             record = train_step(model, next(batches).to(device), optimizer, scheduler)
-            history.append(record)
             bar.update()
             bar.set_postfix(loss=f"{record['total']:.3f}")
             if on_step is not None:  # an evaluation there must not shift the training's random draws
                 with torch.random.fork_rng(devices=[device] if device.type == "cuda" else []):
-                    on_step(step, record)
+                    extra = on_step(step, record)
+                if isinstance(extra, dict):
+                    record.update(extra)
+            history.append(record)
+            if resume is not None and step % resume.every == 0 and step < steps:
+                _save_state(resume, step, model, optimizer, scheduler, history)
+    if resume is not None:
+        resume.path.unlink(missing_ok=True)
     return history
 
 
@@ -130,7 +189,7 @@ def save_checkpoint(path: Path, model: BEVFusionDetector, meta: dict[str, Any]) 
 
 def load_checkpoint(path: Path, config: DetectorConfig) -> tuple[BEVFusionDetector, dict[str, Any]]:
     """A detector of ``config`` with the weights of ``path``, and the checkpoint's meta."""
-    blob = torch.load(path, map_location="cpu", weights_only=False)
+    blob = torch.load(path, map_location="cpu", weights_only=True)  # tensors and plain data only: never code
     model = BEVFusionDetector(config)
     model.load_state_dict(blob["state_dict"])
     return model, blob["meta"]
@@ -139,9 +198,11 @@ def load_checkpoint(path: Path, config: DetectorConfig) -> tuple[BEVFusionDetect
 @dataclass(frozen=True)
 class TrainJob:
     """One training run that a worker process can do on its own (everything in it pickles): ``steps`` steps at peak
-    ``lr`` from the checkpoint ``init`` (None: from scratch, seeded) on the train cache ``caches[0]``, or on the
-    weather cache ``caches[0]`` mixed with the clean cache ``caches[1]`` at ``cfg.mix_weather_fraction``; the result
-    is written to ``out`` with ``fingerprint`` in its meta."""
+    ``lr`` from the checkpoint ``init`` (None: from scratch, seeded by ``cfg.seed``) on the train cache ``caches[0]``,
+    or on the weather cache ``caches[0]`` mixed with the clean cache ``caches[1]`` at ``cfg.mix_weather_fraction``;
+    the result is written to ``out`` with ``fingerprint`` in its meta. With ``curve_set``, the val mAP / NDS every
+    ``curve_every`` steps (the learning curve). The training state is saved beside ``out`` every
+    ``resume_every`` steps and resumed after an interruption."""
 
     name: str
     caches: tuple[Path, ...]
@@ -153,6 +214,13 @@ class TrainJob:
     cfg: DetectConfig
     device: str = "cpu"
     threads: int = 1
+    curve_set: "EvalSet | None" = None
+    curve_every: int = 0
+    resume_every: int = 100
+
+    @property
+    def state_path(self) -> Path:
+        return self.out.with_name(self.out.stem + ".state.pt")
 
 
 def training_dataset(caches: Sequence[Path], cfg: DetectConfig) -> tuple[Dataset, Sampler | None]:
@@ -166,24 +234,41 @@ def training_dataset(caches: Sequence[Path], cfg: DetectConfig) -> tuple[Dataset
 
 def run_train_job(job: TrainJob, show_progress: bool = False) -> dict[str, Any]:
     """Do ``job`` (`TrainJob`) with ``job.threads`` torch threads; returns the checkpoint's meta (``fingerprint``,
-    ``losses`` per step, ``seconds``, ``steps``)."""
+    ``curve`` (step, map, nds, map_present, seconds), ``losses`` per step, ``seconds``, ``steps``, ``seed``)."""
     torch.set_num_threads(job.threads)
     config = detector_config(job.cfg)
+    device = resolve_device(job.device)
     torch.manual_seed(job.cfg.seed)  # the initial weights: a function of the seed alone
     model = load_checkpoint(job.init, config)[0] if job.init else BEVFusionDetector(config)
     dataset, sampler = training_dataset(job.caches, job.cfg)
     t0 = time.time()
+
+    def on_step(step: int, record: dict[str, float]) -> dict[str, float] | None:
+        if job.curve_set is None or not job.curve_every or not (step % job.curve_every == 0 or step == job.steps):
+            return None
+        detections = predict(model, job.curve_set.dataset, job.cfg.batch_size, device, job.cfg.score_threshold,
+                             job.cfg.max_detections)
+        m = evaluate(detections, job.curve_set, 0, 0, job.cfg.confidence)
+        return {"val.map": m["map"], "val.nds": m["nds"], "val.map_present": m["map_present"],
+                "val.seconds": time.time() - t0}
+
     history = train(model, dataset, job.steps, job.lr, job.cfg.weight_decay, job.cfg.batch_size, job.cfg.seed,
-                    resolve_device(job.device), sampler, f"detect: train {job.name}", show_progress)
-    meta = {"fingerprint": job.fingerprint, "curve": [], "losses": [round(h["total"], 5) for h in history],
-            "seconds": time.time() - t0, "steps": job.steps}
-    save_checkpoint(job.out, model, meta)
+                    device, sampler, f"detect: train {job.name}", show_progress, on_step,
+                    Resume(job.state_path, job.fingerprint, job.resume_every))
+    curve = [{"step": i, "map": h["val.map"], "nds": h["val.nds"], "map_present": h["val.map_present"],
+              "seconds": round(h["val.seconds"], 1)} for i, h in enumerate(history, start=1) if "val.map" in h]
+    meta = {"fingerprint": job.fingerprint, "curve": curve, "losses": [round(h["total"], 5) for h in history],
+            "depth_losses": [round(h.get("depth", float("nan")), 5) for h in history],
+            "seconds": time.time() - t0, "steps": job.steps, "seed": job.cfg.seed}
+    save_checkpoint(job.out, model.cpu(), meta)
     return meta
 
 
 @dataclass(frozen=True)
 class PredictJob:
-    """Detections of the model in ``checkpoint`` on the val cache ``cache`` with ``modality`` (pickles)."""
+    """Detections of the model in ``checkpoint`` on the val cache ``cache`` with ``modality`` (pickles); the camera
+    images and features from ``camera_cache`` (a weather copy's: clean LiDAR + weather cameras) and / or of the
+    samples ``image_source`` (the shuffled-image control) when given (see `DetectionDataset`)."""
 
     checkpoint: Path
     cache: Path
@@ -191,13 +276,16 @@ class PredictJob:
     cfg: DetectConfig
     device: str = "cpu"
     threads: int = 1
+    camera_cache: Path | None = None
+    image_source: tuple[int, ...] | None = None
 
 
 def run_predict_job(job: PredictJob) -> list[SampleDetections]:
     """Do ``job`` (`PredictJob`) with ``job.threads`` torch threads."""
     torch.set_num_threads(job.threads)
     model = load_checkpoint(job.checkpoint, detector_config(job.cfg))[0]
-    dataset = DetectionDataset(job.cache, None, point_range=point_range(job.cfg), min_lidar_pts=0)
+    dataset = DetectionDataset(job.cache, None, point_range=point_range(job.cfg), min_lidar_pts=0,
+                               camera_cache=job.camera_cache, image_source=job.image_source)
     return predict(model, dataset, job.cfg.batch_size, resolve_device(job.device), job.cfg.score_threshold,
                    job.cfg.max_detections, job.modality)
 
@@ -266,5 +354,5 @@ def detections_from_arrays(arrays: dict[str, np.ndarray]) -> list[SampleDetectio
 
 __all__ = ["EvalSet", "PAPER_TABLE2", "PAPER_TABLE3", "PAPER_WEATHER_OF", "PredictJob", "TrainJob",
            "detections_from_arrays", "detections_to_arrays", "detector_config", "eval_boxes", "evaluate",
-           "load_checkpoint", "point_range", "predict", "resolve_device", "run_predict_job", "run_train_job",
-           "save_checkpoint", "train", "training_dataset"]
+           "epoch_batches", "load_checkpoint", "point_range", "predict", "resolve_device", "Resume", "run_predict_job",
+           "run_train_job", "save_checkpoint", "train", "training_dataset"]

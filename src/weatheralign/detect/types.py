@@ -34,6 +34,8 @@ class DetectionBatch:
         points: (P, 6) float32 ``batch index, x, y, z, intensity / 255, time lag [s]`` of all samples' aggregated
             sweeps (ego-motion compensated into the keyframe LiDAR frame).
         images: (B, C, 3, H, W) float32 RGB in [0, 1] of the C cameras, resized (and cropped).
+        features_s8, features_s16: (B, C, 40, H/8, W/8) and (B, C, 112, H/16, W/16) float32 frozen image features
+            of ``images`` (`weatheralign.detect.image_features`), what the camera branch reads.
         intrinsics: (B, C, 3, 3) float32 pinhole matrices of ``images`` (after resize / crop) [px].
         cam_to_lidar: (B, C, 4, 4) float32 camera frame (at the camera's own timestamp) -> keyframe LiDAR frame.
         boxes: B tensors (M_b, 9) float32 ground-truth boxes (see the module docstring).
@@ -45,6 +47,8 @@ class DetectionBatch:
 
     points: torch.Tensor
     images: torch.Tensor
+    features_s8: torch.Tensor
+    features_s16: torch.Tensor
     intrinsics: torch.Tensor
     cam_to_lidar: torch.Tensor
     boxes: list[torch.Tensor]
@@ -60,6 +64,7 @@ class DetectionBatch:
     def to(self, device: torch.device | str) -> "DetectionBatch":
         """The same batch with every tensor on ``device`` (``T_global_lidar`` stays on the CPU)."""
         return replace(self, points=self.points.to(device), images=self.images.to(device),
+                       features_s8=self.features_s8.to(device), features_s16=self.features_s16.to(device),
                        intrinsics=self.intrinsics.to(device), cam_to_lidar=self.cam_to_lidar.to(device),
                        boxes=[b.to(device) for b in self.boxes], labels=[x.to(device) for x in self.labels],
                        attributes=[a.to(device) for a in self.attributes])

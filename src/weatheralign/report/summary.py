@@ -84,6 +84,12 @@ _FINDING_PATTERNS: list[tuple[str, str]] = [
      "evaluating the pretrained detector on unaligned instead of aligned {w} changes its {M} by"),
     (r"pretrained:clean:fused-lidar:(?P<m>\w+)", "the camera adds to the LiDAR-only detector's clean {M}"),
     (r"pretrained:clean:fused-camera:(?P<m>\w+)", "the LiDAR adds to the camera-only detector's clean {M}"),
+    (r"pretrained:clean:fused-shuffled_images:(?P<m>\w+)",
+     "each sample's own images instead of another sample's add to the clean {M}"),
+    (r"pretrained:(?P<w>[^:]+):clean-aligned_cameras:(?P<m>\w+)",
+     "the clean {M} minus that with aligned {w} on the cameras only (clean LiDAR) is"),
+    (r"pretrained:(?P<w>[^:]+):unaligned_cameras-aligned_cameras:(?P<m>\w+)",
+     "with clean LiDAR, unaligned instead of aligned {w} cameras change the {M} by"),
     (r"finetuned-(?P<w>[^:]+)-mix-vs-pretrained:clean:(?P<m>\w+)",
      "finetuning on the {w} mix changes the clean {M} by"),
     (r"finetuned-(?P<w>[^:]+)-aligned-vs-unaligned:[^:]+:(?P<m>\w+)",
@@ -95,7 +101,7 @@ _FINDING_PATTERNS: list[tuple[str, str]] = [
 
 def findings(detect: dict[str, Any]) -> list[str]:
     """One sentence per paired difference of the detect stage (``differences``), generated from its numbers: the
-    difference, its frame-bootstrap interval and whether the interval excludes 0 (the difference exceeds the
+    difference, its bootstrap interval (seeds x scene blocks) and whether the interval excludes 0 (the difference exceeds the
     evaluation's sampling noise) — those first."""
     out: list[tuple[bool, str]] = []
     for key, d in detect.get("differences", {}).items():
@@ -148,7 +154,7 @@ def summary_markdown(metrics: dict[str, dict[str, Any]], truth: dict[str, Any] |
              "below is computed by this run; the paper's figures (real nuScenes-mini and Seeing Through Fog data) "
              "are shown beside ours for comparison and labelled as the paper's.", ""]
     parts += ["## Findings", "",
-              "Generated from the detect stage's paired frame-bootstrap intervals "
+              "Generated from the detect stage's paired bootstrap intervals (training seeds x scene blocks) "
               f"({metrics.get('detect', {}).get('confidence', 0.95):.0%}); those exceeding the noise first.", ""]
     found = findings(metrics.get("detect", {}))
     parts += [f"- {f}" for f in found] if found else ["- (no detect metrics in this run)"]
