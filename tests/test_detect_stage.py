@@ -227,12 +227,12 @@ def test_a_changed_weather_copy_retrains_what_used_it(stage_run):
     token = scene_split(nusc, root, version, "train")[0]
     scan = root / nusc.get("sample_data", nusc.get("sample", token)["data"]["LIDAR_TOP"])["filename"]
     models = data / "detect" / "models"
-    before = {p.name: p.stat().st_mtime_ns for p in models.glob("*.pt")}
+    before = {p.relative_to(models).as_posix(): p.stat().st_mtime_ns for p in models.rglob("*.pt")}
     content = scan.read_bytes()
     scan.unlink()  # a hard link to the world's file: replace it by a file of its own, not the world's
     scan.write_bytes(content)
     again = run()
     assert again.returncode == 0, again.stderr[-4000:]
-    after = {p.name: p.stat().st_mtime_ns for p in models.glob("*.pt")}
+    after = {p.relative_to(models).as_posix(): p.stat().st_mtime_ns for p in models.rglob("*.pt")}
     changed = {name for name in before if after[name] != before[name]}
-    assert changed == {"finetuned-snow.pt", "finetuned-snow-mix.pt"}
+    assert len(before) == 5 and changed == {"seed0/finetuned-snow.pt", "seed0/finetuned-snow-mix.pt"}
