@@ -419,6 +419,8 @@ def test_modality_dropout_drops_one_branch_per_sample_in_training_only() -> None
     assert bool((lidar ^ camera).all()) and 400 < int(lidar.sum()) < 600
     lidar, camera = modality_masks("fused", 1000, 0.3, True, "cpu")
     assert 200 < int((~(lidar & camera)).sum()) < 400 and bool((lidar | camera).all())
+    lidar, camera = modality_masks("fused", 1000, 1.0, True, "cpu", lidar_drop_share=0.8)
+    assert 720 < int((~lidar).sum()) < 880 and bool((lidar ^ camera).all())
     lidar, camera = modality_masks("fused", 10, 1.0, False, "cpu")
     assert bool(lidar.all() and camera.all())
     lidar, camera = modality_masks("camera", 10, 1.0, True, "cpu")

@@ -73,6 +73,8 @@ class DetectorConfig:
     head_channels: int = 64
     #: training only: probability that a sample loses one branch (camera or LiDAR, equally likely)
     modality_dropout: float = 0.4
+    #: training only: the share of the dropped samples that lose the LiDAR (camera-only samples)
+    lidar_drop_share: float = 0.5
     #: weight of the camera depth loss (BEVDepth's LiDAR-supervised depth bins) in the total loss
     depth_loss_weight: float = 1.0
     min_radius: int = 2
@@ -433,16 +435,17 @@ class BevEncoder(nn.Module):
 
 
 def modality_masks(modality: Modality, batch_size: int, dropout: float, training: bool,
-                   device: torch.device | str) -> tuple[Tensor, Tensor]:
+                   device: torch.device | str, lidar_drop_share: float = 0.5) -> tuple[Tensor, Tensor]:
     """(B,) bool masks (use LiDAR, use camera) for ``modality``; when ``training`` and fused, each sample loses one
-    branch (camera or LiDAR, equally likely) with probability ``dropout`` (torch's RNG on ``device``)."""
+    branch with probability ``dropout``: the LiDAR with probability ``lidar_drop_share`` (the sample is camera-only),
+    else the camera (torch's RNG on ``device``)."""
     if modality not in MODALITIES:
         raise ValueError(f"modality must be one of {MODALITIES}, got {modality!r}")
     use_lidar = torch.full((batch_size,), modality != "camera", dtype=torch.bool, device=device)
     use_camera = torch.full((batch_size,), modality != "lidar", dtype=torch.bool, device=device)
     if training and modality == "fused" and dropout > 0:
         drop = torch.rand(batch_size, device=device) < dropout
-        drop_camera = torch.rand(batch_size, device=device) < 0.5
+        drop_camera = torch.rand(batch_size, device=device) >= lidar_drop_share
         use_camera &= ~(drop & drop_camera)
         use_lidar &= ~(drop & ~drop_camera)
     return use_lidar, use_camera
@@ -471,7 +474,7 @@ class BEVFusionDetector(nn.Module):
         "lidar" / "camera")."""
         batch_size, device = batch.batch_size, batch.images.device
         use_lidar, use_camera = modality_masks(modality, batch_size, self.config.modality_dropout, self.training,
-                                               device)
+                                               device, self.config.lidar_drop_share)
         half = (self.config.bev_grid.size + 1) // 2
         zeros = torch.zeros(batch_size, self.config.bev_channels, half, half, device=device)
         lidar_bev = zeros if modality == "camera" else self.lidar(batch.points, batch_size)
