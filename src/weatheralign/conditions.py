@@ -25,6 +25,7 @@ import hashlib
 from dataclasses import dataclass, replace
 from typing import Literal
 
+from weatheralign.config import CONDITION_NAMES
 from weatheralign.medium.distributions import RAIN_REFLECTIVITY, SNOW_REFLECTIVITY
 
 FogLevel = Literal["light", "dense"]
@@ -138,6 +139,9 @@ CONDITIONS: dict[str, Condition] = {
     "fog_snow": Condition("fog_snow", "light fog and snowfall together", fog=FogPart("light"), particles=SNOW_PART),
 }
 """Every named condition; the `simulate` DVC matrix runs each, aligned and unaligned."""
+if tuple(CONDITIONS) != CONDITION_NAMES:
+    raise RuntimeError(f"weatheralign.config.CONDITION_NAMES {CONDITION_NAMES} must list CONDITIONS' keys in order, "
+                       f"{tuple(CONDITIONS)}")
 
 
 def condition_named(name: str) -> Condition:

@@ -23,6 +23,10 @@ from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationErr
 
 from weatheralign.particle_ids import MAX_Z_CELLS, layer_cells
 
+CONDITION_NAMES: tuple[str, ...] = ("fog_light", "fog_dense", "snow", "rain", "fog_snow")
+"""The named weather conditions, in the order of `weatheralign.conditions.CONDITIONS` (which checks it holds exactly
+these): params name conditions, so the schema knows them without importing the media."""
+
 
 class ConfigError(ValueError):
     """Invalid params: the message names the file, the key, the bad value and the allowed form."""
@@ -642,14 +646,11 @@ class DetectConfig(_Section):
     @field_validator("finetune_conditions")
     @classmethod
     def _known_conditions(cls, v: tuple[str, ...]) -> tuple[str, ...]:
-        """Every entry a key of `weatheralign.conditions.CONDITIONS` (checked at load, before any stage starts)."""
-        # imported here: weatheralign.conditions imports the medium, which imports this module
-        from weatheralign.conditions import CONDITIONS
-
-        unknown = [name for name in v if name not in CONDITIONS]
+        """Every entry one of `CONDITION_NAMES` (checked at load, before any stage starts)."""
+        unknown = [name for name in v if name not in CONDITION_NAMES]
         if unknown:
             raise ValueError(f"unknown condition{'s' if len(unknown) > 1 else ''} {', '.join(map(repr, unknown))}: "
-                             f"expected names from {list(CONDITIONS)}")
+                             f"expected names from {list(CONDITION_NAMES)}")
         return v
 
 
