@@ -17,7 +17,7 @@ export PREFECT_LOGGING_LEVEL ?= WARNING
 export MLFLOW_TRACKING_URI ?= sqlite:///$(CURDIR)/mlflow.db
 export OMP_NUM_THREADS ?= 2
 
-.PHONY: setup reproduce test bench prefect-ui serve mlflow-ui clean-venv
+.PHONY: setup reproduce browser test test-all lint bench prefect-ui serve mlflow-ui clean-venv
 
 setup: $(STAMP)
 
@@ -31,7 +31,7 @@ $(STAMP): pyproject.toml Makefile
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install -q --upgrade pip setuptools wheel
 	$(PIP) install -q $(TORCH_PIP_ARGS) "$(TORCH_SPEC)"
-	$(PIP) install -q -e ".[test]"
+	$(PIP) install -q -e ".[pipeline,test]"
 	$(PY) -c "import torch, open3d, nuscenes, prefect, mlflow; print('[setup] torch', torch.__version__, '| open3d', open3d.__version__, '| prefect', prefect.__version__, '| mlflow', mlflow.__version__)"
 	@touch $(STAMP)
 
@@ -40,15 +40,25 @@ reproduce: setup
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" WEATHERALIGN_PIPELINE_ID=repro-$$(date +%Y%m%d-%H%M%S) \
 	  $(PY) -m flows.api_server --dask dvc repro
 
-test: setup
-	@# the report's HTML page is checked in a real headless browser: Debian's chromium
+# the report's HTML page is checked in a real headless browser: Debian's chromium
+browser:
 	@if ! command -v chromium >/dev/null 2>&1; then \
 	  echo "[test] installing Debian chromium (the report page's browser test)"; \
 	  if [ "$$(id -u)" = 0 ]; then apt-get update -qq && apt-get install -y -qq chromium >/dev/null; \
 	  else sudo apt-get update -qq && sudo apt-get install -y -qq chromium >/dev/null; fi \
 	  || echo "[test] chromium could not be installed: the browser test will be skipped"; \
 	fi
+
+# the fast tier: everything but the tests marked slow
+test: setup browser lint
+	$(PY) -m pytest -q -m "not slow" $(PYTEST_ARGS)
+
+# the fast tier and the end-to-end tier: whole stages through dvc repro / exp run, trainings, the pipeline flow
+test-all: setup browser lint
 	$(PY) -m pytest -q $(PYTEST_ARGS)
+
+lint: setup
+	$(VENV)/bin/ruff check src flows tasks tests benchmarks
 
 bench: setup
 	$(PY) -m benchmarks.bench_world

@@ -16,9 +16,9 @@ Input: the first sample of the synthetic world (``data/world``). Each workload r
 (``peak_rss_mib`` is its own): one warm-up frame (JIT from cache), then ``--runs`` timed frames with the 6 cameras in
 a 2-thread pool (the stage's setting on 2 cores; kernels are ``nogil``) and, separately, serially. Entries
 ``{workload, num_points (particles drawn in the 6 images), seconds_median, peak_rss_mib, reference_seconds, ...}``
-are merged into ``reports/benchmarks/camera.json``. References: imagecorruptions snow 0.6 s per single image
-(x6 = 3.6 s), albumentations rain 0.029 s per image (x6 = 0.174 s), imagecorruptions fog ~0.1 s per image; all 2-D
-with no depth and no LiDAR link. Target: <= 1.5 s for all 6.
+are merged into ``reports/benchmarks/camera.json``. References (``reference_seconds`` of `SPECS`): imagecorruptions
+snow and albumentations rain per single image, times 6; all 2-D with no depth and no LiDAR link. Target:
+`TARGET_SECONDS` for all 6.
 """
 
 from __future__ import annotations
@@ -167,8 +167,8 @@ def main(argv: list[str] | None = None) -> list[dict[str, Any]]:
                  "target_seconds": TARGET_SECONDS, "pass": median <= TARGET_SECONDS,
                  "seconds_min": min(m["seconds"]), "runs": len(m["seconds"]), "threads": 2,
                  "seconds_serial_median": statistics.median(m["seconds_serial"]),
-                 "path": "weatheralign.simulate.observe.observe_camera x 6 (JPEG decode, exact range map, guided-filtered "
-                         "fog/unresolved transmission, particles + 5 ms streaks, sRGB encode)",
+                 "path": "weatheralign.simulate.observe.observe_camera x 6 (JPEG decode, exact range map, "
+                         "guided-filtered fog/unresolved transmission, particles + 5 ms streaks, sRGB encode)",
                  "condition": spec["condition"], "camera_alpha": m["camera_alpha"],
                  "per_camera_drawn": m["per_camera_drawn"], "ego_speed_m_s": m["ego_speed_m_s"],
                  "reference": spec["reference"], "source": m["source"]}

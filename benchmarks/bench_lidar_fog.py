@@ -4,7 +4,7 @@ Through Fog scan (when ``../shared`` is present).
 Run from the repository root: ``.venv/bin/python -m benchmarks.bench_lidar_fog [--runs 50]``. Writes (merging with
 other workloads already there) ``reports/benchmarks/lidar.json``: a list of entries ``{workload, num_points,
 seconds_median, peak_rss_mib, reference_seconds, ...}`` where ``reference_seconds`` is the published implementation's
-time on this 2-core machine (Hahner's per-point Python loop: 0.37 s for 35k points, 1.2 s for a 120k HDL-64 scan).
+time on the same machine (Hahner's per-point Python loop, `REFERENCE_SECONDS`).
 Both workloads run through `FOG_LIDAR`: the synthetic HDL-32E with the fog model's pulse (τ_H = 20 ns,
 `PulseSensor()`) and no detector floor, as in Hahner's fog code.
 """
@@ -15,8 +15,9 @@ import argparse
 import resource
 import statistics
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from scipy.spatial.transform import Rotation

@@ -8,15 +8,15 @@ included): one warm-up call (JIT, caches), then ``--runs`` timed calls of the wh
 CPU time of the same calls. Entries ``{workload, num_points, seconds_median, cpu_seconds_median, peak_rss_mib,
 reference_seconds, ...}`` are merged into
 ``reports/benchmarks/lidar.json`` (other workloads' entries, e.g. fog's, are kept), each with the 1-minute load
-average before and after it (other processes on this 2-core machine slow the timings down).
+average before and after it (other processes on the machine slow the timings down).
 
 Workloads:
 - ``snow_2mmh_keyframe_2sweeps_joint``, ``rain_50mmh_keyframe_2sweeps_joint``: the first sample's keyframe and its two
   sweeps (as `simulate` runs them) in one `simulate_particle_scans` run, against `simulate_particles` on each scan
   (``separate_*``), same field;
-- ``snow_2mmh_35k`` (Hahner's published code: 27–34 s on this machine: reference 30 s), ``rain_50mmh_35k`` (LISA:
-  3.3–5.2 s at 25 mm/h: reference 4.2 s; the published rain figure is at half our rate), the same on the 109k STF
-  scan (snow reference: 88 s for a 120k HDL-64 scan);
+- ``snow_2mmh_35k`` (against Hahner's published code, `SNOW_REFERENCE_35K`), ``rain_50mmh_35k`` (against LISA,
+  `RAIN_REFERENCE_25MMH`, timed at half our rate), the same on the 109k STF scan (snow against
+  `SNOW_REFERENCE_120K`, Hahner's code on a 120k HDL-64 scan);
 - growth with rate (snow 0.5/1/2/4 mm/h, rain 10/25/50/100 mm/h) and with points (the STF scan with 16/32/64 of its
   rings);
 - the ratio threshold: 3e-4 … 3e-2 for snow and rain (counts, mean intensity change of the kept points).
@@ -55,9 +55,9 @@ STF_ROOT = REPO.parent / "shared" / "data" / "real" / "stf"
 STF_ID = "2019-09-11_19-13-44_00960"
 WORLD_ROOT = REPO / "data" / "world"
 
-SNOW_REFERENCE_35K = 30.0  # Hahner et al. 2022 code, 27-34 s per 35k-point scan on this 2-core machine
-SNOW_REFERENCE_120K = 88.0  # ... and 88 s on a 120k-point HDL-64 scan
-RAIN_REFERENCE_25MMH = 4.2  # LISA, 3.3-5.2 s per 35k-point scan at 25 mm/h
+SNOW_REFERENCE_35K = 30.0  # Hahner et al. 2022 code per 35k-point scan, the middle of its timed runs
+SNOW_REFERENCE_120K = 88.0  # ... and per 120k-point HDL-64 scan
+RAIN_REFERENCE_25MMH = 4.2  # LISA per 35k-point scan at 25 mm/h, the middle of its timed runs
 SNOW_VELOCITY = 1.5
 DIVERGENCE_RAD = 3e-3
 PULSE_HALF_WIDTH_S = 10e-9
@@ -170,8 +170,12 @@ def _keyframe_and_sweeps(dataroot: str, version: str, sweeps: int) -> list[Lidar
 
 def _joint_worker(spec: dict) -> dict:
     """A keyframe and its sweeps: `simulate_particle_scans` (one run) against `simulate_particles` per scan."""
-    from weatheralign.lidar.particles import (RAIN_REFLECTIVITY, SNOW_REFLECTIVITY, simulate_particle_scans,
-                                              simulate_particles)
+    from weatheralign.lidar.particles import (
+        RAIN_REFLECTIVITY,
+        SNOW_REFLECTIVITY,
+        simulate_particle_scans,
+        simulate_particles,
+    )
 
     scans = _keyframe_and_sweeps(spec["dataroot"], spec["version"], spec["sweeps"])
     fld = _field(spec, scans[0].timestamp)

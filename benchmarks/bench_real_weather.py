@@ -32,8 +32,12 @@ STF_SNOW = "cam_stereo_left_lut_2018-02-12_15-39-23_00100_snow.png"
 def _levels_and_rates(params: Any, data: Path) -> tuple[Any, Any, str]:
     """(FogLevels, PrecipitationRates, where they came from): the last run's tuned values, else the params'."""
     from weatheralign.manifest import FOG_LEVELS_FILE, PRECIPITATION_RATES_FILE
-    from weatheralign.simulate.media import (configured_fog_levels, configured_precipitation_rates,
-                                             params_fog_levels, params_precipitation_rates)
+    from weatheralign.simulate.media import (
+        configured_fog_levels,
+        configured_precipitation_rates,
+        params_fog_levels,
+        params_precipitation_rates,
+    )
     levels = (configured_fog_levels(params.simulate, data) if (data / FOG_LEVELS_FILE).is_file()
               else params_fog_levels(params.simulate))
     rates = (configured_precipitation_rates(params.simulate, params.particles, data)

@@ -62,8 +62,8 @@ def core_point(name: str, workers: int, samples: int, data: Path, scratch: Path,
     import dask
     from distributed import Client, LocalCluster
 
-    from weatheralign.config import load_params
     from weatheralign.conditions import condition_named
+    from weatheralign.config import load_params
     from weatheralign.data.nuscenes import open_nuscenes
     from weatheralign.manifest import manifest_path, read_manifest
     from weatheralign.provenance import stage_fingerprint

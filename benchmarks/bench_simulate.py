@@ -6,12 +6,13 @@ Run from the repository root after ``dvc repro media`` (world, fields, fog calib
 
 Each condition runs ``python -m flows.simulate`` as DVC would (Prefect flow on a local Dask cluster), writing
 into a scratch folder (``--scratch``, default ``/tmp/weatheralign-bench-simulate``) that links the real world's
-manifest and the media, so ``data/simulate`` is left alone; the scratch copy is deleted after each condition. Reported per condition: wall seconds of the whole command (Python and Prefect start-up included),
-samples per minute, and the stage's own counts and re-projection figures; plus the total over the conditions run
-(target: all ten <= 20 min for ~400 samples on 2 cores). ``--from-reports`` collects the same figures from the last
-``dvc repro`` instead (no rerun). The peer figure for LiDAR snow is MultiCorrupt: 12 h for nuScenes on
-32 CPUs. With ``../shared/data/real`` present, the re-projection check is also run on the real STF and KITTI frames
-(dense depth from their scans). Results go to ``reports/benchmarks/simulate.json``.
+manifest and the media, so ``data/simulate`` is left alone; the scratch copy is deleted after each condition. Reported
+per condition: wall seconds of the whole command (Python and Prefect start-up included), samples per minute, and the
+stage's own counts and re-projection figures; plus the total over the conditions run (target: all ten <= 20 min for ~400
+samples on 2 cores). ``--from-reports`` collects the same figures from the last ``dvc repro`` instead (no rerun). The
+peer figure for LiDAR snow is MultiCorrupt: 12 h for nuScenes on 32 CPUs. With ``../shared/data/real`` present, the
+re-projection check is also run on the real STF and KITTI frames (dense depth from their scans). Results go to
+``reports/benchmarks/simulate.json``.
 """
 
 from __future__ import annotations

@@ -36,9 +36,19 @@ import open3d
 from weatheralign.atomic import write_json
 from weatheralign.config import WorldConfig, load_params
 from weatheralign.world import build
-from weatheralign.world.build import (SWEEP_PERIOD_US, SceneSpec, annotate, firing_pattern, keyframe_time_us,
-                                      render_sample, scene_caster, sensor_filename, sensor_rng, write_camera,
-                                      write_sweep)
+from weatheralign.world.build import (
+    SWEEP_PERIOD_US,
+    SceneSpec,
+    annotate,
+    firing_pattern,
+    keyframe_time_us,
+    render_sample,
+    scene_caster,
+    sensor_filename,
+    sensor_rng,
+    write_camera,
+    write_sweep,
+)
 from weatheralign.world.dataset import sample_jobs
 from weatheralign.world.raycast import WorldRaycaster
 from weatheralign.world.render import CameraFrame, render_lidar_sweep

@@ -17,9 +17,9 @@ synthetic reference, or a Seeing Through Fog root) and, per fog level (``light``
 
 Writes ``<paths.data>/calibrate_fog/fog_levels.json`` (``{level: {alpha, beta, mor, ks, airlight_gains}}``: what
 the fog conditions of `simulate` read), ``reports/calibrate_fog/metrics.json`` (per level ``alpha, beta, mor, ks,
-ks_ci_low, ks_ci_high, camera_visibility_ratio, kid, kid_std, kid_backbone, airlight_gain_median``, ...) and figures (ECDF with the reference's
-bootstrap band, KS over the grid, reference vs simulated images), also logged to MLflow. The synthetic reference's
-sealed truth is never read here.
+ks_ci_low, ks_ci_high, camera_visibility_ratio, kid, kid_std, kid_backbone, airlight_gain_median``, ...) and figures
+(ECDF with the reference's bootstrap band, KS over the grid, reference vs simulated images), also logged to MLflow. The
+synthetic reference's sealed truth is never read here.
 """
 
 from __future__ import annotations
@@ -44,15 +44,20 @@ from weatheralign.calibrate.camera import camera_visibility_ratio  # noqa: E402
 from weatheralign.calibrate.figures import ks_heatmap, level_ecdf_figure  # noqa: E402
 from weatheralign.calibrate.histograms import IntensityHistograms  # noqa: E402
 from weatheralign.calibrate.kid import feature_extractor, kid_from_features  # noqa: E402
-from weatheralign.calibrate.lidar import (GridResult, LevelCalibration, fog_frames, finish_level,  # noqa: E402
-                                          grid_cells)
-from weatheralign.camera.fog import (airlight_gains, estimate_airlight, fog_airlight, fog_image,  # noqa: E402
-                                     linear_to_srgb, sky_airlight)
+from weatheralign.calibrate.lidar import GridResult, LevelCalibration, finish_level, fog_frames, grid_cells  # noqa: E402
+from weatheralign.camera.fog import (  # noqa: E402
+    airlight_gains,
+    estimate_airlight,
+    fog_airlight,
+    fog_image,
+    linear_to_srgb,
+    sky_airlight,
+)
 from weatheralign.conditions import FogPart  # noqa: E402
 from weatheralign.config import Params  # noqa: E402
+from weatheralign.manifest import FOG_LEVELS_FILE  # noqa: E402
 from weatheralign.reference import FOG_LEVELS, ReferenceDataset, configured_reference, reference_lidar_model  # noqa: E402
 from weatheralign.sensors import LidarModel  # noqa: E402
-from weatheralign.manifest import FOG_LEVELS_FILE  # noqa: E402
 
 
 def lidar_level(ds: ReferenceDataset, frames, level: str, params: Params,

@@ -75,7 +75,7 @@ def run_stage(flow: Any, params: Params, runner: Literal["processes", "threads"]
     """
     from prefect.settings import PREFECT_API_URL, temporary_settings
 
-    from flows.api_server import install_signal_handlers, prefect_api
+    from flows.prefect_server import install_signal_handlers, prefect_api
 
     verbose = _verbose()
     install_signal_handlers()
@@ -102,9 +102,8 @@ def worker_environment() -> contextlib.AbstractContextManager:
     """The environment of the local Dask cluster's worker processes while it is in force: distributed's defaults
     (one BLAS / OpenMP thread per worker) without its ``MALLOC_TRIM_THRESHOLD_=65536``. glibc freezes the mmap
     threshold at 128 KiB once any malloc threshold is set explicitly, so every image-sized array becomes a fresh
-    mmap whose pages fault in zero-filled: measured +0.38 CPU-s per fog sample (0.59 -> 0.97, two thirds of it system
-    time). Each worker also preloads this module (`dask_setup`), so that its console follows the one-line-error
-    rule."""
+    mmap whose pages fault in zero-filled, for every such array of every sample (mostly system time). Each worker also
+    preloads this module (`dask_setup`), so that its console follows the one-line-error rule."""
     import dask
 
     preload = [*dask.config.get("distributed.worker.preload", []), __name__]

@@ -54,15 +54,21 @@ from weatheralign.config import Params  # noqa: E402
 from weatheralign.data.errors import DataFormatError  # noqa: E402
 from weatheralign.data.nuscenes import open_nuscenes  # noqa: E402
 from weatheralign.detect import protocol  # noqa: E402
-from weatheralign.detect.data import (DetectionDataset, build_cache, cache_path, derangement,  # noqa: E402
-                                      load_cached_sample, scene_split)
+from weatheralign.detect.data import (  # noqa: E402
+    DetectionDataset,
+    build_cache,
+    cache_path,
+    derangement,
+    load_cached_sample,
+    scene_split,
+)
 from weatheralign.detect.evaluate import ego_positions, ground_truth, resistance_ability, scene_blocks  # noqa: E402
-from weatheralign.detect.results import write_submission  # noqa: E402
 from weatheralign.detect.figures import detections_bev_figure, learning_curve_figure  # noqa: E402
 from weatheralign.detect.model import BEVFusionDetector, count_parameters  # noqa: E402
-from weatheralign.simulate.media import media_path, read_media  # noqa: E402
+from weatheralign.detect.results import write_submission  # noqa: E402
 from weatheralign.manifest import manifest_path, read_manifest  # noqa: E402
 from weatheralign.provenance import stage_fingerprint  # noqa: E402
+from weatheralign.simulate.media import media_path, read_media  # noqa: E402
 
 CLEAN = "clean"
 SUMMARY_KEYS = ("map", "nds", "map_present", "map_ci", "nds_ci", "map_present_ci", "mate", "mase", "maoe", "mave",
@@ -138,7 +144,8 @@ class DetectRun:
         self.clean_root = Path(world.dataroot)
         self.roots = {CLEAN: self.clean_root, **weather_roots(params, self.version)}
         self.nusc = open_nuscenes(self.clean_root, self.version)
-        self.tokens = {split: scene_split(self.nusc, self.clean_root, self.version, split) for split in ("train", "val")}
+        self.tokens = {split: scene_split(self.nusc, self.clean_root, self.version, split)
+                       for split in ("train", "val")}
         self.out = params.paths.data / "detect"
         self.fingerprint = stage_fingerprint("detect", params, world.content_digest)
         self.model_config = protocol.detector_config(cfg)
@@ -374,7 +381,8 @@ class DetectRun:
         futures = []
         for keys_a, keys_b in comparisons.values():
             evalset = self.evalset(keys_a[0].rsplit("/", 1)[1])
-            preds = [[protocol.eval_boxes(self.detections[k], evalset) for k in keys] for keys in (keys_a, keys_b or [])]
+            preds = [[protocol.eval_boxes(self.detections[k], evalset) for k in keys]
+                     for keys in (keys_a, keys_b or [])]
             futures.append(paired_task.submit(self.gt, preds[0], preds[1] if keys_b else None, self.blocks,
                                               ("map", "nds"), self.cfg.num_bootstrap, self.cfg.seed,
                                               self.cfg.confidence))
@@ -596,8 +604,8 @@ def summarise(evaluations: list[Evaluation], results: dict[str, dict[str, Any]],
         for metric in ("map", "nds"):
             d = est[metric]
             a, b = (keys[0].split("/", 1)[1] for keys in pairs[name])  # "<model>/<evaluation set>"
-            differences[f"{name}:{metric}"] = {"a": a, "b": b, "metric": metric, "difference": d["value"], "ci": d["ci"],
-                                              "per_seed": d["per_seed"], "seeds": len(d["per_seed"]),
+            differences[f"{name}:{metric}"] = {"a": a, "b": b, "metric": metric, "difference": d["value"],
+                                              "ci": d["ci"], "per_seed": d["per_seed"], "seeds": len(d["per_seed"]),
                                               "exceeds_noise": bool(d["ci"][0] > 0 or d["ci"][1] < 0)}
     return models, differences
 
@@ -661,8 +669,8 @@ def detect_flow(params: Params) -> dict:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    """Training and evaluation tasks run on worker processes (one core each: two one-thread trainings do 1.26x the
-    steps of one two-thread training on two cores) on the CPU, on threads of this process on a GPU."""
+    """Training and evaluation tasks run on worker processes (one core each: one-thread trainings side by side use the
+    cores better than one multi-threaded training) on the CPU, on threads of this process on a GPU."""
     params = parse_stage_args("detect", argv)
     on_cpu = torch.device(params.detect.device).type == "cpu"
     return run_stage(detect_flow, params, runner="processes" if on_cpu else "threads")

@@ -20,8 +20,13 @@ from weatheralign import atomic
 from weatheralign.conditions import CONDITIONS, condition_tags
 from weatheralign.config import Params
 from weatheralign.manifest import FIELDS_FILE, manifest_path, read_manifest
-from weatheralign.simulate.media import (configured_fog_levels, configured_precipitation_rates, load_fields,
-                                        media_path, resolve_media)
+from weatheralign.simulate.media import (
+    configured_fog_levels,
+    configured_precipitation_rates,
+    load_fields,
+    media_path,
+    resolve_media,
+)
 
 
 @flow(name="media", log_prints=True)

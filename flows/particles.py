@@ -130,8 +130,10 @@ def _side_view(spec: FieldSpec, anchor: tuple[str, float, np.ndarray], rig: RigG
     keep = (np.abs(local[:, 1]) <= 0.5) & (local[:, 0] >= x0) & (local[:, 0] <= x1) & (local[:, 2] >= 0)
     fig = particle_side_view(local[keep][:, [0, 2]], particles.diameters[keep], rig.lidar_xz,
                              np.asarray(rig.elevations_deg), rig.camera_xz,
-                             float(np.degrees(np.arctan(rig.camera_height / 2 / rig.camera_K[1, 1]))), (x0, x1, -0.5, z1),
-                             f"{spec.condition} over {name}: 1 m thick slab along the ego axis, D >= {min_d * 1e3:g} mm")
+                             float(np.degrees(np.arctan(rig.camera_height / 2 / rig.camera_K[1, 1]))),
+                             (x0, x1, -0.5, z1),
+                             f"{spec.condition} over {name}: 1 m thick slab along the ego axis, "
+                             f"D >= {min_d * 1e3:g} mm")
     fig.savefig(path, dpi=110)
     plt.close(fig)
 

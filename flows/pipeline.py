@@ -95,7 +95,8 @@ def select(runs: list[StageRun], stages: list[str] | None) -> list[StageRun]:
     unknown = [s for s in stages if s not in known]
     if unknown:
         raise ValueError(f"unknown stage(s) {unknown}; the pipeline's stages are "
-                         f"{sorted({r.base for r in runs})} and the matrix entries {[r.name for r in runs if '@' in r.name]}")
+                         f"{sorted({r.base for r in runs})} and the matrix entries "
+                         f"{[r.name for r in runs if '@' in r.name]}")
     wanted = set(stages)
     return [r for r in runs if r.name in wanted or r.base in wanted]
 
@@ -141,7 +142,8 @@ def pipeline_flow(stages: list[str] | None = None, params_file: str = DEFAULT_PA
         try:
             results[run.name] = importlib.import_module(run.module).main(argv)
         except SystemExit as exit_:
-            raise RuntimeError(f"stage {run.name} failed (exit code {exit_.code}); its subflow run has the log") from None
+            raise RuntimeError(f"stage {run.name} failed (exit code {exit_.code}); "
+                               "its subflow run has the log") from None
         rows.append(f"| {run.name} | {time.perf_counter() - t0:.1f} | {_scalars(results[run.name])} |")
     default = params_path.resolve() == (REPO / DEFAULT_PARAMS).resolve() and not overrides
     recorded = _record_in_dvc([r.name for r in runs]) if record_in_dvc and default else \
@@ -157,7 +159,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     """``python -m flows.pipeline``: the pipeline with one Prefect API server for every stage."""
     from prefect.settings import PREFECT_API_URL, temporary_settings
 
-    from flows.api_server import install_signal_handlers, prefect_api
+    from flows.prefect_server import install_signal_handlers, prefect_api
 
     parser = argparse.ArgumentParser(prog="python -m flows.pipeline", description=__doc__.split("\n\n")[0])
     parser.add_argument("--stages", nargs="*", default=None, help="stages to run (default: all), e.g. world simulate")

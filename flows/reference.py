@@ -8,8 +8,8 @@ per frame, resumable. With ``reference.source: stf`` the stage checks a real See
 (every split file read, every listed frame loaded) and copies nothing.
 
 Both write ``reports/reference/metrics.json`` (frames, points per scan, mean intensity on 0..255, share of returns
-within 3 m, isolated returns per scan (snow / rain clutter, `weatheralign.lidar.clutter`), per split; seconds) and ``reports/reference/overview.png`` (intensity histograms and one image per split),
-and log them to MLflow.
+within 3 m, isolated returns per scan (snow / rain clutter, `weatheralign.lidar.clutter`), per split; seconds) and
+``reports/reference/overview.png`` (intensity histograms and one image per split), and log them to MLflow.
 """
 
 from __future__ import annotations
@@ -29,8 +29,7 @@ from tasks.reference import render_reference_frame_task  # noqa: E402
 from tasks.tracking import StageTracker  # noqa: E402
 from weatheralign.config import Params  # noqa: E402
 from weatheralign.data.stf import CAMERA_CHANNEL  # noqa: E402
-from weatheralign.reference import (ReferenceDataset, check_reference, configured_reference,  # noqa: E402
-                                    reference_lidar_model)
+from weatheralign.reference import ReferenceDataset, check_reference, configured_reference, reference_lidar_model  # noqa: E402
 from weatheralign.reference.synthetic import finalize, frame_specs  # noqa: E402
 
 FIGURE = "overview.png"

@@ -19,17 +19,23 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from collections.abc import Sequence
 from contextlib import redirect_stdout
 from io import StringIO
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 from weatheralign import atomic
 from weatheralign.data.errors import DataFormatError
 from weatheralign.data.nuscenes import open_nuscenes
 from weatheralign.detect.data import scene_split
-from weatheralign.detect.evaluate import (detection_config, ego_positions, ground_truth, scene_blocks,
-                                          seed_block_bootstrap)
+from weatheralign.detect.evaluate import (
+    detection_config,
+    ego_positions,
+    ground_truth,
+    scene_blocks,
+    seed_block_bootstrap,
+)
 from weatheralign.detect.results import read_submission
 
 BIKE_RACK = "static_object.bicycle_rack"
@@ -77,7 +83,8 @@ def score_files(dataroot: Path, version: str, split: str, results: Sequence[Path
 def render(report: dict[str, Any]) -> str:
     what = "difference" if report["minus"] else "value"
     lines = [f"{report['dataroot']} ({report['split']}, {report['samples']} samples, "
-             f"{len(report['results'])} seed(s)):", f"| metric | {what} | {report['confidence']:.0%} interval | per seed |",
+             f"{len(report['results'])} seed(s)):",
+             f"| metric | {what} | {report['confidence']:.0%} interval | per seed |",
              "| --- | ---: | --- | --- |"]
     for m in ("map", "nds"):
         e = report[m]

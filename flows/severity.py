@@ -1,10 +1,10 @@
 """Severity sweeps with DVC experiments: ``python -m flows.severity levels | queue | curve``.
 
 A weather's severity is a parameter of params.yaml: the snow rate (``particles.snow.rate_mm_h`` with
-``simulate.precipitation_rates: params``), the rain rate (``particles.rain.rate_mm_h``, likewise) or the dense fog's extinction (``simulate.fog_alpha_dense`` with ``simulate.fog_levels:
-params``; the light level at a third of it). `LEVELS` names five nuScenes-C-style levels of each (1 lightest, 5
-heaviest; level 3 of snow and 4 of rain are the paper's 2 and 50 mm/h); any other value works the same through
-``-S``.
+``simulate.precipitation_rates: params``), the rain rate (``particles.rain.rate_mm_h``, likewise) or the dense fog's
+extinction (``simulate.fog_alpha_dense`` with ``simulate.fog_levels: params``; the light level at a third of it).
+`LEVELS` names five nuScenes-C-style levels of each (1 lightest, 5 heaviest; level 3 of snow and 4 of rain are the
+paper's 2 and 50 mm/h); any other value works the same through ``-S``.
 
 - ``levels``: the table of named levels and the ``-S`` overrides each sets.
 - ``queue --weather snow [--levels 1 3 5] [--targets simulate@snow-aligned ...] [--run]``: one
@@ -27,9 +27,10 @@ import json
 import math
 import subprocess
 import sys
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -2,11 +2,11 @@
 
 ``python -m flows.simulate --set simulate.condition=snow --set simulate.aligned=true`` reads the world's manifest
 (dataroot, sensors, content digest) and the condition's media (``<paths.data>/media/<condition>.json``, the media
-stage); plans the jobs (`weatheralign.simulate.plan`), maps one task per chunk of ``run.samples_per_task`` samples of a scene
-(`weatheralign.simulate.weather_copy.run_chunk` around the pure core `weatheralign.simulate.observe`) onto the Dask
-workers, completes the copy with hard links and tracks. An unaligned copy hard-links the LiDAR files of its aligned twin
-(``<condition>-aligned``, run first by dvc.yaml's matrix order) where the twin finished a sample with the same LiDAR
-fingerprint, and computes them otherwise: the LiDAR sees the condition's own media in both copies. Writes
+stage); plans the jobs (`weatheralign.simulate.plan`), maps one task per chunk of ``run.samples_per_task`` samples of a
+scene (`weatheralign.simulate.weather_copy.run_chunk` around the pure core `weatheralign.simulate.observe`) onto the
+Dask workers, completes the copy with hard links and tracks. An unaligned copy hard-links the LiDAR files of its aligned
+twin (``<condition>-aligned``, run first by dvc.yaml's matrix order) where the twin finished a sample with the same
+LiDAR fingerprint, and computes them otherwise: the LiDAR sees the condition's own media in both copies. Writes
 ``<paths.data>/simulate/<condition>-<aligned|unaligned>/`` (a complete nuScenes dataroot) and
 ``reports/simulate/<condition>-<aligned|unaligned>/metrics.json`` plus a side-by-side figure (clean vs weather: LiDAR
 BEV coloured by label, CAM_FRONT), also logged to an MLflow child run, and hands the copy on by its manifest
@@ -30,14 +30,19 @@ from tasks.tracking import StageTracker
 from weatheralign.conditions import condition_named, condition_tags, variant_name
 from weatheralign.config import Params
 from weatheralign.data.nuscenes import load_frame, open_nuscenes
-from weatheralign.manifest import (DatasetManifest, dataset_digest, display_path, manifest_path, read_manifest,
-                                   write_manifest)
+from weatheralign.manifest import (
+    DatasetManifest,
+    dataset_digest,
+    display_path,
+    manifest_path,
+    read_manifest,
+    write_manifest,
+)
 from weatheralign.provenance import stage_fingerprint
 from weatheralign.simulate.media import ConditionMedia, media_path, read_media
 from weatheralign.simulate.observe import ObserveOptions
 from weatheralign.simulate.plan import chunk_jobs, plan_jobs
-from weatheralign.simulate.weather_copy import (DatasetRef, copy_outputs, finalize_copy, read_weather_record,
-                                                summarise)
+from weatheralign.simulate.weather_copy import DatasetRef, copy_outputs, finalize_copy, read_weather_record, summarise
 from weatheralign.viz import bev_figure
 
 

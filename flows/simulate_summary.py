@@ -20,9 +20,9 @@ from prefect import flow  # noqa: E402
 
 from flows.common import parse_stage_args, run_stage  # noqa: E402
 from tasks.tracking import StageTracker  # noqa: E402
+from weatheralign.conditions import ALIGNMENTS, CONDITIONS, variant_name  # noqa: E402
 from weatheralign.config import Params  # noqa: E402
 from weatheralign.data.errors import read_json_file  # noqa: E402
-from weatheralign.conditions import ALIGNMENTS, CONDITIONS, variant_name  # noqa: E402
 
 SUMMARY_KEYS = ("dataroot", "points_unchanged", "points_attenuated", "points_scattered", "points_lost",
                 "points_clutter", "particles_rendered", "reprojection_mean_px", "reprojection_max_px",

@@ -62,13 +62,16 @@ from weatheralign.calibrate.kid import feature_extractor, kid_from_features  # n
 from weatheralign.conditions import CONDITIONS, variant_name  # noqa: E402
 from weatheralign.config import Params  # noqa: E402
 from weatheralign.data.errors import DataFormatError  # noqa: E402
-from weatheralign.reference import (PRECIPITATION_LEVELS, ReferenceDataset, configured_reference,  # noqa: E402
-                                    reference_lidar_model)
+from weatheralign.reference import PRECIPITATION_LEVELS, ReferenceDataset, configured_reference, reference_lidar_model  # noqa: E402
 from weatheralign.simulate.media import configured_fog_levels, configured_precipitation_rates  # noqa: E402
-from weatheralign.verify.classifier import (broken_pairs, ensemble_report, fused_features, held_out_split,  # noqa: E402
-                                            train_weather_classifier)
-from weatheralign.verify.figures import (confusion_figure, ecdf_figure, embedding_figure,  # noqa: E402
-                                         permutation_figure)
+from weatheralign.verify.classifier import (  # noqa: E402
+    broken_pairs,
+    ensemble_report,
+    fused_features,
+    held_out_split,
+    train_weather_classifier,
+)
+from weatheralign.verify.figures import confusion_figure, ecdf_figure, embedding_figure, permutation_figure  # noqa: E402
 from weatheralign.verify.frames import Severity, SimulatedPair  # noqa: E402
 from weatheralign.verify.mmd import mmd_test, paired_mmd_difference, paired_mmd_test  # noqa: E402
 from weatheralign.verify.table import table_markdown  # noqa: E402

@@ -2,11 +2,12 @@
 
 Default: render the synthetic world into ``<paths.data>/world``. With ``world.source: nuscenes`` the stage checks a
 real nuScenes(-mini) dataroot instead (loads every sample's frame once) and reports on it: the dataset is read in
-place, nothing is copied. Either way it writes ``<paths.data>/manifests/world.json`` (`weatheralign.manifest`): the dataroot, version, sensor models
-(from params for the synthetic world; estimated from the scans, with ``world.sensor_overrides``, for real data) and
-content digest, which every later stage reads. The manifest is removed first and written last, so a failed run leaves none.
-It is the stage's DVC output, not the dataset folder: DVC would hash every file of the rendered world (~11 GB, 13k
-files at the default: 40 s a run) where the manifest's digest already names every file by path and size.
+place, nothing is copied. Either way it writes ``<paths.data>/manifests/world.json`` (`weatheralign.manifest`): the
+dataroot, version, sensor models (from params for the synthetic world; estimated from the scans, with
+``world.sensor_overrides``, for real data) and content digest, which every later stage reads. The manifest is removed
+first and written last, so a failed run leaves none. It is the stage's DVC output, not the dataset folder: DVC would
+hash every file of the rendered world (~11 GB, 13k files at the default, hashed again on every run) where the manifest's
+digest already names every file by path and size.
 """
 
 from __future__ import annotations
@@ -25,8 +26,13 @@ from weatheralign.config import Params
 from weatheralign.data.check import check_dataset
 from weatheralign.data.nuscenes import load_frame, load_lidar, open_nuscenes
 from weatheralign.manifest import DatasetManifest, dataset_digest, display_path, manifest_path, write_manifest
-from weatheralign.sensors import (SensorRig, camera_models, ego_body_from_params, estimate_lidar_model,
-                                  lidar_model_from_params)
+from weatheralign.sensors import (
+    SensorRig,
+    camera_models,
+    ego_body_from_params,
+    estimate_lidar_model,
+    lidar_model_from_params,
+)
 from weatheralign.viz import bev_figure, camera_mosaic
 from weatheralign.world.dataset import claim_dataroot, finalize, sample_jobs
 

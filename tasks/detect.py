@@ -9,8 +9,7 @@ from prefect import task
 from prefect.cache_policies import NO_CACHE
 
 from weatheralign.detect.evaluate import seed_block_bootstrap
-from weatheralign.detect.protocol import (PredictJob, TrainJob, detections_to_arrays, run_predict_job,
-                                          run_train_job)
+from weatheralign.detect.protocol import PredictJob, TrainJob, detections_to_arrays, run_predict_job, run_train_job
 
 
 @task(name="detect-train", cache_policy=NO_CACHE, retries=0)

@@ -196,7 +196,7 @@ class StageTracker:
         self.base_tags: dict[str, str] = {}
         self._t0 = time.time()
 
-    def __enter__(self) -> "StageTracker":
+    def __enter__(self) -> StageTracker:
         self.reports.mkdir(parents=True, exist_ok=True)
         if not self.params.tracking.enabled:
             return self
@@ -268,7 +268,7 @@ class StageTracker:
         log_metrics(self.client, self.run_id, numeric)
         self.client.log_artifact(self.run_id, str(self.reports / "metrics.json"))
 
-    def child(self, name: str, tags: dict[str, str]) -> "ChildRun":
+    def child(self, name: str, tags: dict[str, str]) -> ChildRun:
         """A nested MLflow run under this stage's run (one condition, training, evaluation or comparison) with the
         stage run's tags overridden by ``tags`` (e.g. ``kind``, ``model``, ``weather``, ``alignment``)."""
         if self.client is None:
@@ -330,7 +330,7 @@ class ChildRun:
         if self.client is not None:
             self.client.set_terminated(self.run_id, "FAILED" if failed else "FINISHED")
 
-    def __enter__(self) -> "ChildRun":
+    def __enter__(self) -> ChildRun:
         return self
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:

@@ -8,10 +8,15 @@ from prefect.cache_policies import NO_CACHE
 
 from weatheralign.conditions import Condition
 from weatheralign.reference import ReferenceDataset
-from weatheralign.sensors import LidarModel
 from weatheralign.reference.frames import reference_frame
-from weatheralign.verify.frames import (Severity, SimulatedPair, displaced_particle_channels, frame_fused_input,
-                                        simulated_pair)
+from weatheralign.sensors import LidarModel
+from weatheralign.verify.frames import (
+    Severity,
+    SimulatedPair,
+    displaced_particle_channels,
+    frame_fused_input,
+    simulated_pair,
+)
 
 
 @task(name="reference-frame", cache_policy=NO_CACHE, retries=0)

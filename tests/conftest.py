@@ -45,7 +45,7 @@ def tiny_world(tmp_path_factory: pytest.TempPathFactory) -> TinyWorld:
     return TinyWorld(params, dataroot, results, summary)
 
 
-def make_lidar(**overrides: object) -> "LidarModel":
+def make_lidar(**overrides: object) -> LidarModel:
     """An HDL-32E-like `LidarModel` for physics tests: 3 mrad divergence, τ_H = 10 ns, 120 m, noise floor 0.5 on
     0..255, a noise-free detector (the published models have none), the synthetic world's intensity model and firing
     grid (1085 columns, per-point columns stored). ``overrides``: any `LidarModel` field; ``pulse_half_width_s`` /

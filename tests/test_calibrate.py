@@ -17,6 +17,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 from scipy.stats import ks_2samp
 
+from tests.conftest import make_lidar
 from weatheralign.calibrate.camera import (
     aggregate_severity,
     camera_visibility_ratio,
@@ -47,8 +48,6 @@ from weatheralign.data.frame import LidarScan
 from weatheralign.lidar.fog import simulate_fog
 from weatheralign.medium.fog import paper_beta_grid
 from weatheralign.sensors import LidarModel, PulseSensor
-
-from tests.conftest import make_lidar
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 STF_ID = "2019-09-11_19-13-44_00960"
@@ -187,7 +186,8 @@ def _foggy_reference(scans: list[LidarScan], alpha: float, factor: float) -> Int
     """The 'real' fog: simulate_fog with the sensor's range noise on the fog echoes."""
     beta = beta_from_factor(alpha, factor)
     return IntensityHistograms.from_scans(
-        simulate_fog(s, alpha, beta, lidar=make_lidar(pulse=SENSOR, noise_floor=0.5, range_noise_std_m=0.05)).apply_to(s) for s in scans)
+        simulate_fog(s, alpha, beta, lidar=make_lidar(pulse=SENSOR, noise_floor=0.5, range_noise_std_m=0.05))
+        .apply_to(s) for s in scans)
 
 
 def test_simulated_histograms_equal_binned_simulate_fog_with_beam_origins():
@@ -197,7 +197,8 @@ def test_simulated_histograms_equal_binned_simulate_fog_with_beam_origins():
     for alpha, beta in [(0.02, 1e-4), (0.08, 1.2e-3), (0.005, 2e-5)]:
         fast = simulated_histograms(frames, alpha, beta, noise_floor=0.5, sensor=SENSOR)
         full = IntensityHistograms.from_scans(
-            simulate_fog(s, alpha, beta, lidar=make_lidar(pulse=SENSOR, noise_floor=0.5, range_noise_std_m=0.05)).apply_to(s) for s in scans)
+            simulate_fog(s, alpha, beta, lidar=make_lidar(pulse=SENSOR, noise_floor=0.5, range_noise_std_m=0.05))
+            .apply_to(s) for s in scans)
         assert fast == full  # the fog's randomness never changes an intensity
     lost = simulated_histograms(frames, 0.1, 0.0, noise_floor=5.0, sensor=SENSOR)
     assert lost.num_points < frames.num_points  # LOST returns leave the histogram

@@ -143,7 +143,8 @@ def test_empty_file_or_missing_section_is_refused(tmp_path):
         load_params(partial)
     msg = str(err.value)
     assert msg.startswith(f"{partial}: missing sections paths, run, tracking, particles, simulate, reference, "
-                          f"calibrate_fog, calibrate_precipitation, detect, verify: a params file must hold every section")
+                          f"calibrate_fog, calibrate_precipitation, detect, verify: "
+                          f"a params file must hold every section")
     # one section short: named alone; --set cannot stand in for it (overrides are for keys)
     f = _params_file(tmp_path, "calibrate_fog:", "calibrate_fog_old:")
     for overrides in ([], ["calibrate_fog.device=cpu"]):

@@ -11,11 +11,31 @@ import numpy as np
 import pytest
 import torch
 
-from weatheralign.detect.head import (BevGrid, HeadOutputs, NUM_ATTRIBUTES, decode_detections, encode_targets,
-                                      valid_attribute_mask)
-from weatheralign.detect.model import (BEVFusionDetector, DepthBins, DetectorConfig, PillarEncoder, bev_cell_indices,
-                                       bev_max_pool, count_parameters, depth_loss, depth_targets, frustum_points,
-                                       lift_splat, modality_masks, project_depth_hint, project_into_cells, train_step)
+from weatheralign.detect.head import (
+    NUM_ATTRIBUTES,
+    BevGrid,
+    HeadOutputs,
+    decode_detections,
+    encode_targets,
+    valid_attribute_mask,
+)
+from weatheralign.detect.model import (
+    BEVFusionDetector,
+    DepthBins,
+    DetectorConfig,
+    PillarEncoder,
+    bev_cell_indices,
+    bev_max_pool,
+    count_parameters,
+    depth_loss,
+    depth_targets,
+    frustum_points,
+    lift_splat,
+    modality_masks,
+    project_depth_hint,
+    project_into_cells,
+    train_step,
+)
 from weatheralign.detect.types import ATTRIBUTES, DETECTION_CLASSES, DetectionBatch, SampleDetections
 
 CLS = {name: k for k, name in enumerate(DETECTION_CLASSES)}

@@ -13,17 +13,17 @@ from pathlib import Path
 
 import pytest
 
+from flows.detect import camera_weather_set
 from weatheralign.conditions import CONDITIONS, variant_name
 from weatheralign.data.nuscenes import load_frame, open_nuscenes
 from weatheralign.manifest import DatasetManifest, dataset_digest, manifest_path, write_manifest
 from weatheralign.sensors import SensorRig, camera_models, lidar_model_from_params
 
-from flows.detect import camera_weather_set
-
 from .conftest import HANG_GUARD_S, REPO, write_params_file
 
-DETECT = {"finetune_conditions": ["snow"], "seeds": [0, 1], "image_size": [32, 64], "batch_size": 1, "pretrain_steps": 4,
-          "finetune_steps": 2, "eval_every": 2, "num_bootstrap": 10, "score_threshold": 0.0, "max_detections": 50}
+DETECT = {"finetune_conditions": ["snow"], "seeds": [0, 1], "image_size": [32, 64], "batch_size": 1,
+          "pretrain_steps": 4, "finetune_steps": 2, "eval_every": 2, "num_bootstrap": 10, "score_threshold": 0.0,
+          "max_detections": 50}
 
 
 def _stage_env(tiny_world, tmp: Path, root: Path, source: str):

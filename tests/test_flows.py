@@ -15,7 +15,8 @@ from flows.common import parse_stage_args
 from .conftest import REPO
 
 TINY = ["--set", "world.num_train_scenes=1", "--set", "world.num_val_scenes=1", "--set", "world.samples_per_scene=2",
-        "--set", "world.sweeps_per_sample=1", "--set", "world.camera.image_scale=0.2", "--set", "run.show_progress=false"]
+        "--set", "world.sweeps_per_sample=1", "--set", "world.camera.image_scale=0.2",
+        "--set", "run.show_progress=false"]
 
 
 def test_cli_rejects_bad_override_naming_the_key(capsys):

@@ -3,9 +3,19 @@ import json
 import numpy as np
 import pytest
 
-from weatheralign.geometry import (NonRigidTransformError, apply, camera_rotation_from_yaw, check_rigid,
-                                   interpolate_poses, invert, make_transform, project, quaternion_wxyz,
-                                   transform_from_quaternion, yaw_matrix)
+from weatheralign.geometry import (
+    NonRigidTransformError,
+    apply,
+    camera_rotation_from_yaw,
+    check_rigid,
+    interpolate_poses,
+    invert,
+    make_transform,
+    project,
+    quaternion_wxyz,
+    transform_from_quaternion,
+    yaw_matrix,
+)
 
 
 def test_quaternion_round_trip():

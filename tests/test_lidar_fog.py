@@ -19,6 +19,7 @@ from scipy.integrate import simpson
 from scipy.optimize import brentq
 from scipy.spatial.transform import Rotation
 
+from tests.conftest import make_lidar
 from weatheralign.data.frame import LidarScan
 from weatheralign.lidar import FogLabel, c_a_p0_from_intensity, hard_target_power, overlap
 from weatheralign.lidar.beams import beam_origins, point_noise_keys
@@ -32,8 +33,6 @@ from weatheralign.lidar.fog import (
 )
 from weatheralign.medium.fog import default_beta, mor_from_alpha
 from weatheralign.sensors import SPEED_OF_LIGHT, LidarModel, PulseSensor
-
-from tests.conftest import make_lidar
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 STF_ID = "2019-09-11_19-13-44_00960"

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from tests.conftest import make_lidar
 from weatheralign.data.frame import LidarScan
 from weatheralign.data.nuscenes import load_lidar, open_nuscenes
 from weatheralign.lidar.beams import Beams, beams_from_scan, reconstruct_no_return_beams, synthetic_columns
@@ -36,7 +37,6 @@ from weatheralign.lidar.particles import (
     simulate_particles,
 )
 from weatheralign.lidar.pulse import hard_target_power
-from weatheralign.medium.fog import FogMedium
 from weatheralign.medium import (
     ExponentialSizeDistribution,
     ParticleField,
@@ -45,6 +45,7 @@ from weatheralign.medium import (
     SnowSizeDistribution,
     fall_velocity,
 )
+from weatheralign.medium.fog import FogMedium
 from weatheralign.sensors import (
     CALIBRATED_INTENSITY,
     HAHNER_INTENSITY,
@@ -54,8 +55,6 @@ from weatheralign.sensors import (
     PulseSensor,
 )
 from weatheralign.world.shading import lidar_intensity
-
-from tests.conftest import make_lidar
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 STF_ID = "2019-09-11_19-13-44_00960"

@@ -18,13 +18,11 @@ import pytest
 from numba import njit
 
 from weatheralign.lidar.beams import Beams
-from weatheralign.lidar.particles.beam_index import (field_hits, index_beams, range_shells, reachable_cells,
-                                                     shell_edges)
+from weatheralign.lidar.particles.beam_index import field_hits, index_beams, range_shells, reachable_cells, shell_edges
 from weatheralign.lidar.particles.kernels import _largest_gap, _shell_of, sort_hits_kernel
 from weatheralign.lidar.particles.records import HitArrays
 from weatheralign.lidar.particles.response import _peak, _uncovered_count
 from weatheralign.medium import ExponentialSizeDistribution, ParticleField
-
 
 # ------------------------------------------------------------------------------------------ field particles and hits
 

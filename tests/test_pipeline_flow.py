@@ -64,7 +64,7 @@ def test_select_by_stage_or_matrix_entry_keeps_the_pipeline_order():
 
 @pytest.fixture()
 def api_url(tmp_path: Path):
-    from flows.api_server import ApiServer
+    from flows.prefect_server import ApiServer
 
     server = ApiServer()
     env = {"PREFECT_HOME": str(tmp_path / "prefect")}

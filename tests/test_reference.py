@@ -28,12 +28,33 @@ from weatheralign.lidar.fog import fog_intensities, fog_point_arrays, soft_targe
 from weatheralign.medium.fog import LN20
 from weatheralign.reference import check_reference, configured_reference, open_reference, reference_root
 from weatheralign.reference.camera_exact import fog_radiance
-from weatheralign.reference.lidar_exact import (FOG, TARGET, Detector, ExactSensor, bistatic_overlap, exact_returns,
-                                                fog_tables, read_out, soft_response, system_constants)
-from weatheralign.reference.synthetic import (ALPHA_GRID, MANIFEST_FILE, camera_calibration, draw_precipitation_truth,
-                                              draw_truth, finalize,
-                                              frame_specs, render_frame, render_or_resume, sealed_truth_path,
-                                              stereo_left_camera, synthetic_root, tf_tree)
+from weatheralign.reference.lidar_exact import (
+    FOG,
+    TARGET,
+    Detector,
+    ExactSensor,
+    bistatic_overlap,
+    exact_returns,
+    fog_tables,
+    read_out,
+    soft_response,
+    system_constants,
+)
+from weatheralign.reference.synthetic import (
+    ALPHA_GRID,
+    MANIFEST_FILE,
+    camera_calibration,
+    draw_precipitation_truth,
+    draw_truth,
+    finalize,
+    frame_specs,
+    render_frame,
+    render_or_resume,
+    sealed_truth_path,
+    stereo_left_camera,
+    synthetic_root,
+    tf_tree,
+)
 from weatheralign.sensors import PulseSensor
 
 from .conftest import REPO
@@ -180,7 +201,8 @@ def test_small_tree_reads_and_unit_scale_works(tmp_path):
     # the same 0..1 data declared as 0..255 is the published code's trap: refused for the whole split
     ds_wrong = open_reference(unit, FOG_SPLITS, 255.0)
     with pytest.raises(DataFormatError,
-                       match=r"rec-a_00001\.bin: every intensity of the 600 points is <= 1\.0.*declare intensity_max = 1\.0"):
+                       match=r"rec-a_00001\.bin: every intensity of the 600 points is <= 1\.0"
+                             r".*declare intensity_max = 1\.0"):
         check_reference(ds_wrong, images=False)
 
 
@@ -530,7 +552,8 @@ def test_reference_flow_writes_metrics_figure_and_resumes(tmp_path):
     assert metrics["source"] == "synthetic" and metrics["root"] == "data/reference/synthetic"
     assert metrics["frames_total"] == 10 and metrics["frames_rendered_this_run"] == 10
     assert metrics["particle_returns_per_scan"]["snow"] > 0 and metrics["particle_returns_per_scan"]["clear"] == 0
-    assert metrics["splits"]["snow"]["isolated_per_scan"] > 10 * max(1.0, metrics["splits"]["clear"]["isolated_per_scan"])
+    assert (metrics["splits"]["snow"]["isolated_per_scan"]
+            > 10 * max(1.0, metrics["splits"]["clear"]["isolated_per_scan"]))
     splits = metrics["splits"]
     assert splits["clear"]["mean_intensity"] > splits["light"]["mean_intensity"] > splits["dense"]["mean_intensity"]
     assert all(s["points_per_scan"] > 10_000 for s in splits.values())

@@ -12,11 +12,21 @@ import pytest
 from scipy.integrate import quad
 
 from weatheralign.geometry import camera_rotation_from_yaw
-from weatheralign.medium.distributions import (ExponentialSizeDistribution, RainSizeDistribution,
-                                               SnowSizeDistribution, rain_terminal_velocity)
+from weatheralign.medium.distributions import (
+    ExponentialSizeDistribution,
+    RainSizeDistribution,
+    SnowSizeDistribution,
+    rain_terminal_velocity,
+)
 from weatheralign.medium.field import ParticleField
-from weatheralign.reference.camera_particles_exact import (ParticleImage, UnresolvedMedium, particle_image,
-                                                           resolved_particles, sample_pattern, trace_particles)
+from weatheralign.reference.camera_particles_exact import (
+    ParticleImage,
+    UnresolvedMedium,
+    particle_image,
+    resolved_particles,
+    sample_pattern,
+    trace_particles,
+)
 
 CAM_HEIGHT = 1.25
 

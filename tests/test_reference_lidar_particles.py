@@ -13,10 +13,18 @@ from scipy.signal import fftconvolve
 import weatheralign.reference.lidar_particles_exact as lpe
 from weatheralign.medium.distributions import ExponentialSizeDistribution, RainSizeDistribution, SnowSizeDistribution
 from weatheralign.medium.field import ParticleField, Particles
-from weatheralign.reference.lidar_exact import FOG, TARGET, ExactSensor, bistatic_overlap, read_out, Detector
-from weatheralign.reference.lidar_particles_exact import (PARTICLE, Unresolved, beam_rotations, beam_waveform,
-                                                          particle_returns, range_shells, resolved_diameter,
-                                                          returns_from_particles, subray_directions)
+from weatheralign.reference.lidar_exact import FOG, TARGET, Detector, ExactSensor, bistatic_overlap, read_out
+from weatheralign.reference.lidar_particles_exact import (
+    PARTICLE,
+    Unresolved,
+    beam_rotations,
+    beam_waveform,
+    particle_returns,
+    range_shells,
+    resolved_diameter,
+    returns_from_particles,
+    subray_directions,
+)
 from weatheralign.sensors import SYNTHETIC_INTENSITY, IntensityModel
 
 SENSOR = ExactSensor()

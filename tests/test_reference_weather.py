@@ -15,8 +15,13 @@ from weatheralign.medium.field import ParticleField
 from weatheralign.reference.camera_particles_exact import particle_image
 from weatheralign.reference.lidar_exact import FOG, TARGET, ExactSensor
 from weatheralign.reference.lidar_particles_exact import PARTICLE, particle_returns
-from weatheralign.reference.synthetic import (draw_precipitation_truth, frame_field, frame_medium, frame_specs,
-                                              render_frame)
+from weatheralign.reference.synthetic import (
+    draw_precipitation_truth,
+    frame_field,
+    frame_medium,
+    frame_specs,
+    render_frame,
+)
 
 LIDAR_ORIGIN = np.array([0.0, 0.0, 1.95])
 T_WORLD_CAM = make_transform(camera_rotation_from_yaw(0.0), np.array([0.7, 0.0, 1.25]))
@@ -47,7 +52,8 @@ def _lidar_particles(field: ParticleField) -> np.ndarray:
 
 def _seen_fraction(ids: np.ndarray, lidar_field: ParticleField, camera_field: ParticleField) -> tuple[float, int]:
     """Share of the LiDAR's particles (in view, beyond 1 m, imaged at least 1.5 px wide) whose centre pixel the
-    camera's particles cover at least a quarter of (a disc 1.5 px wide covers >= 0.3 of the pixel holding its centre)."""
+    camera's particles cover at least a quarter of (a disc 1.5 px wide covers >= 0.3 of the pixel holding its
+    centre)."""
     J = np.full((HEIGHT, WIDTH, 3), 0.2)
     img = particle_image(J, np.full((HEIGHT, WIDTH), np.inf), K, T_WORLD_CAM, 0.0, camera_field, np.full(3, 0.9),
                          exposure_s=0.0, samples=16)
@@ -125,13 +131,13 @@ def test_fast_simulator_agrees_with_the_exact_process(kind, rate, reflectivity, 
     both keep: noise-free snow 44,674 vs 44,244, rain 48,480 vs 48,481; with the noise snow 44,628 vs 44,276, rain
     48,402 vs 48,401. Read with its strongest peak alone, the exact process would hide 962 (883 with the noise) of
     the rain's targets behind undetectable drop echoes, 158 (112) of the snow's."""
+    from weatheralign.data.rings import HDL64E_ELEVATIONS_DEG
     from weatheralign.lidar.beams import Beams
     from weatheralign.lidar.labels import WeatherLabel
     from weatheralign.lidar.particles import simulate_particles
     from weatheralign.medium.distributions import RainSizeDistribution
     from weatheralign.reference.lidar_exact import Detector, read_out
     from weatheralign.sensors import SYNTHETIC_INTENSITY, LidarModel, PulseSensor
-    from weatheralign.data.rings import HDL64E_ELEVATIONS_DEG
 
     columns = 900
     dirs = _hdl64_beams(columns)
@@ -143,7 +149,8 @@ def test_fast_simulator_agrees_with_the_exact_process(kind, rate, reflectivity, 
     has = np.isfinite(r0)
     i0 = np.where(has, 255.0 * 0.2 * np.minimum(1.0, 10.0 / np.where(has, r0, 1.0)), 0.0)
     dist = SnowSizeDistribution(rate, 1.5) if kind == "snow" else RainSizeDistribution(rate)
-    field = ParticleField(seed=5, distribution=dist, velocity=(0.0, 0.0, -1.5), cell_size=2.0 if kind == "snow" else 1.0)
+    field = ParticleField(seed=5, distribution=dist, velocity=(0.0, 0.0, -1.5),
+                          cell_size=2.0 if kind == "snow" else 1.0)
     sensor = ExactSensor()
     exact = particle_returns(origin, dirs, r0, i0, field, 0.0, reflectivity, sensor, noise_floor=1.0, sub_rays=256)
     detector = Detector() if noisy else Detector(0.0, 0.0, 1.0, 0.0)

@@ -11,8 +11,15 @@ from pathlib import Path
 import pytest
 
 from weatheralign.data.errors import DataFormatError
-from weatheralign.report import (PAPER_TABLE1, StageCost, cost_table, findings, markdown_to_html, redam_table,
-                                 reprojection_table)
+from weatheralign.report import (
+    PAPER_TABLE1,
+    StageCost,
+    cost_table,
+    findings,
+    markdown_to_html,
+    redam_table,
+    reprojection_table,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 REPORTS = REPO / "reports"
@@ -32,7 +39,8 @@ def test_findings_are_generated_from_the_intervals_noise_exceeding_first():
                                                             -0.03, -0.05, -0.01),
         "something:new": _diff("m/x", "m/y", "map", 0.5, 0.4, 0.6)}}
     out = findings(detect)
-    assert out[0] == "The camera adds to the LiDAR-only detector's clean mAP +0.049 [+0.032, +0.067] (exceeds the noise)"
+    assert out[0] == ("The camera adds to the LiDAR-only detector's clean mAP +0.049 [+0.032, +0.067] "
+                      "(exceeds the noise)")
     assert out[1] == "Finetuning on the rain mix changes the clean NDS by -0.030 [-0.050, -0.010] (exceeds the noise)"
     assert out[2] == "Map of m/x minus m/y: +0.500 [+0.400, +0.600] (exceeds the noise)"  # unknown key: generic
     assert out[3].startswith("Evaluating the pretrained detector on unaligned instead of aligned snow changes its mAP "
@@ -74,7 +82,8 @@ def test_reprojection_table_shows_the_papers_figures_beside_aligned_snow_and_rai
                                                                                               "reprojection_pairs": 0}})
     rows = table.splitlines()[2:]
     assert rows[0] == (f"| snow-aligned | 0.0003 | 0.0090 | 5 | 2.00% | 8.00% | "
-                       f"{PAPER_TABLE1['reprojection_mean_px']['snow']} / {PAPER_TABLE1['reprojection_max_px']['snow']} |")
+                       f"{PAPER_TABLE1['reprojection_mean_px']['snow']} / "
+                       f"{PAPER_TABLE1['reprojection_max_px']['snow']} |")
     assert rows[1].endswith("| — |") and rows[2].startswith("| fog_light-aligned | — | — | 0 |")
 
 
@@ -111,8 +120,8 @@ def test_html_page_is_self_contained(tmp_path: Path):
 
 @pytest.mark.skipif(not (REPORTS / "detect" / "metrics.json").is_file(), reason="no committed reports")
 def test_report_stage_on_the_committed_reports(tmp_path: Path):
-    from tests.conftest import tiny_params
     from flows.report import report_flow
+    from tests.conftest import tiny_params
 
     reports = tmp_path / "reports"
     for stage in ("world", "calibrate_fog", "simulate", "detect"):

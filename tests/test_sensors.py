@@ -12,8 +12,15 @@ import pytest
 from weatheralign.data.nuscenes import load_frame, open_nuscenes
 from weatheralign.lidar.beams import beams_from_scan, grid_no_return_beams
 from weatheralign.manifest import DatasetManifest, dataset_digest, read_manifest, write_manifest
-from weatheralign.sensors import (CameraModel, EgoBody, SensorRig, camera_models, ego_body_from_params,
-                                  estimate_lidar_model, lidar_model_from_params)
+from weatheralign.sensors import (
+    CameraModel,
+    EgoBody,
+    SensorRig,
+    camera_models,
+    ego_body_from_params,
+    estimate_lidar_model,
+    lidar_model_from_params,
+)
 from weatheralign.world.dataset import finalize, render_or_resume, sample_jobs
 
 from .conftest import SHARED_REAL, tiny_params

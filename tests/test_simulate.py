@@ -20,19 +20,44 @@ from weatheralign.camera.fog import CLIPPED, encode_srgb_u8, srgb_to_linear
 from weatheralign.conditions import CONDITIONS, ParticlePart
 from weatheralign.config import params_from_dict
 from weatheralign.data.errors import DataFormatError
-from weatheralign.data.nuscenes import (compressed_extras_relpath, load_frame, load_lidar, open_nuscenes,
-                                        read_point_extras)
+from weatheralign.data.nuscenes import (
+    compressed_extras_relpath,
+    load_frame,
+    load_lidar,
+    open_nuscenes,
+    read_point_extras,
+)
 from weatheralign.lidar import simulate_fog, simulate_particle_scans
 from weatheralign.manifest import DatasetManifest, dataset_digest, manifest_path, read_manifest, write_manifest
 from weatheralign.medium.conditions import field_spec
 from weatheralign.sensors import SensorRig, camera_models, ego_body_from_params, lidar_model_from_params
-from weatheralign.simulate.media import (ConditionMedia, SceneMedia, calibrated_fog_levels, params_fog_levels,
-                                         resolve_media)
-from weatheralign.simulate.observe import (JOINT_DRIFT_MAX_M, ObserveOptions, joint_drift_m, observe, observe_lidar,
-                                          observe_lidar_scans)
+from weatheralign.simulate.media import (
+    ConditionMedia,
+    SceneMedia,
+    calibrated_fog_levels,
+    params_fog_levels,
+    resolve_media,
+)
+from weatheralign.simulate.observe import (
+    JOINT_DRIFT_MAX_M,
+    ObserveOptions,
+    joint_drift_m,
+    observe,
+    observe_lidar,
+    observe_lidar_scans,
+)
 from weatheralign.simulate.plan import SampleJob, plan_jobs, sample_range_maps, scene_airlight
-from weatheralign.simulate.weather_copy import (copy_outputs, finalize_copy, read_weather_record, run_sample, summarise,
-                                                smallest_int_dtype, sweep_records, weather_relpath, written_list_path)
+from weatheralign.simulate.weather_copy import (
+    copy_outputs,
+    finalize_copy,
+    read_weather_record,
+    run_sample,
+    smallest_int_dtype,
+    summarise,
+    sweep_records,
+    weather_relpath,
+    written_list_path,
+)
 
 from .conftest import REPO, write_params_file
 
@@ -273,7 +298,8 @@ def test_flow_writes_copy_and_metrics(world, tmp_path):
     write_manifest(manifest_path(data, "world"), DatasetManifest(str(tw.dataroot), version, "synthetic", sensors,
                                                                  dataset_digest(tw.dataroot, version), tuple(scenes)))
     (data / "particles").mkdir(parents=True)
-    (data / "particles" / "fields.json").write_text(json.dumps({k: [f.to_dict() for f in v] for k, v in fields.items()}))
+    (data / "particles" / "fields.json").write_text(
+        json.dumps({k: [f.to_dict() for f in v] for k, v in fields.items()}))
     params = write_params_file(tmp_path / "params.yaml", {
         "paths": {"data": str(data), "reports": str(reports)},
         "tracking": {"enabled": True, "mlflow_uri": f"sqlite:///{tmp_path / 'mlflow.db'}"},
@@ -316,7 +342,8 @@ def test_flow_writes_copy_and_metrics(world, tmp_path):
     unaligned = client.search_runs([exp.experiment_id], "tags.alignment = 'unaligned'")
     assert [r.data.tags["mlflow.runName"] for r in unaligned] == ["simulate/fog_dense-unaligned"]
     tags = unaligned[0].data.tags
-    assert (tags["stage"], tags["kind"], tags["weather"], tags["severity"]) == ("simulate", "stage", "fog_dense", "dense")
+    assert ((tags["stage"], tags["kind"], tags["weather"], tags["severity"])
+            == ("simulate", "stage", "fog_dense", "dense"))
     assert unaligned[0].data.metrics["points_lost"] == metrics["points_lost"]
     assert unaligned[0].data.metrics["reprojection_pairs"] == 0
     assert [d.dataset.digest for d in unaligned[0].inputs.dataset_inputs] == [dataset_digest(tw.dataroot, version)]

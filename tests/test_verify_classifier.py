@@ -7,10 +7,16 @@ import numpy as np
 import pytest
 import torch
 
-from weatheralign.verify.classifier import (broken_pairs, ensemble_report, fused_features, held_out_split,
-                                            mismatched_pairs, train_weather_classifier)
-from weatheralign.verify.mmd import mmd_test
+from weatheralign.verify.classifier import (
+    broken_pairs,
+    ensemble_report,
+    fused_features,
+    held_out_split,
+    mismatched_pairs,
+    train_weather_classifier,
+)
 from weatheralign.verify.features import FUSED_CHANNELS
+from weatheralign.verify.mmd import mmd_test
 
 
 def toy_weather(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

@@ -1,9 +1,9 @@
 """The `verify` and `calibrate_precipitation` flows end to end on a Seeing Through Fog-layout tree with fog, snow and
-rain splits, built from the shared real frame: the clear split is the real HDL-64 scan and stereo-left image; each weather split is that frame
-through the condition's media (different particle fields per frame), written like a real recording (intensities
-rounded, PNG images). The flow reads it through ``reference.source: stf`` and must write every metric of the issue's
-list per condition, the regenerated Table 1 and the figures; the calibration must recover the rates the snow and
-rain splits were made at (3 and 60 mm/h) within its interval. Skips without ``../shared``."""
+rain splits, built from the shared real frame: the clear split is the real HDL-64 scan and stereo-left image; each
+weather split is that frame through the condition's media (different particle fields per frame), written like a real
+recording (intensities rounded, PNG images). The flow reads it through ``reference.source: stf`` and must write every
+metric of the issue's list per condition, the regenerated Table 1 and the figures; the calibration must recover the
+rates the snow and rain splits were made at (3 and 60 mm/h) within its interval. Skips without ``../shared``."""
 
 from __future__ import annotations
 

@@ -14,7 +14,7 @@ from weatheralign.conditions import CONDITIONS
 from weatheralign.config import ParticlesConfig
 from weatheralign.reference import open_reference
 from weatheralign.simulate.media import FogLevels
-from weatheralign.verify.frames import Severity, scene_media, simulated_pair, reference_fused_input
+from weatheralign.verify.frames import Severity, reference_fused_input, scene_media, simulated_pair
 
 from .conftest import REPO, make_lidar
 
@@ -65,7 +65,8 @@ def stf_reference(tmp_path_factory: pytest.TempPathFactory):
     (root / "cam_stereo_left_lut").mkdir()
     (root / "lidar_hdl64_strongest" / f"{STF_ID}.bin").write_bytes(
         (STF / f"lidar_hdl64_strongest_{STF_ID}.bin").read_bytes())
-    (root / "cam_stereo_left_lut" / f"{STF_ID}.png").write_bytes((STF / f"cam_stereo_left_lut_{STF_ID}.png").read_bytes())
+    (root / "cam_stereo_left_lut" / f"{STF_ID}.png").write_bytes(
+        (STF / f"cam_stereo_left_lut_{STF_ID}.png").read_bytes())
     return open_reference(root, {"clear": "clear.txt"}, intensity_max=255.0)
 
 
@@ -112,12 +113,12 @@ def test_unaligned_particles_misalign_rate_and_positions_and_keep_the_positions_
 
 
 def test_displaced_particle_channels_move_only_the_particle_echoes(stf_reference) -> None:
-    from weatheralign.lidar.clutter import isolated_mask
-    from weatheralign.verify.frames import displaced_particle_channels, frame_fused_input
-    from weatheralign.reference.frames import reference_frame
-    from weatheralign.simulate.observe import observe
-    from weatheralign.sensors import CameraModel, SensorRig
     from weatheralign.camera.fog import estimate_airlight
+    from weatheralign.lidar.clutter import isolated_mask
+    from weatheralign.reference.frames import reference_frame
+    from weatheralign.sensors import CameraModel, SensorRig
+    from weatheralign.simulate.observe import observe
+    from weatheralign.verify.frames import displaced_particle_channels, frame_fused_input
 
     ds = stf_reference
     frame, image, depth = reference_frame(ds, STF_ID)

@@ -9,8 +9,16 @@ import math
 import numpy as np
 import pytest
 
-from weatheralign.verify.mmd import (gaussian_kernel, median_bandwidth, mmd2_unbiased, mmd_test,
-                                     paired_mmd_difference, paired_mmd_test, pooled_kernel, standardise)
+from weatheralign.verify.mmd import (
+    gaussian_kernel,
+    median_bandwidth,
+    mmd2_unbiased,
+    mmd_test,
+    paired_mmd_difference,
+    paired_mmd_test,
+    pooled_kernel,
+    standardise,
+)
 
 
 def slow_mmd2(x: np.ndarray, y: np.ndarray, bandwidth: float) -> float:
@@ -50,7 +58,8 @@ def test_median_heuristic_and_pooled_standardisation() -> None:
     z = rng.normal(size=(30, 4))
     d = [np.linalg.norm(z[i] - z[j]) for i in range(30) for j in range(i + 1, 30)]
     assert median_bandwidth(z) == pytest.approx(float(np.median(d)), rel=1e-12)
-    a, b = standardise(np.column_stack([np.arange(4.0), np.ones(4)]), np.column_stack([np.arange(4.0, 8.0), np.ones(4)]))
+    a, b = standardise(np.column_stack([np.arange(4.0), np.ones(4)]),
+                       np.column_stack([np.arange(4.0, 8.0), np.ones(4)]))
     pooled = np.concatenate([a, b])
     assert pooled[:, 0].mean() == pytest.approx(0.0) and pooled[:, 0].std() == pytest.approx(1.0)
     assert (pooled[:, 1] == 0).all()  # a constant dimension stays 0

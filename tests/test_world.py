@@ -14,9 +14,9 @@ import pytest
 from weatheralign.data.nuscenes import CAMERA_CHANNELS, extras_relpath, load_frame, open_nuscenes
 from weatheralign.data.rings import HDL32E_ELEVATIONS_DEG
 from weatheralign.geometry import apply, invert, project
+from weatheralign.sensors import ego_body_from_params
 from weatheralign.world.build import SWEEP_PERIOD_US, render_sample, scene_specs
 from weatheralign.world.dataset import finalize, render_or_resume, sample_jobs
-from weatheralign.sensors import ego_body_from_params
 from weatheralign.world.raycast import WorldRaycaster
 from weatheralign.world.rig import make_cameras
 
@@ -137,7 +137,8 @@ def test_every_lidar_point_lands_on_the_camera_depth(tiny_world, nusc, layouts):
         caster = WorldRaycaster(layout)
         frame = load_frame(nusc, sample["token"])
         scan = frame.lidar
-        extras = np.load(tiny_world.dataroot / extras_relpath(nusc.get("sample_data", sample["data"]["LIDAR_TOP"])["filename"]))
+        extras = np.load(tiny_world.dataroot
+                         / extras_relpath(nusc.get("sample_data", sample["data"]["LIDAR_TOP"])["filename"]))
         p_global = apply(scan.T_global_lidar, scan.points[:, :3])  # where each beam hit, at its firing time
         fire_t = scan.point_times()
         velocity = np.zeros((len(p_global), 3))

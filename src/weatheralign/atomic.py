@@ -17,7 +17,6 @@ from typing import Any
 
 import numpy as np
 
-
 TEMPORARY_NAME = re.compile(r"^\.(?P<target>.+)\.[a-z0-9_]{8}\.tmp$")
 """The name of an `atomic_path` temporary: ``.<target name>.<8 random characters>.tmp`` (`tempfile.mkstemp`'s)."""
 
@@ -111,9 +110,9 @@ def save_npy(path: str | Path, array: np.ndarray) -> None:
 
 def save_npz(path: str | Path, arrays: dict[str, np.ndarray], compress: bool) -> None:
     """The ``arrays`` as an ``.npz`` (one member per name, in order), deflate-compressed with ``compress`` (level 1:
-    within 2 % of level 6's size on per-point records at a third of the time) or stored (15x faster to write and 3.5x
-    to read, for caches read often), atomically and byte-identical for identical arrays: every zip member carries a
-    fixed date (``np.savez`` stamps the current time)."""
+    within 2 % of level 6's size on per-point records for much less compression work) or stored (no deflate work to
+    write or to read, for caches read often), atomically and byte-identical for identical arrays: every zip member
+    carries a fixed date (``np.savez`` stamps the current time)."""
     import io
     import zipfile
 

@@ -117,7 +117,7 @@ class Condition:
         """The inputs this condition uses: ``fog_levels`` and/or ``fields``."""
         return tuple(m for m, part in (("fog_levels", self.fog), ("fields", self.particles)) if part is not None)
 
-    def with_rain_appearance(self, appearance: str) -> "Condition":
+    def with_rain_appearance(self, appearance: str) -> Condition:
         """The condition with rain drawn as ``appearance`` (one of `RAIN_APPEARANCES`), unchanged for any other
         particle kind."""
         if self.particles is None or self.particles.kind != "rain":

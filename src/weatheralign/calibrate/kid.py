@@ -22,7 +22,7 @@ The resize is ``torch.nn.functional.interpolate(mode="bilinear", antialias=True)
 for it: its antialiasing is a different filter (a Gaussian pre-blur, σ = (f - 1) / 2 for a downscale factor f,
 truncated at ±2σ, then plain bilinear sampling); measured on the Seeing Through Fog / KITTI sample images and
 procedural street images, it moves the EfficientNet-Lite0 features by 6-12 % (relative L2) against the PIL-equivalent
-resize, and it is ~12x slower on the CPU (Gaussian convolution at full resolution).
+resize, and it costs more on the CPU (a Gaussian convolution at full resolution before the resampling).
 
 KID (Binkowski et al. 2018): the unbiased estimator of MMD² with the cubic polynomial kernel
 ``k(x, y) = (x·y / d + 1)³`` (d = feature dimension), averaged over random subsets: ``num_subsets`` times, draw

@@ -8,15 +8,15 @@ Simulation. The per-point intensity outcome of `weatheralign.lidar.fog.simulate_
 range from its **beam origin** and its clear intensity (hard attenuation ``exp(-2 α R_0) i_0`` vs the fog echo), on
 the scan's intensity scale, the pulse sensor and the detector **noise floor** (LOST returns are removed from the
 cloud, so they leave the histogram). `fog_frames` therefore reduces the clear scans once to ``(R_0, i_0)`` per point
-(origins from `weatheralign.lidar.beams.beam_origins`, as `simulate_fog` does) and `simulated_histograms` runs the public
-`fog_intensities` on them, casts to float32 (the point-cloud dtype) and bins: the histograms are identical to binning
-``simulate_fog(scan, α, β, lidar=...).points[:, 3]`` with the same pulse and floor (tested). The fog model's randomness is
-the detector's: the range jitter of fog echoes, which never changes an intensity, and the intensity noise of each
-reading (`weatheralign.lidar.fog.fog_intensities`), whose normals are drawn once per point from its beam's noise
+(origins from `weatheralign.lidar.beams.beam_origins`, as `simulate_fog` does) and `simulated_histograms` runs the
+public `fog_intensities` on them, casts to float32 (the point-cloud dtype) and bins: the histograms are identical to
+binning ``simulate_fog(scan, α, β, lidar=...).points[:, 3]`` with the same pulse and floor (tested). The fog model's
+randomness is the detector's: the range jitter of fog echoes, which never changes an intensity, and the intensity noise
+of each reading (`weatheralign.lidar.fog.fog_intensities`), whose normals are drawn once per point from its beam's noise
 stream (`FogFrames.normals`, the same draws as `simulate_fog`): every ``(α, β)`` is evaluated on the same normals
-(common random numbers), so the objective is a deterministic function of ``(α, β)`` and no seed enters the search.
-The noise floor and pulse must be the reference LiDAR's (`weatheralign.reference.reference_lidar_model`), hence
-required arguments, and so must its intensity noise (`fog_frames`' ``noise_std`` / ``noise_rel``).
+(common random numbers), so the objective is a deterministic function of ``(α, β)`` and no seed enters the search. The
+noise floor and pulse must be the reference LiDAR's (`weatheralign.reference.reference_lidar_model`), hence required
+arguments, and so must its intensity noise (`fog_frames`' ``noise_std`` / ``noise_rel``).
 
 Search (`calibrate_level`):
 1. the paper's grid (`PAPER_ALPHAS` x `PAPER_BETA_FACTORS`, ``β = 0.023·factor/MOR``, ``MOR = ln 20 / α``), one
@@ -37,10 +37,10 @@ Search (`calibrate_level`):
    fine-grid node);
 3. D_KS at ``(α*, β*)`` with a frame-bootstrap interval (`bootstrap_ks`).
 
-Cost: one cell on 30 STF-sized scans (3.3 M points) ~0.04-0.07 s on one core; the whole level (48 cells, 77 fine
-points, <= 60 Nelder-Mead steps, 1000 bootstrap resamples) ~8 s. β has no effect where no point becomes a fog echo
-(light fog: at α = 0.005 fog only wins beyond ~140 m, past the sensor's range): the KS surface is then flat along
-β and β* is not identified - `LevelCalibration.beta_identified` tells.
+Cost: an evaluation is one `fog_intensities` pass and one binning over the reduced points (no scan is re-read or
+re-simulated); a level takes 48 cells, 77 fine points, <= 60 Nelder-Mead steps and 1000 bootstrap resamples. β has no
+effect where no point becomes a fog echo (light fog: at α = 0.005 fog only wins beyond ~140 m, past the sensor's range):
+the KS surface is then flat along β and β* is not identified - `LevelCalibration.beta_identified` tells.
 """
 
 from __future__ import annotations
@@ -64,11 +64,10 @@ from weatheralign.calibrate.histograms import (
     ks_statistic,
 )
 from weatheralign.data.frame import LidarScan
-from weatheralign.lidar.beams import beam_origins
-from weatheralign.lidar.beams import point_noise_keys
+from weatheralign.lidar.beams import beam_origins, point_noise_keys
 from weatheralign.lidar.fog import FogLabel, fog_intensities, intensity_normals, soft_target_response
-from weatheralign.sensors import PulseSensor
 from weatheralign.medium.fog import LN20, PAPER_BETA_FACTORS, mor_from_alpha
+from weatheralign.sensors import PulseSensor
 
 F64 = NDArray[np.float64]
 
@@ -167,8 +166,8 @@ def fog_frames(scans: Iterable[LidarScan], *, noise_std: float = 0.0, noise_rel:
     intensity noise ``noise_std`` (0..255 scale) and ``noise_rel`` (the sensor's ``intensity_noise_std`` /
     ``intensity_noise_rel``).
 
-    Each point's range is taken from its own beam origin (`weatheralign.lidar.beams.beam_origins`: a moving ego's sensor moves during
-    the sweep; None -> the frame origin), exactly as `simulate_fog` computes it, and so is its noise
+    Each point's range is taken from its own beam origin (`weatheralign.lidar.beams.beam_origins`: a moving ego's sensor
+    moves during the sweep; None -> the frame origin), exactly as `simulate_fog` computes it, and so is its noise
     (`weatheralign.lidar.beams.point_noise_keys`).
 
     Raises:
@@ -247,8 +246,8 @@ def simulated_histograms(
     """Per-frame intensity histograms of the clear ``frames`` fogged with ``(alpha, beta)``.
 
     Equal to binning ``simulate_fog(scan, alpha, beta, lidar=<pulse sensor, floor noise_floor, the frames' intensity
-    noise>).points[:, 3]`` of every scan (any range noise). ~0.1 s for 3.3 M points; releases the GIL (numba), so
-    cells run in parallel threads.
+    noise>).points[:, 3]`` of every scan (any range noise). Releases the GIL (numba), so cells run in parallel
+    threads.
 
     Args:
         frames: clear scans (`fog_frames`).
@@ -326,7 +325,7 @@ class GridResult:
 
     @classmethod
     def from_cells(cls, cells: Iterable[CellResult], alphas: Sequence[float] = PAPER_ALPHAS,
-                   beta_factors: Sequence[float] = PAPER_BETA_FACTORS) -> "GridResult":
+                   beta_factors: Sequence[float] = PAPER_BETA_FACTORS) -> GridResult:
         """Assemble mapped `evaluate_cell` results (any order); every grid cell must be present exactly once."""
         a = _check_axis(alphas, "alphas", True)
         b = _check_axis(beta_factors, "beta_factors", False)

@@ -143,4 +143,5 @@ def fit_rate(reference: NDArray, simulated: NDArray, rates: Sequence[float], *, 
                    tuple(float(r) for r in rates))
 
 
-__all__ = ["EXTRAPOLATION", "RateFit", "fit_rate", "open_path_echo_rate", "reference_statistics", "simulated_statistics"]
+__all__ = ["EXTRAPOLATION", "RateFit", "fit_rate", "open_path_echo_rate", "reference_statistics",
+           "simulated_statistics"]

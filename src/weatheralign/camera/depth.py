@@ -52,8 +52,7 @@ and the image, 0.5 for the morphological fill / refined edges, 0.25 for upward c
 Accuracy and cost (`benchmarks/bench_depth.py`: 12 samples x 6 cameras of the synthetic world, 1600 x 900, against
 the exact ray length, the ego's body from its geometry, after `consistent_sky`): AbsRel 0.029 with the keyframe alone,
 0.028 with 3 HDL-32E sweeps (0.18 / 0.17 within 10 px of depth edges); 95 % of the true sky is inf, 0.33 % of the
-structure is taken for sky; ~0.32 s per image on 2 shared CPU cores (morphological fill 0.10 s, triangles 0.05 s,
-refinement ~0.05-0.1 s).
+structure is taken for sky. The same benchmark times the completion (CPU and wall seconds per camera).
 
 `benchmarks/bench_depth.py` measures the whole image against the world's exact range maps (depth near edges, sky,
 the dense-fog halo, seams between neighbouring cameras; `reports/benchmarks/depth.json`).
@@ -1097,7 +1096,7 @@ def dense_depth(
 
     Returns:
         `DenseDepth`: ``range`` (H, W) float32 ray length [m], inf = sky, plus confidence/validity/sky masks.
-        About 0.35 s per 1600 x 900 image on 2 shared cores (3 HDL-32E sweeps; printed by the tests).
+        `benchmarks/bench_depth.py` measures its time per camera.
 
     Raises:
         ValueError: fewer than 3 LiDAR points in the image; a point array without ``T_ego_lidar`` or top elevation.
@@ -1142,11 +1141,9 @@ def consistent_sky(views: Mapping[str, CameraView], ranges: Mapping[str, F32]) -
     they agree: a sky pixel of one camera whose viewing direction (rotation only: the cameras' baselines are
     negligible against sky and far surfaces) another camera sees as a surface takes that camera's ray length there.
     Each camera completes its depth alone, so the image cues could call the same facade sky in one camera and not in
-    its neighbour: a seam of white sky against fogged structure. Measured on the synthetic world's six cameras with 3
-    sweeps (`benchmarks.bench_depth`): sky disagreement between neighbours 1.16 % -> 0 of their shared pixels,
-    structure taken for sky 0.66 % -> 0.55 %, at the cost of true sky given a surface 3.1 % -> 4.6 % (measured before
-    `image_sky` counted a region's contact with every ring below it: now 0.33 % and 4.6 %). Decisions use the input
-    maps (order-independent); the inputs are not modified."""
+    its neighbour: a seam of white sky against fogged structure. Agreement removes those seams and takes less structure
+    for sky, at the cost of some true sky given a surface (`benchmarks.bench_depth` measures all three on the synthetic
+    world's six cameras). Decisions use the input maps (order-independent); the inputs are not modified."""
     out = {ch: np.array(r, dtype=np.float32, copy=True) for ch, r in ranges.items()}
     for a, view_a in views.items():
         sky_v, sky_u = np.nonzero(np.isposinf(ranges[a]))

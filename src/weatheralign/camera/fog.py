@@ -20,10 +20,10 @@ using the clear image as guide (window 41, ``eps = 1e-3`` on the [0, 1] sRGB gui
 removes depth noise and holes. The filter is the colour-guide version computed with OpenCV box filters on the
 coefficients at half the resolution (the "fast guided filter", He & Sun 2015; a quarter was measured to bias the
 camera fog-severity estimate on small images by 12 %); `composite_image` then upsamples the coefficients, applies
-them, composites and encodes in one compiled pass per image (38 ms at 1600 x 900 on one core instead of 150 ms of
-numpy passes; within 1 code value of the numpy composition of the same filter, mean 0.02 code values from the exact
-full-resolution filter). ``kornia.filters.guided_blur`` was measured at 4-10 s per
-1600 x 900 image on 2 CPU cores and is not used.
+them, composites and encodes in one compiled pass per image (instead of several full-image numpy passes; within 1
+code value of the numpy composition of the same filter, mean 0.02 code values from the exact full-resolution filter).
+``kornia.filters.guided_blur`` is not used: on the CPU it is far slower than this compiled pass
+(`benchmarks/bench_camera.py` measures the camera path).
 """
 
 from __future__ import annotations

@@ -169,7 +169,8 @@ class CameraView:
         rgb = read_rgb_image(self.image_path, f"{self.channel} image")
         if rgb.shape[:2] != (self.height, self.width):
             raise DataFormatError(
-                f"{self.image_path}: image is {rgb.shape[1]}x{rgb.shape[0]}, calibration says {self.width}x{self.height}"
+                f"{self.image_path}: image is {rgb.shape[1]}x{rgb.shape[0]}, "
+                f"calibration says {self.width}x{self.height}"
             )
         return rgb
 

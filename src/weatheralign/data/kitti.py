@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+
 from weatheralign.data.errors import DataFormatError, read_float32_records, require_file, validate_scan
 from weatheralign.data.frame import CameraView, Frame, LidarScan, read_image_size
 from weatheralign.data.rings import HDL64E_ELEVATIONS_DEG, rings_from_elevation

@@ -12,9 +12,10 @@ import io
 import json
 import math
 import zipfile
+from collections.abc import Callable
 from contextlib import redirect_stdout
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -159,49 +160,49 @@ def check_tables(dataroot: str | Path, version: str) -> None:
 # ------------------------------------------------------------------------------------------------ record access
 
 _Check = tuple[Callable[[Any], bool], str]
-_STRING: _Check = (lambda v: isinstance(v, str), "a string")
+IS_STRING: _Check = (lambda v: isinstance(v, str), "a string")
 _TOKEN_OR_EMPTY: _Check = (lambda v: v is None or isinstance(v, str), "a token string ('' for none)")
 _TIMESTAMP: _Check = (lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v),
                       "a finite timestamp [microseconds]")
 _PIXELS: _Check = (lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
                    and v == int(v) and v > 0, "a positive whole number of pixels")
-_LIST: _Check = (lambda v: isinstance(v, list), "a JSON list")
-_COUNT: _Check = (lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+IS_LIST: _Check = (lambda v: isinstance(v, list), "a JSON list")
+IS_COUNT: _Check = (lambda v: isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
                   and v == int(v) and v >= 0, "a non-negative integer")
 
 
-def _table_path(nusc: NuScenes, table: str) -> Path:
+def table_path(nusc: NuScenes, table: str) -> Path:
     return Path(nusc.table_root) / f"{table}.json"
 
 
-def _get(nusc: NuScenes, table: str, token: Any, referrer: str) -> dict:
+def checked_get(nusc: NuScenes, table: str, token: Any, referrer: str) -> dict:
     """``nusc.get(table, token)``, or an error naming the table, the token and who refers to it."""
     try:
         return nusc.get(table, token)
     except (KeyError, TypeError):
-        raise DataFormatError(f"{_table_path(nusc, table)}: no {table} record with token {token!r} (referenced by "
+        raise DataFormatError(f"{table_path(nusc, table)}: no {table} record with token {token!r} (referenced by "
                               f"{referrer})") from None
 
 
-def _field(nusc: NuScenes, table: str, record: dict, key: str, check: _Check | None = None) -> Any:
+def checked_field(nusc: NuScenes, table: str, record: dict, key: str, check: _Check | None = None) -> Any:
     """``record[key]``, or an error naming the table, the record's token and the missing or malformed field."""
     if key not in record:
-        raise DataFormatError(f"{_table_path(nusc, table)}: {table} {record.get('token', '?')}: missing field {key!r}")
+        raise DataFormatError(f"{table_path(nusc, table)}: {table} {record.get('token', '?')}: missing field {key!r}")
     value = record[key]
     if check is not None and not check[0](value):
-        raise DataFormatError(f"{_table_path(nusc, table)}: {table} {record.get('token', '?')}: field {key!r} = "
+        raise DataFormatError(f"{table_path(nusc, table)}: {table} {record.get('token', '?')}: field {key!r} = "
                               f"{value!r}; expected {check[1]}")
     return value
 
 
-def _vector(nusc: NuScenes, table: str, record: dict, key: str, n: int) -> NDArray[np.float64]:
-    value = _field(nusc, table, record, key)
+def checked_vector(nusc: NuScenes, table: str, record: dict, key: str, n: int) -> NDArray[np.float64]:
+    value = checked_field(nusc, table, record, key)
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError):
         arr = np.full(0, np.nan)
     if arr.shape != (n,) or not np.isfinite(arr).all():
-        raise DataFormatError(f"{_table_path(nusc, table)}: {table} {record.get('token', '?')}: field {key!r} = "
+        raise DataFormatError(f"{table_path(nusc, table)}: {table} {record.get('token', '?')}: field {key!r} = "
                               f"{value!r}; expected {n} finite numbers")
     return arr
 
@@ -285,14 +286,14 @@ def read_record_file(path: Path) -> NDArray:
 
 def _pose_record(nusc: NuScenes, sd: dict, table: str, key: str) -> tuple[dict, str]:
     """The ``calibrated_sensor`` / ``ego_pose`` record of ``sd`` and the label its transform's errors carry."""
-    token = _field(nusc, "sample_data", sd, key, _STRING)
-    record = _get(nusc, table, token, f"sample_data {sd['token']}.{key}")
-    return record, f"{table} of {sd['filename']} ({_table_path(nusc, table)}, token {token})"
+    token = checked_field(nusc, "sample_data", sd, key, IS_STRING)
+    record = checked_get(nusc, table, token, f"sample_data {sd['token']}.{key}")
+    return record, f"{table} of {sd['filename']} ({table_path(nusc, table)}, token {token})"
 
 
 def _read_scan(nusc: NuScenes, sd: dict) -> tuple[NDArray[np.float32], NDArray[np.float32], NDArray, NDArray]:
     root = Path(nusc.dataroot)
-    filename = _field(nusc, "sample_data", sd, "filename", _STRING)
+    filename = checked_field(nusc, "sample_data", sd, "filename", IS_STRING)
     path = resolve_inside(root, filename, f"sample_data {sd['token']}")
     points = read_float32_records(path, 5)
     validate_scan(points, path, intensity_max=NUSCENES_INTENSITY_MAX, num_rings=NUSCENES_NUM_RINGS,
@@ -333,21 +334,21 @@ def load_lidar(nusc: NuScenes, sample_data_token: str, nsweeps: int = 1) -> Lida
     """
     if nsweeps < 1:
         raise ValueError(f"nsweeps must be >= 1, got {nsweeps}")
-    sd = _get(nusc, "sample_data", sample_data_token, "load_lidar")
+    sd = checked_get(nusc, "sample_data", sample_data_token, "load_lidar")
     points, offsets, T_ego_lidar, T_global_ego = _read_scan(nusc, sd)
-    t_ref = _field(nusc, "sample_data", sd, "timestamp", _TIMESTAMP) * 1e-6
+    t_ref = checked_field(nusc, "sample_data", sd, "timestamp", _TIMESTAMP) * 1e-6
     T_lidar_global = invert(T_global_ego @ T_ego_lidar)
     all_pts, all_off, all_idx = [points], [offsets], [np.zeros(len(points), np.int16)]
     pose_times, poses = [t_ref], [T_global_ego]
     cur = sd
     for k in range(1, nsweeps + 1):
-        prev = _field(nusc, "sample_data", cur, "prev", _TOKEN_OR_EMPTY)
+        prev = checked_field(nusc, "sample_data", cur, "prev", _TOKEN_OR_EMPTY)
         if not prev:
             break
-        cur = _get(nusc, "sample_data", prev, f"sample_data {cur['token']}.prev")
-        pose_times.insert(0, _field(nusc, "sample_data", cur, "timestamp", _TIMESTAMP) * 1e-6)
+        cur = checked_get(nusc, "sample_data", prev, f"sample_data {cur['token']}.prev")
+        pose_times.insert(0, checked_field(nusc, "sample_data", cur, "timestamp", _TIMESTAMP) * 1e-6)
         if k >= nsweeps:  # only its pose is needed, for per-point poses within the oldest sweep
-            _field(nusc, "sample_data", cur, "filename", _STRING)
+            checked_field(nusc, "sample_data", cur, "filename", IS_STRING)
             poses.insert(0, _transform(*_pose_record(nusc, cur, "ego_pose", "ego_pose_token")))
             break
         p_k, off_k, T_el_k, T_ge_k = _read_scan(nusc, cur)
@@ -372,9 +373,9 @@ def load_camera(nusc: NuScenes, sample_data_token: str) -> CameraView:
         DataFormatError: a missing image file, or a missing or malformed table record or field (naming the table,
             the token and the field).
     """
-    sd = _get(nusc, "sample_data", sample_data_token, "load_camera")
+    sd = checked_get(nusc, "sample_data", sample_data_token, "load_camera")
     root = Path(nusc.dataroot)
-    filename = _field(nusc, "sample_data", sd, "filename", _STRING)
+    filename = checked_field(nusc, "sample_data", sd, "filename", IS_STRING)
     path = resolve_inside(root, filename, f"sample_data {sd['token']}")
     if not path.is_file():
         raise DataFormatError(f"sample_data {sd['token']}: missing sensor file {path}")
@@ -386,12 +387,12 @@ def load_camera(nusc: NuScenes, sample_data_token: str) -> CameraView:
     if K.shape != (3, 3) or not np.isfinite(K).all():
         detail = "" if K.shape != (3, 3) else " with NaN/inf"
         raise DataFormatError(f"calibrated_sensor {cs['token']}: camera_intrinsic must be 3x3, got shape {K.shape}"
-                              f"{detail} ({_table_path(nusc, 'calibrated_sensor')})")
+                              f"{detail} ({table_path(nusc, 'calibrated_sensor')})")
     channel = path.parent.name
     rng_file = root / extras_relpath(filename)
-    width = int(_field(nusc, "sample_data", sd, "width", _PIXELS))
-    height = int(_field(nusc, "sample_data", sd, "height", _PIXELS))
-    timestamp = _field(nusc, "sample_data", sd, "timestamp", _TIMESTAMP) * 1e-6
+    width = int(checked_field(nusc, "sample_data", sd, "width", _PIXELS))
+    height = int(checked_field(nusc, "sample_data", sd, "height", _PIXELS))
+    timestamp = checked_field(nusc, "sample_data", sd, "timestamp", _TIMESTAMP) * 1e-6
     return CameraView(channel=channel, image_path=path, K=K, width=width, height=height,
                       T_ego_cam=_transform(cs, cs_what),
                       T_global_ego=_transform(*_pose_record(nusc, sd, "ego_pose", "ego_pose_token")),
@@ -399,28 +400,29 @@ def load_camera(nusc: NuScenes, sample_data_token: str) -> CameraView:
 
 
 def _box(nusc: NuScenes, ann_token: str, sample_token: str) -> Box:
-    ann = _get(nusc, "sample_annotation", ann_token, f"sample {sample_token}")
+    ann = checked_get(nusc, "sample_annotation", ann_token, f"sample {sample_token}")
     table = "sample_annotation"
-    inst_token = _field(nusc, table, ann, "instance_token", _STRING)
-    inst = _get(nusc, "instance", inst_token, f"sample_annotation {ann_token}.instance_token")
-    cat = _get(nusc, "category", _field(nusc, "instance", inst, "category_token", _STRING),
-               f"instance {inst_token}.category_token")
-    category = _field(nusc, "category", cat, "name", _STRING)
-    attrs = [_field(nusc, "attribute", _get(nusc, "attribute", t, f"sample_annotation {ann_token}.attribute_tokens"),
-                    "name", _STRING)
-             for t in _field(nusc, table, ann, "attribute_tokens", _LIST)]
-    center = _vector(nusc, table, ann, "translation", 3)
-    size = _vector(nusc, table, ann, "size", 3)
-    q = _vector(nusc, table, ann, "rotation", 4)
+    inst_token = checked_field(nusc, table, ann, "instance_token", IS_STRING)
+    inst = checked_get(nusc, "instance", inst_token, f"sample_annotation {ann_token}.instance_token")
+    cat = checked_get(nusc, "category", checked_field(nusc, "instance", inst, "category_token", IS_STRING),
+                      f"instance {inst_token}.category_token")
+    category = checked_field(nusc, "category", cat, "name", IS_STRING)
+    attrs = [checked_field(nusc, "attribute",
+                           checked_get(nusc, "attribute", t, f"sample_annotation {ann_token}.attribute_tokens"),
+                           "name", IS_STRING)
+             for t in checked_field(nusc, table, ann, "attribute_tokens", IS_LIST)]
+    center = checked_vector(nusc, table, ann, "translation", 3)
+    size = checked_vector(nusc, table, ann, "size", 3)
+    q = checked_vector(nusc, table, ann, "rotation", 4)
     if np.linalg.norm(q) < 1e-6:
-        raise DataFormatError(f"{_table_path(nusc, table)}: {table} {ann_token}: field 'rotation' = {q.tolist()}; "
+        raise DataFormatError(f"{table_path(nusc, table)}: {table} {ann_token}: field 'rotation' = {q.tolist()}; "
                               f"expected a unit quaternion [w, x, y, z]")
-    num_lidar_pts = int(_field(nusc, table, ann, "num_lidar_pts", _COUNT))
-    visibility = _field(nusc, table, ann, "visibility_token")
+    num_lidar_pts = int(checked_field(nusc, table, ann, "num_lidar_pts", IS_COUNT))
+    visibility = checked_field(nusc, table, ann, "visibility_token")
     try:
         velocity = np.asarray(nusc.box_velocity(ann_token), float)
     except (KeyError, TypeError, ValueError, IndexError) as exc:
-        raise DataFormatError(f"{_table_path(nusc, table)}: {table} {ann_token}: cannot derive its velocity from "
+        raise DataFormatError(f"{table_path(nusc, table)}: {table} {ann_token}: cannot derive its velocity from "
                               f"its prev/next annotations ({type(exc).__name__}: {exc}); expected 'prev'/'next' "
                               f"tokens ('' for none) of annotations whose samples have timestamps") from None
     return Box(token=ann_token, instance_token=inst_token, category=category, center=center, size=size,
@@ -437,11 +439,11 @@ def load_boxes(nusc: NuScenes, sample: dict) -> tuple[Box, ...]:
     return tuple(_box(nusc, ann_token, sample["token"]) for ann_token in sample["anns"])
 
 
-def _channel_token(nusc: NuScenes, sample: dict, channel: str) -> str:
+def channel_token(nusc: NuScenes, sample: dict, channel: str) -> str:
     if channel not in sample["data"]:
         raise DataFormatError(
-            f"{_table_path(nusc, 'sample')}: sample {sample['token']}: no {channel} sample_data (no key-frame record "
-            f"of {_table_path(nusc, 'sample_data')} with this sample_token on a {channel} sensor; channels: "
+            f"{table_path(nusc, 'sample')}: sample {sample['token']}: no {channel} sample_data (no key-frame record "
+            f"of {table_path(nusc, 'sample_data')} with this sample_token on a {channel} sensor; channels: "
             f"{sorted(sample['data'])})")
     return sample["data"][channel]
 
@@ -455,9 +457,9 @@ def load_frame(nusc: NuScenes, sample_token: str, nsweeps: int = 1,
             LIDAR_TOP or a requested camera, a sample_data without ``filename``...), naming the table, the token
             and the field.
     """
-    sample = _get(nusc, "sample", sample_token, "load_frame")
-    lidar = load_lidar(nusc, _channel_token(nusc, sample, "LIDAR_TOP"), nsweeps)
-    views = {ch: load_camera(nusc, _channel_token(nusc, sample, ch)) for ch in cameras}
-    timestamp = _field(nusc, "sample", sample, "timestamp", _TIMESTAMP) * 1e-6
+    sample = checked_get(nusc, "sample", sample_token, "load_frame")
+    lidar = load_lidar(nusc, channel_token(nusc, sample, "LIDAR_TOP"), nsweeps)
+    views = {ch: load_camera(nusc, channel_token(nusc, sample, ch)) for ch in cameras}
+    timestamp = checked_field(nusc, "sample", sample, "timestamp", _TIMESTAMP) * 1e-6
     return Frame(token=sample_token, timestamp=timestamp, lidar=lidar, cameras=views,
                  boxes=load_boxes(nusc, sample), source="nuscenes")

@@ -34,17 +34,17 @@ from __future__ import annotations
 
 import json
 import re
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial.transform import Rotation
 
-from weatheralign.data.errors import (DataFormatError, read_float32_records, require_file, resolve_inside,
-                                      validate_scan)
+from weatheralign.data.errors import DataFormatError, read_float32_records, require_file, resolve_inside, validate_scan
 from weatheralign.data.frame import CameraView, Frame, LidarScan
 from weatheralign.data.kitti import image_size, intrinsics_and_offset
 from weatheralign.geometry import NonRigidTransformError, check_rigid, invert

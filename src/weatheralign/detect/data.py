@@ -24,10 +24,11 @@ import hashlib
 import json
 import math
 import time
+from collections.abc import Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -41,7 +42,12 @@ from weatheralign import atomic
 from weatheralign.data.errors import DataFormatError
 from weatheralign.data.frame import Box
 from weatheralign.data.nuscenes import (
-    TABLES, compressed_extras_relpath, extras_relpath, load_boxes, load_camera, load_lidar,
+    TABLES,
+    compressed_extras_relpath,
+    extras_relpath,
+    load_boxes,
+    load_camera,
+    load_lidar,
     open_nuscenes_cached,
 )
 from weatheralign.detect.image_features import BACKBONE_NAME, image_features
@@ -311,8 +317,8 @@ def _cache_digest(root: Path, version: str, nusc: NuScenes, tokens: Sequence[str
                   sweeps: int) -> str:
     tables = [f"{version}/{t}.json" for t in TABLES]
     files = [f for token in tokens for f in _sample_files(nusc, token, sweeps)]
-    blob = json.dumps({"cache_version": CACHE_VERSION, "backbone": BACKBONE_NAME, "dataroot": str(root.resolve()), "version": version,
-                       "tokens": list(tokens), "image_size": list(image_size), "sweeps": sweeps,
+    blob = json.dumps({"cache_version": CACHE_VERSION, "backbone": BACKBONE_NAME, "dataroot": str(root.resolve()),
+                       "version": version, "tokens": list(tokens), "image_size": list(image_size), "sweeps": sweeps,
                        "tables": file_stamps(root, tables), "files": file_stamps(root, files)})
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
@@ -745,7 +751,8 @@ def mixed_dataset(weather_ds: Dataset, clean_ds: Dataset, weather_fraction: floa
 
 
 __all__ = ["Augmentation", "CACHE_VERSION", "CAMERA_ORDER", "DEFAULT_IMAGE_SIZE", "DEFAULT_SWEEPS",
-           "DetectionDataset", "MixedDataset", "derangement", "MixedSampler", "SAMPLE_MEMBERS", "augment_boxes", "boxes_to_global",
+           "DetectionDataset", "MixedDataset", "derangement", "MixedSampler", "SAMPLE_MEMBERS", "augment_boxes",
+           "boxes_to_global",
            "boxes_to_lidar", "build_cache", "cache_path", "cache_sample", "collate", "decode_camera",
            "load_cached_sample", "mixed_dataset", "points_in_boxes", "read_index", "resize_crop_params",
            "scene_split", "seeded_generator"]

@@ -23,8 +23,9 @@ its own sample's boxes; resampling samples changes only the global order and the
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Iterable, Literal, Mapping, Sequence
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -37,7 +38,16 @@ from nuscenes.eval.detection.utils import category_to_detection_name
 from nuscenes.nuscenes import NuScenes
 
 from weatheralign.data.errors import DataFormatError
-from weatheralign.data.nuscenes import _COUNT, _LIST, _STRING, _channel_token, _field, _get, _table_path, _vector
+from weatheralign.data.nuscenes import (
+    IS_COUNT,
+    IS_LIST,
+    IS_STRING,
+    channel_token,
+    checked_field,
+    checked_get,
+    checked_vector,
+    table_path,
+)
 from weatheralign.detect.types import ATTRIBUTES, DETECTION_CLASSES, SampleDetections
 from weatheralign.geometry import NonRigidTransformError, check_rigid
 
@@ -46,8 +56,8 @@ Metric = Literal["map", "nds", "map_present"]
 
 CONFIG_NAME = "detection_cvpr_2019"
 DEFAULT_BOOTSTRAP = 1000
-"""Default number of bootstrap replicates for the percentile intervals. Measured (one shared core): ~8 ms per
-replicate for 80 samples x 50 GT and 50 predicted boxes (1000 replicates ~8 s, plus ~0.3 s matching once)."""
+"""Default number of bootstrap replicates for the percentile intervals: affordable because the boxes are matched
+once and a replicate only rescores (`bootstrap_intervals`)."""
 #: short names of the devkit's TP metrics, in ``TP_METRICS`` order
 TP_SHORT: dict[str, str] = {"trans_err": "ate", "scale_err": "ase", "orient_err": "aoe", "vel_err": "ave",
                             "attr_err": "aae"}
@@ -83,12 +93,12 @@ def ego_positions(nusc: NuScenes, sample_tokens: Sequence[str]) -> dict[str, F64
     """
     out: dict[str, F64] = {}
     for token in sample_tokens:
-        sample = _get(nusc, "sample", token, "ego_positions")
-        sd_token = _channel_token(nusc, sample, "LIDAR_TOP")
-        sd = _get(nusc, "sample_data", sd_token, f"sample {token}.data.LIDAR_TOP")
-        pose_token = _field(nusc, "sample_data", sd, "ego_pose_token", _STRING)
-        pose = _get(nusc, "ego_pose", pose_token, f"sample_data {sd_token}.ego_pose_token")
-        out[token] = _vector(nusc, "ego_pose", pose, "translation", 3)
+        sample = checked_get(nusc, "sample", token, "ego_positions")
+        sd_token = channel_token(nusc, sample, "LIDAR_TOP")
+        sd = checked_get(nusc, "sample_data", sd_token, f"sample {token}.data.LIDAR_TOP")
+        pose_token = checked_field(nusc, "sample_data", sd, "ego_pose_token", IS_STRING)
+        pose = checked_get(nusc, "ego_pose", pose_token, f"sample_data {sd_token}.ego_pose_token")
+        out[token] = checked_vector(nusc, "ego_pose", pose, "translation", 3)
     return out
 
 
@@ -96,32 +106,33 @@ def _gt_box(nusc: NuScenes, ann_token: str, sample_token: str, ego: F64) -> Dete
     """One annotation as the devkit's ``load_gt`` builds it (None for categories outside the detection classes),
     with ``ego_translation`` = centre - ego position as ``add_center_dist`` sets it."""
     table = "sample_annotation"
-    ann = _get(nusc, table, ann_token, f"sample {sample_token}.anns")
-    inst_token = _field(nusc, table, ann, "instance_token", _STRING)
-    inst = _get(nusc, "instance", inst_token, f"{table} {ann_token}.instance_token")
-    cat = _get(nusc, "category", _field(nusc, "instance", inst, "category_token", _STRING),
-               f"instance {inst_token}.category_token")
-    name = category_to_detection_name(_field(nusc, "category", cat, "name", _STRING))
+    ann = checked_get(nusc, table, ann_token, f"sample {sample_token}.anns")
+    inst_token = checked_field(nusc, table, ann, "instance_token", IS_STRING)
+    inst = checked_get(nusc, "instance", inst_token, f"{table} {ann_token}.instance_token")
+    cat = checked_get(nusc, "category", checked_field(nusc, "instance", inst, "category_token", IS_STRING),
+                      f"instance {inst_token}.category_token")
+    name = category_to_detection_name(checked_field(nusc, "category", cat, "name", IS_STRING))
     if name is None:
         return None
-    attr_tokens = _field(nusc, table, ann, "attribute_tokens", _LIST)
+    attr_tokens = checked_field(nusc, table, ann, "attribute_tokens", IS_LIST)
     if len(attr_tokens) > 1:
-        raise DataFormatError(f"{_table_path(nusc, table)}: {table} {ann_token}: {len(attr_tokens)} attribute_tokens; "
+        raise DataFormatError(f"{table_path(nusc, table)}: {table} {ann_token}: {len(attr_tokens)} attribute_tokens; "
                               f"the nuScenes detection evaluation allows at most one")
-    attribute = (_field(nusc, "attribute", _get(nusc, "attribute", attr_tokens[0], f"{table} {ann_token}."
-                                                "attribute_tokens"), "name", _STRING) if attr_tokens else "")
-    center = _vector(nusc, table, ann, "translation", 3)
-    size = _vector(nusc, table, ann, "size", 3)
-    rotation = _vector(nusc, table, ann, "rotation", 4)
-    num_pts = int(_field(nusc, table, ann, "num_lidar_pts", _COUNT)) + int(_field(nusc, table, ann, "num_radar_pts",
-                                                                                  _COUNT))
+    attribute = (checked_field(nusc, "attribute",
+                               checked_get(nusc, "attribute", attr_tokens[0], f"{table} {ann_token}.attribute_tokens"),
+                               "name", IS_STRING) if attr_tokens else "")
+    center = checked_vector(nusc, table, ann, "translation", 3)
+    size = checked_vector(nusc, table, ann, "size", 3)
+    rotation = checked_vector(nusc, table, ann, "rotation", 4)
+    num_pts = (int(checked_field(nusc, table, ann, "num_lidar_pts", IS_COUNT))
+               + int(checked_field(nusc, table, ann, "num_radar_pts", IS_COUNT)))
     try:
         velocity = np.asarray(nusc.box_velocity(ann_token), dtype=np.float64)[:2]
     except (KeyError, TypeError, ValueError, IndexError) as exc:
-        raise DataFormatError(f"{_table_path(nusc, table)}: {table} {ann_token}: cannot derive its velocity from "
+        raise DataFormatError(f"{table_path(nusc, table)}: {table} {ann_token}: cannot derive its velocity from "
                               f"its prev/next annotations ({type(exc).__name__}: {exc})") from None
     if not (size > 0).all():
-        raise DataFormatError(f"{_table_path(nusc, table)}: {table} {ann_token}: field 'size' = {size.tolist()}; "
+        raise DataFormatError(f"{table_path(nusc, table)}: {table} {ann_token}: field 'size' = {size.tolist()}; "
                               f"expected three positive numbers [m]")
     return DetectionBox(sample_token=sample_token, translation=_floats(center), size=_floats(size),
                         rotation=_floats(rotation), velocity=_floats(velocity), ego_translation=_floats(center - ego),
@@ -142,8 +153,8 @@ def ground_truth(nusc: NuScenes, sample_tokens: Sequence[str]) -> EvalBoxes:
     egos = ego_positions(nusc, sample_tokens)
     out = EvalBoxes()
     for token in sample_tokens:
-        sample = _get(nusc, "sample", token, "ground_truth")
-        boxes = [_gt_box(nusc, a, token, egos[token]) for a in _field(nusc, "sample", sample, "anns", _LIST)]
+        sample = checked_get(nusc, "sample", token, "ground_truth")
+        boxes = [_gt_box(nusc, a, token, egos[token]) for a in checked_field(nusc, "sample", sample, "anns", IS_LIST)]
         out.add_boxes(token, [b for b in boxes if b is not None])
     return out
 
@@ -701,7 +712,7 @@ def bootstrap_intervals(gt: EvalBoxes, pred: EvalBoxes, n_boot: int = DEFAULT_BO
 
     Each replicate draws the GT samples with replacement (``numpy.random.default_rng(seed)``), duplicates as
     distinct samples (as `resample`), and rescores (`_summary`); matches are computed once (see the module
-    docstring), so a replicate costs ~1 ms for 80 samples x 50 boxes. Replicates where no class is present are left out of the
+    docstring), so a replicate costs only the rescoring. Replicates where no class is present are left out of the
     ``map_present`` interval.
 
     Returns:

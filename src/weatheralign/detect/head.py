@@ -54,7 +54,7 @@ class BevGrid:
         """Cells per side (H = W)."""
         return int(round(2.0 * self.range_m / self.cell_m))
 
-    def coarsened(self, stride: int) -> "BevGrid":
+    def coarsened(self, stride: int) -> BevGrid:
         """The same extent with cells ``stride`` times larger."""
         return BevGrid(self.range_m, self.cell_m * stride)
 

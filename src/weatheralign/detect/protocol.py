@@ -215,7 +215,7 @@ class TrainJob:
     cfg: DetectConfig
     device: str = "cpu"
     threads: int = 1
-    curve_set: "EvalSet | None" = None
+    curve_set: EvalSet | None = None
     curve_every: int = 0
     resume_every: int = 100
 

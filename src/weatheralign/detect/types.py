@@ -61,7 +61,7 @@ class DetectionBatch:
     def batch_size(self) -> int:
         return len(self.tokens)
 
-    def to(self, device: torch.device | str) -> "DetectionBatch":
+    def to(self, device: torch.device | str) -> DetectionBatch:
         """The same batch with every tensor on ``device`` (``T_global_lidar`` stays on the CPU)."""
         return replace(self, points=self.points.to(device), images=self.images.to(device),
                        features_s8=self.features_s8.to(device), features_s16=self.features_s16.to(device),

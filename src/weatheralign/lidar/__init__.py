@@ -1,6 +1,7 @@
 """LiDAR observation of the weather medium: the shared pulse model, fog (`simulate_fog`) and snow / rain (alone or
-inside fog: `simulate_particles`; a keyframe and its sweeps together: `simulate_particle_scans`), each one call on a `LidarScan` with the sensor's `weatheralign.sensors.LidarModel`
-(its description, `PulseSensor` and `IntensityModel` included, lives in `weatheralign.sensors`)."""
+inside fog: `simulate_particles`; a keyframe and its sweeps together: `simulate_particle_scans`), each one call on a
+`LidarScan` with the sensor's `weatheralign.sensors.LidarModel` (its description, `PulseSensor` and `IntensityModel`
+included, lives in `weatheralign.sensors`)."""
 
 from weatheralign.lidar.beams import Beams, beam_origins, beams_from_scan
 from weatheralign.lidar.fog import (

@@ -29,11 +29,10 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
-
-from typing import TYPE_CHECKING
 
 from weatheralign.data.frame import LidarScan
 from weatheralign.data.nuscenes import derived_time_offsets, read_point_extras
@@ -108,7 +107,7 @@ class Beams:
         """Number of beams with a clear-weather return."""
         return int(np.count_nonzero(self.has_return))
 
-    def select(self, mask: NDArray) -> "Beams":
+    def select(self, mask: NDArray) -> Beams:
         """The beams where ``mask`` (N,) bool (or an index array) selects."""
         return Beams(self.origins[mask], self.directions[mask], self.times[mask], self.lengths[mask],
                      self.has_return[mask], self.intensity0[mask], self.ring[mask], self.point_index[mask],
@@ -274,7 +273,7 @@ def synthetic_columns(scan: LidarScan) -> NDArray[np.int16] | None:
     return np.asarray(records["column"], dtype=np.int16)
 
 
-def grid_no_return_beams(scan: LidarScan, columns: NDArray, pattern: "FiringPattern") -> NoReturnBeams:
+def grid_no_return_beams(scan: LidarScan, columns: NDArray, pattern: FiringPattern) -> NoReturnBeams:
     """The cells of a firing grid that produced no point: ``pattern`` is the sensor's grid
     (`weatheralign.sensors.LidarModel.firing_pattern`), ``columns`` (N,) the firing column of each point.
 
@@ -487,7 +486,7 @@ def point_noise_keys(scan: LidarScan) -> NDArray[np.uint64]:
     return detector_noise_keys(scan_times(scan), point_rays(scan)[1], scan.points[:, 4])
 
 
-def beams_from_scan(scan: LidarScan, *, lidar: "LidarModel", no_return_directions: NoReturnBeams | None = None,
+def beams_from_scan(scan: LidarScan, *, lidar: LidarModel, no_return_directions: NoReturnBeams | None = None,
                     columns: NDArray | str | None = "auto", reconstruct: bool = True,
                     gap_factor: float = DEFAULT_GAP_FACTOR) -> Beams:
     """All beams of a scan in the global frame: its points first (``point_index`` = row), then the beams without

@@ -1,11 +1,11 @@
 """Weather clutter in a LiDAR scan, measured on the points alone (real or simulated, no labels needed).
 
 Snowflakes and raindrops come back as isolated returns: a surface lights up neighbouring beams at neighbouring ranges,
-a particle lights one beam. `isolated_mask` marks (`isolated_returns` counts), within ``max_range`` of the sensor, the returns whose nearest
-other return is farther than the dynamic radius ``max(min_radius, factor · r · azimuth_step)`` — the test of the
-dynamic radius outlier removal filter (DROR, Charron et al. 2018, the usual snow de-noiser) with one neighbour. The
-radius grows with range because the beams spread: ``r · azimuth_step`` is the spacing of a ring's points at range
-``r``. On the synthetic reference (HDL-64-like, 1800 azimuths): clear scans ~4 per scan, rain at ~80 mm/h ~130,
+a particle lights one beam. `isolated_mask` marks (`isolated_returns` counts), within ``max_range`` of the sensor, the
+returns whose nearest other return is farther than the dynamic radius ``max(min_radius, factor · r · azimuth_step)`` —
+the test of the dynamic radius outlier removal filter (DROR, Charron et al. 2018, the usual snow de-noiser) with one
+neighbour. The radius grows with range because the beams spread: ``r · azimuth_step`` is the spacing of a ring's points
+at range ``r``. On the synthetic reference (HDL-64-like, 1800 azimuths): clear scans ~4 per scan, rain at ~80 mm/h ~130,
 snow at ~3 mm/h ~3800.
 """
 

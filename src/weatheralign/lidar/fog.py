@@ -13,19 +13,21 @@ each changed return again: a fog echo is a new reading (std ``sqrt(σ_0² + (rel
 ``i_0`` already carries its clear reading's noise, scaled by ``T² = exp(-2 α R_0)``, and lacks ``σ_0² (1 - T⁴)`` of
 the fogged reading's variance (the proportional part scales exactly), which is added - without it the returns near the
 detector floor are cut too sharply (on the synthetic reference this biased α* up and doubled the KS distance of light
-fog). The floor then decides on the reading. Normals come from each beam's noise stream (`point_noise_keys`). ``R_fog`` is the peak on the receiver axis ``R = c t / 2`` as in physics.md (about 4.6 m for α = 0.06),
-not shifted by the ``c τ_H / 2`` between pulse start and pulse peak.
+fog). The floor then decides on the reading. Normals come from each beam's noise stream (`point_noise_keys`). ``R_fog``
+is the peak on the receiver axis ``R = c t / 2`` as in physics.md (about 4.6 m for α = 0.06), not shifted by the ``c τ_H
+/ 2`` between pulse start and pulse peak.
 
 How ``I(R_0)`` is computed for any α (no tables snapped to 9 values): for ``R <= R_0`` every scatterer ``r <= R``
 lies in front of the target, so ``U`` is 1 and the integrand does not depend on ``R_0``:
 ``I(R_0) = max_{R <= R_0} G(R)`` with ``G`` the response of an unobstructed fog, ``G(R) = (2/c) (k * h)(R)``, the
 convolution of the log-concave pulse ``k(s) = sin²(π s / (c τ_H))`` on ``[0, c τ_H]`` with the unimodal
 ``h(r) = exp(-2αr) ξ(r) / r²`` (log-concave on the ξ ramp, decreasing after it, for every α >= 0). A convolution
-of a log-concave with a unimodal function is unimodal (Ibragimov), so with ``R*`` the peak of ``G``: ``R_fog = min(R_0, R*)``, ``I(R_0) = G(min(R_0, R*))``. ``G`` is evaluated once per α on a
-5 mm grid that has ``r1`` and ``r2`` (the kinks of ξ) on nodes, by a discrete convolution (trapezoid rule), over
-``[r1, r2 + c τ_H]`` (beyond it ``h`` is decreasing on the whole window, so ``G`` is too), and ``R*`` is refined by a
-parabola through the three nodes around the maximum: ~0.3 ms per α. The per-point part (range from the beam
-origin, interpolation on the uniform grid, comparison, new point) is one fused numba loop.
+of a log-concave with a unimodal function is unimodal (Ibragimov), so with ``R*`` the peak of ``G``: ``R_fog = min(R_0,
+R*)``, ``I(R_0) = G(min(R_0, R*))``. ``G`` is evaluated once per α on a 5 mm grid that has ``r1`` and ``r2`` (the kinks
+of ξ) on nodes, by a discrete convolution (trapezoid rule), over ``[r1, r2 + c τ_H]`` (beyond it ``h`` is decreasing on
+the whole window, so ``G`` is too), and ``R*`` is refined by a parabola through the three nodes around the maximum: a
+cost paid once per α, not per point. The per-point part (range from the beam origin, interpolation on the uniform grid,
+comparison, new point) is one fused numba loop.
 
 Traps of the published code, fixed here:
 - intensity scale: the model is homogeneous of degree 1 in intensity; it is evaluated in the scan's own units with the
@@ -51,8 +53,8 @@ from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from weatheralign.data.frame import LidarScan
-from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel
 from weatheralign.lidar.beams import beam_origins, point_noise_keys
+from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel
 from weatheralign.lidar.pulse import SPEED_OF_LIGHT, PulseSensor, overlap
 from weatheralign.medium.field import normal_pair
 from weatheralign.medium.fog import DEFAULT_BETA_MOR, LN20
@@ -118,7 +120,7 @@ class SoftTargetResponse:
 def soft_target_response(
     alpha: float, sensor: PulseSensor, *, step: float = TABLE_STEP_M
 ) -> SoftTargetResponse:
-    """Tabulate the fog response of extinction ``alpha`` [1/m] (about 0.3 ms with the default 5 mm ``step``).
+    """Tabulate the fog response of extinction ``alpha`` [1/m] on a grid of ``step`` (default 5 mm), once per α.
 
     Raises:
         ValueError: ``alpha`` negative or not finite, or ``step`` not in (0, 0.1] m.
@@ -510,7 +512,7 @@ def simulate_fog(
     alpha: float,
     beta: float,
     *,
-    lidar: "LidarModel",
+    lidar: LidarModel,
 ) -> FogResult:
     """Fog a LiDAR scan (Hahner et al. 2021 for any α), each beam from its own origin (moving ego).
 

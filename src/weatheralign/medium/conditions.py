@@ -23,8 +23,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from weatheralign.config import ParticlesConfig
-from weatheralign.medium.distributions import (RainSizeDistribution, SnowSizeDistribution, rain_field_fall_speed,
-                                               rain_terminal_velocity)
+from weatheralign.medium.distributions import (
+    RainSizeDistribution,
+    SnowSizeDistribution,
+    rain_field_fall_speed,
+    rain_terminal_velocity,
+)
 from weatheralign.medium.field import ParticleField, fall_velocity, unaligned_seed
 
 Precipitation = Literal["snow", "rain"]
@@ -105,7 +109,7 @@ class FieldSpec:
         return asdict(self)
 
     @staticmethod
-    def from_dict(d: dict) -> "FieldSpec":
+    def from_dict(d: dict) -> FieldSpec:
         return FieldSpec(**{**d, "wind_m_s": tuple(d["wind_m_s"])})
 
 

@@ -181,7 +181,7 @@ class ExponentialSizeDistribution:
         if not self.d_max > self.d_min:
             raise ValueError(f"d_max = {self.d_max!r} [m] is invalid: must exceed d_min = {self.d_min!r}")
 
-    def spectrum(self) -> "ExponentialSizeDistribution":
+    def spectrum(self) -> ExponentialSizeDistribution:
         """The distribution itself (the interface the particle field consumes)."""
         return self
 
@@ -252,7 +252,7 @@ class ExponentialSizeDistribution:
         b = np.clip(np.asarray(d_hi, dtype=np.float64), self.d_min, self.d_max)
         return q_ext * math.pi / 4.0 * self.n0 * np.asarray(self._partial_moment(2, self.d_min, b))
 
-    def truncated(self, min_diameter: float) -> "ExponentialSizeDistribution":
+    def truncated(self, min_diameter: float) -> ExponentialSizeDistribution:
         """The same spectrum restricted to ``[max(d_min, min_diameter), d_max]`` (same n0: the particles of at least
         ``min_diameter`` of this medium, exactly)."""
         m = _positive("min_diameter", min_diameter, "m", allow_zero=True)

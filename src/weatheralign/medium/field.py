@@ -29,8 +29,8 @@ Kernels are serial numba (``nogil``): callers parallelise across samples with th
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Sequence
 
 import numpy as np
 from numba import njit
@@ -49,7 +49,7 @@ _M2 = np.uint64(0x94D049BB133111EB)
 _S30, _S27, _S31, _S11 = np.uint64(30), np.uint64(27), np.uint64(31), np.uint64(11)
 _TWO_M53 = 2.0**-53
 
-_U_RANK_BITS = np.uint64(RANK_BITS)
+U_RANK_BITS = np.uint64(RANK_BITS)
 _U_Z_BITS = np.uint64(Z_BITS)
 _U_XY_BITS = np.uint64(XY_BITS)
 _U_RANK_MASK = np.uint64(MAX_PER_CELL - 1)
@@ -61,7 +61,7 @@ DEFAULT_MAX_PARTICLES = 30_000_000
 
 
 # ----------------------------------------------------------------------------------------------------------- hashing
-def _mix_py(z: int) -> int:
+def splitmix64_py(z: int) -> int:
     """SplitMix64 finaliser on a Python int (64-bit wrap)."""
     z &= _MASK64
     z = ((z ^ (z >> 30)) * 0xBF58476D1CE4E5B9) & _MASK64
@@ -69,21 +69,21 @@ def _mix_py(z: int) -> int:
     return z ^ (z >> 31)
 
 
-def _seed_key(seed: int) -> np.uint64:
-    return np.uint64(_mix_py(_mix_py(seed + 0x9E3779B97F4A7C15) ^ 0x5EED_F1E1D))
+def field_seed_key(seed: int) -> np.uint64:
+    return np.uint64(splitmix64_py(splitmix64_py(seed + 0x9E3779B97F4A7C15) ^ 0x5EED_F1E1D))
 
 
 @njit(nogil=True, cache=True, inline="always")
-def _mix(z: np.uint64) -> np.uint64:
+def splitmix64(z: np.uint64) -> np.uint64:
     z = (z ^ (z >> _S30)) * _M1
     z = (z ^ (z >> _S27)) * _M2
     return z ^ (z >> _S31)
 
 
 @njit(nogil=True, cache=True, inline="always")
-def _uniform(key: np.uint64, counter: np.uint64) -> float:
+def stream_uniform(key: np.uint64, counter: np.uint64) -> float:
     """Uniform in [0, 1) from the ``counter``-th SplitMix64 output of stream ``key``."""
-    h = _mix(key + (counter + np.uint64(1)) * _GAMMA)
+    h = splitmix64(key + (counter + np.uint64(1)) * _GAMMA)
     return float(h >> _S11) * _TWO_M53
 
 
@@ -91,22 +91,22 @@ def _uniform(key: np.uint64, counter: np.uint64) -> float:
 def normal_pair(key: np.uint64) -> tuple[float, float]:
     """Two independent standard normals (Box–Muller) from the first two outputs of the SplitMix64 stream ``key``: a
     LiDAR beam's detector noise (intensity, range) from its key (`weatheralign.lidar.beams.detector_noise_keys`)."""
-    u1 = 1.0 - _uniform(key, np.uint64(0))  # (0, 1]
-    u2 = _uniform(key, np.uint64(1))
+    u1 = 1.0 - stream_uniform(key, np.uint64(0))  # (0, 1]
+    u2 = stream_uniform(key, np.uint64(1))
     rad = math.sqrt(-2.0 * math.log(u1))
     return rad * math.cos(2.0 * math.pi * u2), rad * math.sin(2.0 * math.pi * u2)
 
 
 @njit(nogil=True, cache=True, inline="always")
-def _packed_cell(ix: np.int64, iy: np.int64, iz: np.int64) -> np.uint64:
+def packed_cell(ix: np.int64, iy: np.int64, iz: np.int64) -> np.uint64:
     ux = np.uint64(ix + XY_OFFSET)
     uy = np.uint64(iy + XY_OFFSET)
     return (((ux << _U_XY_BITS) | uy) << _U_Z_BITS) | np.uint64(iz)
 
 
 @njit(nogil=True, cache=True, inline="always")
-def _cell_key(seed_key: np.uint64, packed: np.uint64) -> np.uint64:
-    return _mix(seed_key ^ _mix(packed + _GAMMA))
+def cell_key(seed_key: np.uint64, packed: np.uint64) -> np.uint64:
+    return splitmix64(seed_key ^ splitmix64(packed + _GAMMA))
 
 
 # ----------------------------------------------------------------------------------------------------------- kernels
@@ -114,11 +114,11 @@ def _cell_key(seed_key: np.uint64, packed: np.uint64) -> np.uint64:
 def _count_kernel(seed_key: np.uint64, cells: NDArray, c_max: float, counts: NDArray) -> bool:
     """Per cell, the number of ranks j with E_j <= c_max; False if a cell would exceed the rank bits."""
     for k in range(cells.shape[0]):
-        key = _cell_key(seed_key, _packed_cell(cells[k, 0], cells[k, 1], cells[k, 2]))
+        key = cell_key(seed_key, packed_cell(cells[k, 0], cells[k, 1], cells[k, 2]))
         e = 0.0
         j = 0
         while True:
-            e -= math.log(1.0 - _uniform(key, np.uint64(4 * j)))
+            e -= math.log(1.0 - stream_uniform(key, np.uint64(4 * j)))
             if e > c_max:
                 break
             j += 1
@@ -129,7 +129,7 @@ def _count_kernel(seed_key: np.uint64, cells: NDArray, c_max: float, counts: NDA
 
 
 @njit(nogil=True, cache=True, inline="always")
-def _wrap(z: float, height: float) -> float:
+def wrap_height(z: float, height: float) -> float:
     """``z`` mod ``height`` in [0, height) (Python float modulo: exact fmod, shifted into [0, height) for z < 0;
     the same expression wherever a position is computed)."""
     r = z % height
@@ -151,16 +151,16 @@ def _fill_kernel(seed_key: np.uint64, cells: NDArray, counts: NDArray, cell_size
     n = 0
     for k in range(cells.shape[0]):
         ix, iy, iz = cells[k, 0], cells[k, 1], cells[k, 2]
-        packed = _packed_cell(ix, iy, iz)
-        key = _cell_key(seed_key, packed)
-        id_base = np.int64(packed << _U_RANK_BITS)
+        packed = packed_cell(ix, iy, iz)
+        key = cell_key(seed_key, packed)
+        id_base = np.int64(packed << U_RANK_BITS)
         e = 0.0
         for j in range(counts[k]):
             c = np.uint64(4 * j)
-            e -= math.log(1.0 - _uniform(key, c))
-            x = (ix + _uniform(key, c + np.uint64(1))) * cell_size + shift[0]
-            y = (iy + _uniform(key, c + np.uint64(2))) * cell_size + shift[1]
-            z = z_min + _wrap((iz + _uniform(key, c + np.uint64(3))) * cell_z + shift[2], height)
+            e -= math.log(1.0 - stream_uniform(key, c))
+            x = (ix + stream_uniform(key, c + np.uint64(1))) * cell_size + shift[0]
+            y = (iy + stream_uniform(key, c + np.uint64(2))) * cell_size + shift[1]
+            z = z_min + wrap_height((iz + stream_uniform(key, c + np.uint64(3))) * cell_z + shift[2], height)
             if x < lo[0] or x > hi[0] or y < lo[1] or y > hi[1] or z < lo[2] or z > hi[2]:
                 continue
             d = -math.log(exp_lam_dmax + e / scale) / lam
@@ -181,15 +181,16 @@ def _positions_from_ids_kernel(seed_key: np.uint64, ids: NDArray, cell_size: flo
     for n in range(ids.shape[0]):
         u = np.uint64(ids[n])
         j = u & _U_RANK_MASK
-        packed = u >> _U_RANK_BITS
+        packed = u >> U_RANK_BITS
         iz = np.int64(packed & _U_Z_MASK)
         iy = np.int64((packed >> _U_Z_BITS) & _U_XY_MASK) - XY_OFFSET
         ix = np.int64((packed >> (_U_Z_BITS + _U_XY_BITS)) & _U_XY_MASK) - XY_OFFSET
-        key = _cell_key(seed_key, packed)
+        key = cell_key(seed_key, packed)
         c = np.uint64(4) * j
-        positions[n, 0] = (ix + _uniform(key, c + np.uint64(1))) * cell_size + shifts[n, 0]
-        positions[n, 1] = (iy + _uniform(key, c + np.uint64(2))) * cell_size + shifts[n, 1]
-        positions[n, 2] = z_min + _wrap((iz + _uniform(key, c + np.uint64(3))) * cell_z + shifts[n, 2], height)
+        positions[n, 0] = (ix + stream_uniform(key, c + np.uint64(1))) * cell_size + shifts[n, 0]
+        positions[n, 1] = (iy + stream_uniform(key, c + np.uint64(2))) * cell_size + shifts[n, 1]
+        z_cell = (iz + stream_uniform(key, c + np.uint64(3))) * cell_z + shifts[n, 2]
+        positions[n, 2] = z_min + wrap_height(z_cell, height)
 
 
 # ------------------------------------------------------------------------------------------------------------- types
@@ -215,7 +216,7 @@ class Particles:
     def __len__(self) -> int:
         return int(self.ids.shape[0])
 
-    def select(self, mask: NDArray) -> "Particles":
+    def select(self, mask: NDArray) -> Particles:
         """The particles where ``mask`` (N,) bool (or an index array) selects."""
         return Particles(self.positions[mask], self.diameters[mask], self.ids[mask], self.t, self.min_diameter)
 
@@ -394,7 +395,7 @@ class ParticleField:
         if ids.ndim != 1 or not np.issubdtype(ids.dtype, np.integer) or (ids.size and ids.min() < 0):
             raise ValueError("ids must be a 1-D array of non-negative integers (ids of this field)")
         out = np.empty((ids.shape[0], 3))
-        _positions_from_ids_kernel(_seed_key(self.seed), np.ascontiguousarray(ids, dtype=np.int64), self.cell_size,
+        _positions_from_ids_kernel(field_seed_key(self.seed), np.ascontiguousarray(ids, dtype=np.int64), self.cell_size,
                                    self.cell_z, np.ascontiguousarray(shifts, dtype=np.float64), self.z_min,
                                    self.z_max - self.z_min, out)
         return out
@@ -419,8 +420,9 @@ class ParticleField:
     # ------------------------------------------------------------------------------------------------ queries
     def _check_cells(self, cells: I64) -> None:
         if cells.size and (np.abs(cells[:, :2]).max() >= XY_OFFSET - 1):
-            raise ValueError(f"query reaches co-moving cell |index| >= {XY_OFFSET - 1} (> {XY_OFFSET * self.cell_size / 1e3:.0f}"
-                             " km from the origin at t_ref): set t_ref near the query times")
+            raise ValueError(f"query reaches co-moving cell |index| >= {XY_OFFSET - 1} "
+                             f"(> {XY_OFFSET * self.cell_size / 1e3:.0f} km from the origin at t_ref): "
+                             "set t_ref near the query times")
         if cells.size and (cells[:, 2].min() < 0 or cells[:, 2].max() >= self.nz):
             raise ValueError(f"cell z index out of range [0, {self.nz})")
 
@@ -488,7 +490,7 @@ class ParticleField:
         if expected > max_particles:
             raise ValueError(f"query expects {expected:.3g} particles in its cells (> max_particles = "
                              f"{max_particles}): raise min_diameter (now {m} m) or shrink the region")
-        seed_key = _seed_key(self.seed)
+        seed_key = field_seed_key(self.seed)
         counts = np.zeros(cells.shape[0], dtype=np.int64)
         if not _count_kernel(seed_key, cells, c_max, counts):
             raise ValueError(f"a cell exceeds {MAX_PER_CELL} particles: use a smaller cell_size")

@@ -81,12 +81,12 @@ class FogMedium:
         object.__setattr__(self, "beta", b)
 
     @classmethod
-    def with_default_beta(cls, alpha: float) -> "FogMedium":
+    def with_default_beta(cls, alpha: float) -> FogMedium:
         """Fog of extinction ``alpha`` [1/m] with Hahner's default ``beta = 0.046 / MOR``."""
         return cls(alpha=alpha, beta=default_beta(alpha))
 
     @classmethod
-    def from_mor(cls, mor: float, beta: float | None = None) -> "FogMedium":
+    def from_mor(cls, mor: float, beta: float | None = None) -> FogMedium:
         """Fog of visibility ``mor`` [m]; ``beta`` [1/(m sr)] defaults to ``0.046 / mor``."""
         alpha = alpha_from_mor(mor)
         return cls(alpha=alpha, beta=default_beta(alpha) if beta is None else beta)

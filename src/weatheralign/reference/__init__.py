@@ -21,18 +21,28 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from weatheralign.data.errors import DataFormatError
-from weatheralign.reference.layout import (FOG_LEVELS, LEVELS, PRECIPITATION_LEVELS, ReferenceDataset, ReferenceSplit,
-                                           SplitSummary, check_reference, open_reference, split_files_of)
+from weatheralign.reference.layout import (
+    FOG_LEVELS,
+    LEVELS,
+    PRECIPITATION_LEVELS,
+    ReferenceDataset,
+    ReferenceSplit,
+    SplitSummary,
+    check_reference,
+    open_reference,
+    split_files_of,
+)
 
 if TYPE_CHECKING:
     from weatheralign.config import Params
     from weatheralign.sensors import LidarModel
 
 __all__ = ["FOG_LEVELS", "LEVELS", "PRECIPITATION_LEVELS", "ReferenceDataset", "ReferenceSplit", "SplitSummary",
-           "check_reference", "configured_reference", "open_reference", "reference_lidar_model", "reference_root", "split_files_of"]
+           "check_reference", "configured_reference", "open_reference", "reference_lidar_model", "reference_root",
+           "split_files_of"]
 
 
-def reference_root(params: "Params") -> Path:
+def reference_root(params: Params) -> Path:
     """The reference root of ``params.reference``: ``stf_root`` for ``source: stf``, else the synthetic reference
     under ``<paths.data>/reference/synthetic``."""
     cfg = params.reference
@@ -44,7 +54,7 @@ def reference_root(params: "Params") -> Path:
     return synthetic_root(params.paths.data)
 
 
-def configured_reference(params: "Params", levels: Sequence[str] = LEVELS) -> ReferenceDataset:
+def configured_reference(params: Params, levels: Sequence[str] = LEVELS) -> ReferenceDataset:
     """`open_reference` of the reference ``params.reference`` describes (root, split files, declared scale),
     restricted to ``levels`` (the fog calibration opens only clear and the fog levels, so a root needs no snow / rain
     split files for it).
@@ -61,7 +71,7 @@ def configured_reference(params: "Params", levels: Sequence[str] = LEVELS) -> Re
     return open_reference(root, files, cfg.intensity_max)
 
 
-def reference_lidar_model(params: "Params", reference: ReferenceDataset) -> "LidarModel":
+def reference_lidar_model(params: Params, reference: ReferenceDataset) -> LidarModel:
     """The reference's LiDAR as a `weatheralign.sensors.LidarModel`: the synthetic reference's HDL-64-like sensor
     from ``reference.lidar`` (its pulse, overlap, range limits, detector floor and noise), or for a real root the model
     estimated from the clear split's scans with ``reference.sensor_overrides`` applied.

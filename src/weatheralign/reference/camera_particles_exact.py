@@ -54,8 +54,8 @@ pixel keeps; a traced sphere blocks its geometric area too, so both count the sa
 
     α_u(s) = (π/4) ∫_{d_min}^{min(D_res(s), d_max)} D² N(D) dD   (s <= max_distance),   α_u(s) = α (s > max_distance)
 
-with ``N(D) = n0 e^{-λD}`` on ``[d_min, d_max]`` and ``α`` the field's bulk geometric extinction. The medium exists only in the
-field's layer ``z_min <= z <= z_max`` (world z): a pixel's optical depth is ``τ = G(s_b) - G(s_a)`` over the part
+with ``N(D) = n0 e^{-λD}`` on ``[d_min, d_max]`` and ``α`` the field's bulk geometric extinction. The medium exists only
+in the field's layer ``z_min <= z <= z_max`` (world z): a pixel's optical depth is ``τ = G(s_b) - G(s_a)`` over the part
 ``[s_a, s_b]`` of its ray ``[0, ℓ]`` inside the layer, with the closed form (swap the order of integration)
 
     G(s) = ∫_0^s α_u = (π/4) n0 / k · [Y M_2(d_min, m) - M_3(d_min, m)],  Y = k min(s, R),  m = min(Y, d_max)
@@ -91,7 +91,7 @@ from numba import njit
 from numpy.typing import NDArray
 
 from weatheralign.medium.distributions import Q_EXT_GEOMETRIC, Q_IMAGING, rain_terminal_velocity
-from weatheralign.medium.field import ParticleField, Particles, _mix, _mix_py
+from weatheralign.medium.field import ParticleField, Particles, splitmix64, splitmix64_py
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -124,12 +124,12 @@ _BBOX_EPS_PX = 1e-4
 @njit(cache=True, nogil=True, inline="always")
 def _unit(key: np.uint64, counter: np.uint64) -> float:  # pragma: no cover - numba
     """Uniform in [0, 1) (53 bits) from hash stream ``key`` at ``counter``."""
-    return float(_mix(key + (counter + np.uint64(1)) * _GOLD) >> _SH11) * _UNIT
+    return float(splitmix64(key + (counter + np.uint64(1)) * _GOLD) >> _SH11) * _UNIT
 
 
 @njit(cache=True, nogil=True, inline="always")
 def _pixel_key(seed_key: np.uint64, pixel: np.int64) -> np.uint64:  # pragma: no cover - numba
-    return _mix(seed_key ^ _mix(np.uint64(pixel) * _GOLD + _GOLD))
+    return splitmix64(seed_key ^ splitmix64(np.uint64(pixel) * _GOLD + _GOLD))
 
 
 @njit(cache=True, nogil=True)
@@ -137,7 +137,7 @@ def _permutation_table(seed_key: np.uint64, n: int, s: int) -> NDArray:  # pragm
     """(n, s) int64: ``n`` permutations of ``0..s-1`` (Fisher–Yates on hashed uniforms)."""
     out = np.empty((n, s), dtype=np.int64)
     for r in range(n):
-        key = _mix(seed_key ^ _mix(np.uint64(r) * _GOLD + _TAG_PERM))
+        key = splitmix64(seed_key ^ splitmix64(np.uint64(r) * _GOLD + _TAG_PERM))
         for i in range(s):
             out[r, i] = i
         for i in range(s - 1, 0, -1):
@@ -179,7 +179,7 @@ def _sample(key: np.uint64, k: int, s: int, grid: int, perms: NDArray, row_t: in
 @njit(cache=True, nogil=True, inline="always")
 def _pixel_rows(key: np.uint64) -> tuple[int, int]:  # pragma: no cover - numba
     """The pixel's rows of the permutation table (time strata, row strata)."""
-    return int(_mix(key ^ _TAG_T) >> _PERM_SHIFT), int(_mix(key ^ _TAG_Y) >> _PERM_SHIFT)
+    return int(splitmix64(key ^ _TAG_T) >> _PERM_SHIFT), int(splitmix64(key ^ _TAG_Y) >> _PERM_SHIFT)
 
 
 @njit(cache=True, nogil=True)
@@ -197,7 +197,7 @@ def _pattern_kernel(height: int, width: int, s: int, grid: int, seed_key: np.uin
 
 
 def _seed_key(seed: int) -> np.uint64:
-    return np.uint64(_mix_py(_mix_py(int(seed) ^ 0xCA3E7A5A3B1E) + 0x9E3779B97F4A7C15))
+    return np.uint64(splitmix64_py(splitmix64_py(int(seed) ^ 0xCA3E7A5A3B1E) + 0x9E3779B97F4A7C15))
 
 
 def _grid_of(samples: int) -> int:
@@ -475,7 +475,7 @@ class UnresolvedMedium:
     z_max: float
 
     @classmethod
-    def of(cls, field: ParticleField, resolve_px: float, focal_px: float, max_distance: float) -> "UnresolvedMedium":
+    def of(cls, field: ParticleField, resolve_px: float, focal_px: float, max_distance: float) -> UnresolvedMedium:
         """The medium of ``field``'s particles that a camera of focal length ``focal_px`` does not resolve."""
         spec = field.spectrum
         return cls(spec.n0, spec.lam, spec.d_min, spec.d_max, resolve_px / focal_px, max_distance,

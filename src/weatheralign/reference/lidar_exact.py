@@ -165,7 +165,7 @@ class FogTables:
 
 
 def fog_tables(alpha: float, sensor: ExactSensor = ExactSensor(), *, step: float = TABLE_STEP_M) -> FogTables:
-    """Tabulate the running integrals and the unobstructed response of extinction ``alpha`` [1/m] (~20 ms).
+    """Tabulate the running integrals and the unobstructed response of extinction ``alpha`` [1/m] (once per α).
 
     Raises:
         ValueError: ``alpha`` negative or not finite, or ``step`` not in (0, 0.01] m.

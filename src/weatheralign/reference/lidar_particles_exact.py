@@ -83,7 +83,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
-from weatheralign.medium.field import ParticleField, _mix_py
+from weatheralign.medium.field import ParticleField, splitmix64_py
 from weatheralign.reference.lidar_exact import FOG, TARGET, ExactReturns, ExactSensor, _overlap_one, bistatic_overlap
 from weatheralign.sensors import SYNTHETIC_INTENSITY, IntensityModel
 
@@ -139,12 +139,12 @@ class Unresolved:
         object.__setattr__(self, "area", a)
 
     @staticmethod
-    def none() -> "Unresolved":
+    def none() -> Unresolved:
         """Clear air between the resolved particles."""
         return Unresolved(np.array([0.0, np.inf]), np.zeros(1))
 
     @staticmethod
-    def homogeneous(area: float) -> "Unresolved":
+    def homogeneous(area: float) -> Unresolved:
         """One cross-section ``area`` [1/m] at every range."""
         return Unresolved(np.array([0.0, np.inf]), np.array([float(area)]))
 
@@ -226,7 +226,7 @@ def range_shells(listen_end: float) -> F64:
 
 def beam_rotations(n_beams: int, seed: int) -> F64:
     """(n,) rotation ``φ_b`` [rad] in ``[0, 2π)`` of every beam's sub-ray pattern: SplitMix64 of ``(seed, b)``."""
-    key = _mix_py(_mix_py((int(seed) + 0x9E3779B97F4A7C15) & _MASK64) ^ 0x5B0_7A7E)
+    key = splitmix64_py(splitmix64_py((int(seed) + 0x9E3779B97F4A7C15) & _MASK64) ^ 0x5B0_7A7E)
     idx = np.arange(n_beams, dtype=np.uint64)
     z = np.uint64(key) + (idx + np.uint64(1)) * np.uint64(0x9E3779B97F4A7C15)
     z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
@@ -296,7 +296,8 @@ def particle_returns(origin: ArrayLike, directions: ArrayLike, r0: ArrayLike, i0
         raise ValueError(f"particle_returns: noise_floor = {noise_floor!r}; expected 0 < noise_floor <= 255")
     frac = float(resolve_fraction)
     if not (math.isfinite(frac) and 0.0 < frac <= 1e3):
-        raise ValueError(f"particle_returns: resolve_fraction = {resolve_fraction!r}; expected 0 < resolve_fraction <= 1000")
+        raise ValueError(f"particle_returns: resolve_fraction = {resolve_fraction!r}; "
+                         "expected 0 < resolve_fraction <= 1000")
     theta = _check_divergence(divergence_rad)
     _check_sensor(sensor, intensity_model)
     _check_search(sub_rays, grid_step, seed)

@@ -30,8 +30,8 @@ exposure around it):
   beams included), then the detector (noise floor, intensity noise, integer quantisation, range noise). The clear
   level goes through the same chain with α = β = 0. Snow and rain: Monte-Carlo sub-rays across each beam's cone
   through the frame's particles, the full waveform and its strongest peak
-  (`weatheralign.reference.lidar_particles_exact`), then the same detector. Points: float32 N x 5 ``x, y, z, intensity 0..255, channel``
-  in the LiDAR frame, channel = 63 - ring (STF: channel 0 is the lowest laser).
+  (`weatheralign.reference.lidar_particles_exact`), then the same detector. Points: float32 N x 5 ``x, y, z, intensity
+  0..255, channel`` in the LiDAR frame, channel = 63 - ring (STF: channel 0 is the lowest laser).
 - Camera: a stereo-left-like pinhole with Seeing Through Fog's rectified intrinsics (f = 2355.7 px on 1920 x 1024)
   scaled by ``image_scale``, 0.7 m ahead of and 0.7 m below the LiDAR, looking forward; the world's shading in linear
   light, fog by per-pixel integration (`weatheralign.reference.camera_exact`) with the level's true α and an sRGB
@@ -66,16 +66,31 @@ from weatheralign.config import ReferenceConfig
 from weatheralign.data.rings import HDL64E_ELEVATIONS_DEG
 from weatheralign.data.stf import CAMERA_CALIB_FILE, CAMERA_TF_FRAME, LIDAR_TF_FRAME, TF_TREE_FILE
 from weatheralign.geometry import camera_rotation_from_yaw, make_transform
-from weatheralign.medium.fog import LN20, PAPER_BETA_FACTORS
-from weatheralign.provenance import read_resume_record, stage_code_digest, write_resume_record
 from weatheralign.medium.distributions import RainSizeDistribution, SnowSizeDistribution
 from weatheralign.medium.field import ParticleField
+from weatheralign.medium.fog import LN20, PAPER_BETA_FACTORS
+from weatheralign.provenance import read_resume_record, stage_code_digest, write_resume_record
 from weatheralign.reference.camera_exact import encode_with_noise, fog_radiance
 from weatheralign.reference.camera_particles_exact import particle_image
-from weatheralign.reference.layout import (CAMERA_FOLDER, FOG_LEVELS, LEVELS, LIDAR_FOLDER, PRECIPITATION_LEVELS,
-                                           RANGE_FOLDER, split_files_of)
-from weatheralign.reference.lidar_exact import (FOG, TARGET, Detector, ExactSensor, exact_returns, fog_tables,
-                                                read_out, system_constants)
+from weatheralign.reference.layout import (
+    CAMERA_FOLDER,
+    FOG_LEVELS,
+    LEVELS,
+    LIDAR_FOLDER,
+    PRECIPITATION_LEVELS,
+    RANGE_FOLDER,
+    split_files_of,
+)
+from weatheralign.reference.lidar_exact import (
+    FOG,
+    TARGET,
+    Detector,
+    ExactSensor,
+    exact_returns,
+    fog_tables,
+    read_out,
+    system_constants,
+)
 from weatheralign.reference.lidar_particles_exact import PARTICLE, particle_returns
 from weatheralign.world.layout import generate_layout
 from weatheralign.world.raycast import WorldRaycaster
@@ -329,7 +344,7 @@ def frame_field(spec: FrameSpec, cfg: ReferenceConfig) -> ParticleField:
                          z_min=pc.layer_bottom_m, z_max=pc.layer_top_m, cell_size=cell)
 
 
-def frame_medium(spec: FrameSpec, cfg: ReferenceConfig) -> "FogLevel | ParticleField":
+def frame_medium(spec: FrameSpec, cfg: ReferenceConfig) -> FogLevel | ParticleField:
     """What frame ``spec`` is seen through: its level's `FogLevel` (`CLEAR` for the clear level) or its particle
     field (`frame_field`)."""
     return frame_field(spec, cfg) if spec.level in PRECIPITATION_LEVELS else draw_truth(cfg)[spec.level]
@@ -376,7 +391,7 @@ def _ego_velocity(layout, t: float) -> F64:
     return (layout.T_global_ego(t + h)[:3, 3] - layout.T_global_ego(t - h)[:3, 3]) / (2.0 * h)
 
 
-def render_frame(spec: FrameSpec, cfg: ReferenceConfig, medium: "FogLevel | ParticleField",
+def render_frame(spec: FrameSpec, cfg: ReferenceConfig, medium: FogLevel | ParticleField,
                  nthreads: int = 1) -> RenderedFrame:
     """Render frame ``spec`` through ``medium`` (`frame_medium`: the level's true fog, `CLEAR`, or its particle
     field)."""
@@ -599,7 +614,8 @@ def finalize(cfg: ReferenceConfig, data: Path, records: list[FrameRecord]) -> di
     for level, rate in rates.items():
         field_seeds = {r.sample_id: frame_field(specs[r.sample_id], cfg).seed for r in by_level[level]}
         details[level] = {"rate_mm_h": rate, "field_seed": field_seeds,
-                          "particle_returns": {r.sample_id: r.stats.get("particle_returns", 0) for r in by_level[level]},
+                          "particle_returns": {r.sample_id: r.stats.get("particle_returns", 0)
+                                               for r in by_level[level]},
                           "camera_particle_coverage": {r.sample_id: r.stats.get("camera_particle_coverage", 0.0)
                                                        for r in by_level[level]}}
     details["detector"] = asdict(detector)

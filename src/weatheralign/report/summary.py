@@ -12,6 +12,7 @@ from typing import Any
 
 from weatheralign.verify.table import PAPER_TABLE1
 
+
 def _num(value: Any, fmt: str = ".3f") -> str:
     return "—" if value is None else format(value, fmt)
 
@@ -101,8 +102,8 @@ _FINDING_PATTERNS: list[tuple[str, str]] = [
 
 def findings(detect: dict[str, Any]) -> list[str]:
     """One sentence per paired difference of the detect stage (``differences``), generated from its numbers: the
-    difference, its bootstrap interval (seeds x scene blocks) and whether the interval excludes 0 (the difference exceeds the
-    evaluation's sampling noise) — those first."""
+    difference, its bootstrap interval (seeds x scene blocks) and whether the interval excludes 0 (the difference
+    exceeds the evaluation's sampling noise) — those first."""
     out: list[tuple[bool, str]] = []
     for key, d in detect.get("differences", {}).items():
         phrase = f"{d['metric']} of {d['a']} minus {d['b']}:"

@@ -25,7 +25,6 @@ from weatheralign.medium.field import ParticleField
 from weatheralign.medium.fog import mor_from_alpha
 
 
-
 @dataclass(frozen=True)
 class FogLevels:
     """(α [1/m], β [1/(m sr)]) of the light and dense levels, each level's airlight gains (the fog's airlight over the
@@ -254,7 +253,7 @@ class ConditionMedia:
                 else dict(sorted(self.camera_rate_unaligned.items()))}
 
     @staticmethod
-    def from_dict(d: dict[str, Any], where: str = "media") -> "ConditionMedia":
+    def from_dict(d: dict[str, Any], where: str = "media") -> ConditionMedia:
         try:
             if d["condition"] not in CONDITIONS:
                 raise ValueError(f"unknown condition {d['condition']!r}")

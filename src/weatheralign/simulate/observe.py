@@ -30,8 +30,13 @@ from numpy.typing import NDArray
 
 from weatheralign.camera.fog import composite_image, encode_srgb_u8, fog_airlight
 from weatheralign.camera.fog import transmission as fog_transmission
-from weatheralign.camera.splat import (APPEARANCES, focal_px, materialize_for_camera, render_particles,
-                                       unresolved_extinction_profile)
+from weatheralign.camera.splat import (
+    APPEARANCES,
+    focal_px,
+    materialize_for_camera,
+    render_particles,
+    unresolved_extinction_profile,
+)
 from weatheralign.data.frame import CameraView, Frame, LidarScan
 from weatheralign.geometry import invert
 from weatheralign.lidar import simulate_fog, simulate_particle_scans
@@ -115,8 +120,9 @@ def observe_lidar(scan: LidarScan, media: SceneMedia, lidar: LidarModel) -> Lida
 JOINT_DRIFT_MAX_M = 0.5
 """Scans of one sample are matched against a particle field together while the field drifts at most this far [m]
 over their joint time span; beyond it each scan runs alone. A joint run generates each field cell once for all scans
-but widens every beam's reach by the drift: measured on the default world (a keyframe and 2 sweeps, 0.15 s), snow at
-1.5 m/s (0.2 m) costs 0.44 CPU-s joint vs 0.49 alone, rain at 6.7 m/s (1.0 m) 0.65 joint vs 0.40 alone."""
+but widens every beam's reach by the drift, so slow snow gains from it and fast rain loses;
+`benchmarks/bench_lidar_particles.py` measures both (its ``*_keyframe_2sweeps_joint`` workloads against
+``separate_*``)."""
 
 
 def joint_drift_m(scans: list[LidarScan], lidar: LidarModel, speed_m_s: float) -> float:

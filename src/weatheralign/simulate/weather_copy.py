@@ -3,8 +3,8 @@
 `run_sample` loads one sample's inputs (the frame, decoded images, each camera's ray-length map:
 `weatheralign.simulate.plan.sample_range_maps`), runs the pure core `weatheralign.simulate.observe.observe` on the
 keyframe and the ``sweeps`` LiDAR sweeps nearest before it (each at its own time through the same media: the sweeps a
-multi-sweep detector aggregates) and writes the files; `run_chunk` does it for consecutive samples of one scene (one task: the per-task overhead of the
-engine is paid once per chunk); `finalize_copy` completes the copy.
+multi-sweep detector aggregates) and writes the files; `run_chunk` does it for consecutive samples of one scene (one
+task: the per-task overhead of the engine is paid once per chunk); `finalize_copy` completes the copy.
 
 The copy is lean. Every file the weather did not change (the older sweeps, cameras a condition leaves clear, the
 tables and maps, the input's per-point extras of unchanged scans) is a **hard link** to the input's file (a copy only
@@ -40,16 +40,29 @@ from numpy.typing import NDArray
 from PIL import Image
 
 from weatheralign import atomic
-from weatheralign.data.frame import Frame, LidarScan
-from weatheralign.data.nuscenes import (compressed_extras_relpath, extras_relpath, load_frame, load_lidar,
-                                        open_nuscenes_cached, read_point_extras, read_record_file)
 from weatheralign.data.errors import DataFormatError, read_float32_records
+from weatheralign.data.frame import Frame, LidarScan
+from weatheralign.data.nuscenes import (
+    compressed_extras_relpath,
+    extras_relpath,
+    load_frame,
+    load_lidar,
+    open_nuscenes_cached,
+    read_point_extras,
+    read_record_file,
+)
 from weatheralign.lidar.labels import WeatherLabel
-from weatheralign.provenance import (file_stamps, files_intact, read_record_json, read_resume_record,
-                                     write_resume_record)
+from weatheralign.provenance import file_stamps, files_intact, read_record_json, read_resume_record, write_resume_record
 from weatheralign.sensors import SensorRig
 from weatheralign.simulate.media import SceneMedia
-from weatheralign.simulate.observe import COUNT_KEYS, FrameWeather, LidarWeather, ObserveOptions, observe, observe_lidar_scans
+from weatheralign.simulate.observe import (
+    COUNT_KEYS,
+    FrameWeather,
+    LidarWeather,
+    ObserveOptions,
+    observe,
+    observe_lidar_scans,
+)
 from weatheralign.simulate.plan import SampleJob, sample_range_maps
 
 WEATHER_MATERIAL = 255
@@ -245,7 +258,8 @@ def reusable_lidar(twin_root: Path, sample_token: str, fingerprint: str, relpath
 
 def read_lidar_weather(root: Path, rel: str, scan: LidarScan, counts: dict[str, int]) -> LidarWeather:
     """The weather scan ``rel`` of the copy at ``root`` as `LidarWeather` (points, labels, particle ids, source rows
-    and the stored firing-time offsets), ``scan`` being its clear input (timestamp, poses) and ``counts`` its record's."""
+    and the stored firing-time offsets), ``scan`` being its clear input (timestamp, poses) and ``counts`` its
+    record's."""
     path = Path(root) / rel
     points = read_float32_records(path, 5, "weather scan")
     record = read_weather_record(root, rel, len(points))
@@ -334,7 +348,8 @@ def run_sample(nusc, src_root: Path, out_root: Path, job: SampleJob, sensors: Se
         "sample": token, "lidar_fingerprint": lidar_fp, "lidar_from_twin": twin is not None,
         "counts": fw.lidar.counts, "sweep_counts": sweep_counts,
         "sweeps_simulated": len(sweep_list), "particles_rendered": fw.particles_rendered,
-        "reprojection_px": [float(e) for e in fw.reprojection_px], "reprojection_channels": list(fw.reprojection_channels), "bytes_written": _bytes_written(out_root, outputs),
+        "reprojection_px": [float(e) for e in fw.reprojection_px],
+        "reprojection_channels": list(fw.reprojection_channels), "bytes_written": _bytes_written(out_root, outputs),
         "seconds": round(time.time() - t0, 3), "cpu_seconds": round(time.process_time() - cpu0, 3)})
     return record, True
 

@@ -3,8 +3,8 @@ features it gives, and the sensitivity control's broken pairs (`verify`).
 
 Inputs are (N, 6, h, w) float32 stacks of `weatheralign.verify.features.fused_input`, one per frame and camera,
 labelled with class indices. The held-out frames are drawn per stratum (`held_out_split`: the reference level in
-`verify`, whose MMDs compare only them) and never trained on; horizontal flips (all six channels together, so that the sensors stay registered) are the only
-augmentation. Deterministic for a seed on the CPU.
+`verify`, whose MMDs compare only them) and never trained on; horizontal flips (all six channels together, so that the
+sensors stay registered) are the only augmentation. Deterministic for a seed on the CPU.
 """
 
 from __future__ import annotations
@@ -93,7 +93,8 @@ def train_weather_classifier(inputs: NDArray, labels: NDArray, classes: Sequence
     y = torch.from_numpy(labels)
     hard = None if displaced is None else torch.from_numpy(np.asarray(displaced, dtype=np.float32))
     if hard is not None and hard.shape != (len(x), LIDAR_CHANNELS, *x.shape[2:]):
-        raise ValueError(f"displaced must be (N, {LIDAR_CHANNELS}, h, w) like the inputs' LiDAR, got {tuple(hard.shape)}")
+        raise ValueError(f"displaced must be (N, {LIDAR_CHANNELS}, h, w) like the inputs' LiDAR, "
+                         f"got {tuple(hard.shape)}")
     loss = torch.zeros(())
     model.train()
     bar = tqdm(range(steps), desc="verify: weather classifier", unit="step", disable=not progress)
@@ -196,5 +197,5 @@ def broken_pairs(inputs: NDArray, seed: int = 0) -> NDArray[np.float32]:
     return out
 
 
-__all__ = ["ClassifierReport", "broken_pairs", "ensemble_report", "fused_features", "held_out_split", "mismatched_pairs",
-           "predict_classes", "train_weather_classifier"]
+__all__ = ["ClassifierReport", "broken_pairs", "ensemble_report", "fused_features", "held_out_split",
+           "mismatched_pairs", "predict_classes", "train_weather_classifier"]

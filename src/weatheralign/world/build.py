@@ -20,14 +20,14 @@ from PIL import Image
 from weatheralign import atomic
 from weatheralign.config import WorldConfig
 from weatheralign.data.nuscenes import extras_relpath
+from weatheralign.float16 import to_float16
 from weatheralign.geometry import apply, invert, project, quaternion_wxyz
+from weatheralign.sensors import FiringPattern, ego_body_from_params, lidar_model_from_params
 from weatheralign.world.layout import Actor, SceneLayout, generate_layout
 from weatheralign.world.objects import ego_rear
 from weatheralign.world.raster import pinhole_depth
 from weatheralign.world.raycast import WorldRaycaster
-from weatheralign.float16 import to_float16
 from weatheralign.world.render import CameraFrame, LidarSweep, render_camera, render_lidar_sweep
-from weatheralign.sensors import FiringPattern, ego_body_from_params, lidar_model_from_params
 from weatheralign.world.rig import Camera, camera_time_offset, make_cameras
 
 SWEEP_PERIOD_US = 50_000
@@ -100,7 +100,7 @@ class SampleResult:
         return json.dumps(asdict(self))
 
     @staticmethod
-    def from_json(text: str) -> "SampleResult":
+    def from_json(text: str) -> SampleResult:
         d = json.loads(text)
         return SampleResult(d["scene_index"], d["sample_index"], d["timestamp_us"],
                             [SensorRecord(**r) for r in d["lidar"]], [SensorRecord(**r) for r in d["cameras"]],

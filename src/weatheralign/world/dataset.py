@@ -21,7 +21,7 @@ from weatheralign.data.nuscenes import extras_relpath
 from weatheralign.provenance import read_resume_record, stage_code_digest, write_resume_record
 from weatheralign.world.build import SampleResult, SceneSpec, render_sample, scene_specs
 from weatheralign.world.rig import T_EGO_LIDAR, make_cameras
-from weatheralign.world.tables import (RoadFootprint, SensorCalibration, build_tables, write_dataset_tables)
+from weatheralign.world.tables import RoadFootprint, SensorCalibration, build_tables, write_dataset_tables
 
 PROGRESS_DIR = ".progress"
 SENSOR_DIRS = ("samples", "sweeps", "extras")
@@ -56,7 +56,8 @@ def claim_dataroot(dataroot: Path, version: str) -> None:
     """
     root = Path(dataroot)
     root.mkdir(parents=True, exist_ok=True)
-    foreign = sorted(str(p.relative_to(root)) for p in root.rglob("*") if p.is_file() and not _is_ours(root, p, version))
+    foreign = sorted(str(p.relative_to(root)) for p in root.rglob("*")
+                     if p.is_file() and not _is_ours(root, p, version))
     if foreign:
         raise DataFormatError(
             f"{root}: holds {len(foreign)} file(s) the world stage did not write ({', '.join(foreign[:5])}"

@@ -4,11 +4,12 @@ cross street, and road users with nuScenes categories, realistic sizes and const
 Everything is generated in a scene frame (road along +x, ego starting at x = 0 in the first right-hand lane) and
 placed in the global frame by ``T_global_scene``. The street is built for the whole drive (``ego_speed * duration``
 metres, 240 m for 20 s at 12 m/s): ground and sidewalks wherever a road user ever is, buildings and street furniture
-from well behind the start to well beyond the end (`static_extent`), the cross street somewhere along the drive. Road users are placed with a uniform density within the window around the ego (`USERS_BEHIND_M`
-behind to `USERS_AHEAD_M` ahead) at every time of the scene: each moving user's start position is drawn from the
-interval of starts that bring it into that window at some time, so none appears from nowhere near the ego. Road users
-never overlap each other, the street furniture or the ego at any time of the scene (an exact test of their
-constant-velocity footprints over the whole continuous duration, not a sampled one).
+from well behind the start to well beyond the end (`static_extent`), the cross street somewhere along the drive. Road
+users are placed with a uniform density within the window around the ego (`USERS_BEHIND_M` behind to `USERS_AHEAD_M`
+ahead) at every time of the scene: each moving user's start position is drawn from the interval of starts that bring it
+into that window at some time, so none appears from nowhere near the ego. Road users never overlap each other, the
+street furniture or the ego at any time of the scene (an exact test of their constant-velocity footprints over the whole
+continuous duration, not a sampled one).
 """
 
 from __future__ import annotations
@@ -286,7 +287,8 @@ def _static_world(rng: np.random.Generator, road: RoadGeometry,
                     parts.append(objects.tree(rng.uniform(5, 9), rng.uniform(1.4, 2.6), rng)
                                  .transformed(np.eye(3), [x, y, CURB_HEIGHT]))
                 elif kind < 0.88:
-                    parts.append(objects.street_lamp(rng.uniform(7, 9), -side).transformed(np.eye(3), [x, y, CURB_HEIGHT]))
+                    parts.append(objects.street_lamp(rng.uniform(7, 9), -side)
+                                 .transformed(np.eye(3), [x, y, CURB_HEIGHT]))
                 else:
                     parts.append(objects.traffic_sign(rng.uniform(2.4, 3.0), -side,
                                                       _pick(rng, ((0.8, 0.1, 0.1), (0.1, 0.3, 0.8), (0.9, 0.9, 0.9))))

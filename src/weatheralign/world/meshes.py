@@ -32,12 +32,12 @@ class Mesh:
     def num_triangles(self) -> int:
         return len(self.triangles)
 
-    def transformed(self, rotation: NDArray, translation: NDArray) -> "Mesh":
+    def transformed(self, rotation: NDArray, translation: NDArray) -> Mesh:
         """The mesh moved by ``p -> R p + t`` (R (3, 3), t (3,))."""
         v = self.vertices @ np.asarray(rotation).T + np.asarray(translation)
         return Mesh(v, self.triangles, self.material, self.albedo, self.reflectivity, self.instance)
 
-    def with_instance(self, instance: int) -> "Mesh":
+    def with_instance(self, instance: int) -> Mesh:
         """The same mesh with every triangle labelled ``instance``."""
         return Mesh(self.vertices, self.triangles, self.material, self.albedo, self.reflectivity,
                     np.full(self.num_triangles, instance, dtype=np.int32))
@@ -136,7 +136,8 @@ def cylinder(radius: float, height: float, material: Material, albedo: RGB, refl
     tris = [np.stack([i, j, segments + j], 1), np.stack([i, segments + j, segments + i], 1)]
     if caps:
         c0, c1 = 2 * segments, 2 * segments + 1
-        tris += [np.stack([np.full(segments, c0), j, i], 1), np.stack([np.full(segments, c1), segments + i, segments + j], 1)]
+        tris += [np.stack([np.full(segments, c0), j, i], 1),
+                 np.stack([np.full(segments, c1), segments + i, segments + j], 1)]
     t = np.concatenate(tris)
     if axis == "x":
         v = v[:, [2, 0, 1]]

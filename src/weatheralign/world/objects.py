@@ -10,8 +10,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from weatheralign.world.materials import Material as M
-from weatheralign.world.meshes import (RGB, Mesh, box, concat, cylinder, ellipsoid, hexahedron, rod, tapered_box,
-                                      torus)
+from weatheralign.world.meshes import RGB, Mesh, box, concat, cylinder, ellipsoid, hexahedron, rod, tapered_box, torus
 
 GLASS: RGB = (0.04, 0.05, 0.06)
 TYRE: RGB = (0.03, 0.03, 0.03)

@@ -21,11 +21,21 @@ import open3d as o3d
 from numba import njit
 from numpy.typing import NDArray
 
+from weatheralign.geometry import yaw_matrix
 from weatheralign.world.layout import Actor, SceneLayout
 from weatheralign.world.meshes import Mesh
-from weatheralign.world.raster import (MAX_MOVING_SUN_CELLS, SunGrid, TriangleTable, Vec3, gather_rows,
-                                       pinhole_depth, pixel_ranges, sun_blocked, sun_grid, triangle_normals)
-from weatheralign.geometry import yaw_matrix
+from weatheralign.world.raster import (
+    MAX_MOVING_SUN_CELLS,
+    SunGrid,
+    TriangleTable,
+    Vec3,
+    gather_rows,
+    pinhole_depth,
+    pixel_ranges,
+    sun_blocked,
+    sun_grid,
+    triangle_normals,
+)
 
 
 @dataclass(frozen=True)

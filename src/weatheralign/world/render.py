@@ -10,11 +10,11 @@ from numpy.typing import NDArray
 
 from weatheralign.config import CameraConfig, LidarConfig
 from weatheralign.geometry import apply, invert
-from weatheralign.world.layout import SceneLayout
-from weatheralign.world.raycast import Hits, WorldRaycaster
 from weatheralign.sensors import FiringPattern
-from weatheralign.world.rig import T_EGO_LIDAR, Camera
+from weatheralign.world.layout import SceneLayout
 from weatheralign.world.raster import SunGrid, sun_grid
+from weatheralign.world.raycast import Hits, WorldRaycaster
+from weatheralign.world.rig import T_EGO_LIDAR, Camera
 from weatheralign.world.shading import SHADOW_EPS, camera_frame, lidar_returns, noise_key
 
 

@@ -60,7 +60,8 @@ def make_cameras(image_scale: float) -> tuple[Camera, ...]:
     sx, sy = width / FULL_WIDTH, height / FULL_HEIGHT
     cams = []
     for spec in CAMERAS:
-        K = np.array([[spec.focal * sx, 0.0, (FULL_WIDTH / 2) * sx], [0.0, spec.focal * sy, (FULL_HEIGHT / 2 + 20) * sy],
+        K = np.array([[spec.focal * sx, 0.0, (FULL_WIDTH / 2) * sx],
+                      [0.0, spec.focal * sy, (FULL_HEIGHT / 2 + 20) * sy],
                       [0.0, 0.0, 1.0]])
         yaw = np.deg2rad(spec.yaw_deg)
         T = make_transform(camera_rotation_from_yaw(yaw), np.array(spec.position))

@@ -1,4 +1,5 @@
-"""Writer of the 13 nuScenes tables of the synthetic world (+ map mask and custom ``splits.json``) from rendered sample records.
+"""Writer of the 13 nuScenes tables of the synthetic world (+ map mask and custom ``splits.json``) from rendered sample
+records.
 
 Tokens are deterministic (hashes of identifying parts), so the same world gives byte-identical tables.
 """

@@ -16,33 +16,36 @@ is a constant plus one sinusoid of period ``c τ_H``, so its maximum is found ex
 range is the peak position minus ``c τ_H / 2`` (as in Hahner's code). A peak within ``keep_tolerance`` (0.2 m) of
 ``R_0`` keeps the point where it is with the peak intensity (ATTENUATED, or UNCHANGED if its float32 intensity is
 bit-identical; a detector with intensity noise reads it again: its clear intensity's noise scaled with the signal
-lacks ``σ_0² (1 - k²)`` of the reading's variance at transmission ``k``, added as in the fog model); otherwise the point moves along its beam to the measured range (SCATTERED, with the id of the particle
-contributing most at the peak). A particle echo below the detector noise floor is not detected: the target's own
-echo then decides, and a return the weather pushed below the floor is LOST (points that were below the floor in clear
-weather were detected nevertheless and are kept, as in the fog model). Beams without return can return a particle:
-SCATTERED clutter with ``source_index`` -1 (the reference code never simulates those beams). Echoes measured nearer
-than the sensor's minimum range are not reported.
+lacks ``σ_0² (1 - k²)`` of the reading's variance at transmission ``k``, added as in the fog model); otherwise the point
+moves along its beam to the measured range (SCATTERED, with the id of the particle contributing most at the peak). A
+particle echo below the detector noise floor is not detected: the target's own echo then decides, and a return the
+weather pushed below the floor is LOST (points that were below the floor in clear weather were detected nevertheless and
+are kept, as in the fog model). Beams without return can return a particle: SCATTERED clutter with ``source_index`` -1
+(the reference code never simulates those beams). Echoes measured nearer than the sensor's minimum range are not
+reported.
 
 The unresolved particles (below) return light too: a smooth waveform peaking a few metres out
-(`api.unresolved_continuum`, tabulated once per run over the beam length). The receiver compares the summed waveform at the pulse sum's crest and
-at the continuum's; where the continuum's is stronger it is read like a particle echo (SCATTERED without particle id
-if detected). Far below the floor, it still hides fainter far echoes from a strongest-return receiver. Likewise a
-short run of beams without return between two returns of a surface at the detector floor is taken to hit that
-surface under the floor (`weatheralign.lidar.beams.with_faint_surfaces`): its undetectable echo outshines weaker
-weather echoes, and the beam reports nothing unless the weather puts a detectable echo in front of it.
+(`api.unresolved_continuum`, tabulated once per run over the beam length). The receiver compares the summed waveform at
+the pulse sum's crest and at the continuum's; where the continuum's is stronger it is read like a particle echo
+(SCATTERED without particle id if detected). Far below the floor, it still hides fainter far echoes from a
+strongest-return receiver. Likewise a short run of beams without return between two returns of a surface at the detector
+floor is taken to hit that surface under the floor (`weatheralign.lidar.beams.with_faint_surfaces`): its undetectable
+echo outshines weaker weather echoes, and the beam reports nothing unless the weather puts a detectable echo in front of
+it.
 
-Particle echo vs target echo (the calibration choice, `weatheralign.sensors.IntensityModel`, part of the sensor's `LidarModel`). A clear measurement ``i_0`` at ``R_0`` fixes
-only the product of the system constant and the target's (unknown) reflectivity; a particle's echo needs the system
-constant alone. We calibrate it from the sensor's intensity model: a Lambertian target of reflectivity ρ filling the
-beam at normal incidence reports ``i = scale ρ g(R)``, ``g(R) = min(1, (r_ref / R)^falloff)`` being the range
-compensation the sensor applies to the raw ``1/R²`` power. In raw units (``i / (R² g(R))``) a particle — a disk of
-reflectivity ρ_p covering ``ratio`` of the footprint at range r — gives ``scale ρ_p ratio ξ(r) / r²``, the target
-``i_0 ratio_t / (R_0² g(R_0))``, and the detector reports ``P* R² g(R)`` at the measured range R, so a clear target
-comes back as ``i_0`` exactly. The synthetic world's renderer is exactly ``scale = 255, r_ref = 10 m, falloff = 1``
-(`weatheralign.sensors.SYNTHETIC_INTENSITY`, the synthetic world's model): there a flake filling the beam reports what a 0.9-reflectivity wall would.
-Hahner's published code is the case ``r_ref = 1 m, falloff = 2`` (`weatheralign.sensors.HAHNER_INTENSITY`: a flake reports
-``0.9 · 255 · ratio / r²`` while the target is normalised at its own range), and a reflectance-calibrated sensor
-(KITTI) is ``falloff = 0`` (`weatheralign.sensors.CALIBRATED_INTENSITY`).
+Particle echo vs target echo (the calibration choice, `weatheralign.sensors.IntensityModel`, part of the sensor's
+`LidarModel`). A clear measurement ``i_0`` at ``R_0`` fixes only the product of the system constant and the target's
+(unknown) reflectivity; a particle's echo needs the system constant alone. We calibrate it from the sensor's intensity
+model: a Lambertian target of reflectivity ρ filling the beam at normal incidence reports ``i = scale ρ g(R)``, ``g(R) =
+min(1, (r_ref / R)^falloff)`` being the range compensation the sensor applies to the raw ``1/R²`` power. In raw units
+(``i / (R² g(R))``) a particle — a disk of reflectivity ρ_p covering ``ratio`` of the footprint at range r — gives
+``scale ρ_p ratio ξ(r) / r²``, the target ``i_0 ratio_t / (R_0² g(R_0))``, and the detector reports ``P* R² g(R)`` at
+the measured range R, so a clear target comes back as ``i_0`` exactly. The synthetic world's renderer is exactly ``scale
+= 255, r_ref = 10 m, falloff = 1`` (`weatheralign.sensors.SYNTHETIC_INTENSITY`, the synthetic world's model): there a
+flake filling the beam reports what a 0.9-reflectivity wall would. Hahner's published code is the case ``r_ref = 1 m,
+falloff = 2`` (`weatheralign.sensors.HAHNER_INTENSITY`: a flake reports ``0.9 · 255 · ratio / r²`` while the target is
+normalised at its own range), and a reflectance-calibrated sensor (KITTI) is ``falloff = 0``
+(`weatheralign.sensors.CALIBRATED_INTENSITY`).
 
 Dense fields. Physical densities (~166 flakes/m³ at 2 mm/h, ~4000 drops/m³ at 50 mm/h: ~10^8 particles within the
 sensor's reach) cannot all be tested against every beam. A particle that would cover less than ``ratio_threshold``
@@ -69,10 +72,10 @@ ATTENUATED, SCATTERED, LOST per point, and NO_ECHO for a beam without return tha
 
 Modules: `api` (this package's public names: `ParticleResult`, `simulate_particles` (with the optional fog),
 `simulate_particle_list`, `simulate_particle_scans`: several scans of one sensor through the field at once, each
-cell generated once for all of them), `beam_index` (beam geometry set up once per scan: time slices, sorted beams, reach map;
-range shells, reachable field cells; the drivers of the hit kernels), `kernels` (the numba kernels that index the
-beams and find the hits), `response` (the numba kernel of the per-beam response) and `records` (the typed records
-the kernels take).
+cell generated once for all of them), `beam_index` (beam geometry set up once per scan: time slices, sorted beams, reach
+map; range shells, reachable field cells; the drivers of the hit kernels), `kernels` (the numba kernels that index the
+beams and find the hits), `response` (the numba kernel of the per-beam response) and `records` (the typed records the
+kernels take).
 """
 
 from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel

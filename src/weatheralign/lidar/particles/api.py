@@ -15,17 +15,32 @@ from numpy.typing import NDArray
 from weatheralign.data.frame import LidarScan
 from weatheralign.geometry import invert
 from weatheralign.lidar.beams import Beams, beams_from_scan, detector_noise_keys, with_faint_surfaces
-from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel
-from weatheralign.lidar.particles.beam_index import (empty_hits, field_hits, index_beams, list_hits, range_shells,
-                                                     rank_cutoffs, reachable_cells, shell_edges)
-from weatheralign.lidar.particles.response import response_kernel
-from weatheralign.lidar.particles.records import (BeamOutcome, BeamTargets, Continuum, HitArrays, Medium,
-                                                  ParticleBatch, PulseParams)
 from weatheralign.lidar.fog import reading_normals, soft_target_response
+from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel
+from weatheralign.lidar.particles.beam_index import (
+    empty_hits,
+    field_hits,
+    index_beams,
+    list_hits,
+    range_shells,
+    rank_cutoffs,
+    reachable_cells,
+    shell_edges,
+)
+from weatheralign.lidar.particles.records import (
+    BeamOutcome,
+    BeamTargets,
+    Continuum,
+    HitArrays,
+    Medium,
+    ParticleBatch,
+    PulseParams,
+)
+from weatheralign.lidar.particles.response import response_kernel
 from weatheralign.medium.distributions import RAIN_REFLECTIVITY, SNOW_REFLECTIVITY  # noqa: F401  (re-exported)
+from weatheralign.medium.field import DEFAULT_MAX_PARTICLES, ParticleField, Particles
 from weatheralign.medium.fog import FogMedium
 from weatheralign.sensors import IntensityModel, LidarModel, PulseSensor
-from weatheralign.medium.field import DEFAULT_MAX_PARTICLES, ParticleField, Particles
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -151,7 +166,7 @@ class _Options:
     min_range: float = 0.0
 
     @staticmethod
-    def of(lidar: LidarModel, reflectivity: float, keep_tolerance: float) -> "_Options":
+    def of(lidar: LidarModel, reflectivity: float, keep_tolerance: float) -> _Options:
         """The options of ``lidar`` (its pulse, intensity model, detector floor and noise) for particles of
         ``reflectivity``."""
         return _Options(reflectivity, lidar.pulse, lidar.intensity, lidar.noise_floor, keep_tolerance,

@@ -15,11 +15,28 @@ import numpy as np
 from numpy.typing import NDArray
 
 from weatheralign.lidar.beams import Beams
-from weatheralign.lidar.particles.kernels import (cells_kernel, field_hits_kernel, hits_kernel, reach_kernel,
-                                                  slices_kernel, sort_hits_kernel)
-from weatheralign.lidar.particles.records import (BeamRays, CellQuery, FieldGrid, FieldSource, HitArrays,
-                                                  ParticleBatch, ReachMap, Shells, SliceIndex, Sizer, TimeSlices)
-from weatheralign.medium.field import MAX_PER_CELL, ParticleField, _seed_key
+from weatheralign.lidar.particles.kernels import (
+    cells_kernel,
+    field_hits_kernel,
+    hits_kernel,
+    reach_kernel,
+    slices_kernel,
+    sort_hits_kernel,
+)
+from weatheralign.lidar.particles.records import (
+    BeamRays,
+    CellQuery,
+    FieldGrid,
+    FieldSource,
+    HitArrays,
+    ParticleBatch,
+    ReachMap,
+    Shells,
+    Sizer,
+    SliceIndex,
+    TimeSlices,
+)
+from weatheralign.medium.field import MAX_PER_CELL, ParticleField, field_seed_key
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -270,7 +287,7 @@ def field_hits(fld: ParticleField, index: BeamIndex, cells: I64, shell_off: I64,
     # a particle of shell k whose rank variable exceeds the cut-off of a slightly smaller diameter is certainly below
     # the shell's threshold (the margin covers the rounding of its diameter; the kernel decides the others exactly)
     _, e_cut = rank_cutoffs(fld, shells.thresholds * (1.0 - 1e-6))
-    src = FieldSource(seed_key=_seed_key(fld.seed), cells=np.ascontiguousarray(cells, dtype=np.int64),
+    src = FieldSource(seed_key=field_seed_key(fld.seed), cells=np.ascontiguousarray(cells, dtype=np.int64),
                       shell_off=np.ascontiguousarray(shell_off, dtype=np.int64), c_max=c_max, e_cut=e_cut,
                       cut_pad=np.concatenate([e_cut, np.full(4, -np.inf)]),
                       edge_pad=np.concatenate([shells.edges, np.full(4, np.inf)]),

@@ -30,7 +30,7 @@ import numpy as np
 from numba import njit
 
 from weatheralign.lidar.particles.records import Batch, Sizer
-from weatheralign.medium.field import MAX_PER_CELL, _U_RANK_BITS, _cell_key, _packed_cell, _uniform, _wrap
+from weatheralign.medium.field import MAX_PER_CELL, U_RANK_BITS, cell_key, packed_cell, stream_uniform, wrap_height
 
 _MARGIN = 1e-9
 """Relative slack [rad, or m per m of range] added to every prefilter bound (covers rounding; the exact test
@@ -705,7 +705,7 @@ def _cell_ranks(key, c_max, floor, lam, exp_lam_dmax, scale, d_max, e_rank, r_ub
     j = 0
     r_anchor = 0.0
     while True:
-        e -= math.log(1.0 - _uniform(key, np.uint64(4 * j)))
+        e -= math.log(1.0 - stream_uniform(key, np.uint64(4 * j)))
         if e > c_max:
             return j
         if j + 1 >= MAX_PER_CELL:
@@ -761,9 +761,9 @@ def field_hits_kernel(src, t_part, vel, shells, beams, slices, lookup, per_shell
         floor_k = d_floor[k]
         for ci in range(shell_off[k], shell_off[k + 1]):
             ix, iy, iz = cells[ci, 0], cells[ci, 1], cells[ci, 2]
-            packed = _packed_cell(ix, iy, iz)
-            key = _cell_key(seed_key, packed)
-            id_base = np.int64(packed << _U_RANK_BITS)
+            packed = packed_cell(ix, iy, iz)
+            key = cell_key(seed_key, packed)
+            id_base = np.int64(packed << U_RANK_BITS)
             # the cell's z before the wrap lies in [v_lo, v_hi]: inside the layer, the wrap is the identity and the
             # cell's box bounds its particles; else their bounding box does
             v_lo = iz * cell_z + shift[2]
@@ -784,16 +784,17 @@ def field_hits_kernel(src, t_part, vel, shells, beams, slices, lookup, per_shell
             if no_wrap:
                 for i in range(j):
                     c = np.uint64(4 * i)
-                    pos[0, i] = (ix + _uniform(key, c + np.uint64(1))) * cell_size + shift[0] - cx
-                    pos[1, i] = (iy + _uniform(key, c + np.uint64(2))) * cell_size + shift[1] - cy
-                    pos[2, i] = z_min + ((iz + _uniform(key, c + np.uint64(3))) * cell_z + shift[2]) - cz
+                    pos[0, i] = (ix + stream_uniform(key, c + np.uint64(1))) * cell_size + shift[0] - cx
+                    pos[1, i] = (iy + stream_uniform(key, c + np.uint64(2))) * cell_size + shift[1] - cy
+                    pos[2, i] = z_min + ((iz + stream_uniform(key, c + np.uint64(3))) * cell_z + shift[2]) - cz
                     ids[i] = id_base + i
             else:
                 for i in range(j):
                     c = np.uint64(4 * i)
-                    pos[0, i] = (ix + _uniform(key, c + np.uint64(1))) * cell_size + shift[0] - cx
-                    pos[1, i] = (iy + _uniform(key, c + np.uint64(2))) * cell_size + shift[1] - cy
-                    pos[2, i] = z_min + _wrap((iz + _uniform(key, c + np.uint64(3))) * cell_z + shift[2], height) - cz
+                    pos[0, i] = (ix + stream_uniform(key, c + np.uint64(1))) * cell_size + shift[0] - cx
+                    pos[1, i] = (iy + stream_uniform(key, c + np.uint64(2))) * cell_size + shift[1] - cy
+                    z_cell = (iz + stream_uniform(key, c + np.uint64(3))) * cell_z + shift[2]
+                    pos[2, i] = z_min + wrap_height(z_cell, height) - cz
                     ids[i] = id_base + i
             # pass 3: range shells, and the particles certainly below their shell's threshold (radius -2)
             k_lo = -1
