@@ -65,7 +65,7 @@ def _quiet_console() -> None:
 
 def run_stage(flow: Any, params: Params, runner: Literal["processes", "threads"] | None = "processes") -> Any:
     """Run a stage's flow: SIGTERM / SIGHUP end it cleanly, and its Prefect API is ``PREFECT_API_URL`` or a server
-    of its own that cannot outlive it (`flows.api_server`); ``runner``: its tasks on Dask worker processes
+    of its own that cannot outlive it (`flows.prefect_server`); ``runner``: its tasks on Dask worker processes
     (`task_runner`), on a thread pool of ``run.max_workers`` (tasks that share large in-memory inputs and release
     the interpreter lock), or None for the flow's default.
 

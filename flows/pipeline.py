@@ -12,7 +12,7 @@ clean; a run with other params does not (its outputs no longer match dvc.yaml's 
 those stages, and each stage's own fingerprints make it recompute rather than reuse).
 
 ``python -m flows.pipeline [--stages world reference ...] [--params FILE] [--set key=value ...]`` runs it from a
-shell with one Prefect API server for every stage (`flows.api_server`); `flows.serve` serves it for the UI.
+shell with one Prefect API server for every stage (`flows.prefect_server`); `flows.serve` serves it for the UI.
 """
 
 from __future__ import annotations

@@ -1,9 +1,9 @@
 """The pure observation core: one frame through one condition's media, as every sensor sees it. No file I/O.
 
-`observe(frame, images, ranges, media, sensors, options)` returns `FrameWeather`: the weather LiDAR scan with per-point
-labels, particle ids and source rows; each camera's weather image and the particles it drew; the re-projection
-errors of the particles the LiDAR saw. The caller (`weatheralign.simulate.weather_copy`) loads the inputs (decoded
-images, ray-length maps from `weatheralign.camera.depth.camera_range_map`) and writes the outputs.
+`observe(frame, images, ranges, media, sensors, airlight, options, lidar)` returns `FrameWeather`: the weather LiDAR
+scan with per-point labels, particle ids and source rows; each camera's weather image and the particles it drew; the
+re-projection errors of the particles the LiDAR saw. The caller (`weatheralign.simulate.weather_copy`) loads the
+inputs (decoded images, ray-length maps from `weatheralign.camera.depth.camera_range_map`) and writes the outputs.
 
 How media compose (see `weatheralign.conditions`):
 
