@@ -172,7 +172,8 @@ def breakdown(spec: SceneSpec, k: int, cfg: WorldConfig, dataroot: Path) -> tupl
 
         def shade(shadows: bool, noise_std: float) -> tuple:
             return camera_frame(layout, T_global_cam[:3, 3], T_global_cam[:3, :3], cam.K, inv_depth, gid, tris,
-                                static_grid, moving_grid, shadows, key, noise_std, cam.height, cam.width)
+                                static_grid, moving_grid, shadows=shadows, key=key, noise_std=noise_std,
+                                height=cam.height, width=cam.width)
 
         image, rng_map, inst = watch("camera pass (shading, shadows, noise, sRGB)",
                                      lambda: shade(cfg.camera.shadows, cfg.camera.noise_std))

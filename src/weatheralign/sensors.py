@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, replace
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -438,6 +438,89 @@ def _known_sensor(num_rings: int) -> tuple[float, float]:
     return HDL_DIVERGENCE_RAD, HDL_PULSE_HALF_WIDTH_S
 
 
+class _RingSamples(NamedTuple):
+    """Per scan, its points beyond 2 m from the sensor, as `estimate_lidar_model` reads them."""
+
+    ring: list[NDArray[np.int64]]  # (N_s,) ring index
+    elevation: list[F64]  # (N_s,) elevation seen from the sensor [deg]
+    azimuth: list[F64]  # (N_s,) [rad]
+    distance: list[F64]  # (N_s,) range from the sensor [m]
+    time: list[F64 | None]  # (N_s,) per-point time offsets [s], or None
+    intensity: list[F64]  # every point's intensity on 0..255 (all points, near ones included)
+
+
+def _ring_samples(scans: list[LidarScan]) -> _RingSamples:
+    """The `_RingSamples` of ``scans``."""
+    rings_all, el_all, az_all, r_all, t_all, inten = [], [], [], [], [], []
+    for scan in scans:
+        p = scan.points[:, :3].astype(np.float64)
+        r = np.linalg.norm(p, axis=1)
+        ok = r > 2.0
+        rings_all.append(scan.points[ok, 4].astype(np.int64))
+        el_all.append(np.degrees(np.arcsin(np.clip(p[ok, 2] / r[ok], -1.0, 1.0))))
+        az_all.append(np.arctan2(p[ok, 1], p[ok, 0]))
+        r_all.append(r[ok])
+        t_all.append(None if scan.time_offsets is None else scan.time_offsets[ok].astype(np.float64))
+        inten.append(scan.intensity_255())
+    return _RingSamples(rings_all, el_all, az_all, r_all, t_all, inten)
+
+
+def _ring_elevations(ring: NDArray[np.int64], el: F64, num_rings: int, min_ring_points: int) -> list[float]:
+    """Each ring's elevation [deg]: the median of its points' elevations ``el`` (N,) (``ring`` (N,) their rings)
+    where it has at least ``min_ring_points``, else linear in the ring index (interpolated, or extrapolated from the
+    two nearest rings)."""
+    known = {k: float(np.median(el[ring == k])) for k in range(num_rings)
+             if np.count_nonzero(ring == k) >= min_ring_points}
+    if len(known) < 2:
+        raise ValueError(f"estimate_lidar_model: only {len(known)} ring(s) with >= {min_ring_points} points; cannot "
+                         f"estimate the elevations")
+    ks = np.array(sorted(known), dtype=np.float64)
+    es = np.array([known[int(k)] for k in ks])
+    elevations = []
+    for k in range(num_rings):  # rings without points (e.g. outside a cropped scan): linear in the ring index
+        if k in known:
+            elevations.append(known[k])
+            continue
+        lo, hi = (0, 1) if k < ks[0] else ((-2, -1) if k > ks[-1] else (None, None))
+        if lo is None:
+            elevations.append(float(np.interp(k, ks, es)))
+        else:
+            slope = (es[hi] - es[lo]) / (ks[hi] - ks[lo])
+            elevations.append(float(es[lo] + slope * (k - ks[lo])))
+    return elevations
+
+
+def _azimuth_step_and_direction(seen: _RingSamples, min_ring_points: int) -> tuple[float, bool]:
+    """The median azimuth step [rad] between neighbouring points of a ring (rings with at least ``min_ring_points``;
+    the HDL-32E's 2π / 1085 without any) and whether the sensor turns clockwise (the sign of the azimuth's change
+    with firing time where per-point times exist; clockwise otherwise)."""
+    steps, corr = [], []
+    for scan_ring, az, t in zip(seen.ring, seen.azimuth, seen.time):
+        for k in np.unique(scan_ring):
+            a = np.sort(az[scan_ring == k])
+            if len(a) < min_ring_points:
+                continue
+            d = np.diff(a)
+            steps.append(d[d > 1e-6])
+            if t is not None:
+                sel = scan_ring == k
+                tk, ak = t[sel], np.unwrap(az[sel][np.argsort(t[sel])])
+                if len(tk) > 2 and np.ptp(tk) > 0:
+                    corr.append(float(np.sign(ak[-1] - ak[0])))
+    step = float(np.median(np.concatenate(steps))) if steps else 2 * np.pi / 1085
+    clockwise = bool(np.sum(corr) <= 0) if corr else True
+    return step, clockwise
+
+
+def _rotation_rate(scans: list[LidarScan], num_rings: int) -> float:
+    """Rotation rate [Hz] from the scans' timestamps when they are consecutive sweeps (median interval 0.02..0.2 s),
+    else 10 Hz for 64 rings, 20 Hz otherwise."""
+    stamps = np.sort([s.timestamp for s in scans])
+    dt = np.diff(stamps)
+    return float(1.0 / np.median(dt)) if len(dt) and 0.02 <= np.median(dt) <= 0.2 else (
+        10.0 if num_rings == 64 else 20.0)
+
+
 def estimate_lidar_model(scans: list[LidarScan], *, rotation_hz: float | None = None,
                          overrides: dict[str, Any] | None = None, min_ring_points: int = 16) -> LidarModel:
     """A `LidarModel` from real scans of one sensor (single sweeps, as stored).
@@ -459,58 +542,14 @@ def estimate_lidar_model(scans: list[LidarScan], *, rotation_hz: float | None = 
     """
     if not scans or not any(len(s.points) for s in scans):
         raise ValueError("estimate_lidar_model: no LiDAR points to estimate a sensor from")
-    rings_all, el_all, az_all, r_all, t_all, inten = [], [], [], [], [], []
-    for scan in scans:
-        p = scan.points[:, :3].astype(np.float64)
-        r = np.linalg.norm(p, axis=1)
-        ok = r > 2.0
-        rings_all.append(scan.points[ok, 4].astype(np.int64))
-        el_all.append(np.degrees(np.arcsin(np.clip(p[ok, 2] / r[ok], -1.0, 1.0))))
-        az_all.append(np.arctan2(p[ok, 1], p[ok, 0]))
-        r_all.append(r[ok])
-        t_all.append(None if scan.time_offsets is None else scan.time_offsets[ok].astype(np.float64))
-        inten.append(scan.intensity_255())
+    seen = _ring_samples(scans)
+    rings_all, r_all, inten = seen.ring, seen.distance, seen.intensity
     num_rings = max(max(int(s.num_rings) for s in scans), int(max(int(r.max()) for r in rings_all if len(r))) + 1)
-    ring = np.concatenate(rings_all)
-    el = np.concatenate(el_all)
-    known = {k: float(np.median(el[ring == k])) for k in range(num_rings)
-             if np.count_nonzero(ring == k) >= min_ring_points}
-    if len(known) < 2:
-        raise ValueError(f"estimate_lidar_model: only {len(known)} ring(s) with >= {min_ring_points} points; cannot "
-                         f"estimate the elevations")
-    ks = np.array(sorted(known), dtype=np.float64)
-    es = np.array([known[int(k)] for k in ks])
-    elevations = []
-    for k in range(num_rings):  # rings without points (e.g. outside a cropped scan): linear in the ring index
-        if k in known:
-            elevations.append(known[k])
-            continue
-        lo, hi = (0, 1) if k < ks[0] else ((-2, -1) if k > ks[-1] else (None, None))
-        if lo is None:
-            elevations.append(float(np.interp(k, ks, es)))
-        else:
-            slope = (es[hi] - es[lo]) / (ks[hi] - ks[lo])
-            elevations.append(float(es[lo] + slope * (k - ks[lo])))
-    steps, corr = [], []
-    for scan_ring, az, t in zip(rings_all, az_all, t_all):
-        for k in np.unique(scan_ring):
-            a = np.sort(az[scan_ring == k])
-            if len(a) < min_ring_points:
-                continue
-            d = np.diff(a)
-            steps.append(d[d > 1e-6])
-            if t is not None:
-                sel = scan_ring == k
-                tk, ak = t[sel], np.unwrap(az[sel][np.argsort(t[sel])])
-                if len(tk) > 2 and np.ptp(tk) > 0:
-                    corr.append(float(np.sign(ak[-1] - ak[0])))
-    step = float(np.median(np.concatenate(steps))) if steps else 2 * np.pi / 1085
-    clockwise = bool(np.sum(corr) <= 0) if corr else True
+    elevations = _ring_elevations(np.concatenate(rings_all), np.concatenate(seen.elevation), num_rings,
+                                  min_ring_points)
+    step, clockwise = _azimuth_step_and_direction(seen, min_ring_points)
     if rotation_hz is None:
-        stamps = np.sort([s.timestamp for s in scans])
-        dt = np.diff(stamps)
-        rotation_hz = float(1.0 / np.median(dt)) if len(dt) and 0.02 <= np.median(dt) <= 0.2 else (
-            10.0 if num_rings == 64 else 20.0)
+        rotation_hz = _rotation_rate(scans, num_rings)
     max_range = max(80.0, float(math.ceil(np.percentile(np.concatenate(r_all), 99.9) / 10.0) * 10.0))
     imax = float(scans[0].intensity_max)
     divergence, tau = _known_sensor(num_rings)

@@ -993,7 +993,35 @@ def complete_depth(points: CameraPoints, K: F64, width: int, height: int, image:
         raise ValueError(f"image shape {np.asarray(image).shape[:2]} != camera size {(H, W)}")
     norms = pixel_ray_norms(K, W, H)
     above = above_fov_mask(K, W, H, points.R_lidar_cam, top_elevation_deg + params.sky_margin_deg)
-    sp = sparse_depth(points, K, W, H, params)
+    sp, z_sparse, gap_v, gap_h = _filtered_sparse_depth(points, K, W, H, params)
+    kept = z_sparse[sp.pix[:, 0], sp.pix[:, 1]] > 0
+    num = int(kept.sum())
+    if num < 3:
+        raise ValueError(f"complete_depth: only {num} LiDAR points project into the {W}x{H} image (nearer than "
+                         f"{params.min_depth_m} m excluded); check the camera/LiDAR calibration and timestamps")
+    img = _as_float_rgb(image) if image is not None else None
+    inv, conf, planar = _interpolated_inverse_depth(sp, kept, z_sparse, points, img, gap_v, gap_h, params)
+    sky = _sky_mask(z_sparse, planar, img, above, K, points.up_cam, gap_v, gap_h, params)
+    sky_conf = CONF_PLANAR if img is not None else CONF_FILL
+    z = np.where(inv > 0, 1.0 / np.maximum(inv, 1e-9), 0.0).astype(np.float32)
+    z[sky] = 0.0
+    have = z > 0
+    if not have.any():
+        sky = np.ones((H, W), bool)
+    else:
+        z = _fill_without_return(z, sky, above, img, gap_v, gap_h, params)
+        conf[(conf == 0) & ~sky] = CONF_EXTENDED
+    conf[sky] = sky_conf
+    rng = np.where(sky, np.float32(np.inf), z * norms).astype(np.float32)
+    return DenseDepth(range=rng, confidence=conf, valid=conf >= 0.5, sky=sky, above_fov=above, num_points=num)
+
+
+def _filtered_sparse_depth(points: CameraPoints, K: F64, width: int, height: int,
+                           params: DepthParams) -> tuple[SparseDepth, F32, float, float]:
+    """The points' `SparseDepth` in the image, its depth map (H, W) [m] without the points seen through a nearer
+    surface (occluded, see-through, parallax between LiDAR and camera; 0: none) and the vertical and horizontal
+    spacing of the points [px] (`point_gaps`)."""
+    sp = sparse_depth(points, K, width, height, params)
     occupied = sp.z > 0
     gap_v, gap_h = point_gaps(occupied)
     z_sparse = drop_occluded(sp.z, gap_v, gap_h, params.occlusion_ratio)
@@ -1002,11 +1030,16 @@ def complete_depth(points: CameraPoints, K: F64, width: int, height: int, image:
     if points.lidar_origin_cam is not None:
         z_sparse = drop_parallax(z_sparse, points.lidar_origin_cam, K, gap_v, gap_h, params.occlusion_ratio,
                                  params.min_depth_m)
-    kept = z_sparse[sp.pix[:, 0], sp.pix[:, 1]] > 0
-    num = int(kept.sum())
-    if num < 3:
-        raise ValueError(f"complete_depth: only {num} LiDAR points project into the {W}x{H} image (nearer than "
-                         f"{params.min_depth_m} m excluded); check the camera/LiDAR calibration and timestamps")
+    return sp, z_sparse, gap_v, gap_h
+
+
+def _interpolated_inverse_depth(sp: SparseDepth, kept: BoolA, z_sparse: F32, points: CameraPoints, img: F32 | None,
+                                gap_v: float, gap_h: float, params: DepthParams) -> tuple[F32, F32, BoolA]:
+    """Inverse depth (H, W) [1/m] between the ``kept`` points of ``sp`` (depth map ``z_sparse`` (H, W) [m]): planar
+    patches of their triangulation, a morphological fill elsewhere, whose edges are refined against the image
+    ``img`` (H, W, 3) float [0, 1] when given; its confidence (H, W) (`CONF_PLANAR`, `CONF_FILL`, 0) and the planar
+    pixels."""
+    H, W = z_sparse.shape
     conf = np.zeros((H, W), np.float32)
     gap = max(gap_v, gap_h)
     inv_tri = triangulate(sp.uv[kept], points.xyz[sp.index[kept]], points.up_cam, H, W,
@@ -1016,13 +1049,21 @@ def complete_depth(points: CameraPoints, K: F64, width: int, height: int, image:
     inv = np.where(planar, inv_tri, np.where(z_fill > 0, 1.0 / np.maximum(z_fill, 1e-6), 0.0)).astype(np.float32)
     conf[planar] = CONF_PLANAR
     conf[~planar & (z_fill > 0)] = CONF_FILL
-    img = _as_float_rgb(image) if image is not None else None
     if img is not None:
         conf_inv = np.where(planar, inv_tri, 0.0).astype(np.float32)
         conf_inv[z_sparse > 0] = 1.0 / z_sparse[z_sparse > 0]
         todo = ~planar & (inv > 0)
         inv = refine_edges(inv, conf_inv, todo, img, int(round(params.refine_radius_gaps * gap)), params)
-    # LiDAR support and sky
+    return inv, conf, planar
+
+
+def _sky_mask(z_sparse: F32, planar: BoolA, img: F32 | None, above: BoolA, K: F64, up_cam: F64, gap_v: float,
+              gap_h: float, params: DepthParams) -> BoolA:
+    """(H, W) the sky: pixels without LiDAR support (no point within `DepthParams.support_gaps` point spacings, nor
+    a planar patch) that the image shows as sky (connected to its top border; below the field of view too) or, with
+    no image, that lie above the LiDAR's field of view (``above``)."""
+    H, W = z_sparse.shape
+    gap = max(gap_v, gap_h)
     if img is None:
         dist = cv2.distanceTransform((z_sparse <= 0).astype(np.uint8), cv2.DIST_L2, 3)
         supported = (dist <= params.support_gaps * gap) | planar
@@ -1031,45 +1072,40 @@ def complete_depth(points: CameraPoints, K: F64, width: int, height: int, image:
     if img is not None:
         # no return and sky in the image; below the field of view too (sky behind the end of a street), where the
         # image's sky region (connected to the top border) reaches down unsupported
-        sky = ~supported & image_sky(img, z_sparse > 0, above_horizon_mask(K, W, H, points.up_cam, 0.0), gap_h)
-    else:
-        sky = above & ~supported
-    sky_conf = CONF_PLANAR if img is not None else CONF_FILL
-    z = np.where(inv > 0, 1.0 / np.maximum(inv, 1e-9), 0.0).astype(np.float32)
-    z[sky] = 0.0
+        return ~supported & image_sky(img, z_sparse > 0, above_horizon_mask(K, W, H, up_cam, 0.0), gap_h)
+    return above & ~supported
+
+
+def _fill_without_return(z: F32, sky: BoolA, above: BoolA, img: F32 | None, gap_v: float, gap_h: float,
+                         params: DepthParams) -> F32:
+    """``z`` (H, W) [m] (0: unknown) filled everywhere but the ``sky``: holes without return inside the field of
+    view, then structures above it (``above``), then whatever is left by the nearest depth."""
+    H, W = z.shape
+    # holes inside the field of view had no return. Enclosed by one surface (max/min boundary depth within
+    # `hole_spread`): that surface absorbed or passed the pulse (dark paint, glass), so it continues across
+    # (nearest fill). Otherwise a surface beyond the LiDAR's range or in its shadow behind a foreground object:
+    # the farthest depth around (not the nearest) fills it.
+    holes = (z <= 0) & ~sky & ~above
+    enclosed = _enclosed_holes(z, holes, params.hole_spread)
+    z = _nearest_fill(z, z > 0, enclosed)
+    z = _far_fill(z, holes & ~enclosed, gap_v, gap_h)
+    # structures above the field of view: the column's highest known camera z continued upwards (a vertical
+    # surface in an upright camera keeps its z along an image column); the top values are median-filtered
+    # along the row over a few point spacings so a thin pole does not paint a streak up to the image top
     have = z > 0
-    if not have.any():
-        sky = np.ones((H, W), bool)
-    else:
-        # holes inside the field of view had no return. Enclosed by one surface (max/min boundary depth within
-        # `hole_spread`): that surface absorbed or passed the pulse (dark paint, glass), so it continues across
-        # (nearest fill). Otherwise a surface beyond the LiDAR's range or in its shadow behind a foreground object:
-        # the farthest depth around (not the nearest) fills it.
-        holes = (z <= 0) & ~sky & ~above
-        enclosed = _enclosed_holes(z, holes, params.hole_spread)
-        z = _nearest_fill(z, z > 0, enclosed)
-        z = _far_fill(z, holes & ~enclosed, gap_v, gap_h)
-        # structures above the field of view: the column's highest known camera z continued upwards (a vertical
-        # surface in an upright camera keeps its z along an image column); the top values are median-filtered
-        # along the row over a few point spacings so a thin pole does not paint a streak up to the image top
-        have = z > 0
-        first = np.argmax(have, axis=0)
-        has_col = have.any(axis=0)
-        rows = np.arange(H)[:, None]
-        z_top = z[first, np.arange(W)]
-        if has_col.sum() >= 3:
-            cols = np.flatnonzero(has_col)
-            size = max(3, int(round(4 * gap_h)) | 1)
-            z_top[cols] = median_filter(z_top[cols], size=size, mode="nearest")
-        up = (rows < first[None, :]) & has_col[None, :] & ~sky
-        z_cont = np.where(up, z_top[None, :], z)
-        z = z_cont if img is None else np.where(up, _overhangs(z, z_cont, up, img, gap_h, params), z)
-        rest = (z <= 0) & ~sky
-        z = _nearest_fill(z, z > 0, rest)
-        conf[(conf == 0) & ~sky] = CONF_EXTENDED
-    conf[sky] = sky_conf
-    rng = np.where(sky, np.float32(np.inf), z * norms).astype(np.float32)
-    return DenseDepth(range=rng, confidence=conf, valid=conf >= 0.5, sky=sky, above_fov=above, num_points=num)
+    first = np.argmax(have, axis=0)
+    has_col = have.any(axis=0)
+    rows = np.arange(H)[:, None]
+    z_top = z[first, np.arange(W)]
+    if has_col.sum() >= 3:
+        cols = np.flatnonzero(has_col)
+        size = max(3, int(round(4 * gap_h)) | 1)
+        z_top[cols] = median_filter(z_top[cols], size=size, mode="nearest")
+    up = (rows < first[None, :]) & has_col[None, :] & ~sky
+    z_cont = np.where(up, z_top[None, :], z)
+    z = z_cont if img is None else np.where(up, _overhangs(z, z_cont, up, img, gap_h, params), z)
+    rest = (z <= 0) & ~sky
+    return _nearest_fill(z, z > 0, rest)
 
 
 def dense_depth(

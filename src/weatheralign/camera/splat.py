@@ -66,6 +66,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from weatheralign.camera.records import Canvas, FootprintRules, Footprints, FootprintSums, Gaussians, PinholeView
 from weatheralign.geometry import invert
 from weatheralign.medium.distributions import Q_EXT_GEOMETRIC, Q_IMAGING, ExponentialSizeDistribution
 from weatheralign.medium.field import DEFAULT_MAX_PARTICLES, ParticleField, Particles
@@ -541,17 +542,20 @@ _OK, _NEAR, _FAINT, _OFFSCREEN = 0, 1, 2, 3
 
 
 @njit(nogil=True, cache=True)
-def _prepare_kernel(pos: NDArray, cov: NDArray, opac0: NDArray, R: NDArray, tr: NDArray, K: NDArray,
-                    streak: NDArray, width: int, height: int, near_clip: float, cap_var: float, dilation: float,
-                    keep_area: bool, centroid_q: float, u0: NDArray, v0: NDArray, ca: NDArray, cb: NDArray, cc: NDArray,
-                    opac: NDArray, qmax: NDArray, qwin: NDArray, ell: NDArray, rx: NDArray, ry: NDArray,
-                    status: NDArray, capped: NDArray, in_frame: NDArray) -> None:
-    """Per particle: camera-frame position, EWA conic ``(ca, cb, cc)`` of ``Σ'2D⁻¹`` (its streak ``streak[i]``
-    (N, 3) [m, global frame], dilation, cap
-    included), opacity after the streak (with ``keep_area`` also after the dilation), the Mahalanobis² bound
-    ``qmax`` of alpha >= 1/255 (off-screen test), the centroid window ``qwin = max(qmax, centroid_q)`` and its half
-    extents (``rx``, ``ry``; ``in_frame``: the whole window inside the image) and a status (ok / near-clipped / too
-    faint / off screen)."""
+def _prepare_kernel(particles: Gaussians, view: PinholeView, rules: FootprintRules, out: Footprints) -> None:
+    """Per particle (`Gaussians`) seen by ``view`` under ``rules``, into ``out`` (`Footprints`): camera-frame
+    position, EWA conic ``(ca, cb, cc)`` of ``Σ'2D⁻¹`` (its streak ``streak[i]`` (N, 3) [m, global frame],
+    dilation, cap included), opacity after the streak (with ``keep_area`` also after the dilation), the Mahalanobis²
+    bound ``qmax`` of alpha >= 1/255 (off-screen test), the centroid window ``qwin = max(qmax, centroid_q)`` and its
+    half extents (``rx``, ``ry``; ``in_frame``: the whole window inside the image) and a status (ok / near-clipped /
+    too faint / off screen)."""
+    pos, cov, opac0, streak = particles.pos, particles.cov, particles.opacity, particles.streak
+    R, tr, K, width, height = view.R, view.tr, view.K, view.width, view.height
+    near_clip, cap_var, dilation = rules.near_clip, rules.cap_var, rules.dilation
+    keep_area, centroid_q = rules.keep_area, rules.centroid_q
+    u0, v0, ca, cb, cc, opac = out.u0, out.v0, out.ca, out.cb, out.cc, out.opac
+    qmax, qwin, ell, rx, ry = out.qmax, out.qwin, out.ell, out.rx, out.ry
+    status, capped, in_frame = out.status, out.capped, out.in_frame
     fx, sk, cx, fy, cy = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
     for i in range(pos.shape[0]):
         sx, sy, sz = streak[i, 0], streak[i, 1], streak[i, 2]
@@ -638,11 +642,9 @@ def _prepare_kernel(pos: NDArray, cov: NDArray, opac0: NDArray, R: NDArray, tr: 
 
 
 @njit(nogil=True, cache=True)
-def _splat_kernel(order: NDArray, u0: NDArray, v0: NDArray, ca: NDArray, cb: NDArray, cc: NDArray, opac: NDArray,
-                  qwin: NDArray, ry: NDArray, ell: NDArray, col: NDArray, rng: NDArray, bg: NDArray, out: NDArray,
-                  acc_t: NDArray, sum_a: NDArray, sum_w: NDArray, sum_wu: NDArray, sum_wv: NDArray, max_a: NDArray,
-                  occluded: NDArray) -> None:
-    """Front-to-back compositing of the particles ``order`` (nearest first) over exact per-row ellipse spans.
+def _splat_kernel(order: NDArray, fp: Footprints, col: NDArray, canvas: Canvas, sums: FootprintSums) -> None:
+    """Front-to-back compositing of the particles ``order`` (nearest first) of colour ``col`` (N, 3) with the
+    footprints ``fp`` over exact per-row ellipse spans into ``canvas``; what each particle showed into ``sums``.
 
     Per pixel (x, y) of particle i inside its centroid window ``q <= qwin[i]``, with ``alpha = min(0.99, o
     exp(-q/2))``: skipped (and i marked occluded) where ``ell[i] >= rng[y, x]``; else it enters the centroid sums
@@ -651,6 +653,10 @@ def _splat_kernel(order: NDArray, u0: NDArray, v0: NDArray, ca: NDArray, cb: NDA
     ``T *= 1 - alpha``. ``out`` starts as a copy of the background ``bg`` and holds the running composite
     ``C + T bg`` (updated in place as ``out += T alpha (col - bg)``).
     """
+    u0, v0, ca, cb, cc, opac, qwin, ry, ell = fp.u0, fp.v0, fp.ca, fp.cb, fp.cc, fp.opac, fp.qwin, fp.ry, fp.ell
+    rng, bg, out, acc_t = canvas.rng, canvas.bg, canvas.out, canvas.acc_t
+    sum_a, sum_w, sum_wu, sum_wv = sums.sum_a, sums.sum_w, sums.sum_wu, sums.sum_wv
+    max_a, occluded = sums.max_a, sums.occluded
     h, w = rng.shape
     for k in range(order.shape[0]):
         i = order[k]
@@ -781,6 +787,36 @@ def render_particles(image_linear: NDArray, range_map: NDArray, K: NDArray, T_ca
         max_footprint_px: cap on the 3-σ half-axes of a footprint [px]: larger axes are shrunk to it and the
             opacity is ``o min(1, sqrt(det Σ2D / det Σ'2D))`` with the shrunk ``Σ'2D`` (never above ``o``).
     """
+    img, rng, K, T = _frame_inputs(image_linear, range_map, K, T_cam_global)
+    pos, dia, ids, v_rel = _particle_inputs(positions_global, diameters, ids, velocity_global, camera_velocity_global)
+    air = _vec("airlight", airlight, 3)
+    if not (exposure_s >= 0.0 and fog_alpha >= 0.0 and near_clip > 0.0 and max_footprint_px >= 2.0):
+        raise ValueError("need exposure_s >= 0, fog_alpha >= 0, near_clip > 0, max_footprint_px >= 2")
+    n = pos.shape[0]
+    counts = {"input": n, "near_clipped": 0, "too_faint": 0, "off_screen": 0, "capped": 0, "occluded_fully": 0,
+              "drawn": 0}
+    if n == 0:
+        e = np.zeros(0)
+        return SplatResult(img.copy(), np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0, np.float32), e.copy(),
+                           np.zeros(0, bool), np.zeros(0, bool), e, e.copy(), counts)
+
+    cov, opac0, grey = particle_attributes(ids, dia, appearance)
+    streak = np.ascontiguousarray(v_rel * float(exposure_s))  # (N, 3) global frame (the kernel projects with J W)
+    h, w = img.shape[:2]
+    view = PinholeView(np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), K, w, h)
+    rules = FootprintRules(float(near_clip), (float(max_footprint_px) / 3.0) ** 2, DILATION_PX2,
+                           appearance.dilation_keeps_area, CENTROID_Q)
+    fp = _empty_footprints(n)
+    _prepare_kernel(Gaussians(pos, cov, opac0, streak), view, rules, fp)
+    col = _prefogged_colours(appearance, grey, img, air, fp.ell, fog_alpha, unresolved)
+    canvas, sums = _composite(fp, col, ids, img, rng)
+    return _splat_result(fp, canvas, sums, counts)
+
+
+def _frame_inputs(image_linear: NDArray, range_map: NDArray, K: NDArray,
+                  T_cam_global: NDArray) -> tuple[F32, F32, F64, F64]:
+    """`render_particles`' image (H, W, 3) float32, ray-length map (H, W) float32 [m], intrinsics (3, 3) and pose
+    (4, 4), checked."""
     img = np.asarray(image_linear)
     if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.float32:
         raise ValueError(f"image_linear must be float32 (H, W, 3), got {img.dtype} {img.shape}")
@@ -794,6 +830,13 @@ def render_particles(image_linear: NDArray, range_map: NDArray, K: NDArray, T_ca
     T = np.asarray(T_cam_global, dtype=np.float64)
     if K.shape != (3, 3) or T.shape != (4, 4):
         raise ValueError(f"K must be (3, 3) and T_cam_global (4, 4), got {K.shape}, {T.shape}")
+    return img, rng, K, T
+
+
+def _particle_inputs(positions_global: NDArray, diameters: NDArray, ids: NDArray, velocity_global: NDArray | tuple,
+                     camera_velocity_global: NDArray | tuple) -> tuple[F64, F64, NDArray[np.int64], F64]:
+    """`render_particles`' positions (N, 3) [m], diameters (N,) [m], ids (N,) and velocities relative to the camera
+    (N, 3) [m/s], checked."""
     pos = np.ascontiguousarray(positions_global, dtype=np.float64).reshape(-1, 3)
     n = pos.shape[0]
     dia = np.ascontiguousarray(diameters, dtype=np.float64)
@@ -801,53 +844,57 @@ def render_particles(image_linear: NDArray, range_map: NDArray, K: NDArray, T_ca
     if dia.shape != (n,) or ids.shape != (n,):
         raise ValueError(f"diameters {dia.shape} and ids {ids.shape} must be ({n},)")
     v_rel = _velocities(velocity_global, n) - _vec("camera_velocity_global", camera_velocity_global, 3)
-    air = _vec("airlight", airlight, 3)
-    if not (exposure_s >= 0.0 and fog_alpha >= 0.0 and near_clip > 0.0 and max_footprint_px >= 2.0):
-        raise ValueError("need exposure_s >= 0, fog_alpha >= 0, near_clip > 0, max_footprint_px >= 2")
-    counts = {"input": n, "near_clipped": 0, "too_faint": 0, "off_screen": 0, "capped": 0, "occluded_fully": 0,
-              "drawn": 0}
-    if n == 0:
-        e = np.zeros(0)
-        return SplatResult(img.copy(), np.zeros((0, 2)), np.zeros(0, bool), np.zeros(0, np.float32), e.copy(),
-                           np.zeros(0, bool), np.zeros(0, bool), e, e.copy(), counts)
+    return pos, dia, ids, v_rel
 
-    cov, opac0, grey = particle_attributes(ids, dia, appearance)
-    R = np.ascontiguousarray(T[:3, :3])
-    streak = np.ascontiguousarray(v_rel * float(exposure_s))  # (N, 3) global frame (the kernel projects with J W)
+
+def _empty_footprints(n: int) -> Footprints:
+    """`Footprints` of ``n`` particles for `_prepare_kernel` to fill (opacity nan until computed)."""
     u0, v0, ca, cb, cc, qmax, qwin, rx, ry = (np.zeros(n) for _ in range(9))
-    opac = np.full(n, np.nan)
-    ell = np.empty(n)
-    status = np.empty(n, dtype=np.int8)
-    capped = np.zeros(n, dtype=np.bool_)
-    in_frame = np.zeros(n, dtype=np.bool_)
-    _prepare_kernel(pos, cov, opac0, R, np.ascontiguousarray(T[:3, 3]), K, streak, w, h, float(near_clip),
-                    (float(max_footprint_px) / 3.0) ** 2, DILATION_PX2, appearance.dilation_keeps_area, CENTROID_Q,
-                    u0, v0, ca, cb, cc, opac, qmax, qwin, ell, rx, ry, status, capped, in_frame)
+    return Footprints(u0=u0, v0=v0, ca=ca, cb=cb, cc=cc, opac=np.full(n, np.nan), qmax=qmax, qwin=qwin,
+                      ell=np.empty(n), rx=rx, ry=ry, status=np.empty(n, dtype=np.int8),
+                      capped=np.zeros(n, dtype=np.bool_), in_frame=np.zeros(n, dtype=np.bool_))
+
+
+def _prefogged_colours(appearance: ParticleAppearance, grey: F64, img: F32, air: F64, ell: F64, fog_alpha: float,
+                       unresolved: UnresolvedExtinction | None) -> F64:
+    """(N, 3) linear RGB of each particle at ray length ``ell`` (N,) [m] seen through the fog and the unresolved
+    particles: ``c t(ℓ) + A (1 - t(ℓ))`` (``c`` from `particle_radiance`, ``A`` the airlight ``air``)."""
     if unresolved is not None:
         trans = unresolved.transmission(ell, fog_alpha)
     else:
         trans = np.exp(-float(fog_alpha) * ell)
-    col = particle_radiance(appearance, grey, img, air) * trans[:, None] + (1.0 - trans)[:, None] * air[None, :]
+    return particle_radiance(appearance, grey, img, air) * trans[:, None] + (1.0 - trans)[:, None] * air[None, :]
 
-    ok = np.flatnonzero(status == _OK)
-    order = ok[np.lexsort((ids[ok], ell[ok]))]
+
+def _composite(fp: Footprints, col: F64, ids: NDArray[np.int64], img: F32,
+               rng: F32) -> tuple[Canvas, FootprintSums]:
+    """The particles with status ok, nearest first (ties by id), of colours ``col`` (N, 3) composited over ``img``
+    (H, W, 3) in front of the scene's ray lengths ``rng`` (H, W) [m] (`_splat_kernel`)."""
+    n = len(ids)
+    ok = np.flatnonzero(fp.status == _OK)
+    order = ok[np.lexsort((ids[ok], fp.ell[ok]))]
     bg = np.ascontiguousarray(img)
-    out = bg.copy()
-    acc_t = np.ones((h, w), dtype=np.float32)
+    canvas = Canvas(rng=rng, bg=bg, out=bg.copy(), acc_t=np.ones(rng.shape, dtype=np.float32))
     sum_a, sum_w, sum_wu, sum_wv, max_a = (np.zeros(n) for _ in range(5))
-    occluded = np.zeros(n, dtype=np.bool_)
-    _splat_kernel(order, u0, v0, ca, cb, cc, opac, qwin, ry, ell, np.ascontiguousarray(col), rng, bg, out, acc_t,
-                  sum_a, sum_w, sum_wu, sum_wv, max_a, occluded)
+    sums = FootprintSums(sum_a=sum_a, sum_w=sum_w, sum_wu=sum_wu, sum_wv=sum_wv, max_a=max_a,
+                         occluded=np.zeros(n, dtype=np.bool_))
+    _splat_kernel(order, fp, np.ascontiguousarray(col), canvas, sums)
+    return canvas, sums
 
-    drawn = sum_a > 0.0
+
+def _splat_result(fp: Footprints, canvas: Canvas, sums: FootprintSums, counts: dict[str, int]) -> SplatResult:
+    """The `SplatResult` of the composited ``canvas``, with ``counts`` completed."""
+    status = fp.status
+    drawn = sums.sum_a > 0.0
     with np.errstate(invalid="ignore", divide="ignore"):
-        centroids = np.where(drawn[:, None], np.stack([sum_wu, sum_wv], axis=1) / sum_w[:, None], np.nan)
+        centroids = np.where(drawn[:, None], np.stack([sums.sum_wu, sums.sum_wv], axis=1) / sums.sum_w[:, None],
+                             np.nan)
     counts.update(near_clipped=int(np.sum(status == _NEAR)), too_faint=int(np.sum(status == _FAINT)),
-                  off_screen=int(np.sum(status == _OFFSCREEN)), capped=int(np.sum(capped & (status == _OK))),
-                  occluded_fully=int(np.sum((status == _OK) & ~drawn & occluded)), drawn=int(drawn.sum()))
-    return SplatResult(image=out, centroids=centroids, drawn=drawn, max_alpha=max_a.astype(np.float32),
-                       alpha_sum=sum_a, unoccluded=drawn & ~occluded, in_frame=in_frame & (status == _OK),
-                       opacity=opac, ray_length=ell, counts=counts)
+                  off_screen=int(np.sum(status == _OFFSCREEN)), capped=int(np.sum(fp.capped & (status == _OK))),
+                  occluded_fully=int(np.sum((status == _OK) & ~drawn & sums.occluded)), drawn=int(drawn.sum()))
+    return SplatResult(image=canvas.out, centroids=centroids, drawn=drawn, max_alpha=sums.max_a.astype(np.float32),
+                       alpha_sum=sums.sum_a, unoccluded=drawn & ~sums.occluded, in_frame=fp.in_frame & (status == _OK),
+                       opacity=fp.opac, ray_length=fp.ell, counts=counts)
 
 
 # ------------------------------------------------------------------------------------------------------ reference

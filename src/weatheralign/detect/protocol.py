@@ -139,7 +139,7 @@ def _load_state(resume: Resume | None) -> dict[str, Any] | None:
 
 
 def train(model: BEVFusionDetector, dataset: Dataset, steps: int, lr: float, weight_decay: float, batch_size: int,
-          seed: int, device: torch.device, sampler: Sampler | None = None, desc: str = "train",
+          seed: int, device: torch.device, *, sampler: Sampler | None = None, desc: str = "train",
           show_progress: bool = True, on_step: Callable[[int, dict[str, float]], dict[str, float] | None] | None = None,
           resume: Resume | None = None) -> list[dict[str, float]]:
     """``steps`` steps of AdamW with a one-cycle LR (peak ``lr``, 30 % warm-up) on ``dataset`` (or the draws of
@@ -254,8 +254,8 @@ def run_train_job(job: TrainJob, show_progress: bool = False) -> dict[str, Any]:
                 "val.seconds": time.time() - t0}
 
     history = train(model, dataset, job.steps, job.lr, job.cfg.weight_decay, job.cfg.batch_size, job.cfg.seed,
-                    device, sampler, f"detect: train {job.name}", show_progress, on_step,
-                    Resume(job.state_path, job.fingerprint, job.resume_every))
+                    device, sampler=sampler, desc=f"detect: train {job.name}", show_progress=show_progress,
+                    on_step=on_step, resume=Resume(job.state_path, job.fingerprint, job.resume_every))
     curve = [{"step": i, "map": h["val.map"], "nds": h["val.nds"], "map_present": h["val.map_present"],
               "seconds": round(h["val.seconds"], 1)} for i, h in enumerate(history, start=1) if "val.map" in h]
     meta = {"fingerprint": job.fingerprint, "curve": curve, "losses": [round(h["total"], 5) for h in history],

@@ -56,6 +56,7 @@ from weatheralign.data.frame import LidarScan
 from weatheralign.lidar.beams import beam_origins, point_noise_keys
 from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel
 from weatheralign.lidar.pulse import SPEED_OF_LIGHT, PulseSensor, overlap
+from weatheralign.lidar.records import FogEchoRange, FogResponse
 from weatheralign.medium.field import normal_pair
 from weatheralign.medium.fog import DEFAULT_BETA_MOR, LN20
 
@@ -224,7 +225,7 @@ def fog_intensities(
     intensity = np.empty(len(r0))
     labels = np.empty(len(r0), dtype=np.uint8)
     r_fog = np.empty(len(r0))
-    _intensity_kernel(r0, i0, *params, normals, intensity, labels, r_fog)
+    _intensity_kernel(r0, i0, params, normals, intensity, labels, r_fog)
     return FogIntensities(intensity=intensity, labels=labels, r_fog=r_fog)
 
 
@@ -237,9 +238,9 @@ def _kernel_params(
     response: SoftTargetResponse | None,
     noise_std: float = 0.0,
     noise_rel: float = 0.0,
-) -> tuple:
-    """The scalar/array arguments shared by the numba kernels, validated (the saturation, floor and noise std given on
-    the 0..255 scale converted to the scan's)."""
+) -> FogResponse:
+    """The per-return model the numba kernels share, validated (the saturation, floor and noise std given on the
+    0..255 scale converted to the scan's)."""
     _check_medium(alpha, beta)
     if intensity_max not in (1.0, 255.0):
         raise ValueError(f"fog: intensity_max must be 1.0 or 255.0, got {intensity_max!r}")
@@ -256,9 +257,9 @@ def _kernel_params(
     scale = intensity_max / 255.0
     saturation = sensor.saturation * scale
     floor = -1.0 if noise_floor is None else noise_floor * scale
-    return (float(grid[0]), float(grid[1] - grid[0]), response.g, response.r_peak, response.g_peak, float(alpha),
-            float(beta) / sensor.beta_0, saturation, floor, float(noise_std) * scale, float(noise_rel),
-            float(intensity_max))
+    return FogResponse(float(grid[0]), float(grid[1] - grid[0]), response.g, response.r_peak, response.g_peak,
+                       float(alpha), float(beta) / sensor.beta_0, saturation, floor, float(noise_std) * scale,
+                       float(noise_rel), float(intensity_max))
 
 
 def _noise_keys(noise_keys: NDArray | None, n: int, needed: bool) -> NDArray[np.uint64]:
@@ -276,10 +277,13 @@ def _noise_keys(noise_keys: NDArray | None, n: int, needed: bool) -> NDArray[np.
 
 
 @njit(cache=True, nogil=True)
-def _fog_one(r0, i0, r_start, dr, g, r_peak, g_peak, alpha, soft_gain, saturation, floor, noise_std, noise_rel,
-             full_scale, z):  # pragma: no cover
-    """(intensity, label, r_fog) of one return: the scalar model of `fog_intensities` (float64, float32 i0), ``z``
-    the standard normal of its intensity reading."""
+def _fog_one(r0, i0, model, z):  # pragma: no cover
+    """(intensity, label, r_fog) of one return at range ``r0`` [m] with clear intensity ``i0`` (float32) under the
+    `FogResponse` ``model``: the scalar model of `fog_intensities` (float64), ``z`` the standard normal of its
+    intensity reading."""
+    r_start, dr, g, r_peak, g_peak = model.r_start, model.dr, model.g, model.r_peak, model.g_peak
+    alpha, soft_gain, saturation, floor = model.alpha, model.soft_gain, model.saturation, model.floor
+    noise_std, noise_rel, full_scale = model.noise_std, model.noise_rel, model.full_scale
     if r0 >= r_peak:
         integral = g_peak
         r_fog = r_peak
@@ -315,13 +319,11 @@ def _fog_one(r0, i0, r_start, dr, g, r_peak, g_peak, alpha, soft_gain, saturatio
 
 
 @njit(cache=True, nogil=True)
-def _intensity_kernel(r0, i0, r_start, dr, g, r_peak, g_peak, alpha, soft_gain, saturation, floor, noise_std,
-                      noise_rel, full_scale, normals, intensity, labels, r_fog):  # pragma: no cover
+def _intensity_kernel(r0, i0, model, normals, intensity, labels, r_fog):  # pragma: no cover
+    """`_fog_one` of every return (``normals`` (N,) or (0,): noise-free) into ``intensity``, ``labels``, ``r_fog``."""
     noisy = normals.shape[0] > 0
     for n in range(len(r0)):
-        intensity[n], labels[n], r_fog[n] = _fog_one(r0[n], i0[n], r_start, dr, g, r_peak, g_peak, alpha,
-                                                    soft_gain, saturation, floor, noise_std, noise_rel, full_scale,
-                                                    normals[n] if noisy else 0.0)
+        intensity[n], labels[n], r_fog[n] = _fog_one(r0[n], i0[n], model, normals[n] if noisy else 0.0)
 
 
 @njit(cache=True, nogil=True)
@@ -346,10 +348,12 @@ def intensity_normals(noise_keys: ArrayLike) -> F64:
 
 
 @njit(cache=True, nogil=True)
-def _reported_range(r_fog, r0, half_length, range_sigma, key, r1, max_range):  # pragma: no cover
-    """Range [m] the receiver reports for a fog echo whose power peaks at ``r_fog``: ``r_fog - c τ_H / 2`` plus the
-    range noise ``range_sigma · z`` (``z`` the beam's second normal of `normal_pair`, clipped at ±2), inside
-    ``[r1, min(r0, max_range)]`` (nothing nearer than the receiver's blind zone, nothing past the target)."""
+def _reported_range(r_fog, r0, key, echo):  # pragma: no cover
+    """Range [m] the receiver reports for a fog echo whose power peaks at ``r_fog`` (`FogEchoRange` ``echo``):
+    ``r_fog - c τ_H / 2`` plus the range noise ``range_sigma · z`` (``z`` the beam's second normal of `normal_pair`
+    from ``key``, clipped at ±2), inside ``[r1, min(r0, max_range)]`` (nothing nearer than the receiver's blind zone,
+    nothing past the target)."""
+    half_length, range_sigma, r1, max_range = echo.half_length, echo.range_sigma, echo.r1, echo.max_range
     r = r_fog - half_length
     if range_sigma > 0.0:
         z = normal_pair(key)[1]
@@ -358,11 +362,11 @@ def _reported_range(r_fog, r0, half_length, range_sigma, key, r1, max_range):  #
 
 
 @njit(cache=True, nogil=True)
-def _points_kernel(points, origins, r_start, dr, g, r_peak, g_peak, alpha, soft_gain, saturation, floor, noise_std,
-                   noise_rel, full_scale, half_length, range_sigma, keys, r1, max_range, out, labels, r0_out,
-                   r_fog_out):  # pragma: no cover
-    """Fog every row of ``points`` (N, 5) float32 into ``out`` (a copy of ``points``); origins (N, 3) or (0, 3);
-    keys (N,) the beams' noise streams, or (0,) for a noise-free detector."""
+def _points_kernel(points, origins, keys, model, echo, out, labels, r0_out, r_fog_out):  # pragma: no cover
+    """Fog every row of ``points`` (N, 5) float32 into ``out`` (a copy of ``points``) by the `FogResponse` ``model``,
+    a fog echo moved to the range of `FogEchoRange` ``echo``; origins (N, 3) or (0, 3); keys (N,) the beams' noise
+    streams, or (0,) for a noise-free detector; per point its label, range ``r0_out`` and ``r_fog_out``."""
+    noise_std, noise_rel = model.noise_std, model.noise_rel
     has_origin = origins.shape[0] > 0
     noisy = keys.shape[0] > 0
     for n in range(points.shape[0]):
@@ -375,15 +379,14 @@ def _points_kernel(points, origins, r_start, dr, g, r_peak, g_peak, alpha, soft_
         r0 = math.sqrt(dx * dx + dy * dy + dz * dz)
         key = keys[n] if noisy else np.uint64(0)
         z = normal_pair(key)[0] if noisy and (noise_std > 0.0 or noise_rel > 0.0) else 0.0
-        value, label, r_fog = _fog_one(r0, points[n, 3], r_start, dr, g, r_peak, g_peak, alpha, soft_gain,
-                                       saturation, floor, noise_std, noise_rel, full_scale, z)
+        value, label, r_fog = _fog_one(r0, points[n, 3], model, z)
         labels[n] = label
         r0_out[n] = r0
         r_fog_out[n] = r_fog
         if label == 1:
             out[n, 3] = value
         elif label == 2:
-            f = _reported_range(r_fog, r0, half_length, range_sigma, key, r1, max_range) / r0
+            f = _reported_range(r_fog, r0, key, echo) / r0
             out[n, 0] = ox + dx * f
             out[n, 1] = oy + dy * f
             out[n, 2] = oz + dz * f
@@ -487,8 +490,8 @@ def fog_point_arrays(
     labels = np.empty(n, dtype=np.uint8)
     r0 = np.empty(n)
     r_fog = np.empty(n)
-    _points_kernel(np.ascontiguousarray(points), origins, *params, sensor.pulse_length / 2.0, float(range_noise_std),
-                   keys, float(sensor.r1), float(sensor.max_range), out, labels, r0, r_fog)
+    echo = FogEchoRange(sensor.pulse_length / 2.0, float(range_noise_std), float(sensor.r1), float(sensor.max_range))
+    _points_kernel(np.ascontiguousarray(points), origins, keys, params, echo, out, labels, r0, r_fog)
     counts = np.bincount(labels, minlength=len(POINT_LABELS))
     if counts[FogLabel.LOST]:
         keep = np.flatnonzero(labels != FogLabel.LOST)

@@ -92,6 +92,7 @@ from numpy.typing import NDArray
 
 from weatheralign.medium.distributions import Q_EXT_GEOMETRIC, Q_IMAGING, rain_terminal_velocity
 from weatheralign.medium.field import ParticleField, Particles, splitmix64, splitmix64_py
+from weatheralign.reference.records import CameraMedium, PixelRays, PixelScene
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -495,10 +496,15 @@ class UnresolvedMedium:
         s = np.asarray(s, dtype=np.float64)
         out = np.empty(s.shape)
         flat = out.reshape(-1)
+        medium = self.record()
         for i, v in enumerate(s.reshape(-1)):
-            flat[i] = _G(float(v), self.n0, self.lam, self.d_min, self.d_max, self.k, self.max_distance,
-                         self.alpha_total)
+            flat[i] = _G(float(v), medium)
         return out
+
+    def record(self) -> CameraMedium:
+        """The medium as the kernels take it."""
+        return CameraMedium(self.n0, self.lam, self.d_min, self.d_max, self.k, self.max_distance, self.alpha_total,
+                            self.z_min, self.z_max)
 
 
 @njit(cache=True, nogil=True)
@@ -511,9 +517,10 @@ def _prim(j: int, d: float, lam: float) -> float:  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True)
-def _G(s: float, n0: float, lam: float, a: float, b: float, k: float, big_r: float,
-       alpha_total: float) -> float:  # pragma: no cover - numba
-    """``∫_0^s α_u(x) dx`` (closed form, see the module docstring)."""
+def _G(s: float, medium: CameraMedium) -> float:  # pragma: no cover - numba
+    """``∫_0^s α_u(x) dx`` of the unresolved ``medium`` (closed form, see the module docstring), ignoring its layer."""
+    n0, lam, a, b, k = medium.n0, medium.lam, medium.d_min, medium.d_max, medium.k
+    big_r, alpha_total = medium.max_distance, medium.alpha_total
     if s <= 0.0 or n0 == 0.0:
         return 0.0
     g = 0.0
@@ -531,12 +538,16 @@ def _G(s: float, n0: float, lam: float, a: float, b: float, k: float, big_r: flo
 
 
 @njit(cache=True, nogil=True)
-def _compose_kernel(J: NDArray, behind: NDArray, ray_len: NDArray, counts: NDArray, s: int, L: NDArray, R: NDArray,
-                    origin_z: float, fx: float, fy: float, cx: float, cy: float, width: int, sky_distance: float,
-                    n0: float, lam: float, a: float, b: float, k: float, big_r: float, alpha_total: float,
-                    z_min: float, z_max: float, out: NDArray, trans_out: NDArray) -> None:  # pragma: no cover
-    """Per pixel: the scene seen through the unresolved medium (layer-clipped optical depth on the pixel-centre ray),
-    mixed with the particle radiance by the fraction of samples that met a particle."""
+def _compose_kernel(scene: PixelScene, rays: PixelRays, medium: CameraMedium, out: NDArray,
+                    trans_out: NDArray) -> None:  # pragma: no cover
+    """Per pixel of ``scene``: what it sees through the unresolved ``medium`` (layer-clipped optical depth on the
+    pixel-centre ray of ``rays``), mixed with the particle radiance by the fraction of samples that met a particle;
+    radiance ``out`` (N, 3), transmittance ``trans_out`` (N,)."""
+    J, behind, ray_len, counts, s = scene.J, scene.behind, scene.ray_len, scene.counts, scene.samples
+    L, sky_distance = scene.radiance, scene.sky_distance
+    R, origin_z, width = rays.R, rays.origin_z, rays.width
+    fx, fy, cx, cy = rays.fx, rays.fy, rays.cx, rays.cy
+    z_min, z_max = medium.z_min, medium.z_max
     for pix in range(J.shape[0]):
         row = pix // width
         col = pix - row * width
@@ -557,8 +568,7 @@ def _compose_kernel(J: NDArray, behind: NDArray, ray_len: NDArray, counts: NDArr
             s_b = min(length, max(t1, t2))
         tau = 0.0
         if s_b > s_a:
-            tau = (_G(s_b, n0, lam, a, b, k, big_r, alpha_total)
-                   - _G(s_a, n0, lam, a, b, k, big_r, alpha_total))
+            tau = _G(s_b, medium) - _G(s_a, medium)
         trans = math.exp(-tau)
         veil = -math.expm1(-tau)
         trans_out[pix] = trans
@@ -698,6 +708,39 @@ def resolved_particles(field: ParticleField, K: NDArray, T_world_cam: NDArray, w
 
 
 # ------------------------------------------------------------------------------------------------------------ image
+def _clear_radiance(J: NDArray, shape: tuple[int, int], who: str) -> F64:
+    """``J`` as an (H, W, 3) float64 array of finite linear radiances, ``shape`` (H, W) the ray lengths'."""
+    Jl = np.asarray(J, dtype=np.float64)
+    if Jl.shape != (*shape, 3) or not np.isfinite(Jl).all():
+        raise ValueError(f"{who}: J must be an (H, W, 3) array of finite linear radiances matching ray_length "
+                         f"{shape}, got shape {Jl.shape}")
+    return Jl
+
+
+def _radiance_behind_sky(sky_radiance_behind: NDArray | None, J: F64, who: str) -> F64:
+    """(H, W, 3) the clear radiance behind each sky pixel's path: ``J`` (H, W, 3) when ``sky_radiance_behind`` is
+    None, else that (3,) or (H, W, 3) linear radiance."""
+    if sky_radiance_behind is None:
+        return J
+    height, width = J.shape[:2]
+    b = np.asarray(sky_radiance_behind, dtype=np.float64)
+    if b.shape not in ((3,), (height, width, 3)) or not np.isfinite(b).all():
+        raise ValueError(f"{who}: sky_radiance_behind must be None, (3,) or (H, W, 3) = {(height, width, 3)} "
+                         f"finite linear radiance, got shape {b.shape}")
+    return np.broadcast_to(b, (height, width, 3))
+
+
+def _frame_time(t: float, who: str) -> float:
+    """``t`` [s] as a finite float."""
+    try:
+        t = float(t)
+    except (TypeError, ValueError):
+        t = math.nan
+    if not math.isfinite(t):
+        raise ValueError(f"{who}: t is invalid: expected a finite frame time [s]")
+    return t
+
+
 @dataclass(frozen=True, eq=False)
 class ParticleImage:
     """A camera image through snow or rain (`particle_image`).
@@ -759,10 +802,7 @@ def particle_image(J: NDArray, ray_length: NDArray, K: NDArray, T_world_cam: NDA
     who = "particle_image"
     ell = _ray_lengths(ray_length, who)
     height, width = ell.shape
-    Jl = np.asarray(J, dtype=np.float64)
-    if Jl.shape != (height, width, 3) or not np.isfinite(Jl).all():
-        raise ValueError(f"{who}: J must be an (H, W, 3) array of finite linear radiances matching ray_length "
-                         f"{ell.shape}, got shape {Jl.shape}")
+    Jl = _clear_radiance(J, ell.shape, who)
     fx, fy, cx, cy = _intrinsics(K, who)
     R, o = _pose(T_world_cam, who)
     if not isinstance(field, ParticleField):
@@ -772,14 +812,7 @@ def particle_image(J: NDArray, ray_length: NDArray, K: NDArray, T_world_cam: NDA
         raise ValueError(f"{who}: particle_radiance = {particle_radiance!r} is invalid: expected 3 linear radiances "
                          ">= 0")
     sky_d = _nonneg(who, "sky_distance", sky_distance, "m", positive=True)
-    if sky_radiance_behind is None:
-        behind = Jl
-    else:
-        b = np.asarray(sky_radiance_behind, dtype=np.float64)
-        if b.shape not in ((3,), (height, width, 3)) or not np.isfinite(b).all():
-            raise ValueError(f"{who}: sky_radiance_behind must be None, (3,) or (H, W, 3) = {(height, width, 3)} "
-                             f"finite linear radiance, got shape {b.shape}")
-        behind = np.broadcast_to(b, (height, width, 3))
+    behind = _radiance_behind_sky(sky_radiance_behind, Jl, who)
     s = _check_samples(samples, who)
     seed = _check_seed(seed, who)
     exposure = _nonneg(who, "exposure_s", exposure_s, "s")
@@ -787,12 +820,7 @@ def particle_image(J: NDArray, ray_length: NDArray, K: NDArray, T_world_cam: NDA
     big_r = _nonneg(who, "max_distance", max_distance, "m")
     near = _nonneg(who, "near_clip", near_clip, "m", positive=True)
     v_cam = _vec3(who, "v_cam", v_cam, "m/s")
-    try:
-        t = float(t)
-    except (TypeError, ValueError):
-        t = math.nan
-    if not math.isfinite(t):
-        raise ValueError(f"{who}: t is invalid: expected a finite frame time [s]")
+    t = _frame_time(t, who)
 
     res = resolved_particles(field, K, T_world_cam, width, height, t, v_cam=v_cam, exposure_s=exposure,
                              resolve_px=resolve, max_distance=big_r, near_clip=near,
@@ -809,10 +837,10 @@ def particle_image(J: NDArray, ray_length: NDArray, K: NDArray, T_world_cam: NDA
     med = UnresolvedMedium.of(field, resolve, max(fx, fy), big_r)
     out = np.empty((height * width, 3))
     trans = np.empty(height * width)
-    _compose_kernel(np.ascontiguousarray(Jl.reshape(-1, 3)), np.ascontiguousarray(behind.reshape(-1, 3)),
-                    np.ascontiguousarray(ell.ravel()), np.ascontiguousarray(counts.ravel().astype(np.int64)), s,
-                    L, R, float(o[2]), fx, fy, cx, cy, width, sky_d, med.n0, med.lam, med.d_min, med.d_max, med.k,
-                    med.max_distance, med.alpha_total, med.z_min, med.z_max, out, trans)
+    scene = PixelScene(np.ascontiguousarray(Jl.reshape(-1, 3)), np.ascontiguousarray(behind.reshape(-1, 3)),
+                       np.ascontiguousarray(ell.ravel()), np.ascontiguousarray(counts.ravel().astype(np.int64)), s, L,
+                       sky_d)
+    _compose_kernel(scene, PixelRays(R, float(o[2]), fx, fy, cx, cy, width), med.record(), out, trans)
     return ParticleImage(radiance=out.reshape(height, width, 3), coverage=(counts / s).astype(np.float32),
                          nearest_hit=nearest, transmittance=trans.reshape(height, width).astype(np.float32),
                          resolved=hits.traced, particles_hit=hits.particles_hit, hit_samples=int(counts.sum()),

@@ -58,6 +58,7 @@ from numba import njit
 from numpy.typing import ArrayLike, NDArray
 from scipy.integrate import cumulative_trapezoid
 
+from weatheralign.reference.records import FogGrid, FogMedium, FogPeaks, SensorOptics
 from weatheralign.sensors import SPEED_OF_LIGHT, PulseSensor
 
 F64 = NDArray[np.float64]
@@ -100,6 +101,11 @@ class ExactSensor(PulseSensor):
     def listen_end(self) -> float:
         """Last receiver-axis position [m] whose peak is still reported: ``max_range + c τ_H / 2``."""
         return self.max_range + 0.5 * self.pulse_length
+
+
+def sensor_optics(sensor: ExactSensor) -> SensorOptics:
+    """``sensor`` as the kernels take it."""
+    return SensorOptics(sensor.pulse_length, sensor.listen_end, sensor.r1, sensor.r2, sensor.fov_ratio, sensor.beta_0)
 
 
 @njit(cache=True, nogil=True)
@@ -162,6 +168,11 @@ class FogTables:
     gmax_at: F64
     g_peak: float
     r_peak: float
+
+    def grid(self) -> FogGrid:
+        """The tables as the kernels take them."""
+        return FogGrid(self.r_start, self.step, self.h0, self.hc, self.hs, self.gmax, self.gmax_at, self.g_peak,
+                       self.r_peak)
 
 
 def fog_tables(alpha: float, sensor: ExactSensor = ExactSensor(), *, step: float = TABLE_STEP_M) -> FogTables:
@@ -277,11 +288,18 @@ class ExactReturns:
 
 
 @njit(cache=True, nogil=True)
-def _beams_kernel(r0s, cs, alpha, beta, beta0, r1, r2, kappa, listen_end, r_start, step, h0, hc, hs, gmax,
-                  gmax_at, g_peak, r_peak, length, stride, power, r_out, source):  # pragma: no cover
-    """Region A by prefix maximum, region B on nodes ``R_m = r0 + c τ_H / 2 + (m - M) stride step`` up to the end
-    of the listening window: the lower integration limit ``R_m - c τ_H`` then moves by whole table steps, so every
-    node shares one interpolation fraction, and ``cos/sin(ω R_m)`` follow by rotation."""
+def _beams_kernel(r0s, cs, fog, sensor, tables, stride, out):  # pragma: no cover
+    """Per beam of targets at ``r0s`` (N,) [m] (inf: none) with system constants ``cs`` (N,) through ``fog``
+    (`FogMedium`), seen by ``sensor`` (`SensorOptics`), from the `FogGrid` ``tables``: the strongest peak into
+    ``out`` (`FogPeaks`). Region A by prefix maximum, region B on nodes ``R_m = r0 + c τ_H / 2 + (m - M) stride
+    step`` up to the end of the listening window: the lower integration limit ``R_m - c τ_H`` then moves by whole
+    table steps, so every node shares one interpolation fraction, and ``cos/sin(ω R_m)`` follow by rotation."""
+    alpha, beta = fog.alpha, fog.beta
+    beta0, r1, r2, kappa = sensor.beta0, sensor.r1, sensor.r2, sensor.kappa
+    listen_end, length = sensor.listen_end, sensor.length
+    r_start, step, h0, hc, hs = tables.r_start, tables.step, tables.h0, tables.hc, tables.hs
+    gmax, gmax_at, g_peak, r_peak = tables.gmax, tables.gmax_at, tables.g_peak, tables.r_peak
+    power, r_out, source = out.power, out.r_peak, out.source
     omega = 2.0 * math.pi / length
     half = 0.5 * length
     grid_step = stride * step
@@ -392,9 +410,8 @@ def exact_returns(r0: ArrayLike, c: ArrayLike, alpha: float, beta: float, sensor
     n = len(r0)
     power, r_peak, source = np.empty(n), np.empty(n), np.empty(n, dtype=np.uint8)
     stride = max(1, int(round(grid_step / tables.step)))
-    _beams_kernel(r0, c, float(alpha), float(beta), sensor.beta_0, sensor.r1, sensor.r2, sensor.fov_ratio,
-                  sensor.listen_end, tables.r_start, tables.step, tables.h0, tables.hc, tables.hs, tables.gmax,
-                  tables.gmax_at, tables.g_peak, tables.r_peak, sensor.pulse_length, stride, power, r_peak, source)
+    _beams_kernel(r0, c, FogMedium(float(alpha), float(beta)), sensor_optics(sensor), tables.grid(), stride,
+                  FogPeaks(power, r_peak, source))
     return ExactReturns(power, r_peak, source)
 
 

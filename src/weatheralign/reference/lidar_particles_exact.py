@@ -84,7 +84,28 @@ from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from weatheralign.medium.field import ParticleField, splitmix64_py
-from weatheralign.reference.lidar_exact import FOG, TARGET, ExactReturns, ExactSensor, _overlap_one, bistatic_overlap
+from weatheralign.reference.lidar_exact import (
+    FOG,
+    TARGET,
+    ExactReturns,
+    ExactSensor,
+    _overlap_one,
+    bistatic_overlap,
+    sensor_optics,
+)
+from weatheralign.reference.records import (
+    BeamEvents,
+    BeamParticles,
+    ContinuumIntegrals,
+    ContinuumNodes,
+    EchoGain,
+    ExactBeams,
+    ParticlePeaks,
+    SensorOptics,
+    Shadow,
+    SubrayPattern,
+    SubrayScratch,
+)
 from weatheralign.sensors import SYNTHETIC_INTENSITY, IntensityModel
 
 F64 = NDArray[np.float64]
@@ -367,15 +388,11 @@ def beam_waveform(R: ArrayLike, beam: int, origin: ArrayLike, directions: ArrayL
     _check_sensor(sensor, intensity_model)
     unresolved = Unresolved.none() if unresolved is None else unresolved
     prep = _prepare(o, d, r0a, i0a, pos, diam, rho, sensor, unresolved, theta, sub_rays, intensity_model, 0.02, seed)
-    (o, d, r0a, i0a, phis, pos, diam, pair_start, pair_part, px, py, pn, tan_a, w_part, r1, r2, kappa, _,
-     length, _, h, u_edges, u_area, u_tau, r_ref, falloff) = prep.kernel_args
-    H0, Hc, Hs = prep.tabs[:3]
     Rv = np.ascontiguousarray(R, dtype=np.float64)
     flat = Rv.ravel()
     pulses, cont = np.empty(flat.size), np.empty(flat.size)
-    _waveform_kernel(flat, b, o, d, r0a, i0a, phis, pos, diam, pair_start, pair_part, px, py, pn, tan_a, w_part, r1, r2,
-                     kappa, length, h, H0, Hc, Hs, bool(prep.tabs[13]), u_edges, u_area, u_tau, r_ref, falloff, pulses,
-                     cont)
+    _waveform_kernel(flat, b, prep.beams, prep.particles, prep.pattern, prep.sensor, prep.gain, prep.shadow,
+                     prep.integrals, pulses, cont)
     return pulses.reshape(Rv.shape), cont.reshape(Rv.shape)
 
 
@@ -503,12 +520,16 @@ def _sectors(r_inner: float, cell_size: float) -> int:
 # ------------------------------------------------------------------------------------------------ core
 @dataclass(frozen=True)
 class _Prepared:
-    """Everything the kernels take besides the output arrays."""
+    """Everything the kernels take besides the output arrays (`weatheralign.reference.records`)."""
 
-    kernel_args: tuple
-    pair_start: I64
-    h: float
-    tabs: tuple
+    beams: ExactBeams
+    particles: BeamParticles
+    pattern: SubrayPattern
+    sensor: SensorOptics
+    gain: EchoGain
+    shadow: Shadow
+    integrals: ContinuumIntegrals
+    nodes: ContinuumNodes
 
 
 def _prepare(o: F64, d: F64, r0: F64, i0: F64, pos: F64, diam: F64, rho: float, sensor: ExactSensor,
@@ -520,15 +541,13 @@ def _prepare(o: F64, d: F64, r0: F64, i0: F64, pos: F64, diam: F64, rho: float, 
     alpha = 0.5 * theta
     reach = np.minimum(r0, sensor.listen_end)
     pair_start, pair_part = _pairs(o, d, reach, pos, diam, alpha)
-    tabs = _tables(unresolved, rho, sensor, im, step, stride)
-    phis = beam_rotations(len(d), seed)
+    integrals, nodes = _tables(unresolved, rho, sensor, im, step, stride)
     px, py, pn = _pattern(k_sub, math.tan(alpha))
     e = unresolved
-    args = (o, d, r0, i0, phis, pos, diam, pair_start, pair_part, px, py, pn, math.tan(alpha), im.scale * rho,
-            sensor.r1, sensor.r2, sensor.fov_ratio, sensor.listen_end, sensor.pulse_length, step, TABLE_STEP_M,
-            np.ascontiguousarray(e.edges[:-1]), np.ascontiguousarray(e.area), np.ascontiguousarray(e.tau_edges),
-            im.r_ref, im.falloff)
-    return _Prepared(args, pair_start, TABLE_STEP_M, tabs)
+    shadow = Shadow(np.ascontiguousarray(e.edges[:-1]), np.ascontiguousarray(e.area), np.ascontiguousarray(e.tau_edges))
+    return _Prepared(ExactBeams(o, d, r0, i0, beam_rotations(len(d), seed)),
+                     BeamParticles(pos, diam, pair_start, pair_part), SubrayPattern(px, py, pn, math.tan(alpha)),
+                     sensor_optics(sensor), EchoGain(im.scale * rho, im.r_ref, im.falloff), shadow, integrals, nodes)
 
 
 def _run(o: F64, d: F64, r0: F64, i0: F64, pos: F64, diam: F64, ids: I64, rho: float, sensor: ExactSensor,
@@ -542,25 +561,18 @@ def _run(o: F64, d: F64, r0: F64, i0: F64, pos: F64, diam: F64, ids: I64, rho: f
                                             np.zeros(0)),
                                np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int32), len(pos), 0, 0, unresolved,
                                np.zeros(0))
-    (o, d, r0, i0, phis, pos, diam, pair_start, pair_part, px, py, pn, tan_a, w_part, r1, r2, kappa, listen_end,
-     length, step, h, u_edges, u_area, u_tau, r_ref, falloff) = prep.kernel_args
-    H0, Hc, Hs, H0n, Hcn, Hsn, H0l, Hcl, Hsl, cosn, sinn, G, sp, has_cont = prep.tabs
     n = len(d)
-    power, r_out = np.zeros(n), np.zeros(n)
-    source = np.zeros(n, dtype=np.uint8)
-    dominant = np.full(n, -1, dtype=np.int64)
-    hits = np.zeros(n, dtype=np.int32)
-    target_power, target_r = np.zeros(n), np.zeros(n)
-    _beams_kernel(o, d, r0, i0, phis, pos, diam, pair_start, pair_part, px, py, pn, tan_a, w_part, r1, r2, kappa,
-                  listen_end, length, step, h, H0, Hc, Hs, H0n, Hcn, Hsn, H0l, Hcl, Hsl, cosn, sinn, G, sp,
-                  bool(has_cont), u_edges, u_area, u_tau, r_ref, falloff, bool(prune), power, r_out, source, dominant,
-                  hits, target_power, target_r)
+    peaks = ParticlePeaks(power=np.zeros(n), r_peak=np.zeros(n), source=np.zeros(n, dtype=np.uint8),
+                          dominant=np.full(n, -1, dtype=np.int64), hits=np.zeros(n, dtype=np.int32),
+                          target_power=np.zeros(n), target_r=np.zeros(n))
+    _beams_kernel(prep.beams, prep.particles, prep.pattern, prep.sensor, prep.gain, prep.shadow, prep.integrals,
+                  prep.nodes, bool(prune), peaks)
     pid = np.full(n, -1, dtype=np.int64)
-    sel = dominant >= 0
-    pid[sel] = ids[dominant[sel]]
-    return ParticleReturns(ExactReturns(power, r_out, source, target_power, target_r), pid, hits, len(pos),
-                           int(pair_start[-1]),
-                           int(hits.sum()), unresolved, np.zeros(0))
+    sel = peaks.dominant >= 0
+    pid[sel] = ids[peaks.dominant[sel]]
+    return ParticleReturns(ExactReturns(peaks.power, peaks.r_peak, peaks.source, peaks.target_power, peaks.target_r),
+                           pid, peaks.hits, len(pos), int(prep.particles.pair_start[-1]), int(peaks.hits.sum()),
+                           unresolved, np.zeros(0))
 
 
 def _pairs(o: F64, d: F64, reach: F64, pos: F64, diam: F64, alpha: float) -> tuple[I64, I64]:
@@ -604,7 +616,7 @@ def _pairs(o: F64, d: F64, reach: F64, pos: F64, diam: F64, alpha: float) -> tup
 
 
 def _tables(unresolved: Unresolved, rho: float, sensor: ExactSensor, im: IntensityModel, step: float,
-            stride: int) -> tuple:
+            stride: int) -> tuple[ContinuumIntegrals, ContinuumNodes]:
     """Beam-independent tables: running integrals (1 mm) of the continuum's ``f = scale ρ a_u ξ T / r²`` times
     1, cos ωr, sin ωr; the same on the receiver grid ``m step`` and lagged by ``c τ_H``; cos/sin ωR on the grid; the
     unobstructed continuum response G on the grid and its sparse table of range maxima."""
@@ -638,7 +650,8 @@ def _tables(unresolved: Unresolved, rho: float, sensor: ExactSensor, im: Intensi
     cosn, sinn = np.cos(omega * R), np.sin(omega * R)
     G = np.maximum(0.5 * (H0n - H0l) - 0.5 * (cosn * (Hcn - Hcl) + sinn * (Hsn - Hsl)), 0.0)
     sp = _sparse_table(G)
-    return H0, Hc, Hs, H0n, Hcn, Hsn, H0l, Hcl, Hsl, cosn, sinn, G, sp, has_cont
+    return (ContinuumIntegrals(bool(has_cont), h, H0, Hc, Hs),
+            ContinuumNodes(step, H0n, Hcn, Hsn, H0l, Hcl, Hsl, cosn, sinn, G, sp))
 
 
 # ------------------------------------------------------------------------------------------------ numba kernels
@@ -907,9 +920,13 @@ def _transmission(s, edges, area, tau):  # pragma: no cover
 
 
 @njit(cache=True, nogil=True)
-def _evaluate(R, n_ev, ev_s, ev_amp, ev_q, ev_h0, ev_hc, ev_hs, r0, length, omega, has_cont, h, H0, Hc, Hs,
-              hr0_0, hr0_c, hr0_s, parts):  # pragma: no cover
-    """Waveform at ``R`` from the beam's events: (sub-ray echoes, continuum); ``parts`` (n_ev,) each event's echo."""
+def _evaluate(R, n_ev, ev, r0, length, omega, integrals, hr0, parts):  # pragma: no cover
+    """Waveform at ``R`` [m] from the first ``n_ev`` of the beam's events ``ev`` (`BeamEvents`; target at ``r0``
+    [m], pulse ``length`` c τ_H [m], ω = 2π / length): (sub-ray echoes, continuum), the continuum from the running
+    `ContinuumIntegrals` (``hr0``: H0, Hc, Hs at ``r0``); ``parts`` (n_ev,) each event's echo."""
+    ev_s, ev_amp, ev_q, ev_h0, ev_hc, ev_hs = ev.s, ev.amp, ev.q, ev.h0, ev.hc, ev.hs
+    has_cont, h, H0, Hc, Hs = integrals.has_cont, integrals.h, integrals.H0, integrals.Hc, integrals.Hs
+    hr0_0, hr0_c, hr0_s = hr0
     pul = 0.0
     ub, pb0, pbc, pbs = 1.0, 0.0, 0.0, 0.0
     ua, pa0, pac, pas = 1.0, 0.0, 0.0, 0.0
@@ -949,13 +966,24 @@ def _evaluate(R, n_ev, ev_s, ev_amp, ev_q, ev_h0, ev_hc, ev_hs, r0, length, omeg
 
 
 @njit(cache=True, nogil=True)
-def _events(b, o, dirs, r0s, i0s, phis, pos, diam, pair_start, pair_part, px, py, pn, tan_a, w_part, r1, r2, kappa,
-            omega, has_cont, h, H0, Hc, Hs, u_edges, u_area, u_tau, r_ref, falloff, rays, best_s, best_p, ev_s, ev_amp,
-            ev_q, ev_p, ev_cs, ev_sn, ev_h0, ev_hc, ev_hs):  # pragma: no cover
-    """Beam ``b``'s events sorted by range: every sub-ray's nearest hit (exact ray–sphere against the beam's
-    candidate particles, else the target at ``r0``), the target's sub-rays merged into one event. Per event: range,
-    echo amplitude ``(n/K) w ξ T / r²``, share of sub-rays ``q``, particle index (-1: target), ``amp cos/sin ωr`` and
-    the continuum's running integrals at its range. Returns (events, sub-rays stopped by particles)."""
+def _events(b, beams, particles, pattern, sensor, gain, shadow, integrals, omega, scratch,
+            ev):  # pragma: no cover
+    """Beam ``b``'s events sorted by range into ``ev`` (`BeamEvents`): every sub-ray's nearest hit (exact ray–sphere
+    against the beam's candidate particles, else the target at ``r0``), the target's sub-rays merged into one event.
+    Per event: range, echo amplitude ``(n/K) w ξ T / r²``, share of sub-rays ``q``, particle index (-1: target),
+    ``amp cos/sin ωr`` and the continuum's running integrals at its range. Returns (events, sub-rays stopped by
+    particles). The records: `ExactBeams`, `BeamParticles`, `SubrayPattern`, `SensorOptics`, `EchoGain`, `Shadow`,
+    `ContinuumIntegrals`, `SubrayScratch`."""
+    o, dirs, r0s, i0s, phis = beams.origin, beams.dirs, beams.r0, beams.i0, beams.phi
+    pos, diam, pair_start, pair_part = particles.pos, particles.diam, particles.pair_start, particles.pair_part
+    px, py, pn, tan_a = pattern.px, pattern.py, pattern.pn, pattern.tan_a
+    r1, r2, kappa = sensor.r1, sensor.r2, sensor.kappa
+    w_part, r_ref, falloff = gain.w_part, gain.r_ref, gain.falloff
+    u_edges, u_area, u_tau = shadow.edges, shadow.area, shadow.tau
+    has_cont, h, H0, Hc, Hs = integrals.has_cont, integrals.h, integrals.H0, integrals.Hc, integrals.Hs
+    rays, best_s, best_p = scratch.rays, scratch.best_s, scratch.best_p
+    ev_s, ev_amp, ev_q, ev_p, ev_cs, ev_sn = ev.s, ev.amp, ev.q, ev.p, ev.cs, ev.sn
+    ev_h0, ev_hc, ev_hs = ev.h0, ev.hc, ev.hs
     k_sub = px.shape[0]
     inv_k = 1.0 / k_sub
     r0 = r0s[b]
@@ -1063,35 +1091,36 @@ def _events(b, o, dirs, r0s, i0s, phis, pos, diam, pair_start, pair_part, px, py
 
 
 @njit(cache=True, nogil=True)
-def _beams_kernel(o, dirs, r0s, i0s, phis, pos, diam, pair_start, pair_part, px, py, pn, tan_a, w_part, r1, r2, kappa,
-                  listen_end, length, step, h, H0, Hc, Hs, H0n, Hcn, Hsn, H0l, Hcl, Hsl, cosn, sinn, G, sp, has_cont,
-                  u_edges, u_area, u_tau, r_ref, falloff, prune, power, r_out, source, dominant,
-                  hits, target_power, target_r):  # pragma: no cover
+def _beams_kernel(beams, particles, pattern, sensor, gain, shadow, integrals, nodes, prune, out):  # pragma: no cover
     """Per beam: sub-rays against the candidate particles and the target, the events sorted by range, the waveform
     swept over the grid nodes inside the echoes' supports (running sums: every node O(1)), the continuum alone in
     the gaps between them by range maxima of G times the unblocked share, a three-point fit through the best node's
     neighbours, attribution at the refined peak; where that peak is not the target's, the waveform at the target's
-    own echo crest (``target_power``, ``target_r``; 0 where the target's echo is fully blocked)."""
+    own echo crest (``target_power``, ``target_r``; 0 where the target's echo is fully blocked). The records
+    (`weatheralign.reference.records`): `ExactBeams`, `BeamParticles`, `SubrayPattern`, `SensorOptics`, `EchoGain`,
+    `Shadow`, `ContinuumIntegrals`, `ContinuumNodes`; the result into ``out`` (`ParticlePeaks`). ``prune=False``
+    evaluates every node."""
+    dirs, r0s = beams.dirs, beams.r0
+    length = sensor.length
+    r_ref, falloff = gain.r_ref, gain.falloff
+    has_cont, h, H0, Hc, Hs = integrals.has_cont, integrals.h, integrals.H0, integrals.Hc, integrals.Hs
+    step, H0n, Hcn, Hsn, H0l, Hcl, Hsl = nodes.step, nodes.H0n, nodes.Hcn, nodes.Hsn, nodes.H0l, nodes.Hcl, nodes.Hsl
+    cosn, sinn, G, sp = nodes.cosn, nodes.sinn, nodes.G, nodes.sp
+    power, r_out, source, dominant = out.power, out.r_peak, out.source, out.dominant
+    hits, target_power, target_r = out.hits, out.target_power, out.target_r
     omega = 2.0 * math.pi / length
-    k_sub = px.shape[0]
+    k_sub = pattern.px.shape[0]
     sin_w = math.sin(omega * step)
     one_m_cos = 2.0 * math.sin(0.5 * omega * step) ** 2  # 1 - cos ω step
     half_w = 0.5 * omega * step
     m_lo = 1
     m_hi = H0n.shape[0] - 1
-    rays = np.empty((k_sub, 3))
-    best_s = np.empty(k_sub)
-    best_p = np.empty(k_sub, dtype=np.int64)
+    scratch = SubrayScratch(np.empty((k_sub, 3)), np.empty(k_sub), np.empty(k_sub, dtype=np.int64))
     n_max = k_sub + 1
-    ev_s = np.empty(n_max)
-    ev_amp = np.empty(n_max)
-    ev_q = np.empty(n_max)
-    ev_p = np.empty(n_max, dtype=np.int64)
-    ev_cs = np.empty(n_max)
-    ev_sn = np.empty(n_max)
-    ev_h0 = np.empty(n_max)
-    ev_hc = np.empty(n_max)
-    ev_hs = np.empty(n_max)
+    ev = BeamEvents(np.empty(n_max), np.empty(n_max), np.empty(n_max), np.empty(n_max, dtype=np.int64),
+                    np.empty(n_max), np.empty(n_max), np.empty(n_max), np.empty(n_max), np.empty(n_max))
+    ev_s, ev_amp, ev_q, ev_p, ev_cs, ev_sn = ev.s, ev.amp, ev.q, ev.p, ev.cs, ev.sn
+    ev_h0, ev_hc, ev_hs = ev.h0, ev.hc, ev.hs
     parts = np.empty(n_max)
     ev_m0 = np.empty(n_max, dtype=np.int64)  # first node with R >= s (the echo has started)
     ev_m1 = np.empty(n_max, dtype=np.int64)  # first node with R > s + c τ_H (it has ended)
@@ -1102,13 +1131,12 @@ def _beams_kernel(o, dirs, r0s, i0s, phis, pos, diam, pair_start, pair_part, px,
     slack = 1e-12 * H0[H0.shape[0] - 1]  # rounding of the continuum from the running integrals
     for b in range(dirs.shape[0]):
         r0 = r0s[b]
-        n_ev, n_hit = _events(b, o, dirs, r0s, i0s, phis, pos, diam, pair_start, pair_part, px, py, pn, tan_a, w_part,
-                              r1, r2, kappa, omega, has_cont, h, H0, Hc, Hs, u_edges, u_area, u_tau, r_ref, falloff,
-                              rays, best_s, best_p, ev_s, ev_amp, ev_q, ev_p, ev_cs, ev_sn, ev_h0, ev_hc, ev_hs)
+        n_ev, n_hit = _events(b, beams, particles, pattern, sensor, gain, shadow, integrals, omega, scratch, ev)
         hits[b] = n_hit
         hr0_0 = hr0_c = hr0_s = 0.0
         if has_cont and r0 < math.inf:
             hr0_0, hr0_c, hr0_s = _interp(H0, r0, h), _interp(Hc, r0, h), _interp(Hs, r0, h)
+        hr0 = (hr0_0, hr0_c, hr0_s)
         # ---- groups of overlapping echoes; the gaps between them (continuum alone: u · max G)
         for e in range(n_ev):
             ev_m0[e] = _node_at_or_after(ev_s[e], step, m_hi)
@@ -1258,12 +1286,9 @@ def _beams_kernel(o, dirs, r0s, i0s, phis, pos, diam, pair_start, pair_part, px,
         R_best = best_m * step
         vb = best_v
         if m_lo < best_m < m_hi:
-            pa, ca = _evaluate((best_m - 1) * step, n_ev, ev_s, ev_amp, ev_q, ev_h0, ev_hc, ev_hs, r0, length,
-                               omega, has_cont, h, H0, Hc, Hs, hr0_0, hr0_c, hr0_s, parts)
-            pm, cm = _evaluate(best_m * step, n_ev, ev_s, ev_amp, ev_q, ev_h0, ev_hc, ev_hs, r0, length, omega,
-                               has_cont, h, H0, Hc, Hs, hr0_0, hr0_c, hr0_s, parts)
-            pc, cc = _evaluate((best_m + 1) * step, n_ev, ev_s, ev_amp, ev_q, ev_h0, ev_hc, ev_hs, r0, length,
-                               omega, has_cont, h, H0, Hc, Hs, hr0_0, hr0_c, hr0_s, parts)
+            pa, ca = _evaluate((best_m - 1) * step, n_ev, ev, r0, length, omega, integrals, hr0, parts)
+            pm, cm = _evaluate(best_m * step, n_ev, ev, r0, length, omega, integrals, hr0, parts)
+            pc, cc = _evaluate((best_m + 1) * step, n_ev, ev, r0, length, omega, integrals, hr0, parts)
             va, vm, vc = pa + ca, pm + cm, pc + cc
             # three-point fit a + b cos ω(R - R_m) + c sin ω(R - R_m): exact for hard echoes, a parabola's equal on
             # smooth ones (second order)
@@ -1274,8 +1299,7 @@ def _beams_kernel(o, dirs, r0s, i0s, phis, pos, diam, pair_start, pair_part, px,
                 R_best = best_m * step + phi / omega
                 vb = vm - bq + bq * math.cos(phi) + cq * math.sin(phi)
         # ---- attribution at the peak
-        pul, cont = _evaluate(R_best, n_ev, ev_s, ev_amp, ev_q, ev_h0, ev_hc, ev_hs, r0, length, omega, has_cont, h,
-                              H0, Hc, Hs, hr0_0, hr0_c, hr0_s, parts)
+        pul, cont = _evaluate(R_best, n_ev, ev, r0, length, omega, integrals, hr0, parts)
         tgt = 0.0
         part_total = 0.0
         top_p, top_v = -1, 0.0
@@ -1309,8 +1333,7 @@ def _beams_kernel(o, dirs, r0s, i0s, phis, pos, diam, pair_start, pair_part, px,
         # ---- the target's own return where the strongest peak is not it (the receiver's second choice)
         if source[b] != TARGET and r0 < math.inf and r0 > 0.0:
             R_t = r0 + 0.5 * length
-            pul_t, cont_t = _evaluate(R_t, n_ev, ev_s, ev_amp, ev_q, ev_h0, ev_hc, ev_hs, r0, length, omega,
-                                      has_cont, h, H0, Hc, Hs, hr0_0, hr0_c, hr0_s, parts)
+            pul_t, cont_t = _evaluate(R_t, n_ev, ev, r0, length, omega, integrals, hr0, parts)
             own = 0.0
             for e in range(n_ev):
                 if ev_p[e] < 0 and parts[e] > 0.0:
@@ -1321,28 +1344,24 @@ def _beams_kernel(o, dirs, r0s, i0s, phis, pos, diam, pair_start, pair_part, px,
 
 
 @njit(cache=True, nogil=True)
-def _waveform_kernel(Rs, b, o, dirs, r0s, i0s, phis, pos, diam, pair_start, pair_part, px, py, pn, tan_a, w_part, r1,
-                     r2, kappa, length, h, H0, Hc, Hs, has_cont, u_edges, u_area, u_tau, r_ref, falloff, out_pulses,
+def _waveform_kernel(Rs, b, beams, particles, pattern, sensor, gain, shadow, integrals, out_pulses,
                      out_cont):  # pragma: no cover
-    """Beam ``b``'s waveform at the receiver ranges ``Rs``: sub-ray echoes and continuum, separately."""
+    """Beam ``b``'s waveform at the receiver ranges ``Rs`` [m]: sub-ray echoes and continuum, separately (the records
+    as `_beams_kernel`'s)."""
+    length = sensor.length
     omega = 2.0 * math.pi / length
-    k_sub = px.shape[0]
-    rays = np.empty((k_sub, 3))
-    best_s = np.empty(k_sub)
-    best_p = np.empty(k_sub, dtype=np.int64)
+    k_sub = pattern.px.shape[0]
+    scratch = SubrayScratch(np.empty((k_sub, 3)), np.empty(k_sub), np.empty(k_sub, dtype=np.int64))
     n_max = k_sub + 1
-    ev_s, ev_amp, ev_q = np.empty(n_max), np.empty(n_max), np.empty(n_max)
-    ev_p = np.empty(n_max, dtype=np.int64)
-    ev_cs, ev_sn = np.empty(n_max), np.empty(n_max)
-    ev_h0, ev_hc, ev_hs = np.empty(n_max), np.empty(n_max), np.empty(n_max)
+    ev = BeamEvents(np.empty(n_max), np.empty(n_max), np.empty(n_max), np.empty(n_max, dtype=np.int64),
+                    np.empty(n_max), np.empty(n_max), np.empty(n_max), np.empty(n_max), np.empty(n_max))
     parts = np.empty(n_max)
-    n_ev, _ = _events(b, o, dirs, r0s, i0s, phis, pos, diam, pair_start, pair_part, px, py, pn, tan_a, w_part, r1, r2,
-                      kappa, omega, has_cont, h, H0, Hc, Hs, u_edges, u_area, u_tau, r_ref, falloff, rays, best_s,
-                      best_p, ev_s, ev_amp, ev_q, ev_p, ev_cs, ev_sn, ev_h0, ev_hc, ev_hs)
-    r0 = r0s[b]
+    n_ev, _ = _events(b, beams, particles, pattern, sensor, gain, shadow, integrals, omega, scratch, ev)
+    r0 = beams.r0[b]
+    has_cont, h, H0, Hc, Hs = integrals.has_cont, integrals.h, integrals.H0, integrals.Hc, integrals.Hs
     hr0_0 = hr0_c = hr0_s = 0.0
     if has_cont and r0 < math.inf:
         hr0_0, hr0_c, hr0_s = _interp(H0, r0, h), _interp(Hc, r0, h), _interp(Hs, r0, h)
+    hr0 = (hr0_0, hr0_c, hr0_s)
     for i in range(Rs.shape[0]):
-        out_pulses[i], out_cont[i] = _evaluate(Rs[i], n_ev, ev_s, ev_amp, ev_q, ev_h0, ev_hc, ev_hs, r0, length,
-                                               omega, has_cont, h, H0, Hc, Hs, hr0_0, hr0_c, hr0_s, parts)
+        out_pulses[i], out_cont[i] = _evaluate(Rs[i], n_ev, ev, r0, length, omega, integrals, hr0, parts)

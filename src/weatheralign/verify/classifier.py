@@ -59,9 +59,9 @@ def held_out_split(strata: NDArray, fraction: float, seed: int = 0) -> tuple[NDA
     return np.setdiff1d(np.arange(len(strata)), held_idx).astype(np.int64), held_idx
 
 
-def train_weather_classifier(inputs: NDArray, labels: NDArray, classes: Sequence[str], held_out_fraction: float = 0.25,
-                             steps: int = 300, batch_size: int = 32, lr: float = 3e-3, seed: int = 0,
-                             device: str = "cpu", width: int = 16, embedding: int = 64,
+def train_weather_classifier(inputs: NDArray, labels: NDArray, classes: Sequence[str], *,
+                             held_out_fraction: float = 0.25, steps: int = 300, batch_size: int = 32,
+                             lr: float = 3e-3, seed: int = 0, device: str = "cpu", width: int = 16, embedding: int = 64,
                              correspondence_weight: float = 1.0, displaced: NDArray | None = None,
                              held_out: NDArray | None = None,
                              progress: bool = False) -> tuple[WeatherClassifier, ClassifierReport]:

@@ -328,11 +328,36 @@ def generate_layout(name: str, seed: int, t_start: float, duration: float, ego_s
     crossing = None if crossing_at is None else 25.0 + (max(80.0, drive + 40.0) - 25.0) * crossing_at
     road = RoadGeometry(lanes, W, sidewalk, crossing, 7.5, street_extent(ego_speed, duration),
                         static_extent(1, ego_speed, duration))
-    sw = road.sidewalk_width
     ego_lane_y = -LANE_WIDTH / 2
     T_global_scene = make_transform(yaw_matrix(heading), np.array([origin[0], origin[1], 0.0]))
 
     static_parts, furniture = _static_world(rng, road, static_extent(2, ego_speed, duration))
+    place = _Placement(rng, _initial_occupancy(road, furniture, ego_lane_y, ego_speed, duration), T_global_scene,
+                       heading, t_start, ego_speed, duration)
+    _lane_traffic(place, road)
+    _cyclists(place, road)
+    if parking:
+        _parked_cars(place, road)
+    _pedestrians(place, road)
+    if crossing is not None:
+        _crossing_waiters(place, road)
+    _parked_bicycles(place, road)
+    _construction_zone(place, road, drive)
+
+    R_scene = T_global_scene[:3, :3]
+    actors = place.actors
+    static_mesh = concat([p.transformed(R_scene, T_global_scene[:3, 3]) for p in static_parts]
+                         + [a.mesh.transformed(yaw_matrix(a.yaw), a.position) for a in actors if not a.moving])
+    sun = _sun_direction(rng)
+    return SceneLayout(name, seed, T_global_scene, road, static_mesh, tuple(actors), ego_speed, ego_lane_y, t_start,
+                       duration, sun)
+
+
+def _initial_occupancy(road: RoadGeometry, furniture: list[tuple[float, float]], ego_lane_y: float,
+                       ego_speed: float, duration: float) -> _Occupancy:
+    """What road users must keep clear of: the street furniture at its (x, y) [m], the sidewalk's gap at the cross
+    street and the ego (driving at ``ego_speed`` [m/s] along y = ``ego_lane_y``), with margins."""
+    W, sw, crossing = road.road_half_width, road.sidewalk_width, road.crossing_x
     occ = _Occupancy(duration)
     for fx, fy in furniture:  # trunks, posts (lamp heads and crowns overhang above head height)
         occ.add(occ.footprint(fx, fy, 0.0, 0.0, 0.35, 0.35))
@@ -340,14 +365,28 @@ def generate_layout(name: str, seed: int, t_start: float, duration: float, ego_s
         for side in (-1.0, 1.0):
             occ.add(occ.footprint(crossing, side * (W + sw / 2), 0.0, 0.0, road.crossing_half_width, sw / 2))
     occ.add(occ.footprint(0.0, ego_lane_y, ego_speed, 0.0, EGO_LENGTH / 2 + 1.5, EGO_WIDTH / 2 + 0.3))
+    return occ
 
-    actors: list[Actor] = []
-    R_scene = T_global_scene[:3, :3]
 
-    def add(category: str, attribute: str, size: tuple[float, float, float], mesh: Mesh, xs: list[float], y: float,
-            z: float, yaw: float, vx: float, vy: float, margin: float, lateral: float) -> bool:
+@dataclass
+class _Placement:
+    """Places road users one by one (`add`), each where its footprint stays clear of everything placed before during
+    the whole scene, drawing from the scene's random stream ``rng``; ``actors`` in the order placed."""
+
+    rng: np.random.Generator
+    occ: _Occupancy
+    T_global_scene: F64
+    heading: float  # road direction in the global frame [rad]
+    t_start: float  # [s]
+    ego_speed: float  # [m/s]
+    duration: float  # [s]
+    actors: list[Actor] = field(default_factory=list)
+
+    def add(self, category: str, attribute: str, size: tuple[float, float, float], mesh: Mesh, xs: list[float],
+            y: float, z: float, yaw: float, vx: float, vy: float, *, margin: float, lateral: float) -> bool:
         """Place the road user at the first free start x of ``xs`` (scene frame, t = 0), its footprint grown by
         ``margin`` along x and ``lateral`` along y [m]."""
+        occ = self.occ
         half_x, half_y = box_half_extents(size, yaw)
         for x in xs:
             fp = occ.footprint(x, y, vx, vy, half_x + margin, half_y + lateral)
@@ -356,41 +395,49 @@ def generate_layout(name: str, seed: int, t_start: float, duration: float, ego_s
         else:
             return False
         occ.add(fp)
-        instance = len(actors) + 1
-        pos = (T_global_scene @ np.array([x, y, z, 1.0]))[:3]
-        vel = R_scene @ np.array([vx, vy, 0.0])
-        actors.append(Actor(instance, category, attribute, tuple(float(s) for s in size), pos, heading + yaw, vel,
-                            t_start, mesh.with_instance(instance)))
+        instance = len(self.actors) + 1
+        pos = (self.T_global_scene @ np.array([x, y, z, 1.0]))[:3]
+        vel = self.T_global_scene[:3, :3] @ np.array([vx, vy, 0.0])
+        self.actors.append(Actor(instance, category, attribute, tuple(float(s) for s in size), pos,
+                                 self.heading + yaw, vel, self.t_start, mesh.with_instance(instance)))
         return True
 
-    def starts(vx: float, first: float | None = None) -> list[float]:
+    def start_interval(self, vx: float) -> tuple[float, float]:
+        """`start_interval` of users moving at ``vx`` [m/s] in this scene."""
+        return start_interval(vx, self.ego_speed, self.duration)
+
+    def starts(self, vx: float, first: float | None = None) -> list[float]:
         """`PLACEMENT_TRIES` start positions for a user moving at ``vx``: ``first`` (when given), then uniform draws
         from its `start_interval`."""
-        lo, hi = start_interval(vx, ego_speed, duration)
+        lo, hi = self.start_interval(vx)
         xs = [] if first is None else [first]
-        return xs + [float(rng.uniform(lo, hi)) for _ in range(PLACEMENT_TRIES - len(xs))]
+        return xs + [float(self.rng.uniform(lo, hi)) for _ in range(PLACEMENT_TRIES - len(xs))]
 
-    def union_start(vx_min: float, vx_max: float, count: tuple[int, int]) -> tuple[int, float, float]:
+    def union_start(self, vx_min: float, vx_max: float, count: tuple[int, int]) -> tuple[int, float, float]:
         """For users drawing their own velocity in [vx_min, vx_max] (along x): how many to draw (``count`` per
         `COUNT_WINDOW_M` of the union) and the union of their start intervals. A user's first start is drawn from the
         union and the user is left out unless it lies in its own interval, so every velocity fills the window with the
         same density."""
-        lo, hi = start_interval(vx_max, ego_speed, duration)[0], start_interval(vx_min, ego_speed, duration)[1]
-        return _count(rng, *count, hi - lo), lo, hi
+        lo, hi = self.start_interval(vx_max)[0], self.start_interval(vx_min)[1]
+        return _count(self.rng, *count, hi - lo), lo, hi
 
-    def within(x: float, vx: float) -> bool:
-        lo, hi = start_interval(vx, ego_speed, duration)
+    def within(self, x: float, vx: float) -> bool:
+        """Whether the start ``x`` [m] lies in the `start_interval` of users moving at ``vx``."""
+        lo, hi = self.start_interval(vx)
         return lo <= x <= hi
 
-    # moving and stopped traffic, per lane (one speed per lane)
+
+def _lane_traffic(place: _Placement, road: RoadGeometry) -> None:
+    """Moving and stopped vehicles, per lane (one speed per lane; the ego's lane at the ego's speed)."""
+    rng, lanes = place.rng, road.lanes_per_direction
     for direction in (1.0, -1.0):
         for k in range(lanes):
             y = direction * -(LANE_WIDTH / 2 + k * LANE_WIDTH)
             is_ego_lane = direction > 0 and k == 0
-            speed = ego_speed if is_ego_lane else float(rng.uniform(3.0, MAX_TRAFFIC_SPEED))
+            speed = place.ego_speed if is_ego_lane else float(rng.uniform(3.0, MAX_TRAFFIC_SPEED))
             if not is_ego_lane and rng.random() < 0.15:
                 speed = 0.0
-            lo, hi = start_interval(direction * speed, ego_speed, duration)
+            lo, hi = place.start_interval(direction * speed)
             for _ in range(_count(rng, 3, 8, hi - lo)):
                 kind = _pick(rng, ("car",) * 14 + ("truck",) * 2 + ("bus",) + ("motorcycle",))
                 if k == lanes - 1 and kind in ("truck", "bus") and lanes > 1:
@@ -400,86 +447,112 @@ def generate_layout(name: str, seed: int, t_start: float, duration: float, ego_s
                 if category == "vehicle.motorcycle":
                     attribute = "cycle.with_rider"
                 yaw = 0.0 if direction > 0 else np.pi
-                add(category, attribute, size, mesh, starts(direction * speed), y, 0.0, yaw, direction * speed, 0.0,
-                    margin=2.0, lateral=0.05)
-    # cyclists along the outer edge of each direction's lanes
+                place.add(category, attribute, size, mesh, place.starts(direction * speed), y, 0.0, yaw,
+                          direction * speed, 0.0, margin=2.0, lateral=0.05)
+
+
+def _cyclists(place: _Placement, road: RoadGeometry) -> None:
+    """Cyclists along the outer edge of each direction's lanes."""
+    rng, lanes = place.rng, road.lanes_per_direction
     for direction in (1.0, -1.0):
-        n, lo, hi = union_start(min(3.0 * direction, 6.5 * direction), max(3.0 * direction, 6.5 * direction), (0, 3))
+        n, lo, hi = place.union_start(min(3.0 * direction, 6.5 * direction), max(3.0 * direction, 6.5 * direction),
+                                      (0, 3))
         for _ in range(n):
             size = (rng.uniform(0.55, 0.7), rng.uniform(1.65, 1.85), rng.uniform(1.6, 1.8))
             vx = direction * float(rng.uniform(3.0, 6.5))
             x0 = float(rng.uniform(lo, hi))
-            if not within(x0, vx):
+            if not place.within(x0, vx):
                 continue
             rider = (_pick(rng, CLOTHES), _pick(rng, CLOTHES), _pick(rng, objects.SKIN_TONES))
             mesh = objects.bicycle(size, _pick(rng, CAR_COLOURS), rider)
             y = direction * -(lanes * LANE_WIDTH - 0.05 - size[0] / 2)
-            add("vehicle.bicycle", "cycle.with_rider", size, mesh, starts(vx, x0), y, 0.0,
-                0.0 if direction > 0 else np.pi, vx, 0.0, margin=1.0, lateral=0.25)
-    static_lo, static_hi = start_interval(0.0, ego_speed, duration)
-    # parked cars
-    if parking:
-        for side in (-1.0, 1.0):
-            y = side * (lanes * LANE_WIDTH + PARKING_WIDTH / 2)
-            x = static_lo + float(rng.uniform(0, 5))
-            while x < static_hi:
-                category, size, mesh = _vehicle(rng, "car" if rng.random() < 0.92 else "truck")
-                x += size[1] / 2
-                if rng.random() < 0.7 and (crossing is None or abs(x - crossing) > road.crossing_half_width + 6):
-                    add(category, "vehicle.parked", size, mesh, [x], y + side * 0.1, 0.0,
-                        0.0 if side < 0 else np.pi, 0.0, 0.0, margin=0.1, lateral=0.03)
-                x += size[1] / 2 + float(rng.uniform(0.8, 6.0))
-    # pedestrians on the sidewalks
-    n, lo, hi = union_start(-1.7, 1.7, (8, 22))
+            place.add("vehicle.bicycle", "cycle.with_rider", size, mesh, place.starts(vx, x0), y, 0.0,
+                      0.0 if direction > 0 else np.pi, vx, 0.0, margin=1.0, lateral=0.25)
+
+
+def _parked_cars(place: _Placement, road: RoadGeometry) -> None:
+    """Cars and trucks parked along both parking lanes, with gaps, none in front of the cross street."""
+    rng, lanes, crossing = place.rng, road.lanes_per_direction, road.crossing_x
+    static_lo, static_hi = place.start_interval(0.0)
+    for side in (-1.0, 1.0):
+        y = side * (lanes * LANE_WIDTH + PARKING_WIDTH / 2)
+        x = static_lo + float(rng.uniform(0, 5))
+        while x < static_hi:
+            category, size, mesh = _vehicle(rng, "car" if rng.random() < 0.92 else "truck")
+            x += size[1] / 2
+            if rng.random() < 0.7 and (crossing is None or abs(x - crossing) > road.crossing_half_width + 6):
+                place.add(category, "vehicle.parked", size, mesh, [x], y + side * 0.1, 0.0,
+                          0.0 if side < 0 else np.pi, 0.0, 0.0, margin=0.1, lateral=0.03)
+            x += size[1] / 2 + float(rng.uniform(0.8, 6.0))
+
+
+def _pedestrians(place: _Placement, road: RoadGeometry) -> None:
+    """Pedestrians walking or standing on the sidewalks."""
+    rng, W, sw = place.rng, road.road_half_width, road.sidewalk_width
+    n, lo, hi = place.union_start(-1.7, 1.7, (8, 22))
     for _ in range(n):
         side = 1.0 if rng.random() < 0.5 else -1.0
         y = side * (W + rng.uniform(1.4, sw - 0.4))
         walking = rng.random() < 0.75
         vx = (1.0 if rng.random() < 0.5 else -1.0) * float(rng.uniform(0.9, 1.7)) if walking else 0.0
         x0 = float(rng.uniform(lo, hi))
-        if not within(x0, vx):
+        if not place.within(x0, vx):
             continue
         size, mesh = _person(rng, walking)
         if walking:
-            add("human.pedestrian.adult", "pedestrian.moving", size, mesh, starts(vx, x0), y, CURB_HEIGHT,
-                0.0 if vx > 0 else np.pi, vx, 0.0, margin=0.3, lateral=0.09)
+            place.add("human.pedestrian.adult", "pedestrian.moving", size, mesh, place.starts(vx, x0), y, CURB_HEIGHT,
+                      0.0 if vx > 0 else np.pi, vx, 0.0, margin=0.3, lateral=0.09)
         else:
-            add("human.pedestrian.adult", "pedestrian.standing", size, mesh, starts(0.0, x0), y, CURB_HEIGHT,
-                float(rng.uniform(-np.pi, np.pi)), 0.0, 0.0, margin=0.2, lateral=0.06)
-    # people waiting at the crossing
-    if crossing is not None:
-        for _ in range(int(rng.integers(0, 4))):
-            side = 1.0 if rng.random() < 0.5 else -1.0
-            size, mesh = _person(rng, False)
-            x = crossing + road.crossing_half_width + 2.0 * (1 if rng.random() < 0.5 else -1) + rng.uniform(-1.2, 1.2)
-            add("human.pedestrian.adult", "pedestrian.standing", size, mesh, [x], side * (W + rng.uniform(0.5, 1.2)),
-                CURB_HEIGHT, -side * np.pi / 2, 0.0, 0.0, margin=0.1, lateral=0.03)
-    # parked bicycles
+            place.add("human.pedestrian.adult", "pedestrian.standing", size, mesh, place.starts(0.0, x0), y,
+                      CURB_HEIGHT, float(rng.uniform(-np.pi, np.pi)), 0.0, 0.0, margin=0.2, lateral=0.06)
+
+
+def _crossing_waiters(place: _Placement, road: RoadGeometry) -> None:
+    """People standing at the cross street's corners, facing the road."""
+    rng, W, crossing = place.rng, road.road_half_width, road.crossing_x
+    for _ in range(int(rng.integers(0, 4))):
+        side = 1.0 if rng.random() < 0.5 else -1.0
+        size, mesh = _person(rng, False)
+        x = crossing + road.crossing_half_width + 2.0 * (1 if rng.random() < 0.5 else -1) + rng.uniform(-1.2, 1.2)
+        place.add("human.pedestrian.adult", "pedestrian.standing", size, mesh, [x],
+                  side * (W + rng.uniform(0.5, 1.2)), CURB_HEIGHT, -side * np.pi / 2, 0.0, 0.0, margin=0.1,
+                  lateral=0.03)
+
+
+def _parked_bicycles(place: _Placement, road: RoadGeometry) -> None:
+    """Bicycles parked at the outer edge of the sidewalks."""
+    rng, W, sw = place.rng, road.road_half_width, road.sidewalk_width
+    static_lo, static_hi = place.start_interval(0.0)
     for _ in range(_count(rng, 0, 4, static_hi - static_lo)):
         side = 1.0 if rng.random() < 0.5 else -1.0
         size = (rng.uniform(0.5, 0.65), rng.uniform(1.6, 1.8), rng.uniform(1.0, 1.15))
         mesh = objects.bicycle(size, _pick(rng, CAR_COLOURS), None)
-        add("vehicle.bicycle", "cycle.without_rider", size, mesh, starts(0.0), side * (W + sw - 0.6), CURB_HEIGHT,
-            0.0, 0.0, 0.0, margin=0.1, lateral=0.03)
-    # a construction zone: cones along a line near the curb, barriers on the sidewalk behind them
-    if rng.random() < 0.6:
-        side = 1.0 if rng.random() < 0.5 else -1.0
-        y_line = side * (W - 0.35)  # on the road along the curb
-        x0 = float(rng.uniform(10, drive + 90))
-        for i in range(int(rng.integers(4, 10))):
-            size = (rng.uniform(0.35, 0.45), rng.uniform(0.35, 0.45), rng.uniform(0.7, 1.0))
-            add("movable_object.trafficcone", "", size, objects.traffic_cone(size), [x0 + 2.5 * i], y_line, 0.0,
-                float(rng.uniform(-np.pi, np.pi)), 0.0, 0.0, margin=0.0, lateral=0.0)
-        for i in range(int(rng.integers(1, 5))):
-            size = (rng.uniform(2.0, 2.6), rng.uniform(0.45, 0.6), rng.uniform(0.8, 1.05))
-            colour = (0.8, 0.8, 0.78) if rng.random() < 0.5 else (0.75, 0.15, 0.05)
-            add("movable_object.barrier", "", size, objects.barrier(size, colour), [x0 + 3.0 * i],
-                side * (W + sw * 0.5), CURB_HEIGHT, np.pi / 2, 0.0, 0.0, margin=0.0, lateral=0.0)
+        place.add("vehicle.bicycle", "cycle.without_rider", size, mesh, place.starts(0.0), side * (W + sw - 0.6),
+                  CURB_HEIGHT, 0.0, 0.0, 0.0, margin=0.1, lateral=0.03)
 
-    static_mesh = concat([p.transformed(R_scene, T_global_scene[:3, 3]) for p in static_parts]
-                         + [a.mesh.transformed(yaw_matrix(a.yaw), a.position) for a in actors if not a.moving])
+
+def _construction_zone(place: _Placement, road: RoadGeometry, drive: float) -> None:
+    """In some scenes (``drive`` [m] the ego's distance) a construction zone: cones along a line near the curb,
+    barriers on the sidewalk behind them."""
+    rng, W, sw = place.rng, road.road_half_width, road.sidewalk_width
+    if rng.random() >= 0.6:
+        return
+    side = 1.0 if rng.random() < 0.5 else -1.0
+    y_line = side * (W - 0.35)  # on the road along the curb
+    x0 = float(rng.uniform(10, drive + 90))
+    for i in range(int(rng.integers(4, 10))):
+        size = (rng.uniform(0.35, 0.45), rng.uniform(0.35, 0.45), rng.uniform(0.7, 1.0))
+        place.add("movable_object.trafficcone", "", size, objects.traffic_cone(size), [x0 + 2.5 * i], y_line, 0.0,
+                  float(rng.uniform(-np.pi, np.pi)), 0.0, 0.0, margin=0.0, lateral=0.0)
+    for i in range(int(rng.integers(1, 5))):
+        size = (rng.uniform(2.0, 2.6), rng.uniform(0.45, 0.6), rng.uniform(0.8, 1.05))
+        colour = (0.8, 0.8, 0.78) if rng.random() < 0.5 else (0.75, 0.15, 0.05)
+        place.add("movable_object.barrier", "", size, objects.barrier(size, colour), [x0 + 3.0 * i],
+                  side * (W + sw * 0.5), CURB_HEIGHT, np.pi / 2, 0.0, 0.0, margin=0.0, lateral=0.0)
+
+
+def _sun_direction(rng: np.random.Generator) -> F64:
+    """(3,) unit vector towards the sun: a random azimuth, 25..60° elevation."""
     sun_az = rng.uniform(-np.pi, np.pi)
     sun_el = np.deg2rad(rng.uniform(25, 60))
-    sun = np.array([np.cos(sun_el) * np.cos(sun_az), np.cos(sun_el) * np.sin(sun_az), np.sin(sun_el)])
-    return SceneLayout(name, seed, T_global_scene, road, static_mesh, tuple(actors), ego_speed, ego_lane_y, t_start,
-                       duration, sun)
+    return np.array([np.cos(sun_el) * np.cos(sun_az), np.cos(sun_el) * np.sin(sun_az), np.sin(sun_el)])

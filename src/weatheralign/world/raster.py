@@ -427,13 +427,29 @@ def _any_blocks(records: NDArray, lo: int, hi: int, pa: float, pb: float, ph: fl
     return False
 
 
+class SunCells(NamedTuple):
+    """The cell layout of a `SunGrid` as a shadow ray's test reads it (`sun_cells`): scalars only, free to pass per
+    ray. The grid's arrays go to `blocked_at` on their own, taken out of the grid once by the caller: an array read
+    from a tuple inside a per-ray loop costs reference counting on every access."""
+
+    a0: float  # grid corner along the plane's axis a [m]
+    b0: float  # grid corner along its axis b [m]
+    inv_cell: float  # 1 / cell size [1/m]
+    cols: int  # cells along a
+    rows: int  # cells along b (cell index = col * rows + row)
+
+
 @njit(nogil=True, cache=True, inline="always")
-def blocked_at(axes: NDArray, a0: float, b0: float, inv_cell: float, cols: int, rows: int, cell_start: NDArray,
-               cells: NDArray, wide: NDArray, occupied: NDArray, px: float, py: float, pz: float,
-               hint: int) -> tuple[bool, int]:
-    """`point_blocked` on the fields of a `SunGrid` (``axes``, ``origin`` = (a0, b0), 1 / ``cell``, ``cols``, ``rows``,
-    ``cell_start``, ``cells``, ``wide``, ``occupied``), taken out of the tuple once by the caller: arrays read from a
-    tuple inside a per-pixel loop cost reference counting on every access."""
+def sun_cells(grid: SunGrid) -> SunCells:
+    """The `SunCells` of ``grid``."""
+    return SunCells(grid.origin[0], grid.origin[1], 1.0 / grid.cell, grid.cols, grid.rows)
+
+
+@njit(nogil=True, cache=True, inline="always")
+def blocked_at(layout: SunCells, axes: NDArray, cell_start: NDArray, cells: NDArray, wide: NDArray, occupied: NDArray,
+               px: float, py: float, pz: float, hint: int) -> tuple[bool, int]:
+    """`point_blocked` on a `SunGrid` given as its `SunCells` ``layout`` and its arrays (``axes``, ``cell_start``,
+    ``cells``, ``wide``, ``occupied``), taken out of the grid once by the caller."""
     pa = axes[0, 0] * px + axes[0, 1] * py + axes[0, 2] * pz
     pb = axes[1, 0] * px + axes[1, 1] * py + axes[1, 2] * pz
     ph = axes[2, 0] * px + axes[2, 1] * py + axes[2, 2] * pz
@@ -441,9 +457,10 @@ def blocked_at(axes: NDArray, a0: float, b0: float, inv_cell: float, cols: int, 
         return True, hint
     if len(wide) and _any_blocks(wide, 0, len(wide), pa, pb, ph, pz):
         return True, hint
-    fa, fb = (pa - a0) * inv_cell, (pb - b0) * inv_cell  # the triangles are binned with a margin: a product
-    if 0.0 <= fa < cols and 0.0 <= fb < rows:  # instead of the quotient may only pick an equally good cell
-        c = int(fa) * rows + int(fb)
+    # the triangles are binned with a margin: a product instead of the quotient may only pick an equally good cell
+    fa, fb = (pa - layout.a0) * layout.inv_cell, (pb - layout.b0) * layout.inv_cell
+    if 0.0 <= fa < layout.cols and 0.0 <= fb < layout.rows:
+        c = int(fa) * layout.rows + int(fb)
         if not (occupied[c >> 3] >> (c & 7)) & 1:
             return False, hint
         for e in range(cell_start[c], cell_start[c + 1]):
@@ -459,18 +476,18 @@ def point_blocked(grid: SunGrid, px: float, py: float, pz: float, hint: int) -> 
     """Whether the ray from the global point (px, py, pz) towards the sun meets a triangle of ``grid``, and the record
     of ``grid.cells`` that blocked it (else ``hint``). ``hint`` (-1: none) is tested first: the blocker of a nearby
     ray, which usually blocks this one too (any blocker decides, so the answer is the same without it)."""
-    return blocked_at(grid.axes, grid.origin[0], grid.origin[1], 1.0 / grid.cell, grid.cols, grid.rows, grid.cell_start,
-                      grid.cells, grid.wide, grid.occupied, px, py, pz, hint)
+    return blocked_at(sun_cells(grid), grid.axes, grid.cell_start, grid.cells, grid.wide, grid.occupied, px, py, pz,
+                      hint)
 
 
 @njit(nogil=True, cache=True)
 def _sun_blocked_kernel(grid: SunGrid, points: NDArray, out: NDArray) -> None:
     hint = -1
-    axes, (a0, b0), inv_cell, cols, rows = grid.axes, grid.origin, 1.0 / grid.cell, grid.cols, grid.rows
-    cell_start, cells, wide, occupied = grid.cell_start, grid.cells, grid.wide, grid.occupied
+    layout = sun_cells(grid)
+    axes, cell_start, cells, wide, occupied = grid.axes, grid.cell_start, grid.cells, grid.wide, grid.occupied
     for i in range(len(points)):
-        out[i], hint = blocked_at(axes, a0, b0, inv_cell, cols, rows, cell_start, cells, wide, occupied,
-                                  float(points[i, 0]), float(points[i, 1]), float(points[i, 2]), hint)
+        out[i], hint = blocked_at(layout, axes, cell_start, cells, wide, occupied, float(points[i, 0]),
+                                  float(points[i, 1]), float(points[i, 2]), hint)
 
 
 def sun_blocked(grid: SunGrid, points: NDArray) -> NDArray[np.bool_]:

@@ -174,8 +174,8 @@ def render_camera(caster: WorldRaycaster, camera: Camera, cfg: CameraConfig, tim
     else:
         static_grid, moving_grid = empty_sun_grid(layout.sun_direction), None
     image, rng_map, inst = camera_frame(layout, T_global_cam[:3, 3], T_global_cam[:3, :3], camera.K, inv_depth, gid,
-                                        tris, static_grid, moving_grid, cfg.shadows, key, cfg.noise_std,
-                                        camera.height, camera.width)
+                                        tris, static_grid, moving_grid, shadows=cfg.shadows, key=key,
+                                        noise_std=cfg.noise_std, height=camera.height, width=camera.width)
     return CameraFrame(timestamp, image, rng_map, inst)
 
 

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 
 from weatheralign.world.layout import LANE_WIDTH, SceneLayout
 from weatheralign.world.materials import SPECULAR, Material, facade_window, road_marking, value_noise, wrap
-from weatheralign.world.raster import SunGrid, TriangleTable, blocked_at
+from weatheralign.world.raster import SunGrid, TriangleTable, blocked_at, sun_cells
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -358,14 +358,10 @@ def _camera_frame_kernel(look: Look, origin: Vec3, R: NDArray, K: NDArray, inv_d
     # arrays out of their tuples once (read from a tuple per pixel, each access costs reference counting)
     tri_normal, tri_material, tri_albedo = tris.normal, tris.material, tris.albedo
     tri_reflectivity, tri_instance = tris.reflectivity, tris.instance
-    s_axes, (s_a0, s_b0), s_inv_cell, s_cols, s_rows = static_grid.axes, static_grid.origin, 1.0 / static_grid.cell, \
-        static_grid.cols, static_grid.rows
-    s_start, s_cells, s_wide, s_occ = static_grid.cell_start, static_grid.cells, static_grid.wide, \
-        static_grid.occupied
-    m_axes, (m_a0, m_b0), m_inv_cell, m_cols, m_rows = moving_grid.axes, moving_grid.origin, 1.0 / moving_grid.cell, \
-        moving_grid.cols, moving_grid.rows
-    m_start, m_cells, m_wide, m_occ = moving_grid.cell_start, moving_grid.cells, moving_grid.wide, \
-        moving_grid.occupied
+    static_cells, s_axes, s_start = sun_cells(static_grid), static_grid.axes, static_grid.cell_start
+    s_cells, s_wide, s_occ = static_grid.cells, static_grid.wide, static_grid.occupied
+    moving_cells, m_axes, m_start = sun_cells(moving_grid), moving_grid.axes, moving_grid.cell_start
+    m_cells, m_wide, m_occ = moving_grid.cells, moving_grid.wide, moving_grid.occupied
     static_hint = moving_hint = -1  # the last blocking records: shadows are coherent from pixel to pixel
     xs = (np.arange(width) - cx) / fx
     for v in range(image.shape[0]):
@@ -396,11 +392,11 @@ def _camera_frame_kernel(look: Look, origin: Vec3, R: NDArray, K: NDArray, inv_d
                         px = origin[0] + d32[0] * t + SHADOW_EPS * n0
                         py = origin[1] + d32[1] * t + SHADOW_EPS * n1
                         pz = origin[2] + d32[2] * t + SHADOW_EPS * n2
-                        blocked, static_hint = blocked_at(s_axes, s_a0, s_b0, s_inv_cell, s_cols, s_rows, s_start,
-                                                          s_cells, s_wide, s_occ, px, py, pz, static_hint)
+                        blocked, static_hint = blocked_at(static_cells, s_axes, s_start, s_cells, s_wide, s_occ, px,
+                                                          py, pz, static_hint)
                         if not blocked and has_moving:
-                            blocked, moving_hint = blocked_at(m_axes, m_a0, m_b0, m_inv_cell, m_cols, m_rows, m_start,
-                                                              m_cells, m_wide, m_occ, px, py, pz, moving_hint)
+                            blocked, moving_hint = blocked_at(moving_cells, m_axes, m_start, m_cells, m_wide, m_occ,
+                                                              px, py, pz, moving_hint)
                         lit = not blocked
                 colour = _point_radiance(look, origin, d, t, (float(n0), float(n1), float(n2)),
                                          int(tri_material[g]), (float(tri_albedo[g, 0]), float(tri_albedo[g, 1]),
@@ -418,7 +414,7 @@ def _camera_frame_kernel(look: Look, origin: Vec3, R: NDArray, K: NDArray, inv_d
 
 
 def camera_frame(layout: SceneLayout, origin: NDArray, R: NDArray, K: NDArray, inv_depth: NDArray, gid: NDArray,
-                 tris: TriangleTable, static_grid: SunGrid, moving_grid: SunGrid | None, shadows: bool, key: int,
+                 tris: TriangleTable, static_grid: SunGrid, moving_grid: SunGrid | None, *, shadows: bool, key: int,
                  noise_std: float, height: int, width: int) -> tuple[NDArray[np.uint8], F32, NDArray[np.int32]]:
     """A camera image in one pass: the pinhole camera at ``origin`` (3,) with rotation ``R`` (3, 3) (camera -> global)
     and intrinsics ``K`` (3, 3), whose pixel rays (row-major, ``height`` x ``width``) meet triangle ``gid`` (H*W,)

@@ -33,7 +33,9 @@ from weatheralign.lidar.particles.records import (
     ReachMap,
     Shells,
     Sizer,
+    SliceAzimuths,
     SliceIndex,
+    SweepBeams,
     TimeSlices,
 )
 from weatheralign.medium.field import MAX_PER_CELL, ParticleField, field_seed_key
@@ -82,20 +84,18 @@ def _slices(origins: F64, d: F64, e1: F64, e2: F64, az: F64, times: F64, lengths
     `TimeSlices`, each slice's first azimuth and azimuth span (K,) [rad], and the per-bin, per-run and sorted-beam
     arrays of the `SliceIndex` (by field name)."""
     k, n = len(bounds) - 1, len(order)
-    f = {name: np.empty(k) for name in ("time", "e", "dt", "z_lo", "z_hi", "z0", "az0", "span")}
-    orig, tangent, wedge = np.empty((k, 3)), np.empty((k, 2)), np.empty((k, 5))
-    n_el, el_base, run_base = np.empty(k, np.int64), np.empty(k, np.int64), np.empty(k + 1, np.int64)
+    slices = TimeSlices(orig=np.empty((k, 3)), time=np.empty(k), e=np.empty(k), dt=np.empty(k), z_lo=np.empty(k),
+                        z_hi=np.empty(k), tangent=np.empty((k, 2)), wedge=np.empty((k, 5)), z0=np.empty(k),
+                        n_el=np.empty(k, np.int64), el_base=np.empty(k, np.int64), beam_base=bounds,
+                        run_base=np.empty(k + 1, np.int64))
+    azimuths = SliceAzimuths(az0=np.empty(k), span=np.empty(k))
     beam, proj = np.empty(n, np.int64), np.empty(n)
-    el_cum, run_at, run_lo, run_start = slices_kernel(
-        origins, d, az, times, order, bounds, 1.0 / _EL_BIN, _CONVEX_SPAN, orig, f["time"], f["e"], f["dt"],
-        f["z_lo"], f["z_hi"], f["z0"], f["az0"], f["span"], tangent, wedge, n_el, el_base, run_base, beam, proj)
-    slices = TimeSlices(orig=orig, time=f["time"], e=f["e"], dt=f["dt"], z_lo=f["z_lo"], z_hi=f["z_hi"],
-                        tangent=tangent, wedge=wedge, z0=f["z0"], n_el=n_el, el_base=el_base, beam_base=bounds,
-                        run_base=run_base)
+    el_cum, run_at, run_lo, run_start = slices_kernel(SweepBeams(origins, d, az, times, order), slices, azimuths,
+                                                      beam, proj, 1.0 / _EL_BIN, _CONVEX_SPAN)
     rays = np.ascontiguousarray(np.column_stack([times[beam], origins[beam], d[beam], lengths[beam], e1[beam],
                                                  e2[beam]]))
-    return slices, f["az0"], f["span"], dict(el_cum=el_cum, run_at=run_at, run_lo=run_lo, run_start=run_start,
-                                             beam=beam, rays=rays, proj=proj)
+    return slices, azimuths.az0, azimuths.span, dict(el_cum=el_cum, run_at=run_at, run_lo=run_lo,
+                                                     run_start=run_start, beam=beam, rays=rays, proj=proj)
 
 
 def _slice_table(az0: F64, span: F64, n_bins: int) -> tuple[I64, I64]:

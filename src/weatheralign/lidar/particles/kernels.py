@@ -114,17 +114,21 @@ def _largest_gap(az, idx):  # pragma: no cover
 
 
 @njit(nogil=True, cache=True)
-def slices_kernel(origins, d, az, times, order, bounds, inv_d_el, convex_span, orig, time, e, dt, z_lo, z_hi, z0,
-                  az0, span, tangent, wedge, n_el, el_base, run_base, s_beam, proj):  # pragma: no cover
-    """Per time slice k (the beams ``order[bounds[k]:bounds[k+1]]``; local ``origins`` (B, 3) [m], unit directions
-    ``d`` (B, 3), azimuths ``az`` (B,) [rad], firing ``times`` (B,) [s]): its reference origin ``orig`` (K, 3) and
-    ``time`` (K,), their spreads ``e``, ``dt``, the z-component range ``z_lo``, ``z_hi``, the fine bins from ``z0``
-    (width ``1 / inv_d_el``; ``n_el`` of them, from ``el_base`` in the per-bin arrays), the azimuth range ``az0``,
-    ``span`` [rad], the ``tangent`` across its middle azimuth and the ``wedge`` (`TimeSlices`; zeros if the span
-    exceeds ``convex_span``); its runs of consecutive occupied bins (from ``run_base`` (K+1,)) and its beams sorted
-    by run, then projection on the tangent (``s_beam`` (B,), ``proj`` (B,)). Returns the per-bin arrays ``el_cum``
-    (beams of the slice in the bins below), ``run_at`` (first run of the slice not below the bin) and the per-run
-    arrays ``run_lo`` (first bin), ``run_start`` (R+1,) (first row in the sorted beams), as in `SliceIndex`."""
+def slices_kernel(beams, slices, azimuths, s_beam, proj, inv_d_el, convex_span):  # pragma: no cover
+    """Per time slice k (the `SweepBeams` ``order[bounds[k]:bounds[k+1]]``, ``bounds`` = ``slices.beam_base``), into
+    the `TimeSlices` ``slices``: its reference origin ``orig`` (K, 3) and ``time`` (K,), their spreads ``e``, ``dt``,
+    the z-component range ``z_lo``, ``z_hi``, the fine bins from ``z0`` (width ``1 / inv_d_el``; ``n_el`` of them,
+    from ``el_base`` in the per-bin arrays), the ``tangent`` across its middle azimuth and the ``wedge`` (zeros if
+    the span exceeds ``convex_span``), its runs of consecutive occupied bins (from ``run_base`` (K+1,)); into
+    ``azimuths`` (`SliceAzimuths`) its azimuth range; its beams sorted by run, then projection on the tangent
+    (``s_beam`` (B,), ``proj`` (B,)). Returns the per-bin arrays ``el_cum`` (beams of the slice in the bins below),
+    ``run_at`` (first run of the slice not below the bin) and the per-run arrays ``run_lo`` (first bin),
+    ``run_start`` (R+1,) (first row in the sorted beams), as in `SliceIndex`."""
+    origins, d, az, times, order = beams.origins, beams.d, beams.az, beams.times, beams.order
+    orig, time, e, dt, z_lo, z_hi = slices.orig, slices.time, slices.e, slices.dt, slices.z_lo, slices.z_hi
+    tangent, wedge, z0, n_el, el_base = slices.tangent, slices.wedge, slices.z0, slices.n_el, slices.el_base
+    bounds, run_base = slices.beam_base, slices.run_base
+    az0, span = azimuths.az0, azimuths.span
     n_slices = bounds.shape[0] - 1
     total = 0
     for k in range(n_slices):

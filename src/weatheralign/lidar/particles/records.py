@@ -53,6 +53,23 @@ class TimeSlices(NamedTuple):
     run_base: I64  # (K+1,) the runs of slice k are runs run_base[k]:run_base[k+1] of `SliceIndex`
 
 
+class SweepBeams(NamedTuple):
+    """The beams as `kernels.slices_kernel` cuts them into time slices (`TimeSlices`)."""
+
+    origins: F64  # (B, 3) local origin at the firing time [m]
+    d: F64  # (B, 3) unit direction
+    az: F64  # (B,) azimuth of the direction [rad]
+    times: F64  # (B,) firing time [s]
+    order: I64  # (B,) by firing time: the beams of slice k are order[beam_base[k]:beam_base[k+1]]
+
+
+class SliceAzimuths(NamedTuple):
+    """Each time slice's azimuth range (the complement of the largest gap between its beams' azimuths)."""
+
+    az0: F64  # (K,) first azimuth [rad]
+    span: F64  # (K,) azimuth span from az0 [rad]
+
+
 class SliceIndex(NamedTuple):
     """Where to look for beams near a direction: the time slices per azimuth bin (seen from the local origin); per
     slice its fine z-component bins (``floor((d_z - z0[k]) inv_d_el)``) and their runs (maximal sequences of
