@@ -47,6 +47,7 @@ def _env(tmp_path: Path) -> dict:
             "WEATHERALIGN_SERVER_PIDFILE": str(tmp_path / "server.pid"), "PREFECT_LOGGING_LEVEL": "WARNING"}
 
 
+@pytest.mark.slow
 @pytest.mark.flow
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM])
 def test_a_killed_stage_leaves_no_server(tmp_path: Path, sig: signal.Signals) -> None:
@@ -80,6 +81,7 @@ def test_one_server_for_a_whole_command(tmp_path: Path) -> None:
         httpx.get(url + "/health", timeout=2.0)
 
 
+@pytest.mark.slow
 @pytest.mark.flow
 def test_one_dask_cluster_for_a_whole_command(tmp_path: Path) -> None:
     """``--dask``: the command gets the scheduler address of one local cluster of ``run.max_workers`` processes whose

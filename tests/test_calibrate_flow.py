@@ -70,6 +70,7 @@ def _stf_tree(root: Path) -> Path:
     return root
 
 
+@pytest.mark.slow
 @pytest.mark.flow
 def test_calibrate_fog_flow_on_an_stf_layout_tree(tmp_path: Path) -> None:
     if not STF.exists():

@@ -21,6 +21,8 @@ from weatheralign.sensors import SensorRig, camera_models, lidar_model_from_para
 
 from .conftest import HANG_GUARD_S, REPO, write_params_file
 
+pytestmark = pytest.mark.slow  # whole detect stages, every training and evaluation of the protocol: make test-all
+
 DETECT = {"finetune_conditions": ["snow"], "seeds": [0, 1], "image_size": [32, 64], "batch_size": 1,
           "pretrain_steps": 4, "finetune_steps": 2, "eval_every": 2, "num_bootstrap": 10, "score_threshold": 0.0,
           "max_detections": 50}

@@ -47,6 +47,7 @@ def prefect_server(monkeypatch):
     server.stop()
 
 
+@pytest.mark.slow
 @pytest.mark.flow
 def test_world_flow_thread_pool_and_dask_with_mlflow(tmp_path, prefect_server):
     from distributed import LocalCluster

@@ -81,6 +81,7 @@ def api_url(tmp_path: Path):
                 os.environ[k] = v
 
 
+@pytest.mark.slow
 def test_a_served_stage_deployment_runs_from_the_api_and_completes(tmp_path: Path, api_url: str):
     """What the UI's Run button does: a run of ``pipeline/world`` created through the API, picked up by the served
     process, completes with the stage's outputs and the pipeline's artifact."""

@@ -535,6 +535,7 @@ def test_reference_config_validation():
 # ------------------------------------------------------------------------------------------------ the flow
 
 
+@pytest.mark.slow
 @pytest.mark.flow
 def test_reference_flow_writes_metrics_figure_and_resumes(tmp_path):
     from mlflow.tracking import MlflowClient

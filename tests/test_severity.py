@@ -73,6 +73,7 @@ def test_curve_rows_from_exp_show_json():
     assert curve_rows(shown, "rain") == []
 
 
+@pytest.mark.slow
 @pytest.mark.flow
 def test_queued_severity_experiments_and_their_curve(tmp_path: Path) -> None:
     """``dvc exp run --queue`` over two snow levels on a tiny world (up to ``simulate@snow-aligned``): both

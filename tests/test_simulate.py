@@ -288,6 +288,7 @@ def test_every_condition_resolves_to_its_media(world):
         _media("fog_snow", scenes, None)
 
 
+@pytest.mark.slow
 @pytest.mark.flow
 def test_flow_writes_copy_and_metrics(world, tmp_path):
     """The media and simulate flows end to end on one fog sample (tables, metrics keys, figure), tracked in MLflow:

@@ -163,6 +163,7 @@ def _project_repo(repo: Path, params: dict) -> None:
     assert _dvc(repo, "init", "-q").returncode == 0
 
 
+@pytest.mark.slow
 @pytest.mark.flow
 def test_noop_rerun_leaves_downstream_up_to_date(tmp_path: Path) -> None:
     """A forced rerun of `world` that renders nothing rewrites an identical manifest: `dvc status` stays clean for
@@ -194,6 +195,7 @@ def test_noop_rerun_leaves_downstream_up_to_date(tmp_path: Path) -> None:
     assert not (repo / "data" / "manifests" / "world.json").exists()
 
 
+@pytest.mark.slow
 @pytest.mark.flow
 def test_your_own_dataset_through_dvc_repro_and_exp_run(tiny_world, tmp_path: Path) -> None:
     """``world.source: nuscenes`` goes through the same stage graph: `dvc repro` and `dvc exp run -S ...` run the world

@@ -74,6 +74,7 @@ def _stf_tree(root: Path) -> Path:
     return root
 
 
+@pytest.mark.slow
 @pytest.mark.flow
 def test_verify_and_rate_calibration_on_an_stf_layout_tree_with_snow_and_rain(tmp_path: Path) -> None:
     if not STF.exists():
