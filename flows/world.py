@@ -24,15 +24,9 @@ from tasks.tracking import StageTracker
 from tasks.world import render_samples_task
 from weatheralign.config import Params
 from weatheralign.data.check import check_dataset
-from weatheralign.data.nuscenes import load_frame, load_lidar, open_nuscenes
+from weatheralign.data.nuscenes import load_frame, open_nuscenes
 from weatheralign.manifest import DatasetManifest, dataset_digest, display_path, manifest_path, write_manifest
-from weatheralign.sensors import (
-    SensorRig,
-    camera_models,
-    ego_body_from_params,
-    estimate_lidar_model,
-    lidar_model_from_params,
-)
+from weatheralign.sensors import dataset_sensors
 from weatheralign.viz import bev_figure, camera_mosaic
 from weatheralign.world.dataset import claim_dataroot, finalize, sample_jobs
 
@@ -95,26 +89,6 @@ def write_figures(dataroot: Path, params: Params, tracker: StageTracker) -> None
     tracker.log_artifact(bev, "figures")
 
 
-ESTIMATION_SCANS = 8
-"""Keyframe scans a real dataset's LiDAR model is estimated from (spread over the dataset)."""
-
-
-def dataset_sensors(params: Params, dataroot: Path) -> SensorRig:
-    """The dataset's `SensorRig`: the synthetic LiDAR from ``world.lidar``, or a real LiDAR estimated from
-    `ESTIMATION_SCANS` keyframe scans with ``world.sensor_overrides``; cameras as calibrated in the tables, with the
-    exposure ``world.camera.exposure_s``; the ego body the cameras see from ``world.ego_body``."""
-    cfg = params.world
-    nusc = open_nuscenes(dataroot, cfg.version)
-    first = load_frame(nusc, nusc.sample[0]["token"])
-    cameras = camera_models(first.cameras, cfg.camera.exposure_s)
-    body = ego_body_from_params(cfg.ego_body)
-    if cfg.source == "synthetic":
-        return SensorRig(lidar_model_from_params(cfg.lidar), cameras, body)
-    step = max(1, len(nusc.sample) // ESTIMATION_SCANS)
-    scans = [load_lidar(nusc, s["data"]["LIDAR_TOP"]) for s in nusc.sample[::step][:ESTIMATION_SCANS]]
-    return SensorRig(estimate_lidar_model(scans, overrides=cfg.sensor_overrides.as_dict()), cameras, body)
-
-
 @flow(name="world", log_prints=True)
 def world_flow(params: Params) -> dict:
     """Build (or check) the clean dataset; returns the metrics written to reports/world/metrics.json."""
@@ -131,7 +105,7 @@ def world_flow(params: Params) -> dict:
         write_figures(dataroot, params, tracker)
         nusc = open_nuscenes(dataroot, params.world.version)
         manifest = DatasetManifest(root_rel, params.world.version, params.world.source,
-                                   dataset_sensors(params, dataroot), dataset_digest(dataroot, params.world.version),
+                                   dataset_sensors(params.world, nusc), dataset_digest(dataroot, params.world.version),
                                    tuple(s["name"] for s in nusc.scene))
         tracker.log_params({"sensors": manifest.sensors.to_dict()})
         if params.world.source != "synthetic":  # the user's dataroot, read in place

@@ -130,15 +130,16 @@ def test_real_nuscenes_dataroot_is_checked_in_place(tiny_world):
     for key in ("num_scenes", "num_samples", "num_sweeps", "num_annotations", "class_counts"):
         assert summary[key] == tiny_world.summary[key]
     # its sensors are estimated from the scans (no params describe a real LiDAR) and agree with the truth
-    from flows.world import dataset_sensors
-    from weatheralign.sensors import lidar_model_from_params
+    from weatheralign.data.nuscenes import open_nuscenes
+    from weatheralign.sensors import dataset_sensors, lidar_model_from_params
 
-    rig = dataset_sensors(params, root)
+    nusc = open_nuscenes(root, params.world.version)
+    rig = dataset_sensors(params.world, nusc)
     truth = lidar_model_from_params(tiny_world.params.world.lidar)
     assert rig.lidar.origin == "estimated" and rig.lidar.num_rings == 32 and not rig.lidar.firing_columns_stored
     assert abs(rig.lidar.columns_per_ring - truth.columns_per_ring) <= 11 and len(rig.cameras) == 6
     over = dataset_sensors(params_from_dict({"world": {**params.world.model_dump(mode="json"),
-                                                       "sensor_overrides": {"divergence_rad": 0.002}}}), root)
+                                                       "sensor_overrides": {"divergence_rad": 0.002}}}).world, nusc)
     assert over.lidar.divergence_rad == 0.002
     assert sorted(p.stat().st_mtime_ns for p in tiny_world.dataroot.rglob("*") if p.is_file()) == before
 

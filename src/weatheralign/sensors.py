@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from weatheralign.data.frame import LidarScan
-from weatheralign.data.nuscenes import LIDAR_TOP_YAW, SWEEP_START_AZIMUTH
+from weatheralign.data.nuscenes import LIDAR_TOP_YAW, SWEEP_START_AZIMUTH, load_frame, load_lidar
 from weatheralign.data.rings import HDL32E_ELEVATIONS_DEG
 
 F64 = NDArray[np.float64]
@@ -592,3 +592,23 @@ def camera_models(views: dict[str, Any], exposure_s: float) -> dict[str, CameraM
 __all__ = ["CALIBRATED_INTENSITY", "HAHNER_INTENSITY", "SPEED_OF_LIGHT", "SYNTHETIC_INTENSITY", "CameraModel",
            "FiringPattern", "IntensityModel", "LidarModel", "PulseSensor", "SensorRig", "camera_models",
            "estimate_lidar_model", "lidar_model_from_params", "with_overrides"]
+
+
+ESTIMATION_SCANS = 8
+"""Keyframe scans a real dataset's LiDAR model is estimated from (spread over the dataset)."""
+
+
+def dataset_sensors(world: Any, nusc: Any) -> SensorRig:
+    """The `SensorRig` of the dataset ``nusc`` (a devkit `NuScenes`) under ``world`` (a
+    `weatheralign.config.WorldConfig`): the synthetic LiDAR from ``world.lidar`` when ``world.source`` is
+    ``synthetic``, else a LiDAR estimated from `ESTIMATION_SCANS` keyframe scans spread over the dataset, corrected by
+    ``world.sensor_overrides``; the cameras as calibrated in the tables with the exposure
+    ``world.camera.exposure_s``; the ego body from ``world.ego_body``."""
+    first = load_frame(nusc, nusc.sample[0]["token"])
+    cameras = camera_models(first.cameras, world.camera.exposure_s)
+    body = ego_body_from_params(world.ego_body)
+    if world.source == "synthetic":
+        return SensorRig(lidar_model_from_params(world.lidar), cameras, body)
+    step = max(1, len(nusc.sample) // ESTIMATION_SCANS)
+    scans = [load_lidar(nusc, s["data"]["LIDAR_TOP"]) for s in nusc.sample[::step][:ESTIMATION_SCANS]]
+    return SensorRig(estimate_lidar_model(scans, overrides=world.sensor_overrides.as_dict()), cameras, body)
