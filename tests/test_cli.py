@@ -102,3 +102,49 @@ def test_weatheralign_run_world_with_overrides_runs_the_stage(tmp_path: Path) ->
     manifest = json.loads((repo / "data" / "manifests" / "world.json").read_text())
     assert len(manifest["scenes"]) == 2
     assert json.loads((repo / "reports" / "world" / "metrics.json").read_text())["num_samples"] == 4
+
+
+@pytest.mark.slow
+def test_ui_serves_both_uis_and_sigterm_stops_every_process(tmp_path: Path) -> None:
+    """``weatheralign ui`` answers on both ports; SIGTERM (as Ctrl-C) stops the servers and their own children."""
+    import signal
+    import socket
+    import time
+    import urllib.request
+
+    if not SCRIPT.exists():
+        pytest.skip("the console script is installed by `pip install -e .` (make setup)")
+    ports = []
+    for _ in range(2):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            ports.append(s.getsockname()[1])
+    project = _fake_project(tmp_path)
+    ui = subprocess.Popen([str(SCRIPT), "ui", "--prefect-port", str(ports[0]), "--mlflow-port", str(ports[1])],
+                          cwd=project, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    urls = [f"http://127.0.0.1:{ports[0]}/api/health", f"http://127.0.0.1:{ports[1]}/"]
+    up: set[str] = set()
+    deadline = time.time() + 240
+    while len(up) < 2 and time.time() < deadline and ui.poll() is None:
+        for url in set(urls) - up:
+            try:
+                with urllib.request.urlopen(url, timeout=2) as response:
+                    if response.status == 200:
+                        up.add(url)
+            except OSError:
+                pass
+        time.sleep(1)
+    ui.send_signal(signal.SIGTERM)
+    ui.wait(timeout=60)
+    assert up == set(urls)
+    time.sleep(2)
+    left = [cmd for cmd in map(_cmdline, Path("/proc").glob("[0-9]*")) if any(str(port) in cmd for port in ports)]
+    assert not left, left
+
+
+def _cmdline(proc: Path) -> str:
+    """A process's command line ('' once it has gone)."""
+    try:
+        return (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""

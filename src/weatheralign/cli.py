@@ -140,7 +140,13 @@ def _doctor(project: Path | None) -> int:
 
 
 def _ui(project: Path, prefect_port: int, mlflow_port: int) -> int:
-    """The Prefect UI and the MLflow UI on the project's stores, until Ctrl-C; both stop together."""
+    """The Prefect UI and the MLflow UI on the project's stores, until Ctrl-C (or SIGTERM); both stop together."""
+    def _stop(signum: int, _frame: object) -> None:
+        raise KeyboardInterrupt
+
+    # explicit: a process started in the background by a shell inherits SIGINT ignored
+    signal.signal(signal.SIGINT, _stop)
+    signal.signal(signal.SIGTERM, _stop)
     env = project_env(project)
     procs = [subprocess.Popen([sys.executable, "-m", "prefect", "server", "start", "--host", "127.0.0.1", "--port",
                                str(prefect_port)], cwd=project, env=env),
