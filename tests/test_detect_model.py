@@ -26,13 +26,13 @@ from weatheralign.detect.model import (
     PillarEncoder,
     bev_cell_indices,
     bev_max_pool,
+    cell_rays,
     count_parameters,
     depth_loss,
     depth_targets,
     frustum_points,
     lift_splat,
     modality_masks,
-    project_depth_hint,
     project_into_cells,
     train_step,
 )
@@ -198,7 +198,10 @@ def lss_camera() -> tuple[np.ndarray, np.ndarray, tuple[int, int]]:
     return pinhole(64, 96, 40.0), camera_pose(math.radians(30), (1.0, 0.5, 1.6), math.radians(5)), (64, 96)
 
 
-def test_lss_bright_pixel_lands_in_the_cell_of_its_hinted_depth() -> None:
+def test_lss_puts_a_cells_depth_bin_where_the_lidar_point_of_that_depth_lies() -> None:
+    """A point at the centre of depth bin i on the ray of feature cell (row, col): `project_into_cells` finds it
+    there at its camera depth, the frustum point (row, col, i) is the point, and all the mass of a depth distribution
+    one-hot in bin i lands in the point's BEV cell."""
     K, T, image_hw = lss_camera()
     feature_hw = (8, 12)
     depth = DepthBins(1.0, 41.0, 20)  # 2 m bins, centres 2, 4, ..., 40
@@ -210,13 +213,13 @@ def test_lss_bright_pixel_lands_in_the_cell_of_its_hinted_depth() -> None:
     points = torch.tensor([[0.0, *point, 0.5, 0.0]], dtype=torch.float32)
     Kt, Tt = (torch.tensor(x, dtype=torch.float32)[None, None] for x in (K, T))
 
-    hint = project_depth_hint(points, Kt, Tt, image_hw, feature_hw, depth)
-    assert hint.shape == (1, 1, 21, 8, 12)
-    assert hint[0, 0, bin_index, row, col] == 1 and hint[0, 0, 20, row, col] == 1 and hint.sum() == 2
+    flat, z = project_into_cells(points, Kt, Tt, image_hw, feature_hw, depth)
+    assert flat.tolist() == [row * 12 + col] and float(z[0]) == pytest.approx(d, rel=1e-5)
 
     geometry = frustum_points(Kt, Tt, feature_hw, depth.centres())
     np.testing.assert_allclose(geometry[0, 0, bin_index, row, col].numpy(), point, atol=1e-4)
-    depth_prob = hint[:, :, :20]
+    depth_prob = torch.zeros(1, 1, 20, *feature_hw)
+    depth_prob[0, 0, bin_index, row, col] = 1.0
     context = torch.full((1, 1, 3, 8, 12), 7.0)
     bev = lift_splat(depth_prob, context, geometry, grid, (-5.0, 3.0))
     assert bev.shape == (1, 3, 64, 64)
@@ -233,7 +236,7 @@ def point_at(K: np.ndarray, T: np.ndarray, row: int, col: int, depth_m: float) -
 
 
 @pytest.mark.parametrize("scale", [0.95, 1.05])
-def test_depth_hint_and_targets_keep_camera_depth_under_the_scale_augmentation(scale: float) -> None:
+def test_depth_targets_keep_camera_depth_under_the_scale_augmentation(scale: float) -> None:
     """The augmentation maps points and ``cam_to_lidar`` by one similarity ``A`` (a scaled rotation): the camera
     depth of a point is unchanged. Inverting ``cam_to_lidar`` as if it were rigid gave ``scale**2 * z``."""
     K, T, image_hw = lss_camera()
@@ -246,8 +249,6 @@ def test_depth_hint_and_targets_keep_camera_depth_under_the_scale_augmentation(s
     Kt, Tt = torch.tensor(K, dtype=torch.float32)[None, None], torch.tensor(A @ T, dtype=torch.float32)[None, None]
     flat, z = project_into_cells(points, Kt, Tt, image_hw, (8, 12), depth)
     assert flat.tolist() == [row * 12 + col] and float(z[0]) == pytest.approx(d, rel=1e-5)
-    hint = project_depth_hint(points, Kt, Tt, image_hw, (8, 12), depth)
-    assert hint[0, 0, depth.index_of(torch.tensor(d)), row, col] == 1
     target = depth_targets(points, Kt, Tt, image_hw, (8, 12), depth)
     assert int(target[0, 0, row, col]) == int(depth.index_of(torch.tensor(d)))
 
@@ -280,7 +281,7 @@ def test_depth_loss_is_zero_at_the_target_and_log_bins_when_uniform() -> None:
 
 
 def test_camera_only_training_learns_depth_from_the_lidar() -> None:
-    """Camera-only steps (no depth hint) lower the depth loss: the depth net learns from the image features."""
+    """Camera-only steps lower the depth loss: the depth net learns depth from the image features and rays."""
     torch.manual_seed(0)
     model = BEVFusionDetector(SMALL)
     batch = two_sample_batch()
@@ -325,7 +326,7 @@ def test_lss_pooling_drops_outside_points_and_conserves_mass() -> None:
     assert in_grid_mass.sum() < features.sum() * 0.95
 
 
-def test_depth_hint_ignores_points_behind_or_outside_the_image_and_respects_the_batch() -> None:
+def test_depth_targets_ignore_points_behind_the_camera_and_respect_the_batch() -> None:
     K, T, image_hw = lss_camera()
     Kt = torch.tensor(K, dtype=torch.float32).expand(2, 1, 3, 3)
     Tt = torch.tensor(T, dtype=torch.float32).expand(2, 1, 4, 4)
@@ -333,8 +334,19 @@ def test_depth_hint_ignores_points_behind_or_outside_the_image_and_respects_the_
     in_view = T[:3, 3] + 10.0 * forward
     behind = T[:3, 3] - 10.0 * forward
     points = torch.tensor([[1.0, *in_view, 0, 0], [0.0, *behind, 0, 0]], dtype=torch.float32)
-    hint = project_depth_hint(points, Kt, Tt, image_hw, (8, 12), DepthBins(1.0, 41.0, 20))
-    assert hint[0].sum() == 0 and hint[1, 0, 20].sum() == 1 and hint[1, 0, 4].sum() == 1  # 10 m: bin 4 of 2 m bins
+    target = depth_targets(points, Kt, Tt, image_hw, (8, 12), DepthBins(1.0, 41.0, 20))
+    assert int((target[0] >= 0).sum()) == 0  # sample 0's only point is behind its camera
+    assert int((target[1] >= 0).sum()) == 1 and int(target[1].max()) == 4  # 10 m: bin 4 of 2 m bins
+
+
+def test_cell_rays_reproject_onto_the_cell_centres() -> None:
+    K, _, _ = lss_camera()
+    Kt = torch.tensor(K, dtype=torch.float32)[None, None]
+    rays = cell_rays(Kt, (8, 12))
+    assert rays.shape == (1, 1, 8, 12, 3) and torch.allclose(rays[..., 2], torch.ones(1, 1, 8, 12))
+    pixels = torch.einsum("ij,hwj->hwi", Kt[0, 0], rays[0, 0])
+    v, u = torch.meshgrid(torch.arange(8) * 8 + 3.5, torch.arange(12) * 8 + 3.5, indexing="ij")
+    assert torch.allclose(pixels[..., 0], u, atol=1e-4) and torch.allclose(pixels[..., 1], v, atol=1e-4)
 
 
 # --- pillars ---------------------------------------------------------------------------------------------------
@@ -407,6 +419,32 @@ def test_modality_switches_each_branch_off() -> None:
     assert not outputs_equal(run["fused"][0], run["fused"][1]) and not outputs_equal(run["fused"][0], run["fused"][2])
     with pytest.raises(ValueError):
         model(batch, "radar")
+
+
+def test_the_auxiliary_pass_is_the_camera_only_model_and_adds_its_loss() -> None:
+    """In training, fused outputs carry ``camera_only``: exactly what the model gives with modality "camera" (no
+    LiDAR anywhere in it), and its loss is part of the total. Evaluation and single-modality passes have none."""
+    torch.manual_seed(0)
+    model = BEVFusionDetector(SMALL).train()
+    batch = two_sample_batch()
+    with torch.no_grad():
+        outputs = model(batch)
+        camera = model(batch, "camera")
+        assert outputs.camera_only is not None and camera.camera_only is None
+        assert all(torch.allclose(x, y, atol=1e-5) for x, y in (
+            (outputs.camera_only.heatmap, camera.heatmap), (outputs.camera_only.regression, camera.regression),
+            (outputs.camera_only.attributes, camera.attributes)))
+        assert not outputs_equal(outputs, camera)
+        losses = model.loss(batch, outputs)
+        alone = model.loss(batch, camera)
+        assert float(losses["camera_only"]) == pytest.approx(float(alone["total"] - alone["depth"]), rel=1e-5)
+        parts = (losses["heatmap"] + 0.25 * (losses["offset"] + losses["z"] + losses["size"] + losses["yaw"]
+                                              + 0.2 * losses["velocity"]) + 0.2 * losses["attribute"])
+        assert float(losses["total"]) == pytest.approx(float(parts + losses["camera_only"] + losses["depth"]),
+                                                       rel=1e-5)
+        assert model.eval()(batch).camera_only is None
+    without = BEVFusionDetector(replace(SMALL, camera_only_loss=False)).train()
+    assert without(batch).camera_only is None
 
 
 def test_an_evaluation_during_training_leaves_the_training_unchanged() -> None:

@@ -633,8 +633,9 @@ class DetectConfig(_Section):
     lr: Annotated[float, Field(gt=0.0, le=1.0)] = 2e-3
     finetune_lr: Annotated[float, Field(gt=0.0, le=1.0)] = 5e-4
     weight_decay: Annotated[float, Field(ge=0.0, le=1.0)] = 0.01
-    modality_dropout: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.4
-    lidar_drop_share: Annotated[float, Field(ge=0.0, le=1.0)] = 0.5
+    modality_dropout: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.2
+    lidar_drop_share: Annotated[float, Field(ge=0.0, le=1.0)] = 0.0
+    camera_only_loss: bool = True
     depth_loss_weight: Annotated[float, Field(ge=0.0, le=100.0)] = 1.0
     scene_block: Annotated[int, Field(ge=1, le=10_000)] = 8
     mix_weather_fraction: Annotated[float, Field(gt=0.0, lt=1.0)] = 0.3

@@ -77,6 +77,14 @@ class HeadOutputs:
     attributes: Tensor
     #: (B, C, D, h, w) the camera branch's depth distributions (None when it did not run), for `depth_loss`
     camera_depth: Tensor | None = None
+    #: training only: the same batch's outputs with the LiDAR BEV zeroed (the auxiliary camera-only pass)
+    camera_only: HeadOutputs | None = None
+
+    def split(self, size: int) -> tuple[HeadOutputs, HeadOutputs]:
+        """The first ``size`` samples' maps and the rest's (``camera_depth`` and ``camera_only`` are not split)."""
+        first = HeadOutputs(self.heatmap[:size], self.regression[:size], self.attributes[:size])
+        rest = HeadOutputs(self.heatmap[size:], self.regression[size:], self.attributes[size:])
+        return first, rest
 
 
 @dataclass

@@ -6,18 +6,20 @@ Structure (every step runs on whatever device the model and batch are on; no cus
    [-51.2, 51.2) m, 0.8 m cells -> 128 x 128): per point x, y, z, intensity, time lag, offsets to the pillar's mean
    and to the pillar's centre -> Linear + BN + ReLU -> max per pillar (``scatter_reduce(amax)``) -> two conv blocks,
    the first at stride 2 -> (B, bev_channels, 64, 64).
-2. Camera branch (`CameraBranch`, BEVFusion's ``DepthLSSTransform`` with BEVDepth's depth supervision): frozen
-   ImageNet features of each camera (`weatheralign.detect.image_features`, cached with the data) at strides 8 and 16
-   -> a trained FPN neck at stride 8; a depth hint from the batch's LiDAR points projected into each camera (per
-   feature cell the histogram of point depths over the depth bins + an occupancy channel, zero without LiDAR),
-   encoded by a conv and fed with the image features to the depth net -> per cell a softmax over D depth bins and
-   context features; the depth distributions are supervised by the nearest keyframe LiDAR point of each cell
-   (`depth_loss`), so the camera estimates depth on its own when the hint is absent; frustum points (u, v, d)
-   unprojected into the LiDAR frame; depth prob x context sum-pooled into the BEV grid with ``index_add_`` (points
-   outside the grid or the z range dropped); a stride-2 conv block -> (B, bev_channels, 64, 64).
+2. Camera branch (`CameraBranch`, BEVDepth's LSS with LiDAR-supervised depth): frozen ImageNet features of each
+   camera (`weatheralign.detect.image_features`, cached with the data) at strides 8 and 16 -> a trained FPN neck at
+   stride 8; the depth net sees these features and each cell's ray direction in its camera (``K^-1 (u, v, 1)``: the
+   cameras differ in focal length, and a ground point's depth follows from its ray) -> per cell a softmax over D
+   depth bins and context features; the depth distributions are supervised by the nearest keyframe LiDAR point of
+   each cell (`depth_loss`); frustum points (u, v, d) unprojected into the LiDAR frame; depth prob x context
+   sum-pooled into the BEV grid with ``index_add_`` (points outside the grid or the z range dropped); a stride-2 conv
+   block -> (B, bev_channels, 64, 64). The camera branch never sees the LiDAR's points (BEVFusion's projected-depth
+   input is left out), so its BEV is the same whether the LiDAR is there or not.
 3. `ConvFuser`: concat(camera BEV, LiDAR BEV) -> 3x3 conv + GroupNorm + ReLU. ``modality`` ("fused" | "lidar" |
-   "camera") zeroes the other branch (camera-only also drops the LiDAR depth hint); in training,
-   ``modality_dropout`` zeroes one branch of a sample with that probability. From here on the normalisation is per
+   "camera") zeroes the other branch; in training, ``modality_dropout`` zeroes one branch of a sample with that
+   probability, and with ``camera_only_loss`` every sample also goes through the fuser, encoder and head a second
+   time with its LiDAR BEV zeroed, whose loss is added (an auxiliary camera-only pass: the camera learns to detect on
+   its own on every sample, not only on the few a dropout makes camera-only). From here on the normalisation is per
    sample (GroupNorm), so a camera-only or LiDAR-only sample is normalised alike in mixed training batches and in a
    single-modality evaluation.
 4. `BevEncoder`: two scales (stride 2 and 4 of the BEV grid), each brought to the head's stride and concatenated.
@@ -60,6 +62,7 @@ from weatheralign.detect.types import DetectionBatch, SampleDetections
 Modality = Literal["fused", "lidar", "camera"]
 MODALITIES: tuple[str, ...] = ("fused", "lidar", "camera")
 IMAGE_STRIDE = 8
+RAY_CHANNELS = 2  # the depth net's ray input: x / z and y / z of each cell's ray in its camera
 PILLAR_POINT_FEATURES = 10  # x, y, z, intensity, time lag, 3 offsets to the pillar mean, 2 offsets to its centre
 
 
@@ -72,7 +75,6 @@ class DetectorConfig:
     z_range_m: tuple[float, float] = (-5.0, 3.0)
     pillar_channels: int = 32
     image_channels: int = 64
-    hint_channels: int = 16
     depth_min_m: float = 1.0
     depth_max_m: float = 60.0
     depth_bins: int = 48
@@ -80,10 +82,13 @@ class DetectorConfig:
     bev_channels: int = 64
     head_stride: int = 2
     head_channels: int = 64
-    #: training only: probability that a sample loses one branch (camera or LiDAR, equally likely)
-    modality_dropout: float = 0.4
+    #: training only: probability that a sample loses one branch (the LiDAR with probability ``lidar_drop_share``,
+    #: else the camera)
+    modality_dropout: float = 0.2
     #: training only: the share of the dropped samples that lose the LiDAR (camera-only samples)
-    lidar_drop_share: float = 0.5
+    lidar_drop_share: float = 0.0
+    #: training only: add the loss of an auxiliary camera-only pass of every sample (see the module docstring)
+    camera_only_loss: bool = True
     #: weight of the camera depth loss (BEVDepth's LiDAR-supervised depth bins) in the total loss
     depth_loss_weight: float = 1.0
     min_radius: int = 2
@@ -209,23 +214,6 @@ def project_into_cells(points: Tensor, intrinsics: Tensor, cam_to_lidar: Tensor,
     return torch.cat(flats), torch.cat(depths)
 
 
-def project_depth_hint(points: Tensor, intrinsics: Tensor, cam_to_lidar: Tensor, image_hw: tuple[int, int],
-                       feature_hw: tuple[int, int], depth: DepthBins) -> Tensor:
-    """The projected-LiDAR depth hint at the image-feature resolution: (B, C, D + 1, h, w) with channel i < D the
-    fraction of the points falling into feature cell (row, col) whose camera depth lies in bin i, channel D 1 where
-    the cell has any point (`project_into_cells`)."""
-    batch_size, cameras = intrinsics.shape[:2]
-    (h, w), bins = feature_hw, depth.count
-    with torch.no_grad():
-        flat, z = project_into_cells(points, intrinsics, cam_to_lidar, image_hw, feature_hw, depth)
-        cell, pixel = flat // (h * w), flat % (h * w)
-        counts = torch.zeros(batch_size * cameras * bins * h * w, device=points.device)
-        counts.index_add_(0, (cell * bins + depth.index_of(z)) * (h * w) + pixel, torch.ones_like(z))
-        counts = counts.view(batch_size, cameras, bins, h, w)
-        total = counts.sum(dim=2, keepdim=True)
-        return torch.cat([counts / total.clamp_min(1.0), (total > 0).float()], dim=2)
-
-
 def depth_targets(points: Tensor, intrinsics: Tensor, cam_to_lidar: Tensor, image_hw: tuple[int, int],
                   feature_hw: tuple[int, int], depth: DepthBins) -> Tensor:
     """BEVDepth's depth supervision: per image-feature cell the depth bin of the nearest keyframe point (time lag
@@ -253,17 +241,23 @@ def depth_loss(depth_prob: Tensor, target: Tensor) -> Tensor:
     return -(picked[valid].clamp_min(1e-6).log()).mean()
 
 
-def frustum_points(intrinsics: Tensor, cam_to_lidar: Tensor, feature_hw: tuple[int, int], depth_centres: Tensor
-                   ) -> Tensor:
-    """LSS frustum in the LiDAR frame: (B, C, D, h, w, 3) [m], the point at camera depth ``depth_centres[d]`` on the
-    ray through the centre pixel of feature cell (row, col)."""
+def cell_rays(intrinsics: Tensor, feature_hw: tuple[int, int]) -> Tensor:
+    """Rays through the centre pixel of each image-feature cell in camera coordinates, at camera depth z = 1:
+    intrinsics (B, C, 3, 3) -> (B, C, h, w, 3) ``K^-1 (u, v, 1)``."""
     h, w = feature_hw
     device = intrinsics.device
     half = (IMAGE_STRIDE - 1) / 2
     v = torch.arange(h, device=device, dtype=torch.float32) * IMAGE_STRIDE + half
     u = torch.arange(w, device=device, dtype=torch.float32) * IMAGE_STRIDE + half
     pixels = torch.stack([u[None, :].expand(h, w), v[:, None].expand(h, w), torch.ones(h, w, device=device)], dim=-1)
-    rays = torch.einsum("bcij,hwj->bchwi", torch.linalg.inv(intrinsics.float()), pixels)  # camera, z = 1
+    return torch.einsum("bcij,hwj->bchwi", torch.linalg.inv(intrinsics.float()), pixels)
+
+
+def frustum_points(intrinsics: Tensor, cam_to_lidar: Tensor, feature_hw: tuple[int, int], depth_centres: Tensor
+                   ) -> Tensor:
+    """LSS frustum in the LiDAR frame: (B, C, D, h, w, 3) [m], the point at camera depth ``depth_centres[d]`` on the
+    ray through the centre pixel of feature cell (row, col)."""
+    rays = cell_rays(intrinsics, feature_hw)
     directions = torch.einsum("bcij,bchwj->bchwi", cam_to_lidar[..., :3, :3].float(), rays)
     origins = cam_to_lidar[..., :3, 3].float()[:, :, None, None, None, :]
     return depth_centres.view(1, 1, -1, 1, 1, 1) * directions[:, :, None] + origins
@@ -352,47 +346,38 @@ class CameraNeck(nn.Module):
 
 
 class CameraBranch(nn.Module):
-    """BEVFusion's ``DepthLSSTransform``, small, on frozen ImageNet features: trunk features (B, C, F, h, w) at
-    strides 8 and 16 + the LiDAR depth hint -> camera BEV (B, bev_channels, ceil(H_bev/2), ceil(W_bev/2)) and the
-    per-cell depth distributions (B, C, D, h, w) that `depth_loss` supervises (BEVDepth).
-
-    The depth net sees the image and the hint; the hint is zero for a sample without LiDAR (camera-only), so the
-    hint encoder has no normalisation (its output for "no hint" is a constant) and the depth net a GroupNorm."""
+    """BEVDepth's LSS, small, on frozen ImageNet features: trunk features (B, C, F, h, w) at strides 8 and 16 and the
+    cameras' intrinsics -> camera BEV (B, bev_channels, ceil(H_bev/2), ceil(W_bev/2)) and the per-cell depth
+    distributions (B, C, D, h, w) that `depth_loss` supervises. No LiDAR input: see the module docstring."""
 
     def __init__(self, config: DetectorConfig) -> None:
         super().__init__()
         self.grid, self.z_range_m, self.depth = config.bev_grid, config.z_range_m, config.depth
         self.context_channels = config.camera_context_channels
         self.neck = CameraNeck(config.image_channels)
-        self.hint_encoder = nn.Sequential(nn.Conv2d(config.depth_bins + 1, config.hint_channels, 3, padding=1),
-                                          nn.ReLU(inplace=True))
-        self.depth_net = nn.Sequential(conv_gn_relu(config.image_channels + config.hint_channels,
-                                                    config.image_channels),
+        self.depth_net = nn.Sequential(conv_gn_relu(config.image_channels + RAY_CHANNELS, config.image_channels),
                                        conv_gn_relu(config.image_channels, config.image_channels),
                                        nn.Conv2d(config.image_channels, config.depth_bins + self.context_channels, 1))
         self.downsample = conv_bn_relu(self.context_channels, config.bev_channels, stride=2)
 
-    def depth_and_context(self, stride8: Tensor, stride16: Tensor, hint: Tensor) -> tuple[Tensor, Tensor]:
-        """trunk features (B, C, 40, h, w), (B, C, 112, h/2, w/2), hint (B, C, D + 1, h, w) -> depth
-        probabilities (B, C, D, h, w) and context (B, C, F, h, w)."""
+    def depth_and_context(self, stride8: Tensor, stride16: Tensor, rays: Tensor) -> tuple[Tensor, Tensor]:
+        """trunk features (B, C, 40, h, w), (B, C, 112, h/2, w/2), the cells' rays (B, C, h, w, 3) (`cell_rays`)
+        -> depth probabilities (B, C, D, h, w) and context (B, C, F, h, w)."""
         batch_size, cameras = stride8.shape[:2]
         features = self.neck(stride8.flatten(0, 1), stride16.flatten(0, 1))
-        hint_features = self.hint_encoder(hint.flatten(0, 1))
-        out = self.depth_net(torch.cat([features, hint_features], dim=1))
+        directions = rays[..., :RAY_CHANNELS].flatten(0, 1).permute(0, 3, 1, 2)
+        out = self.depth_net(torch.cat([features, directions], dim=1))
         bins = self.depth.count
         depth_prob = out[:, :bins].softmax(dim=1)
         context = out[:, bins:]
         return (depth_prob.view(batch_size, cameras, bins, *out.shape[2:]),
                 context.reshape(batch_size, cameras, self.context_channels, *out.shape[2:]))
 
-    def forward(self, batch: DetectionBatch, hint_points: Tensor) -> tuple[Tensor, Tensor]:
-        """``hint_points`` (P, 6): the points allowed into the depth hint (none for camera-only samples).
-        Returns the camera BEV and the depth probabilities."""
-        image_hw = (batch.images.shape[-2], batch.images.shape[-1])
+    def forward(self, batch: DetectionBatch) -> tuple[Tensor, Tensor]:
+        """The camera BEV and the depth probabilities of the batch's cameras."""
         feature_hw = tuple(batch.features_s8.shape[-2:])
-        hint = project_depth_hint(hint_points, batch.intrinsics, batch.cam_to_lidar, image_hw, feature_hw,
-                                  self.depth)
-        depth_prob, context = self.depth_and_context(batch.features_s8, batch.features_s16, hint)
+        rays = cell_rays(batch.intrinsics, feature_hw)
+        depth_prob, context = self.depth_and_context(batch.features_s8, batch.features_s16, rays)
         with torch.no_grad():
             geometry = frustum_points(batch.intrinsics, batch.cam_to_lidar, feature_hw,
                                       self.depth.centres(batch.features_s8.device))
@@ -477,39 +462,47 @@ class BEVFusionDetector(nn.Module):
     def head_grid(self) -> BevGrid:
         return self.config.head_grid
 
+    def aux_camera_pass(self, modality: Modality) -> bool:
+        """Whether a forward pass adds the auxiliary camera-only outputs (training, fused, ``camera_only_loss``)."""
+        return self.training and modality == "fused" and self.config.camera_only_loss
+
     def fused_bev(self, batch: DetectionBatch, modality: Modality = "fused") -> tuple[Tensor, Tensor | None]:
         """The fused BEV features (B, bev_channels, ceil(H/2), ceil(W/2)) and the camera's depth distributions
         (B, C, D, h, w) (None for "lidar"); the branch a sample does not use is zero (and not computed at all for
-        "lidar" / "camera")."""
+        "lidar" / "camera"). With `aux_camera_pass`, the B camera-only fused maps follow: (2 B, ...)."""
         batch_size, device = batch.batch_size, batch.images.device
         use_lidar, use_camera = modality_masks(modality, batch_size, self.config.modality_dropout, self.training,
                                                device, self.config.lidar_drop_share)
         half = (self.config.bev_grid.size + 1) // 2
         zeros = torch.zeros(batch_size, self.config.bev_channels, half, half, device=device)
         lidar_bev = zeros if modality == "camera" else self.lidar(batch.points, batch_size)
-        depth_prob = None
-        if modality == "lidar":
-            camera_bev = zeros
-        else:
-            hint_points = batch.points[use_lidar[batch.points[:, 0].long()]]
-            camera_bev, depth_prob = self.camera(batch, hint_points)
+        camera_bev, depth_prob = (zeros, None) if modality == "lidar" else self.camera(batch)
         lidar_bev = lidar_bev * use_lidar.view(-1, 1, 1, 1).to(lidar_bev.dtype)
-        camera_bev = camera_bev * use_camera.view(-1, 1, 1, 1).to(camera_bev.dtype)
-        return self.fuser(camera_bev, lidar_bev), depth_prob
+        masked_camera_bev = camera_bev * use_camera.view(-1, 1, 1, 1).to(camera_bev.dtype)
+        if self.aux_camera_pass(modality):
+            return self.fuser(torch.cat([masked_camera_bev, camera_bev]), torch.cat([lidar_bev, zeros])), depth_prob
+        return self.fuser(masked_camera_bev, lidar_bev), depth_prob
 
     def forward(self, batch: DetectionBatch, modality: Modality = "fused") -> HeadOutputs:
         bev, depth_prob = self.fused_bev(batch, modality)
         outputs = self.head(self.encoder(bev))
+        if self.aux_camera_pass(modality):
+            outputs, camera_only = outputs.split(batch.batch_size)
+            outputs.camera_only = camera_only
         outputs.camera_depth = depth_prob
         return outputs
 
     def loss(self, batch: DetectionBatch, outputs: HeadOutputs) -> dict[str, Tensor]:
-        """Named losses of ``outputs`` against the batch's boxes (`center_head_loss`) and, when the camera branch
-        ran, ``depth`` (`depth_loss` against the batch's keyframe points, weighted by ``depth_loss_weight``);
-        ``total`` included."""
+        """Named losses of ``outputs`` against the batch's boxes (`center_head_loss`); ``camera_only``, the total
+        loss of the auxiliary camera-only outputs, when they are there; and, when the camera branch ran, ``depth``
+        (`depth_loss` against the batch's keyframe points, weighted by ``depth_loss_weight``); ``total`` includes
+        them all."""
         targets = encode_targets(batch.boxes, batch.labels, batch.attributes, self.head_grid, self.config.min_radius,
                                  self.config.gaussian_overlap)
         losses = center_head_loss(outputs, targets, self.config.loss_weights)
+        if outputs.camera_only is not None:
+            losses["camera_only"] = center_head_loss(outputs.camera_only, targets, self.config.loss_weights)["total"]
+            losses["total"] = losses["total"] + losses["camera_only"]
         if outputs.camera_depth is not None:
             target = depth_targets(batch.points, batch.intrinsics, batch.cam_to_lidar, tuple(batch.images.shape[-2:]),
                                    tuple(batch.features_s8.shape[-2:]), self.config.depth)
@@ -557,7 +550,6 @@ def train_step(model: BEVFusionDetector, batch: DetectionBatch, optimizer: torch
 
 
 __all__ = ["BEVFusionDetector", "BevEncoder", "CameraBranch", "CameraNeck", "ConvFuser", "DepthBins", "DetectorConfig",
-           "IMAGE_STRIDE", "LidarBranch", "depth_loss", "depth_targets", "project_into_cells", "MODALITIES", "Modality",
-           "PillarEncoder",
-           "bev_cell_indices", "bev_max_pool", "bev_sum_pool", "count_parameters", "frustum_points",
-           "lift_splat", "modality_masks", "project_depth_hint", "project_points", "train_step"]
+           "IMAGE_STRIDE", "LidarBranch", "MODALITIES", "Modality", "PillarEncoder", "RAY_CHANNELS", "bev_cell_indices",
+           "bev_max_pool", "bev_sum_pool", "cell_rays", "count_parameters", "depth_loss", "depth_targets",
+           "frustum_points", "lift_splat", "modality_masks", "project_into_cells", "project_points", "train_step"]

@@ -52,7 +52,7 @@ def detector_config(cfg: DetectConfig) -> DetectorConfig:
     """The detector's sizes from the stage's params (grid, modality dropout); the rest are `DetectorConfig`'s."""
     return DetectorConfig(bev_range_m=cfg.bev_range_m, bev_cell_m=cfg.bev_cell_m,
                           modality_dropout=cfg.modality_dropout, lidar_drop_share=cfg.lidar_drop_share,
-                          depth_loss_weight=cfg.depth_loss_weight)
+                          camera_only_loss=cfg.camera_only_loss, depth_loss_weight=cfg.depth_loss_weight)
 
 
 def point_range(cfg: DetectConfig) -> tuple[float, ...]:
