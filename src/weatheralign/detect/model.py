@@ -257,7 +257,11 @@ def frustum_points(intrinsics: Tensor, cam_to_lidar: Tensor, feature_hw: tuple[i
                    ) -> Tensor:
     """LSS frustum in the LiDAR frame: (B, C, D, h, w, 3) [m], the point at camera depth ``depth_centres[d]`` on the
     ray through the centre pixel of feature cell (row, col)."""
-    rays = cell_rays(intrinsics, feature_hw)
+    return frustum_from_rays(cell_rays(intrinsics, feature_hw), cam_to_lidar, depth_centres)
+
+
+def frustum_from_rays(rays: Tensor, cam_to_lidar: Tensor, depth_centres: Tensor) -> Tensor:
+    """`frustum_points` from the cells' rays (B, C, h, w, 3) (`cell_rays`) -> (B, C, D, h, w, 3) [m]."""
     directions = torch.einsum("bcij,bchwj->bchwi", cam_to_lidar[..., :3, :3].float(), rays)
     origins = cam_to_lidar[..., :3, 3].float()[:, :, None, None, None, :]
     return depth_centres.view(1, 1, -1, 1, 1, 1) * directions[:, :, None] + origins
@@ -379,8 +383,7 @@ class CameraBranch(nn.Module):
         rays = cell_rays(batch.intrinsics, feature_hw)
         depth_prob, context = self.depth_and_context(batch.features_s8, batch.features_s16, rays)
         with torch.no_grad():
-            geometry = frustum_points(batch.intrinsics, batch.cam_to_lidar, feature_hw,
-                                      self.depth.centres(batch.features_s8.device))
+            geometry = frustum_from_rays(rays, batch.cam_to_lidar, self.depth.centres(batch.features_s8.device))
         bev = lift_splat(depth_prob, context, geometry, self.grid, self.z_range_m)
         return self.downsample(bev), depth_prob
 
@@ -552,4 +555,5 @@ def train_step(model: BEVFusionDetector, batch: DetectionBatch, optimizer: torch
 __all__ = ["BEVFusionDetector", "BevEncoder", "CameraBranch", "CameraNeck", "ConvFuser", "DepthBins", "DetectorConfig",
            "IMAGE_STRIDE", "LidarBranch", "MODALITIES", "Modality", "PillarEncoder", "RAY_CHANNELS", "bev_cell_indices",
            "bev_max_pool", "bev_sum_pool", "cell_rays", "count_parameters", "depth_loss", "depth_targets",
-           "frustum_points", "lift_splat", "modality_masks", "project_into_cells", "project_points", "train_step"]
+           "frustum_from_rays", "frustum_points", "lift_splat", "modality_masks",
+           "project_into_cells", "project_points", "train_step"]
