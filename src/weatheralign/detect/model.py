@@ -4,8 +4,11 @@ Structure (every step runs on whatever device the model and batch are on; no cus
 
 1. LiDAR branch (`LidarBranch`): PointPillars-style pillar encoder on the BEV grid (`DetectorConfig.bev_grid`, default
    [-51.2, 51.2) m, 0.8 m cells -> 128 x 128): per point x, y, z, intensity, time lag, offsets to the pillar's mean
-   and to the pillar's centre -> Linear + BN + ReLU -> max per pillar (``scatter_reduce(amax)``) -> two conv blocks,
-   the first at stride 2 -> (B, bev_channels, 64, 64).
+   and to the pillar's centre -> Linear + BN + ReLU -> max per pillar (``scatter_reduce(amax)``); beside them, per
+   sweep (``motion_sweeps``) and cell the point count and the mean offset from the cell's centre
+   (`sweep_statistics`): a max over a pillar's points cannot compare where a surface was in one sweep with where it
+   was in another, the displacement that velocity and a symmetric box's heading rest on -> two conv blocks, the
+   first at stride 2 -> (B, bev_channels, 64, 64).
 2. Camera branch (`CameraBranch`, BEVDepth's LSS with LiDAR-supervised depth): frozen ImageNet features of each
    camera (`weatheralign.detect.image_features`, cached with the data) at strides 8 and 16 -> a trained FPN neck at
    stride 8; the depth net sees these features and each cell's ray direction in its camera (``K^-1 (u, v, 1)``: the
@@ -63,6 +66,7 @@ Modality = Literal["fused", "lidar", "camera"]
 MODALITIES: tuple[str, ...] = ("fused", "lidar", "camera")
 IMAGE_STRIDE = 8
 RAY_CHANNELS = 2  # the depth net's ray input: x / z and y / z of each cell's ray in its camera
+SWEEP_STATISTICS = 3  # per sweep and BEV cell: log(1 + points), mean x and y offset from the cell's centre [cells]
 PILLAR_POINT_FEATURES = 10  # x, y, z, intensity, time lag, 3 offsets to the pillar mean, 2 offsets to its centre
 
 
@@ -74,6 +78,11 @@ class DetectorConfig:
     bev_cell_m: float = 0.8
     z_range_m: tuple[float, float] = (-5.0, 3.0)
     pillar_channels: int = 32
+    #: sweeps whose per-cell statistics (`sweep_statistics`) join the pillar features, so that the convolutions see
+    #: how a surface moved between sweeps (velocity and heading); 0: none
+    motion_sweeps: int = 3
+    #: the LiDAR's sweep period [s] (nuScenes: 20 Hz), which maps a point's time lag to its sweep index
+    sweep_period_s: float = 0.05
     image_channels: int = 64
     depth_min_m: float = 1.0
     depth_max_m: float = 60.0
@@ -167,6 +176,52 @@ def bev_max_pool(features: Tensor, flat_cells: Tensor, batch_size: int, grid: Be
     pooled = features.new_zeros(dump + 1, features.shape[1])
     pooled = pooled.scatter_reduce(0, index[:, None].expand_as(features), features, reduce="amax", include_self=True)
     return pooled[:dump].view(batch_size, size, size, -1).permute(0, 3, 1, 2).contiguous()
+
+
+def sweep_statistics(points: Tensor, flat_cells: Tensor, batch_size: int, grid: BevGrid, sweeps: int,
+                     sweep_period_s: float) -> Tensor:
+    """Per sweep and BEV cell: ``log(1 + count)`` and the mean x and y offset of the sweep's points from the cell's
+    centre [cells, in [-0.5, 0.5]], 0 in empty cells -> (B, SWEEP_STATISTICS * sweeps, H, W), sweep-major.
+
+    Args:
+        points: (P, 6) ``batch index, x, y, z [m], intensity, time lag [s]`` of in-grid points.
+        flat_cells: (P,) their flat cell indices (`bev_cell_indices`, all >= 0).
+        sweeps: sweeps kept; a point's sweep is ``round(lag / sweep_period_s)``, later sweeps dropped.
+    """
+    size = grid.size
+    num_cells = batch_size * size * size
+    sweep = torch.round(points[:, 5] / sweep_period_s).long()
+    keep = (sweep >= 0) & (sweep < sweeps)
+    sweep, cells, xy = sweep[keep], flat_cells[keep], points[keep, 1:3]
+    cell = cells % (size * size)
+    centre = (torch.stack([cell % size, cell // size], dim=1).to(xy.dtype) + 0.5) * grid.cell_m - grid.range_m
+    index = sweep * num_cells + cells
+    counts = xy.new_zeros(sweeps * num_cells).index_add_(0, index, torch.ones_like(xy[:, 0]))
+    offsets = xy.new_zeros(sweeps * num_cells, 2).index_add_(0, index, (xy - centre) / grid.cell_m)
+    mean = offsets / counts.clamp_min(1.0)[:, None]
+    stats = torch.cat([torch.log1p(counts)[:, None], mean], dim=1)  # (S * B * H * W, 3)
+    return stats.view(sweeps, batch_size, size, size, SWEEP_STATISTICS).permute(1, 0, 4, 2, 3).reshape(
+        batch_size, sweeps * SWEEP_STATISTICS, size, size)
+
+
+def sweep_statistics_naive(points: Tensor, batch_size: int, grid: BevGrid, z_range_m: tuple[float, float],
+                           sweeps: int, sweep_period_s: float) -> Tensor:
+    """`sweep_statistics` point by point (the test oracle): (P, 6) points -> (B, 3 * sweeps, H, W)."""
+    size = grid.size
+    out = torch.zeros(batch_size, sweeps * SWEEP_STATISTICS, size, size, dtype=torch.float64)
+    count = torch.zeros(batch_size, sweeps, size, size, dtype=torch.float64)
+    for b, x, y, z, _, lag in points.double().tolist():
+        col, row = int((x + grid.range_m) // grid.cell_m), int((y + grid.range_m) // grid.cell_m)
+        k = round(lag / sweep_period_s)
+        if not (0 <= col < size and 0 <= row < size and z_range_m[0] <= z < z_range_m[1] and 0 <= k < sweeps):
+            continue
+        count[int(b), k, row, col] += 1
+        out[int(b), 3 * k + 1, row, col] += (x + grid.range_m) / grid.cell_m - col - 0.5
+        out[int(b), 3 * k + 2, row, col] += (y + grid.range_m) / grid.cell_m - row - 0.5
+    for k in range(sweeps):
+        out[:, 3 * k + 1:3 * k + 3] /= count[:, k:k + 1].clamp_min(1.0)
+        out[:, 3 * k] = torch.log1p(count[:, k])
+    return out.float()
 
 
 def lidar_to_camera(cam_to_lidar: Tensor) -> Tensor:
@@ -285,15 +340,22 @@ def lift_splat(depth_prob: Tensor, context: Tensor, geometry: Tensor, grid: BevG
 
 
 class PillarEncoder(nn.Module):
-    """Points (P, 6) -> pillar features (B, channels, H, W) on ``grid``: per point the 10 `PILLAR_POINT_FEATURES`
-    (positions scaled by the grid's range, offsets by the cell size), Linear + BatchNorm + ReLU, max per pillar.
-    Points outside the grid or ``z_range_m`` are dropped."""
+    """Points (P, 6) -> pillar features (B, out_channels, H, W) on ``grid``: per point the 10 `PILLAR_POINT_FEATURES`
+    (positions scaled by the grid's range, offsets by the cell size), Linear + BatchNorm + ReLU, max per pillar;
+    then the `sweep_statistics` of ``motion_sweeps`` sweeps. Points outside the grid or ``z_range_m`` are
+    dropped."""
 
-    def __init__(self, grid: BevGrid, z_range_m: tuple[float, float], channels: int = 32) -> None:
+    def __init__(self, grid: BevGrid, z_range_m: tuple[float, float], channels: int = 32, motion_sweeps: int = 0,
+                 sweep_period_s: float = 0.05) -> None:
         super().__init__()
         self.grid, self.z_range_m = grid, z_range_m
+        self.motion_sweeps, self.sweep_period_s = motion_sweeps, sweep_period_s
         self.linear = nn.Linear(PILLAR_POINT_FEATURES, channels, bias=False)
         self.norm = nn.BatchNorm1d(channels)
+
+    @property
+    def out_channels(self) -> int:
+        return self.linear.out_features + SWEEP_STATISTICS * self.motion_sweeps
 
     def point_features(self, points: Tensor, flat_cells: Tensor, batch_size: int) -> Tensor:
         """(P, 10) features of in-grid points (P, 6) in their (P,) cells."""
@@ -316,9 +378,13 @@ class PillarEncoder(nn.Module):
         points, flat = points[keep], flat[keep]
         if len(points) < 2:  # BatchNorm needs two values in training; a (nearly) empty cloud gives an empty BEV
             size = self.grid.size
-            return points.new_zeros(batch_size, self.linear.out_features, size, size)
+            return points.new_zeros(batch_size, self.out_channels, size, size)
         features = F.relu(self.norm(self.linear(self.point_features(points, flat, batch_size))))
-        return bev_max_pool(features, flat, batch_size, self.grid)
+        pillars = bev_max_pool(features, flat, batch_size, self.grid)
+        if self.motion_sweeps == 0:
+            return pillars
+        motion = sweep_statistics(points, flat, batch_size, self.grid, self.motion_sweeps, self.sweep_period_s)
+        return torch.cat([pillars, motion], dim=1)
 
 
 class LidarBranch(nn.Module):
@@ -326,8 +392,9 @@ class LidarBranch(nn.Module):
 
     def __init__(self, config: DetectorConfig) -> None:
         super().__init__()
-        self.pillars = PillarEncoder(config.bev_grid, config.z_range_m, config.pillar_channels)
-        self.convs = nn.Sequential(conv_bn_relu(config.pillar_channels, config.bev_channels, stride=2),
+        self.pillars = PillarEncoder(config.bev_grid, config.z_range_m, config.pillar_channels, config.motion_sweeps,
+                                     config.sweep_period_s)
+        self.convs = nn.Sequential(conv_bn_relu(self.pillars.out_channels, config.bev_channels, stride=2),
                                    conv_bn_relu(config.bev_channels, config.bev_channels))
 
     def forward(self, points: Tensor, batch_size: int) -> Tensor:
@@ -552,8 +619,8 @@ def train_step(model: BEVFusionDetector, batch: DetectionBatch, optimizer: torch
     return {**{name: float(value.detach()) for name, value in losses.items()}, "grad_norm": float(grad_norm)}
 
 
-__all__ = ["BEVFusionDetector", "BevEncoder", "CameraBranch", "CameraNeck", "ConvFuser", "DepthBins", "DetectorConfig",
-           "IMAGE_STRIDE", "LidarBranch", "MODALITIES", "Modality", "PillarEncoder", "RAY_CHANNELS", "bev_cell_indices",
-           "bev_max_pool", "bev_sum_pool", "cell_rays", "count_parameters", "depth_loss", "depth_targets",
-           "frustum_from_rays", "frustum_points", "lift_splat", "modality_masks",
-           "project_into_cells", "project_points", "train_step"]
+__all__ = ["bev_cell_indices", "bev_max_pool", "bev_sum_pool", "BevEncoder", "BEVFusionDetector", "CameraBranch",
+           "CameraNeck", "cell_rays", "ConvFuser", "count_parameters", "depth_loss", "depth_targets", "DepthBins",
+           "DetectorConfig", "frustum_from_rays", "frustum_points", "IMAGE_STRIDE", "LidarBranch", "lift_splat",
+           "MODALITIES", "Modality", "modality_masks", "PillarEncoder", "project_into_cells", "project_points",
+           "RAY_CHANNELS", "SWEEP_STATISTICS", "sweep_statistics", "sweep_statistics_naive", "train_step"]
