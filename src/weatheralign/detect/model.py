@@ -178,6 +178,12 @@ def bev_max_pool(features: Tensor, flat_cells: Tensor, batch_size: int, grid: Be
     return pooled[:dump].view(batch_size, size, size, -1).permute(0, 3, 1, 2).contiguous()
 
 
+def cell_centres(flat_cells: Tensor, grid: BevGrid, dtype: torch.dtype) -> Tensor:
+    """(P, 2) x, y [m] in the LiDAR frame of the centres of flat cell indices (P,) >= 0 (`bev_cell_indices`)."""
+    cell = flat_cells % (grid.size * grid.size)
+    return (torch.stack([cell % grid.size, cell // grid.size], dim=1).to(dtype) + 0.5) * grid.cell_m - grid.range_m
+
+
 def sweep_statistics(points: Tensor, flat_cells: Tensor, batch_size: int, grid: BevGrid, sweeps: int,
                      sweep_period_s: float) -> Tensor:
     """Per sweep and BEV cell: ``log(1 + count)`` and the mean x and y offset of the sweep's points from the cell's
@@ -193,11 +199,10 @@ def sweep_statistics(points: Tensor, flat_cells: Tensor, batch_size: int, grid: 
     sweep = torch.round(points[:, 5] / sweep_period_s).long()
     keep = (sweep >= 0) & (sweep < sweeps)
     sweep, cells, xy = sweep[keep], flat_cells[keep], points[keep, 1:3]
-    cell = cells % (size * size)
-    centre = (torch.stack([cell % size, cell // size], dim=1).to(xy.dtype) + 0.5) * grid.cell_m - grid.range_m
     index = sweep * num_cells + cells
     counts = xy.new_zeros(sweeps * num_cells).index_add_(0, index, torch.ones_like(xy[:, 0]))
-    offsets = xy.new_zeros(sweeps * num_cells, 2).index_add_(0, index, (xy - centre) / grid.cell_m)
+    offsets = xy.new_zeros(sweeps * num_cells, 2).index_add_(0, index,
+                                                             (xy - cell_centres(cells, grid, xy.dtype)) / grid.cell_m)
     mean = offsets / counts.clamp_min(1.0)[:, None]
     stats = torch.cat([torch.log1p(counts)[:, None], mean], dim=1)  # (S * B * H * W, 3)
     return stats.view(sweeps, batch_size, size, size, SWEEP_STATISTICS).permute(1, 0, 4, 2, 3).reshape(
@@ -365,11 +370,10 @@ class PillarEncoder(nn.Module):
         counts = xyz.new_zeros(num_cells).index_add_(0, flat_cells, torch.ones_like(xyz[:, 0]))
         sums = xyz.new_zeros(num_cells, 3).index_add_(0, flat_cells, xyz)
         mean = sums[flat_cells] / counts[flat_cells, None]
-        cell = flat_cells % (grid.size * grid.size)
-        centre = (torch.stack([cell % grid.size, cell // grid.size], dim=1).to(xyz.dtype) + 0.5) * grid.cell_m
         z_scale = max(abs(self.z_range_m[0]), abs(self.z_range_m[1]))
         return torch.cat([xyz[:, :2] / grid.range_m, xyz[:, 2:3] / z_scale, points[:, 4:6],
-                          (xyz - mean) / grid.cell_m, (xyz[:, :2] - (centre - grid.range_m)) / grid.cell_m], dim=1)
+                          (xyz - mean) / grid.cell_m, (xyz[:, :2] - cell_centres(flat_cells, grid, xyz.dtype))
+                          / grid.cell_m], dim=1)
 
     def forward(self, points: Tensor, batch_size: int) -> Tensor:
         points = points.float()
@@ -620,7 +624,8 @@ def train_step(model: BEVFusionDetector, batch: DetectionBatch, optimizer: torch
 
 
 __all__ = ["bev_cell_indices", "bev_max_pool", "bev_sum_pool", "BevEncoder", "BEVFusionDetector", "CameraBranch",
-           "CameraNeck", "cell_rays", "ConvFuser", "count_parameters", "depth_loss", "depth_targets", "DepthBins",
-           "DetectorConfig", "frustum_from_rays", "frustum_points", "IMAGE_STRIDE", "LidarBranch", "lift_splat",
-           "MODALITIES", "Modality", "modality_masks", "PillarEncoder", "project_into_cells", "project_points",
-           "RAY_CHANNELS", "SWEEP_STATISTICS", "sweep_statistics", "sweep_statistics_naive", "train_step"]
+           "CameraNeck", "cell_centres", "cell_rays", "ConvFuser", "count_parameters", "depth_loss", "depth_targets",
+           "DepthBins", "DetectorConfig", "frustum_from_rays", "frustum_points", "IMAGE_STRIDE", "LidarBranch",
+           "lift_splat", "MODALITIES", "Modality", "modality_masks", "PillarEncoder", "project_into_cells",
+           "project_points", "RAY_CHANNELS", "sweep_statistics", "SWEEP_STATISTICS", "sweep_statistics_naive",
+           "train_step"]
