@@ -13,7 +13,9 @@ STAMP := $(VENV)/.weatheralign-installed
 export PREFECT_HOME := $(CURDIR)/.prefect
 export PREFECT_SERVER_ANALYTICS_ENABLED := false
 export PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS := 90
-export PREFECT_LOGGING_LEVEL ?= WARNING
+# the console shows warnings and errors; the flow and task runs' logs (INFO, prints included) still reach the
+# Prefect API and its UI
+export PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL ?= WARNING
 export MLFLOW_TRACKING_URI ?= sqlite:///$(CURDIR)/mlflow.db
 export OMP_NUM_THREADS ?= 2
 

@@ -1,4 +1,5 @@
-"""What every stage flow shares: the command line, the task runner, progress over mapped tasks."""
+"""What every stage flow shares: the command line, the task runner, the flow run's name and tags in the Prefect UI,
+progress over mapped tasks (a console bar and a Prefect progress artifact)."""
 
 from __future__ import annotations
 
@@ -8,12 +9,14 @@ import logging
 import os
 import sys
 from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
 from typing import Any, Literal
 
 from prefect.futures import PrefectFuture, as_completed
 from prefect.task_runners import TaskRunner, ThreadPoolTaskRunner
 from tqdm import tqdm
 
+from tasks.tracking import artifact_key
 from weatheralign.atomic import DiskFullError
 from weatheralign.config import ConfigError, Params, load_params
 from weatheralign.data.errors import DataFormatError
@@ -63,20 +66,42 @@ def _quiet_console() -> None:
             handler.addFilter(_NoTracebackForExpectedErrors())
 
 
-def run_stage(flow: Any, params: Params, runner: Literal["processes", "threads"] | None = "processes") -> Any:
+@dataclass(frozen=True)
+class RunLabel:
+    """How a stage's flow run shows in the Prefect UI: its ``name`` (``simulate/snow-aligned``) and ``tags``
+    (``stage:simulate``, ``condition:snow``, ``alignment:aligned``), by which the UI's run list filters."""
+
+    name: str
+    tags: tuple[str, ...] = ()
+
+    @classmethod
+    def of_stage(cls, stage: str, **labels: str) -> RunLabel:
+        """``stage`` with ``labels`` (e.g. ``condition="snow", alignment="aligned"``): named ``stage/<values joined
+        by '-'>`` (the stage alone without labels), tagged ``stage:<stage>`` and ``<key>:<value>`` per label."""
+        name = f"{stage}/{'-'.join(labels.values())}" if labels else stage
+        return cls(name, (f"stage:{stage}", *(f"{k}:{v}" for k, v in labels.items())))
+
+
+def run_stage(flow: Any, params: Params, runner: Literal["processes", "threads"] | None = "processes",
+              label: RunLabel | None = None) -> Any:
     """Run a stage's flow: SIGTERM / SIGHUP end it cleanly, and its Prefect API is ``PREFECT_API_URL`` or a server
     of its own that cannot outlive it (`flows.prefect_server`); ``runner``: its tasks on Dask worker processes
     (`task_runner`), on a thread pool of ``run.max_workers`` (tasks that share large in-memory inputs and release
-    the interpreter lock), or None for the flow's default.
+    the interpreter lock), or None for the flow's default. The flow run is named and tagged by ``label`` (default:
+    the flow's name and ``stage:<name>``).
 
     A `DataFormatError`, `ConfigError` or `DiskFullError` (`EXPECTED_ERRORS`), raised in the flow or in a task on a
     worker process, ends the stage with ``error: <message>`` on stderr and exit code 2, without Prefect's traceback
     on the console (set ``WEATHERALIGN_VERBOSE=1`` to see it; the Prefect UI has it anyway).
     """
+    from prefect import tags
     from prefect.settings import PREFECT_API_URL, temporary_settings
 
     from flows.prefect_server import install_signal_handlers, prefect_api
 
+    label = label or RunLabel.of_stage(flow.name)
+    # a run name is a template of the flow's parameters: braces in a label are literal
+    flow = flow.with_options(flow_run_name=label.name.replace("{", "{{").replace("}", "}}"))
     verbose = _verbose()
     install_signal_handlers()
     if not verbose:
@@ -89,7 +114,7 @@ def run_stage(flow: Any, params: Params, runner: Literal["processes", "threads"]
                     flow = flow.with_options(task_runner=task_runner(params))
                 elif runner == "threads":
                     flow = flow.with_options(task_runner=ThreadPoolTaskRunner(max_workers=params.run.max_workers))
-                with worker_environment():
+                with worker_environment(), tags(*label.tags):
                     return flow(params)
     except EXPECTED_ERRORS as err:
         if verbose:
@@ -150,15 +175,46 @@ def threads_per_task(params: Params) -> int:
     return max(1, (os.cpu_count() or 2) // params.run.max_workers)
 
 
+class ProgressArtifact:
+    """A Prefect progress artifact of the current flow run (the run page's Artifacts tab shows its percentage),
+    updated as work completes, at most every ``step_percent``; nothing outside a flow run. Artifacts are a view:
+    an API error is ignored, never ends the stage."""
+
+    def __init__(self, description: str, total: float, step_percent: float = 2.0) -> None:
+        from prefect.context import FlowRunContext
+
+        self.total, self.step, self.done, self.shown = max(float(total), 1.0), step_percent, 0.0, 0.0
+        self.artifact_id = None
+        if FlowRunContext.get() is None:
+            return
+        from prefect.artifacts import create_progress_artifact
+
+        with contextlib.suppress(Exception):
+            self.artifact_id = create_progress_artifact(0.0, key=artifact_key(description), description=description)
+
+    def advance(self, amount: float) -> None:
+        """``amount`` more of ``total`` done."""
+        self.done += amount
+        percent = min(100.0, 100.0 * self.done / self.total)
+        if self.artifact_id is None or (percent - self.shown < self.step and percent < 100.0):
+            return
+        from prefect.artifacts import update_progress_artifact
+
+        with contextlib.suppress(Exception):
+            update_progress_artifact(self.artifact_id, percent)
+            self.shown = percent
+
+
 def gather(futures: Iterable[PrefectFuture], desc: str, show: bool,
            on_result: Callable[[int, Any], None] | None = None, weights: Sequence[int] | None = None) -> list[Any]:
     """Results of mapped task futures in submission order, with a progress bar as they complete (advancing by each
-    task's ``weights`` entry, e.g. the samples of a chunk; 1 per task by default); ``on_result(i, result)`` as the
-    i-th future completes."""
+    task's ``weights`` entry, e.g. the samples of a chunk; 1 per task by default) and a `ProgressArtifact` named
+    ``desc``; ``on_result(i, result)`` as the i-th future completes."""
     futures = list(futures)
     order = {id(f): i for i, f in enumerate(futures)}
     results: list[Any] = [None] * len(futures)
     steps = list(weights) if weights is not None else [1] * len(futures)
+    progress = ProgressArtifact(desc, sum(steps))
     with tqdm(total=sum(steps), desc=desc, disable=not show, unit="sample" if weights is not None else "task") as bar:
         for fut in as_completed(futures):
             value = fut.result()
@@ -167,4 +223,5 @@ def gather(futures: Iterable[PrefectFuture], desc: str, show: bool,
             if on_result is not None:
                 on_result(i, value)
             bar.update(steps[i])
+            progress.advance(steps[i])
     return results

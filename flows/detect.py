@@ -357,11 +357,13 @@ class DetectRun:
         trained: dict[str, Any] = {}
         for job, _ in jobs:  # a finetuning waits for the training of the model it starts from
             init = job.init.relative_to(self.out / "models").with_suffix("").as_posix() if job.init else None
-            trained[job.name] = train_task.submit(job, wait_for=[trained[init]] if init in trained else [])
+            trained[job.name] = train_task.with_options(task_run_name=f"train/{job.name}").submit(
+                job, wait_for=[trained[init]] if init in trained else [])
         metrics = {e.key: m for e in evaluations if (m := self.finished_evaluation(e)) is not None}
         pending = [e for e in evaluations if e.key not in metrics]
-        futures = [predict_task.submit(self.predict_job(e), wait_for=[trained[e.checkpoint_name]]
-                                       if e.checkpoint_name in trained else []) for e in pending]
+        futures = [predict_task.with_options(task_run_name=f"predict/{e.key}").submit(
+            self.predict_job(e), wait_for=[trained[e.checkpoint_name]] if e.checkpoint_name in trained else [])
+            for e in pending]
 
         def on_result(i: int, result: Any) -> None:
             if i < len(jobs):

@@ -4,7 +4,9 @@ dvc.yaml is the one list of stages: `stage_runs` reads each stage's command (``p
 expands the ``matrix`` stages (``simulate@<condition>-<alignment>``) and `pipeline_flow` calls each stage module's
 ``main`` with those arguments, the run's ``params_file`` and ``overrides`` added. Each stage thus runs exactly as
 `dvc repro` runs it (its own task runner, its own MLflow run, its resume records), as a subflow that the Prefect UI
-shows under the pipeline's run. ``stages`` picks some of them (a stage name selects all its matrix entries).
+shows under the pipeline's run. ``stages`` picks some of them (a stage name selects all its matrix entries). With
+the repository's ``params.yaml`` and no overrides, a stage that ``dvc status`` finds up to date when its turn comes
+(after the stages before it have run) is skipped, as `dvc repro` skips it, unless ``force``.
 
 A run with the repository's ``params.yaml`` and no overrides records what it made in DVC (``dvc commit`` of the stages
 it ran: their code, params and outputs are exactly what `dvc repro` would have produced), so ``dvc status`` stays
@@ -21,6 +23,7 @@ import argparse
 import contextlib
 import importlib
 import itertools
+import json
 import os
 import re
 import shlex
@@ -109,11 +112,29 @@ def _scalars(metrics: Any, limit: int = 6) -> str:
     return ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}" for k, v in items[:limit])
 
 
+def _dvc() -> str:
+    """The dvc command of this interpreter's environment (else the one on PATH)."""
+    dvc = Path(sys.executable).parent / "dvc"
+    return str(dvc) if dvc.exists() else "dvc"
+
+
+def up_to_date(name: str, repo: Path = REPO) -> bool:
+    """Whether ``dvc status`` in ``repo`` finds the stage ``name`` itself (not its upstream stages) up to date: its
+    code, params, inputs and outputs as dvc.lock records them. False when dvc cannot tell (the stage then runs)."""
+    proc = subprocess.run([_dvc(), "status", "--json", name], cwd=repo, capture_output=True, text=True)
+    if proc.returncode != 0:
+        return False
+    try:
+        return not json.loads(proc.stdout or "{}")
+    except json.JSONDecodeError:
+        return False
+
+
 def _record_in_dvc(names: list[str]) -> str:
     """``dvc commit`` the stages ``names``; returns what happened (for the artifact)."""
-    dvc = Path(sys.executable).parent / "dvc"
-    proc = subprocess.run([str(dvc) if dvc.exists() else "dvc", "commit", "-f", "-q", *names], cwd=REPO,
-                          capture_output=True, text=True)
+    if not names:
+        return "nothing run: nothing to record in DVC"
+    proc = subprocess.run([_dvc(), "commit", "-f", "-q", *names], cwd=REPO, capture_output=True, text=True)
     if proc.returncode != 0:
         return f"dvc commit failed ({proc.returncode}): {proc.stderr.strip()[-500:]}"
     return f"recorded in DVC: {len(names)} stage(s)"
@@ -121,10 +142,12 @@ def _record_in_dvc(names: list[str]) -> str:
 
 @flow(name="pipeline", log_prints=True)
 def pipeline_flow(stages: list[str] | None = None, params_file: str = DEFAULT_PARAMS,
-                  overrides: list[str] | None = None, record_in_dvc: bool = True) -> dict[str, Any]:
+                  overrides: list[str] | None = None, record_in_dvc: bool = True, force: bool = False
+                  ) -> dict[str, Any]:
     """Run the pipeline's stages (all, or those named in ``stages``: ``world``, ``simulate``,
     ``simulate@snow-aligned``, ...) in dvc.yaml's order, each as a subflow, with ``params_file`` (relative to the
-    repository) and ``overrides`` (``key=value``, as ``--set``). Returns each stage's metrics.
+    repository) and ``overrides`` (``key=value``, as ``--set``); with the repository's params and no overrides,
+    those `up_to_date` are skipped unless ``force``. Returns the metrics of each stage run.
 
     Raises:
         ValueError: an unknown stage name.
@@ -133,9 +156,14 @@ def pipeline_flow(stages: list[str] | None = None, params_file: str = DEFAULT_PA
     runs = select(stage_runs(), stages)
     overrides = list(overrides or [])
     params_path = Path(params_file) if Path(params_file).is_absolute() else REPO / params_file
+    default = params_path.resolve() == (REPO / DEFAULT_PARAMS).resolve() and not overrides
     results: dict[str, Any] = {}
     rows = ["| stage | seconds | metrics |", "| --- | ---: | --- |"]
     for run in runs:
+        if default and not force and up_to_date(run.name):
+            print(f"pipeline: {run.name} is up to date (dvc status): skipped")
+            rows.append(f"| {run.name} | — | up to date (dvc status), not run |")
+            continue
         argv = ["--params", str(params_path), *run.argv, *(a for o in overrides for a in ("--set", o))]
         print(f"pipeline: {run.name}")
         t0 = time.perf_counter()
@@ -145,8 +173,7 @@ def pipeline_flow(stages: list[str] | None = None, params_file: str = DEFAULT_PA
             raise RuntimeError(f"stage {run.name} failed (exit code {exit_.code}); "
                                "its subflow run has the log") from None
         rows.append(f"| {run.name} | {time.perf_counter() - t0:.1f} | {_scalars(results[run.name])} |")
-    default = params_path.resolve() == (REPO / DEFAULT_PARAMS).resolve() and not overrides
-    recorded = _record_in_dvc([r.name for r in runs]) if record_in_dvc and default else \
+    recorded = _record_in_dvc(list(results)) if record_in_dvc and default else \
         "not recorded in DVC (other params than params.yaml, or record_in_dvc off)"
     create_markdown_artifact(key="pipeline-stages", markdown="\n".join(
         [f"# weatheralign pipeline: {len(runs)} stage(s)", "", f"params: `{params_file}`" +
@@ -167,6 +194,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override any params key (repeatable)")
     parser.add_argument("--no-dvc-record", action="store_true", help="do not dvc-commit the stages run")
+    parser.add_argument("--force", action="store_true", help="run the stages even where dvc status finds them up "
+                        "to date")
     args = parser.parse_args(argv)
     install_signal_handlers()
     with prefect_api() as url:
@@ -174,7 +203,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             os.environ["PREFECT_API_URL"] = url  # the stages' own run_stage reuses it
         with temporary_settings(updates={PREFECT_API_URL: url}) if url else contextlib.nullcontext():
             try:
-                return pipeline_flow(args.stages, args.params, args.overrides, not args.no_dvc_record)
+                return pipeline_flow(args.stages, args.params, args.overrides, not args.no_dvc_record, args.force)
             except (ValueError, RuntimeError) as err:
                 print(f"error: {err}", file=sys.stderr)
                 raise SystemExit(2) from None

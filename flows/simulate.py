@@ -24,10 +24,10 @@ import numpy as np
 from PIL import Image, ImageDraw
 from prefect import flow
 
-from flows.common import gather, parse_stage_args, run_stage, threads_per_task
+from flows.common import RunLabel, gather, parse_stage_args, run_stage, threads_per_task
 from tasks.simulate import simulate_chunk_task
 from tasks.tracking import StageTracker
-from weatheralign.conditions import condition_named, condition_tags, variant_name
+from weatheralign.conditions import ALIGNMENTS, condition_named, condition_tags, variant_name
 from weatheralign.config import Params
 from weatheralign.data.nuscenes import load_frame, open_nuscenes
 from weatheralign.manifest import (
@@ -156,7 +156,9 @@ def main(argv: list[str] | None = None) -> dict:
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)
         raise SystemExit(2) from None
-    return run_stage(simulate_flow, params)
+    cfg = params.simulate
+    return run_stage(simulate_flow, params, label=RunLabel.of_stage(
+        "simulate", condition=cfg.condition, alignment=ALIGNMENTS[0] if cfg.aligned else ALIGNMENTS[1]))
 
 
 if __name__ == "__main__":

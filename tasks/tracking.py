@@ -13,6 +13,9 @@ unless ``tracking.mlflow_uri`` or ``MLFLOW_TRACKING_URI`` say otherwise, artifac
 A sqlite store is checked when a stage starts (`check_tracking_store`): one that cannot be written or is not a
 database ends the stage at once with one line naming the file and ``tracking.mlflow_uri``.
 Detector checkpoints are saved as MLflow PyTorch models and registered in the model registry (`ChildRun.log_model`).
+
+In the Prefect UI, ``finish`` leaves on the stage's flow run a table artifact of its headline figures and a link
+artifact to its MLflow run (`publish_prefect_artifacts`).
 """
 
 from __future__ import annotations
@@ -34,6 +37,11 @@ TAG_KEYS = ("stage", "kind", "weather", "alignment", "severity", "model", "pipel
 """Tags on every run (``none`` where one does not apply)."""
 NOT_APPLICABLE = "none"
 REGISTERED_MODEL_PREFIX = "weatheralign-detector-"
+MLFLOW_UI_URL = "http://127.0.0.1:5000"
+"""Where `make mlflow-ui` serves the MLflow UI (``MLFLOW_UI_URL`` in the environment overrides it): the Prefect link
+artifacts point there."""
+HEADLINE_ROWS = 40
+"""Rows of a stage's Prefect table artifact."""
 
 
 def flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -258,6 +266,8 @@ class StageTracker:
         ``<name>/<label>`` with those tags and the numeric leaves of ``values`` (so a per-condition or per-level
         figure keeps one name across runs)."""
         atomic.write_json(self.reports / "metrics.json", metrics, indent=2)
+        run_url = None if self.client is None else mlflow_run_url(self.experiment_id, self.run_id)
+        publish_prefect_artifacts(self.name, metrics, run_url)
         if self.client is None:
             return
         for label, (tags, values) in (children or {}).items():
@@ -335,6 +345,48 @@ class ChildRun:
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
         self.close(failed=exc_type is not None)
+
+
+def headline_rows(metrics: dict[str, Any], limit: int = HEADLINE_ROWS) -> list[dict[str, str]]:
+    """A stage's headline figures as table rows ``{"figure", "value"}``: the scalar leaves of ``metrics`` (numbers,
+    strings, booleans; lists left out), shallowest first, at most ``limit``; numbers to 4 significant digits."""
+    leaves = [(key, value) for key, value in flatten(metrics).items()
+              if isinstance(value, (int, float, str, bool)) and value is not None]
+    leaves.sort(key=lambda kv: kv[0].count("."))  # stable: the file's order within a depth
+    return [{"figure": key, "value": f"{value:.4g}" if isinstance(value, float) else str(value)}
+            for key, value in leaves[:limit]]
+
+
+def artifact_key(text: str) -> str:
+    """``text`` as a Prefect artifact key (lowercase letters, digits and dashes): ``simulate snow-aligned:
+    samples`` -> ``simulate-snow-aligned-samples``."""
+    return "-".join("".join(c if c.isalnum() else " " for c in text.lower()).split())
+
+
+def mlflow_run_url(experiment_id: str | None, run_id: str | None) -> str:
+    """The MLflow UI page of a run (`MLFLOW_UI_URL`)."""
+    base = os.environ.get("MLFLOW_UI_URL", MLFLOW_UI_URL).rstrip("/")
+    return f"{base}/#/experiments/{experiment_id}/runs/{run_id}"
+
+
+def publish_prefect_artifacts(name: str, metrics: dict[str, Any], mlflow_url: str | None) -> None:
+    """On the current Prefect flow run (none: nothing): a table artifact ``<name>-figures`` of `headline_rows` and,
+    with ``mlflow_url``, a link artifact ``<name>-mlflow`` to the stage's MLflow run. A view only: an API error is
+    ignored."""
+    try:
+        from prefect.artifacts import create_link_artifact, create_table_artifact
+        from prefect.context import FlowRunContext
+
+        if FlowRunContext.get() is None:
+            return
+        key = artifact_key(name)
+        create_table_artifact(headline_rows(metrics), key=f"{key}-figures",
+                              description=f"{name}: headline figures (all of them: reports/{name}/metrics.json)")
+        if mlflow_url:
+            create_link_artifact(mlflow_url, link_text=f"MLflow run of {name}", key=f"{key}-mlflow",
+                                 description=f"{name}: params, metrics, figures and models in MLflow")
+    except Exception:  # noqa: BLE001 - the Prefect views must never break a stage
+        return
 
 
 def _prefect_flow_run_id() -> str:

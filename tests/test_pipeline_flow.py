@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from flows.pipeline import StageRun, select, stage_runs
+from flows.pipeline import StageRun, select, stage_runs, up_to_date
 from weatheralign.conditions import ALIGNMENTS, CONDITIONS
 
 REPO = Path(__file__).resolve().parents[1]
@@ -60,6 +60,20 @@ def test_select_by_stage_or_matrix_entry_keeps_the_pipeline_order():
     with pytest.raises(ValueError, match=r"unknown stage\(s\) \['simulat'\]"):
         select(runs, ["simulat"])
     assert StageRun("simulate@snow-aligned", "flows.simulate", ()).base == "simulate"
+
+
+def test_up_to_date_follows_dvc_status(tmp_path: Path):
+    """A stage is up to date after it ran and until its input changes; a stage dvc cannot answer for runs."""
+    dvc = [str(Path(sys.executable).parent / "dvc")]
+    (tmp_path / "in.txt").write_text("1")
+    (tmp_path / "dvc.yaml").write_text("stages:\n  copy:\n    cmd: cp in.txt out.txt\n    deps: [in.txt]\n"
+                                       "    outs: [out.txt]\n")
+    for args in (["init", "--no-scm", "-q"], ["repro", "-q"]):
+        subprocess.run(dvc + args, cwd=tmp_path, check=True, capture_output=True)
+    assert up_to_date("copy", tmp_path) is True
+    (tmp_path / "in.txt").write_text("2")
+    assert up_to_date("copy", tmp_path) is False
+    assert up_to_date("no-such-stage", tmp_path) is False
 
 
 @pytest.fixture()

@@ -42,12 +42,13 @@ def find_project(start: Path) -> Path:
 
 def project_env(project: Path) -> dict[str, str]:
     """The environment of the project's commands, as the Makefile sets it: the project's Prefect home and MLflow
-    store (unless already set), Prefect quiet, this interpreter's scripts first on PATH."""
+    store (unless already set), Prefect's console quiet (its runs' logs still reach the API), this interpreter's
+    scripts first on PATH."""
     env = dict(os.environ)
     env.setdefault("PREFECT_HOME", str(project / ".prefect"))
     env.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     env.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "90")
-    env.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+    env.setdefault("PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL", "WARNING")
     env.setdefault("MLFLOW_TRACKING_URI", f"sqlite:///{project / 'mlflow.db'}")
     env["PATH"] = f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"
     return env
