@@ -47,7 +47,8 @@ from prefect import flow  # noqa: E402
 
 from flows.common import gather, parse_stage_args, run_stage, threads_per_task  # noqa: E402
 from tasks.detect import paired_task, predict_task, train_task  # noqa: E402
-from tasks.tracking import REGISTERED_MODEL_PREFIX, ChildRun, StageTracker  # noqa: E402
+from tasks.detector_model import input_example  # noqa: E402
+from tasks.tracking import REGISTERED_MODEL_PREFIX, ChildRun, LoggedDetector, StageTracker  # noqa: E402
 from weatheralign import atomic  # noqa: E402
 from weatheralign.conditions import CONDITIONS, condition_tags, variant_name  # noqa: E402
 from weatheralign.config import Params  # noqa: E402
@@ -159,7 +160,8 @@ class DetectRun:
         self.model_fingerprints: dict[str, str] = {}
         self.metas: dict[str, dict[str, Any]] = {}  # checkpoint name -> its meta (curve, losses, seconds)
         self.detections: dict[str, list] = {}  # evaluation key -> detections
-        self.model_versions: dict[str, str] = {}  # registry versions of the models trained by this run
+        self.logged_models: dict[str, LoggedDetector] = {}  # MLflow logged models of the models trained by this run
+        self._input_example: dict[str, Any] | None = None
 
     # -------------------------------------------------------------------------------------------- data
 
@@ -232,12 +234,22 @@ class DetectRun:
     def checkpoint(self, name: str) -> Path:
         return self.out / "models" / f"{name}.pt"
 
-    def register(self, run: ChildRun, name: str, model: BEVFusionDetector) -> None:
-        """Log trained model ``name`` to its training run as an MLflow PyTorch model and register it (a new version
-        of ``weatheralign-detector-<name>``, ``/`` as ``-``); its evaluations tag that version with their mAP / NDS."""
-        version = run.log_model(model.cpu(), registered_name(name))
-        if version is not None:
-            self.model_versions[name] = version
+    def register(self, run: ChildRun, name: str, model: BEVFusionDetector, checkpoint: Path) -> None:
+        """Log trained model ``name`` (``seed<k>/<model>``) to its training run as an MLflow logged model and register
+        it as a new version of ``weatheralign-detector-<model>`` with the alias ``seed<k>`` (MLflow's own ``@latest``
+        is the newest version); its evaluations link their metrics to it and tag the version with their mAP / NDS."""
+        seed = name.split("/", 1)[0]
+        logged = run.log_model(model.cpu(), checkpoint, self.input_example(), registered_name(name), (seed,))
+        if logged is not None:
+            self.logged_models[name] = logged
+
+    def input_example(self) -> dict[str, Any]:
+        """The registered models' input example: cut from the first clean val sample (`input_example`)."""
+        if self._input_example is None:
+            sample = DetectionDataset(self.cache(CLEAN, "val"), None, point_range=protocol.point_range(self.cfg),
+                                      min_lidar_pts=0)[0]
+            self._input_example = input_example(sample)
+        return self._input_example
 
     def train_job(self, name: str, train_on: str | tuple[str, str], init: str | None, steps: int, lr: float,
                   seed: int, learning_curve: bool = False) -> protocol.TrainJob | None:
@@ -268,7 +280,7 @@ class DetectRun:
                 run.log_metrics({"val.map": point["map"], "val.nds": point["nds"]}, point["step"])
             run.log_metrics({"train_seconds": meta["seconds"], "seconds_per_step": meta["seconds"] / max(job.steps, 1)})
             run.log_artifact(job.out, "checkpoint")
-            self.register(run, job.name, protocol.load_checkpoint(job.out, self.model_config)[0])
+            self.register(run, job.name, protocol.load_checkpoint(job.out, self.model_config)[0], job.out)
         self.metas[job.name] = meta
 
     # -------------------------------------------------------------------------------------------- evaluation
@@ -316,14 +328,17 @@ class DetectRun:
         model_tag = e.label if cameras == lidar else f"{e.label}-clean_lidar"  # weather on the cameras only
         tags = {**self.dataroot_tags(cameras), "model": model_tag, "seed": str(e.seed), "modality": e.modality,
                 "kind": "eval", "evalset": e.evalset}
+        logged = self.logged_models.get(e.checkpoint_name)
+        link = {"model_id": logged.model_id if logged else None,
+                "dataset": (f"{cameras}/val", self.data_key(cameras, "val").rsplit("-", 1)[-1])}
         with self.tracker.child(f"eval {e.key}", tags) as run:
             headline = {k: v for k, v in result.items() if k in ("map", "nds", "map_present", "mate", "mase", "maoe",
                                                                  "mave", "maae")}
-            run.log_metrics(headline)
-            run.log_metrics({f"ap.{c}": v for c, v in result["per_class_ap"].items()})
+            run.log_metrics(headline, **link)
+            run.log_metrics({f"ap.{c}": v for c, v in result["per_class_ap"].items()}, **link)
             run.log_artifact(results_path, "results")
-        if e.checkpoint_name in self.model_versions and e.label == e.model:
-            self.tracker.tag_model_version(registered_name(e.checkpoint_name), self.model_versions[e.checkpoint_name],
+        if logged is not None and e.label == e.model:
+            self.tracker.tag_model_version(registered_name(e.checkpoint_name), logged.version,
                                            {f"{k}.{e.evalset}": f"{v:.4f}" for k, v in headline.items()
                                             if k in ("map", "nds")})
         return result
@@ -393,9 +408,10 @@ class DetectRun:
 
 
 def registered_name(checkpoint_name: str) -> str:
-    """The MLflow registered-model name of a checkpoint name (``seed0/pretrained`` ->
-    ``weatheralign-detector-seed0-pretrained``)."""
-    return REGISTERED_MODEL_PREFIX + checkpoint_name.replace("/", "-")
+    """The MLflow registered-model name of a checkpoint name, its seed left to an alias (``seed0/pretrained`` ->
+    ``weatheralign-detector-pretrained``, ``seed0/finetuned-snow-aligned`` ->
+    ``weatheralign-detector-finetuned-snow-aligned``)."""
+    return REGISTERED_MODEL_PREFIX + checkpoint_name.split("/", 1)[1].replace("/", "-")
 
 
 def difference_run(key: str, d: dict[str, Any]) -> tuple[dict[str, str], dict[str, float]]:

@@ -20,12 +20,14 @@ artifact to its MLflow run (`publish_prefect_artifacts`).
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import os
 import sqlite3
 import subprocess
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -40,6 +42,10 @@ REGISTERED_MODEL_PREFIX = "weatheralign-detector-"
 MLFLOW_UI_URL = "http://127.0.0.1:5000"
 """Where `make mlflow-ui` serves the MLflow UI (``MLFLOW_UI_URL`` in the environment overrides it): the Prefect link
 artifacts point there."""
+PROJECT = Path(__file__).resolve().parents[1]
+"""The project's folder (``src/weatheralign`` and ``tasks/`` ship with each logged detector)."""
+SYSTEM_METRICS_INTERVAL_S = 10.0
+EXPERIMENT_KIND_TAG, EXPERIMENT_KIND = "mlflow.experimentKind", "custom_model_development"
 HEADLINE_ROWS = 40
 """Rows of a stage's Prefect table artifact."""
 
@@ -87,14 +93,18 @@ def log_params(client: Any, run_id: str | None, params: dict[str, Any]) -> None:
         client.log_batch(run_id, params=items[i:i + 100])
 
 
-def log_metrics(client: Any, run_id: str | None, metrics: dict[str, float], step: int = 0) -> None:
-    """``metrics`` (name -> number) at ``step`` (nothing without a client)."""
+def log_metrics(client: Any, run_id: str | None, metrics: dict[str, float], step: int = 0,
+                model_id: str | None = None, dataset: tuple[str, str] | None = None) -> None:
+    """``metrics`` (name -> number) at ``step`` (nothing without a client), linked to the logged model
+    ``model_id`` and the ``dataset`` (name, digest) they measure when given (MLflow's model page lists them)."""
     if client is None:
         return
     from mlflow.entities import Metric
 
     now = int(time.time() * 1000)
-    items = [Metric(k, float(v), now, step) for k, v in sorted(metrics.items())]
+    name, digest = dataset or (None, None)
+    items = [Metric(k, float(v), now, step, model_id=model_id, dataset_name=name, dataset_digest=digest)
+             for k, v in sorted(metrics.items())]
     for i in range(0, len(items), 500):
         client.log_batch(run_id, metrics=items[i:i + 500])
 
@@ -202,6 +212,7 @@ class StageTracker:
         self.parent_id: str | None = None
         self.experiment_id: str | None = None
         self.base_tags: dict[str, str] = {}
+        self._system_metrics: Any = None
         self._t0 = time.time()
 
     def __enter__(self) -> StageTracker:
@@ -212,7 +223,11 @@ class StageTracker:
         exp_name = self.params.tracking.experiment
         exp = self.client.get_experiment_by_name(exp_name)
         self.experiment_id = exp.experiment_id if exp else self.client.create_experiment(
-            exp_name, artifact_location=(self.repo / "mlartifacts").as_uri())
+            exp_name, artifact_location=(self.repo / "mlartifacts").as_uri(),
+            tags={EXPERIMENT_KIND_TAG: EXPERIMENT_KIND})
+        if exp is not None and exp.tags.get(EXPERIMENT_KIND_TAG) != EXPERIMENT_KIND:
+            # the UI opens a model-development experiment on its runs, not on the GenAI overview
+            self.client.set_experiment_tag(self.experiment_id, EXPERIMENT_KIND_TAG, EXPERIMENT_KIND)
         commit, dirty = git_state(self.repo)
         pipeline = os.environ.get("WEATHERALIGN_PIPELINE_ID") or os.environ.get("DVC_EXP_NAME")
         pipeline = pipeline or f"standalone-{self.name.replace('/', '-')}-{time.strftime('%Y%m%d-%H%M%S')}"
@@ -225,6 +240,7 @@ class StageTracker:
                 "mlflow.runName": self.name, "dvc.stage": os.environ.get("DVC_STAGE", NOT_APPLICABLE),
                 "prefect.flow_run_id": _prefect_flow_run_id()}
         self.run_id = self.client.create_run(self.experiment_id, tags=tags).info.run_id
+        self._system_metrics = start_system_metrics(self.run_id, self.client.tracking_uri)
         return self
 
     def _parent_run(self, pipeline: str) -> str:
@@ -288,10 +304,21 @@ class StageTracker:
         return ChildRun(self.client, self.client.create_run(self.experiment_id, tags=run_tags).info.run_id)
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
+        if self._system_metrics is not None:
+            with contextlib.suppress(Exception):
+                self._system_metrics.finish()
         if self.client is not None and self.run_id is not None:
             status = "FAILED" if exc_type else "FINISHED"
             self.client.set_terminated(self.run_id, status)
             self.client.set_terminated(self.parent_id, status)  # reopened by the next stage's child if any
+
+
+@dataclass(frozen=True)
+class LoggedDetector:
+    """A detector logged and registered by `ChildRun.log_model`: its registry version and MLflow logged-model id."""
+
+    version: str
+    model_id: str
 
 
 class ChildRun:
@@ -303,38 +330,63 @@ class ChildRun:
     def log_params(self, params: dict[str, Any]) -> None:
         log_params(self.client, self.run_id, params)
 
-    def log_metrics(self, metrics: dict[str, Any], step: int = 0) -> None:
-        """Numeric leaves of ``metrics`` (nested dicts flattened with dots) at ``step``."""
-        log_metrics(self.client, self.run_id, numeric_leaves(metrics), step)
+    def log_metrics(self, metrics: dict[str, Any], step: int = 0, model_id: str | None = None,
+                    dataset: tuple[str, str] | None = None) -> None:
+        """Numeric leaves of ``metrics`` (nested dicts flattened with dots) at ``step``, linked to a logged model and
+        a dataset (name, digest) when given (`log_metrics`)."""
+        log_metrics(self.client, self.run_id, numeric_leaves(metrics), step, model_id, dataset)
 
     def log_artifact(self, path: Path, folder: str | None = None) -> None:
         if self.client is not None:
             self.client.log_artifact(self.run_id, str(path), folder)
 
-    def log_model(self, model: Any, registered_name: str) -> str | None:
-        """Save the torch module ``model`` as an MLflow PyTorch model under this run's ``model/`` artifacts and
-        register it as a new version of ``registered_name`` (created if new) in the model registry; returns the
-        version (None when tracking is off). Load it back with ``mlflow.pytorch.load_model("models:/<name>/<v>")``
-        (the ``weatheralign`` package must be importable)."""
+    def log_model(self, model: Any, checkpoint: Path, example: dict[str, Any], registered_name: str,
+                  aliases: tuple[str, ...] = ()) -> LoggedDetector | None:
+        """Log the detector ``model`` (a `BEVFusionDetector`, weights in ``checkpoint``) to this run as an MLflow
+        logged model (`tasks.detector_model`: pyfunc from code, the project's code shipped beside it, a signature
+        inferred from ``example`` and the model's output on it, which is the input example), register it as a new
+        version of ``registered_name`` (created if new) and point ``aliases`` (e.g. ``seed0``; ``@latest`` is MLflow's
+        own: the newest version) at it.
+        Returns its version and logged-model id (None when tracking is off). Load it with
+        ``mlflow.pyfunc.load_model("models:/<name>@latest")``."""
         if self.client is None:
             return None
-        import mlflow.pytorch
+        import mlflow
+        import numpy as np
+        import pandas as pd
         import torch
         from mlflow.exceptions import MlflowException
+        from mlflow.models import infer_signature
 
+        from tasks.detector_model import config_to_json, predict_frame
+
+        output = predict_frame(model, example)
+        params = {"score_threshold": 0.05, "max_detections": 200, "modality": "fused"}
+        requirements = [f"{name}=={version.split('+')[0]}" for name, version in (
+            ("torch", torch.__version__), ("numpy", np.__version__), ("pandas", pd.__version__),
+            ("mlflow", mlflow.__version__))]
         with tempfile.TemporaryDirectory() as tmp:
-            mlflow.pytorch.save_model(model, f"{tmp}/model", serialization_format="pickle",
-                                      pip_requirements=[f"torch=={torch.__version__.split('+')[0]}", "weatheralign"])
-            self.client.log_artifacts(self.run_id, f"{tmp}/model", "model")
+            config = Path(tmp) / "detector_config.json"
+            config.write_text(config_to_json(model.config))
+            mlflow.set_tracking_uri(self.client.tracking_uri)
+            with mlflow.start_run(run_id=self.run_id):
+                info = mlflow.pyfunc.log_model(
+                    name="detector", python_model=str(PROJECT / "tasks" / "detector_pyfunc.py"),
+                    artifacts={"checkpoint": str(checkpoint), "config": str(config)},
+                    code_paths=[str(PROJECT / "src" / "weatheralign"), str(PROJECT / "tasks")],
+                    signature=infer_signature(example, output, params), input_example=(example, params),
+                    pip_requirements=requirements)
         try:
             self.client.create_registered_model(registered_name, description=(
-                "weatheralign's BEVFusion-style detector; versions are pipeline runs (see each version's run)"))
+                "weatheralign's BEVFusion-style detector; versions are trainings (their run and seed alias)"))
         except MlflowException as exc:
             if exc.error_code != "RESOURCE_ALREADY_EXISTS":
                 raise
-        artifact_uri = self.client.get_run(self.run_id).info.artifact_uri
-        version = self.client.create_model_version(registered_name, f"{artifact_uri}/model", run_id=self.run_id)
-        return str(version.version)
+        version = self.client.create_model_version(registered_name, info.model_uri, run_id=self.run_id,
+                                                   model_id=info.model_id)
+        for alias in aliases:
+            self.client.set_registered_model_alias(registered_name, alias, version.version)
+        return LoggedDetector(str(version.version), info.model_id)
 
     def close(self, failed: bool = False) -> None:
         if self.client is not None:
@@ -355,6 +407,19 @@ def headline_rows(metrics: dict[str, Any], limit: int = HEADLINE_ROWS) -> list[d
     leaves.sort(key=lambda kv: kv[0].count("."))  # stable: the file's order within a depth
     return [{"figure": key, "value": f"{value:.4g}" if isinstance(value, float) else str(value)}
             for key, value in leaves[:limit]]
+
+
+def start_system_metrics(run_id: str, tracking_uri: str, interval_s: float = SYSTEM_METRICS_INTERVAL_S) -> Any:
+    """MLflow's system metrics (CPU, memory, disk, network; GPU where present) of this process's machine, logged to
+    run ``run_id`` every ``interval_s`` until the returned monitor's ``finish()``; None when they cannot be had."""
+    try:
+        from mlflow.system_metrics.system_metrics_monitor import SystemMetricsMonitor
+
+        monitor = SystemMetricsMonitor(run_id, sampling_interval=interval_s, tracking_uri=tracking_uri)
+        monitor.start()
+        return monitor
+    except Exception:  # noqa: BLE001 - a view only: never break a stage
+        return None
 
 
 def artifact_key(text: str) -> str:

@@ -158,31 +158,41 @@ def test_mlflow_runs_are_tagged_for_the_ablation(stage_run):
 
 
 def test_detector_checkpoints_are_registered_mlflow_models(stage_run):
-    """Each trained model is a registered MLflow PyTorch model whose version carries its evaluations; loaded from
-    the registry it predicts exactly as the stage's checkpoint."""
-    import mlflow.pytorch
+    """Each trained model is a logged MLflow model, registered as a version of its model name with its seed as an
+    alias; the version carries its evaluations, whose metrics link to it; loaded from the registry it predicts on
+    its input example exactly as the stage's checkpoint."""
+    import mlflow
     import torch
     from mlflow.tracking import MlflowClient
+
+    from tasks.detector_model import predict_frame
+    from weatheralign.config import load_params
+    from weatheralign.detect.protocol import detector_config, load_checkpoint
 
     tmp, data = stage_run[0], stage_run[1]
     uri = f"sqlite:///{tmp / 'mlflow.db'}"
     client = MlflowClient(tracking_uri=uri)
     names = {m.name for m in client.search_registered_models()}
-    assert {"weatheralign-detector-seed0-pretrained", "weatheralign-detector-seed1-pretrained",
-            "weatheralign-detector-seed0-finetuned-snow-mix"} <= names
-    version = client.search_model_versions("name = 'weatheralign-detector-seed0-finetuned-snow'")[0]
+    assert {"weatheralign-detector-pretrained", "weatheralign-detector-finetuned-snow-mix"} <= names
+    assert {"seed0", "seed1"} <= set(client.get_registered_model("weatheralign-detector-pretrained").aliases)
+    version = client.get_model_version_by_alias("weatheralign-detector-finetuned-snow", "seed0")
     assert version.tags["map.snow-aligned"] and version.tags["nds.clean"]
     run = client.get_run(version.run_id)
     assert run.data.tags["kind"] == "train" and run.data.tags["model"] == "seed0/finetuned-snow"
+    linked = [m for m in client.get_logged_model(version.source.removeprefix("models:/")).metrics if m.key == "map"]
+    assert {m.dataset_name for m in linked} >= {"clean/val", "snow-aligned/val"}  # its evaluations
     mlflow.set_tracking_uri(uri)
     try:
-        loaded = mlflow.pytorch.load_model(f"models:/weatheralign-detector-seed0-finetuned-snow/{version.version}")
+        loaded = mlflow.pyfunc.load_model("models:/weatheralign-detector-finetuned-snow@seed0")
+        inputs = loaded.input_example
     finally:
         mlflow.set_tracking_uri(None)
-    blob = torch.load(data / "detect" / "models" / "seed0" / "finetuned-snow.pt", map_location="cpu",
-                      weights_only=True)
-    assert loaded.state_dict().keys() == blob["state_dict"].keys()
-    assert all(torch.equal(loaded.state_dict()[k], v) for k, v in blob["state_dict"].items())
+    checkpoint, _ = load_checkpoint(data / "detect" / "models" / "seed0" / "finetuned-snow.pt",
+                                    detector_config(load_params(tmp / "params.yaml").detect))
+    expected = predict_frame(checkpoint.eval(), inputs)
+    got = loaded.predict(inputs)
+    assert len(got) == len(expected) and torch.allclose(torch.tensor(got.iloc[:, :10].to_numpy()),
+                                                        torch.tensor(expected.iloc[:, :10].to_numpy()), atol=1e-5)
 
 
 def test_compare_reads_the_same_numbers_back_from_mlflow(stage_run, capsys):
