@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -47,7 +48,7 @@ from prefect import flow  # noqa: E402
 
 from flows.common import gather, parse_stage_args, run_stage, threads_per_task  # noqa: E402
 from tasks.detect import paired_task, predict_task, train_task  # noqa: E402
-from tasks.detector_model import input_example  # noqa: E402
+from tasks.detector_model import detector_pyfunc, input_example  # noqa: E402
 from tasks.tracking import REGISTERED_MODEL_PREFIX, ChildRun, LoggedDetector, StageTracker  # noqa: E402
 from weatheralign import atomic  # noqa: E402
 from weatheralign.conditions import CONDITIONS, condition_tags, variant_name  # noqa: E402
@@ -239,7 +240,9 @@ class DetectRun:
         it as a new version of ``weatheralign-detector-<model>`` with the alias ``seed<k>`` (MLflow's own ``@latest``
         is the newest version); its evaluations link their metrics to it and tag the version with their mAP / NDS."""
         seed = name.split("/", 1)[0]
-        logged = run.log_model(model.cpu(), checkpoint, self.input_example(), registered_name(name), (seed,))
+        with tempfile.TemporaryDirectory() as workdir:
+            pyfunc = detector_pyfunc(model.cpu().eval(), checkpoint, self.input_example(), Path(workdir))
+            logged = run.log_model(pyfunc, registered_name(name), (seed,))
         if logged is not None:
             self.logged_models[name] = logged
 

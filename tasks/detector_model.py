@@ -25,9 +25,13 @@ import pandas as pd
 import torch
 from mlflow.pyfunc import PythonModel
 
+from tasks.tracking import PyfuncModel
 from weatheralign.detect.head import LossWeights
 from weatheralign.detect.model import BEVFusionDetector, DetectorConfig
 from weatheralign.detect.types import ATTRIBUTES, DETECTION_CLASSES, POINT_DIM, DetectionBatch
+
+PROJECT = Path(__file__).resolve().parents[1]
+"""The project's folder: ``src/weatheralign`` and ``tasks/`` ship with each logged detector."""
 
 INPUT_FIELDS: dict[str, int] = {"points": 2, "features_s8": 4, "features_s16": 4, "intrinsics": 3, "cam_to_lidar": 3}
 """The input arrays and their number of dimensions."""
@@ -119,6 +123,27 @@ def predict_frame(model: BEVFusionDetector, inputs: dict[str, Any], params: dict
     detections = model.detect(sample_batch(inputs), float(params.get("score_threshold", 0.05)),
                               int(params.get("max_detections", 200)), params.get("modality", "fused"))[0]
     return detections_frame(detections.boxes, detections.scores, detections.labels, detections.attributes)
+
+
+def detector_pyfunc(model: BEVFusionDetector, checkpoint: Path, example: dict[str, Any], workdir: Path
+                    ) -> PyfuncModel:
+    """What `tasks.tracking.ChildRun.log_model` logs for a trained detector: `DetectorPyfunc` from code
+    (``tasks/detector_pyfunc.py``) with the weights of ``checkpoint`` and ``model``'s sizes (written to
+    ``workdir``, which must outlive the logging), the project's code beside it, ``example`` and the model's output
+    on it, pinned torch / numpy / pandas / mlflow."""
+    import mlflow
+
+    config = workdir / "detector_config.json"
+    config.write_text(config_to_json(model.config))
+    params = {"score_threshold": 0.05, "max_detections": 200, "modality": "fused"}
+    requirements = tuple(f"{name}=={version.split('+')[0]}" for name, version in (
+        ("torch", torch.__version__), ("numpy", np.__version__), ("pandas", pd.__version__),
+        ("mlflow", mlflow.__version__)))
+    return PyfuncModel("detector", PROJECT / "tasks" / "detector_pyfunc.py",
+                       {"checkpoint": str(checkpoint), "config": str(config)},
+                       (str(PROJECT / "src" / "weatheralign"), str(PROJECT / "tasks")), requirements, example,
+                       predict_frame(model, example, params), params,
+                       "weatheralign's BEVFusion-style detector; versions are trainings (their run and seed alias)")
 
 
 class DetectorPyfunc(PythonModel):

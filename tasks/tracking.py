@@ -42,8 +42,6 @@ REGISTERED_MODEL_PREFIX = "weatheralign-detector-"
 MLFLOW_UI_URL = "http://127.0.0.1:5000"
 """Where `make mlflow-ui` serves the MLflow UI (``MLFLOW_UI_URL`` in the environment overrides it): the Prefect link
 artifacts point there."""
-PROJECT = Path(__file__).resolve().parents[1]
-"""The project's folder (``src/weatheralign`` and ``tasks/`` ship with each logged detector)."""
 SYSTEM_METRICS_INTERVAL_S = 10.0
 EXPERIMENT_KIND_TAG, EXPERIMENT_KIND = "mlflow.experimentKind", "custom_model_development"
 HEADLINE_ROWS = 40
@@ -314,6 +312,25 @@ class StageTracker:
 
 
 @dataclass(frozen=True)
+class PyfuncModel:
+    """An MLflow pyfunc model from code, as `ChildRun.log_model` logs it: the entry file ``code`` (it calls
+    ``mlflow.models.set_model``), its ``artifacts`` (name -> local file), the folders shipped beside it
+    (``code_paths``), its pinned ``requirements``, an input ``example`` with the model's ``output`` on it and the
+    inference ``params`` (for the signature), the logged model's ``name`` and the registered model's
+    ``description``."""
+
+    name: str
+    code: Path
+    artifacts: dict[str, str]
+    code_paths: tuple[str, ...]
+    requirements: tuple[str, ...]
+    example: Any
+    output: Any
+    params: dict[str, Any]
+    description: str = ""
+
+
+@dataclass(frozen=True)
 class LoggedDetector:
     """A detector logged and registered by `ChildRun.log_model`: its registry version and MLflow logged-model id."""
 
@@ -340,45 +357,28 @@ class ChildRun:
         if self.client is not None:
             self.client.log_artifact(self.run_id, str(path), folder)
 
-    def log_model(self, model: Any, checkpoint: Path, example: dict[str, Any], registered_name: str,
-                  aliases: tuple[str, ...] = ()) -> LoggedDetector | None:
-        """Log the detector ``model`` (a `BEVFusionDetector`, weights in ``checkpoint``) to this run as an MLflow
-        logged model (`tasks.detector_model`: pyfunc from code, the project's code shipped beside it, a signature
-        inferred from ``example`` and the model's output on it, which is the input example), register it as a new
-        version of ``registered_name`` (created if new) and point ``aliases`` (e.g. ``seed0``; ``@latest`` is MLflow's
-        own: the newest version) at it.
-        Returns its version and logged-model id (None when tracking is off). Load it with
-        ``mlflow.pyfunc.load_model("models:/<name>@latest")``."""
+    def log_model(self, model: PyfuncModel, registered_name: str, aliases: tuple[str, ...] = ()
+                  ) -> LoggedDetector | None:
+        """Log ``model`` (a pyfunc from code, `PyfuncModel`) to this run as an MLflow logged model with a signature
+        inferred from its input example and its output on it (the example is logged too), register it as a new
+        version of ``registered_name`` (created if new) and point ``aliases`` (e.g. ``seed0``; ``@latest`` is
+        MLflow's own: the newest version) at it. Returns its version and logged-model id (None when tracking is off).
+        Load it with ``mlflow.pyfunc.load_model("models:/<name>@latest")``."""
         if self.client is None:
             return None
         import mlflow
-        import numpy as np
-        import pandas as pd
-        import torch
         from mlflow.exceptions import MlflowException
         from mlflow.models import infer_signature
 
-        from tasks.detector_model import config_to_json, predict_frame
-
-        output = predict_frame(model, example)
-        params = {"score_threshold": 0.05, "max_detections": 200, "modality": "fused"}
-        requirements = [f"{name}=={version.split('+')[0]}" for name, version in (
-            ("torch", torch.__version__), ("numpy", np.__version__), ("pandas", pd.__version__),
-            ("mlflow", mlflow.__version__))]
-        with tempfile.TemporaryDirectory() as tmp:
-            config = Path(tmp) / "detector_config.json"
-            config.write_text(config_to_json(model.config))
-            mlflow.set_tracking_uri(self.client.tracking_uri)
-            with mlflow.start_run(run_id=self.run_id):
-                info = mlflow.pyfunc.log_model(
-                    name="detector", python_model=str(PROJECT / "tasks" / "detector_pyfunc.py"),
-                    artifacts={"checkpoint": str(checkpoint), "config": str(config)},
-                    code_paths=[str(PROJECT / "src" / "weatheralign"), str(PROJECT / "tasks")],
-                    signature=infer_signature(example, output, params), input_example=(example, params),
-                    pip_requirements=requirements)
+        mlflow.set_tracking_uri(self.client.tracking_uri)
+        with mlflow.start_run(run_id=self.run_id):
+            info = mlflow.pyfunc.log_model(
+                name=model.name, python_model=str(model.code), artifacts=dict(model.artifacts),
+                code_paths=list(model.code_paths), pip_requirements=list(model.requirements),
+                signature=infer_signature(model.example, model.output, dict(model.params)),
+                input_example=(model.example, dict(model.params)))
         try:
-            self.client.create_registered_model(registered_name, description=(
-                "weatheralign's BEVFusion-style detector; versions are trainings (their run and seed alias)"))
+            self.client.create_registered_model(registered_name, description=model.description)
         except MlflowException as exc:
             if exc.error_code != "RESOURCE_ALREADY_EXISTS":
                 raise

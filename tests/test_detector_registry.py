@@ -17,6 +17,7 @@ from tasks.detector_model import (
     OUTPUT_COLUMNS,
     config_from_json,
     config_to_json,
+    detector_pyfunc,
     input_example,
     predict_frame,
     sample_batch,
@@ -92,7 +93,8 @@ def test_a_registered_detector_loads_by_alias_in_a_fresh_process_and_predicts_as
     torch.save({"state_dict": model.state_dict(), "meta": {}}, checkpoint)
     example = input_example(_sample())
     with ChildRun(client, client.create_run(experiment).info.run_id) as run:
-        logged = run.log_model(model, checkpoint, example, "weatheralign-detector-pretrained", ("seed0",))
+        logged = run.log_model(detector_pyfunc(model, checkpoint, example, tmp_path),
+                               "weatheralign-detector-pretrained", ("seed0",))
         run.log_metrics({"map": 0.25}, model_id=logged.model_id, dataset=("clean/val", "0123abcd"))
     assert logged is not None and logged.version == "1"
     version = client.get_model_version_by_alias("weatheralign-detector-pretrained", "seed0")
