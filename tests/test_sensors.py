@@ -13,12 +13,14 @@ from weatheralign.data.nuscenes import load_frame, open_nuscenes
 from weatheralign.lidar.beams import beams_from_scan, grid_no_return_beams
 from weatheralign.manifest import DatasetManifest, dataset_digest, read_manifest, write_manifest
 from weatheralign.sensors import (
+    DEFAULT_NOISE_FLOOR,
     CameraModel,
     EgoBody,
     SensorRig,
     camera_models,
     ego_body_from_params,
     estimate_lidar_model,
+    estimate_noise_floor,
     lidar_model_from_params,
 )
 from weatheralign.world.dataset import finalize, render_or_resume, sample_jobs
@@ -106,6 +108,18 @@ def test_estimated_model_of_real_scans(name: str, rings: int) -> None:
     assert 1000 <= model.columns_per_ring <= 5000  # HDL-64E: ~2000-4500 firings per turn
     assert model.intensity_max == frame.lidar.intensity_max
     assert model.elevations_deg[0] > model.elevations_deg[-1] or name == "stf"  # STF's channel 0 is the lowest
+    # STF clamps weak returns to 24 (15 % of its points), KITTI's reflectance starts at 0: neither is a floor
+    assert model.noise_floor == DEFAULT_NOISE_FLOOR
+
+
+def test_noise_floor_is_the_smallest_intensity_only_when_it_is_a_tail() -> None:
+    rng = np.random.default_rng(0)
+    smooth = 3.0 + rng.exponential(20.0, 10_000)
+    assert estimate_noise_floor(smooth) == pytest.approx(smooth.min())
+    clamped = np.concatenate([np.full(500, 24.0), 24.0 + rng.exponential(50.0, 9_500)])
+    assert estimate_noise_floor(clamped) == DEFAULT_NOISE_FLOOR
+    assert estimate_noise_floor(np.concatenate([[0.0], smooth])) == DEFAULT_NOISE_FLOOR
+    assert estimate_noise_floor(np.array([])) == DEFAULT_NOISE_FLOOR
 
 
 @pytest.mark.parametrize("firings", [900, 1800])

@@ -521,6 +521,34 @@ def _rotation_rate(scans: list[LidarScan], num_rings: int) -> float:
         10.0 if num_rings == 64 else 20.0)
 
 
+DEFAULT_NOISE_FLOOR = 0.5
+"""Detector floor (0..255) of a real sensor whose scans do not show it: the synthetic world's HDL-32E floor. With
+the ``min(1, 10 m / R)`` intensity model it puts the snow echoes of a 64-beam scan where the labelled real snow of
+WADS lies (``docs/physics.md`` section 3.5)."""
+
+CLAMP_SHARE = 0.01
+"""Share of the points at exactly the smallest intensity above which that value is a clamp, not a floor."""
+
+
+def estimate_noise_floor(intensity: NDArray, clamp_share: float = CLAMP_SHARE) -> float:
+    """The detector floor (0..255) of real scans from their intensities (N,) on 0..255.
+
+    The smallest reported intensity is the floor only when it is a tail: a sensor (or a dataset's conversion) that
+    clamps weak returns to one value reports many points at exactly that value (Seeing Through Fog's HDL-64: 15 % of
+    its points read exactly 24), and a floor of 0 (nuScenes, KITTI) is no floor at all (every particle echo,
+    however faint, would be reported). In both cases, and when more than ``clamp_share`` of the points sit at the
+    minimum, `DEFAULT_NOISE_FLOOR` is returned instead; otherwise the smallest intensity.
+    """
+    values = np.asarray(intensity, dtype=np.float64)
+    values = values[np.isfinite(values)]
+    if len(values) == 0:
+        return DEFAULT_NOISE_FLOOR
+    smallest = float(values.min())
+    if smallest <= 0.0 or float(np.mean(values == smallest)) > clamp_share:
+        return DEFAULT_NOISE_FLOOR
+    return smallest
+
+
 def estimate_lidar_model(scans: list[LidarScan], *, rotation_hz: float | None = None,
                          overrides: dict[str, Any] | None = None, min_ring_points: int = 16) -> LidarModel:
     """A `LidarModel` from real scans of one sensor (single sweeps, as stored).
@@ -532,9 +560,9 @@ def estimate_lidar_model(scans: list[LidarScan], *, rotation_hz: float | None = 
     correlation between firing time and azimuth where per-point times exist; clockwise otherwise, the nuScenes
     convention), the rotation rate (from consecutive scan timestamps when ``rotation_hz`` is None and the scans are
     consecutive sweeps; else 10 Hz for 64 rings, 20 Hz otherwise), the maximum range (the 99.9th percentile range
-    rounded up to 10 m, at least 80 m), the noise floor (the smallest reported intensity on 0..255) and the
-    intensity scale. Not visible in a point cloud and taken from the Velodyne HDL family: divergence (3 mrad), pulse
-    (τ_H = 10 ns) and a calibrated-reflectance intensity model for 0..1 data, ``min(1, (10 m / R))`` on 0..255.
+    rounded up to 10 m, at least 80 m), the noise floor (`estimate_noise_floor`) and the intensity scale. Not
+    visible in a point cloud and taken from the Velodyne HDL family: divergence (3 mrad), pulse (τ_H = 10 ns) and a
+    calibrated-reflectance intensity model for 0..1 data, ``min(1, (10 m / R))`` on 0..255.
     ``overrides``: any `LidarModel` field (plus ``pulse_half_width_s``) replacing the estimate.
 
     Raises:
@@ -558,7 +586,7 @@ def estimate_lidar_model(scans: list[LidarScan], *, rotation_hz: float | None = 
         "rotation_hz": rotation_hz, "clockwise": clockwise,
         "start_azimuth_rad": sensor_start_azimuth(mount_yaw_of(scans[0].T_ego_lidar)),
         "laser_step_s": 0.0, "divergence_rad": divergence, "max_range_m": max_range, "min_range_m": 1.0,
-        "noise_floor": float(np.min(np.concatenate(inten))), "intensity_max": imax,
+        "noise_floor": estimate_noise_floor(np.concatenate(inten)), "intensity_max": imax,
         "intensity": CALIBRATED_INTENSITY if imax == 1.0 else SYNTHETIC_INTENSITY,
         "firing_columns_stored": False, "origin": "estimated",
     }
@@ -589,9 +617,10 @@ def camera_models(views: dict[str, Any], exposure_s: float) -> dict[str, CameraM
                             int(view.height), float(exposure_s)) for ch, view in sorted(views.items())}
 
 
-__all__ = ["CALIBRATED_INTENSITY", "HAHNER_INTENSITY", "SPEED_OF_LIGHT", "SYNTHETIC_INTENSITY", "CameraModel",
-           "FiringPattern", "IntensityModel", "LidarModel", "PulseSensor", "SensorRig", "camera_models",
-           "estimate_lidar_model", "lidar_model_from_params", "with_overrides"]
+__all__ = ["CALIBRATED_INTENSITY", "DEFAULT_NOISE_FLOOR", "HAHNER_INTENSITY", "SPEED_OF_LIGHT",
+           "SYNTHETIC_INTENSITY", "CameraModel", "FiringPattern", "IntensityModel", "LidarModel", "PulseSensor",
+           "SensorRig", "camera_models", "estimate_lidar_model", "estimate_noise_floor", "lidar_model_from_params",
+           "with_overrides"]
 
 
 ESTIMATION_SCANS = 8
