@@ -20,7 +20,7 @@ from weatheralign.lidar.particles.strength import (
     winning_range,
 )
 from weatheralign.medium import ParticleField, RainSizeDistribution, SnowSizeDistribution, fall_velocity
-from weatheralign.sensors import SYNTHETIC_INTENSITY
+from weatheralign.sensors import HAHNER_INTENSITY, SYNTHETIC_INTENSITY
 
 
 def _raw_sensor(rated_m: float = 50.0, max_range: float = 120.0) -> EchoSensor:
@@ -34,6 +34,8 @@ def test_rated_intensity_puts_the_rated_target_on_the_floor():
         assert float(model.intensity(0.1, 40.0)) >= 0.5
     with pytest.raises(ValueError, match="range_m"):
         rated_intensity(0.1, -1.0, 0.5)
+    # Hahner's 1/r² intensity read with a floor of 0.5 is a sensor that sees a 10 % target only out to 7.1 m
+    assert float(HAHNER_INTENSITY.intensity(0.1, 7.1414)) == pytest.approx(0.5, rel=1e-4)
 
 
 def test_raw_detection_range_matches_its_closed_form():
