@@ -29,8 +29,9 @@ the weather scan, as labelled real scans report it.
 
 ``--peers PATH``: a JSON list of the published simulators' runs on the clouds (entries ``{simulator, commit,
 cloud, medium, rate_mm_h, counts}``), measured outside this repository with their own code; they are stored with
-the results and drawn on the figure (the cloud workloads run our fast simulator on the same clouds). Real
-measurements: `REAL_FIGURES`.
+the results and drawn on the figure (the cloud workloads run our fast simulator on the same clouds, and count the
+snow points DROR finds in CADC's box around the car, `dror_outliers`, to compare with CADC's per-drive counts). Real
+measurements: `REAL_FIGURES`. ``--clouds-only`` reruns the cloud workloads alone; ``--replot`` redraws the figure.
 """
 
 from __future__ import annotations
@@ -74,6 +75,11 @@ REAL_FIGURES: list[dict[str, Any]] = [
              "github.com/dut-mdmu/CRFOR (sequences/36), counted by us: label 110 'active falling snow' per frame "
              "after dropping exact duplicate points (40 % of the raw points; 4.8 % share with them); no snowfall "
              "rate is published for it"},
+    {"medium": "snow", "rate_mm_h": None, "dror_box_snow_min": 26, "dror_box_snow_median": 416,
+     "dror_box_snow_max": 1443, "source": "CADC", "sensor": "Velodyne VLP-32C (roof)",
+     "note": "Pitropov et al. 2020 devkit (github.com/mpitropov/cadc_devkit, cadc_dataset_route_stats.csv): per drive, "
+             "the points DROR removes from the first frame inside CADC_BOX (other/filter_pointcloud.py), 75 drives; "
+             "a filter's count, not labels; no snowfall rate"},
 ]
 """Real labelled measurements placed on the figure (see ``docs/physics.md`` section 3.5)."""
 
@@ -291,6 +297,30 @@ def cloud_scans() -> dict[str, Any]:
     return clouds
 
 
+CADC_BOX = ((-4.0, 4.0), (-4.0, 4.0), (-3.0, 10.0))
+"""The box around the car (LiDAR frame, m) in which the CADC devkit counts DROR's snow points."""
+
+
+def dror_outliers(xyz: np.ndarray, radius_multiplier: float = 3.0, azimuth_angle_deg: float = 0.16,
+                  min_neighbors: int = 3, min_search_radius: float = 0.04) -> int:
+    """Points of (N, 3) ``xyz`` [m] inside `CADC_BOX` that DROR (Charron et al. 2018, with the CADC devkit's
+    parameters) calls snow: fewer than ``min_neighbors`` of their nearest points within
+    ``max(min_search_radius, radius_multiplier · azimuth_angle · horizontal range)``."""
+    from scipy.spatial import cKDTree
+
+    inside = np.ones(len(xyz), dtype=bool)
+    for axis, (lo, hi) in enumerate(CADC_BOX):
+        inside &= (xyz[:, axis] >= lo) & (xyz[:, axis] <= hi)
+    box = np.asarray(xyz[inside], dtype=np.float64)
+    if len(box) <= min_neighbors:
+        return int(len(box))
+    radius = np.maximum(min_search_radius, radius_multiplier * np.radians(azimuth_angle_deg)
+                        * np.hypot(box[:, 0], box[:, 1]))
+    distances, _ = cKDTree(box).query(box, k=min_neighbors + 1)
+    neighbours = (distances[:, 1:] < radius[:, None]).sum(axis=1)
+    return int((neighbours < min_neighbors).sum())
+
+
 def run_cloud(name: str, scan: Any, columns: np.ndarray | None, lidar: Any, medium: str,
               rate: float) -> dict[str, Any]:
     """Our fast simulator on one of `cloud_scans` (as `simulate` runs it: beams without return reconstructed or
@@ -309,13 +339,14 @@ def run_cloud(name: str, scan: Any, columns: np.ndarray | None, lidar: Any, medi
     lost = int(result.counts.get("LOST", 0))
     echoes = result.points[weather]
     shape = _echo_shape(np.linalg.norm(echoes[:, :3], axis=1), echoes[:, 3], float(lidar.noise_floor))
+    dror = dror_outliers(result.points[:, :3]) - dror_outliers(scan.points[:, :3])
     return {"workload": f"cloud_{name}_{medium}_{rate:g}mmh", "cloud": name, "medium": medium, "rate_mm_h": rate,
             "points": int(len(scan.points)), "noise_floor": float(lidar.noise_floor),
             "intensity_model": vars(lidar.intensity),
             "fast": {"scattered": scattered, "clutter": clutter, "lost": lost,
                      "attenuated": int((result.labels == WeatherLabel.ATTENUATED).sum()),
                      "weather_share": _share(scattered, clutter, lost, int(len(scan.points))), **shape,
-                     "seconds": seconds, "cpu_seconds": cpu}}
+                     "dror_box_snow": dror, "seconds": seconds, "cpu_seconds": cpu}}
 
 
 SENSOR_STYLE = {"world": ("tab:blue", "world HDL-32E sensor (floor 0.5)"),
@@ -357,7 +388,7 @@ def _rate_panel(ax: Any, entries: list[dict], peers: list[dict], clouds: list[di
         ax.plot([p["rate_mm_h"] for p in theirs], [100 * p["weather_share"] for p in theirs], "x:", color="0.3",
                 ms=8, label="published code on the same cloud (snow: Hahner et al. 2022; rain: LISA)")
     for real in REAL_FIGURES:
-        if real["medium"] == medium and real.get("rate_mm_h") is None:
+        if real["medium"] == medium and "share_min" in real:
             ax.axhspan(100 * real["share_min"], 100 * real["share_max"], color="gold", alpha=0.35,
                        label=f"real labelled snow: {real['source']}, share per scan (rate unknown)")
     ax.set_xscale("log")
@@ -460,6 +491,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--peers", type=Path, default=None, help="published simulators' runs (JSON list)")
     parser.add_argument("--out", type=Path, default=REPORT)
     parser.add_argument("--figure", type=Path, default=FIGURE)
+    parser.add_argument("--clouds-only", action="store_true",
+                        help="rerun only the cloud workloads and merge them into --out")
     parser.add_argument("--replot", action="store_true",
                         help="only redraw the figure from --out (with --peers: store those peers first)")
     args = parser.parse_args(argv)
@@ -473,7 +506,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         return result
     rates = ({"snow": (2.0,), "rain": (50.0,)} if args.quick else {"snow": SNOW_RATES, "rain": RAIN_RATES})
     entries = []
-    for scene in scenes().values():
+    for scene in ([] if args.clouds_only else scenes().values()):
         entries += _rate_entries(scene, ["world", "reference", "hahner_floor0.5", "raw_rated100m"], rates,
                                  exact=True, sub_rays=args.sub_rays)
         if not args.quick:
@@ -485,7 +518,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             for rate in medium_rates:
                 clouds.append(run_cloud(name, scan, columns, lidar, medium, rate))
                 print(f"{clouds[-1]['workload']:40s} fast {clouds[-1]['fast']['weather_share']:.4f}", flush=True)
-    peers = json.loads(args.peers.read_text()) if args.peers is not None else []
+    previous = json.loads(args.out.read_text()) if args.clouds_only else {}
+    entries = previous.get("entries", entries)
+    peers = json.loads(args.peers.read_text()) if args.peers is not None else previous.get("peers", [])
     result = {"entries": entries, "clouds": clouds, "peers": peers, "real": REAL_FIGURES,
               "settings": {"divergence_rad": DIVERGENCE_RAD, "pulse_half_width_s": PULSE_HALF_WIDTH_S,
                            "snow_velocity_m_s": SNOW_VELOCITY, "field_seed": FIELD_SEED,

@@ -157,3 +157,16 @@ def test_echo_sensor_rejects_bad_fields():
         EchoSensor(SYNTHETIC_INTENSITY, 0.0)
     with pytest.raises(ValueError, match="max_range_m"):
         EchoSensor(SYNTHETIC_INTENSITY, 0.5, 3e-3, 10.0, 5.0)
+
+
+def test_dror_counts_isolated_points_in_the_cadc_box():
+    """The benchmark's DROR (CADC's parameters): a dense patch of ground is kept, isolated points inside the box are
+    snow, points outside the box are not counted."""
+    from benchmarks.bench_precipitation_strength import dror_outliers
+
+    g = np.arange(-1.0, 1.0, 0.02)
+    patch = np.stack(np.meshgrid(g + 2.0, g, indexing="ij") + [np.full((len(g), len(g)), -1.8)], -1).reshape(-1, 3)
+    isolated = np.array([[1.0, 1.0, 0.0], [-2.0, 3.0, 0.5], [0.5, -3.5, 1.0]])
+    outside = np.array([[6.0, 0.0, 0.0], [0.0, 0.0, 12.0]])
+    assert dror_outliers(patch) == 0
+    assert dror_outliers(np.concatenate([patch, isolated, outside])) == 3
