@@ -14,12 +14,12 @@ Three quantities decide how many of a scan's points a particle field takes, for 
    its raw echo ``scale ρ ratio / r²`` exceeds the target's ``i0 / (g(R0) R0²)``: in front of ``r_win(D)``, the range
    where the two are equal.
 
-A beam meets on average ``λ = ∫ N(D) π tan²(θ / 2) (r_eff³ - r_min³) / 3 dD`` particles that are detectable and beat
-its target (``r_eff = min(r_det, r_win, R0)``, centres inside the beam's cone, ``r_min`` the sensor's minimum
-range), so a share ``1 - exp(-λ)`` of its beams become weather points. Shadowing between particles, partial overlaps
-at the cone's rim, merged echoes within a pulse length of the target and the unresolved particles' continuum are
-left out; `tests/test_precipitation_strength.py` measures what that costs against the synthetic reference's exact
-process.
+A beam meets on average ``λ = ∫ N(D) ∫_{r_min}^{R0} a(D, r) dr dD`` particles that pass both tests, ``a`` the area
+of the centre positions from which a particle's disc still covers enough of the beam's (circle–circle lens,
+`covered_fraction`; ``r_min`` the sensor's minimum range), so a share ``1 - exp(-λ)`` of its beams become weather
+points (`expected_weather_points`). Faint echoes adding up within a pulse length, shadowing between particles,
+merged echoes near the target and the unresolved particles' continuum are left out;
+`tests/test_precipitation_strength.py` measures what that costs against the synthetic reference's exact process.
 """
 
 from __future__ import annotations
@@ -127,14 +127,19 @@ def winning_range(diameter: ArrayLike, reflectivity: float, sensor: EchoSensor, 
     stronger raw echo than a target of clear intensity ``target_intensity`` (0..255) at ``target_range_m`` [m]:
     ``scale ρ D² / (4 tan²(θ / 2) r⁴) = i0 / (g(R0) R0²)``. ``inf`` where there is no target (``i0 = 0``)."""
     d = np.asarray(diameter, dtype=np.float64)
-    r0 = np.asarray(target_range_m, dtype=np.float64)
-    i0 = np.asarray(target_intensity, dtype=np.float64)
-    im = sensor.intensity
-    with np.errstate(invalid="ignore"):
-        target_raw = i0 / (im.gain(r0) * np.maximum(r0, 1e-9) ** 2)
+    r0, i0 = np.broadcast_arrays(np.asarray(target_range_m, dtype=np.float64),
+                                 np.asarray(target_intensity, dtype=np.float64))
+    target_raw = _target_raw(r0, i0, sensor)
     with np.errstate(divide="ignore"):
-        fourth = im.scale * reflectivity * d ** 2 / (4.0 * sensor.half_tan ** 2 * target_raw)
+        fourth = sensor.intensity.scale * reflectivity * d ** 2 / (4.0 * sensor.half_tan ** 2 * target_raw)
     return np.where(i0 > 0.0, fourth ** 0.25, np.inf)
+
+
+def _target_raw(target_range_m: F64, target_intensity: F64, sensor: EchoSensor) -> F64:
+    """Raw echo ``i0 / (g(R0) R0²)`` of each beam's target (0 without one)."""
+    im = sensor.intensity
+    r0 = np.where(target_intensity > 0.0, target_range_m, 1.0)
+    return np.where(target_intensity > 0.0, target_intensity / (im.gain(r0) * r0 ** 2), 0.0)
 
 
 def covered_fraction(offset: ArrayLike, radius_ratio: ArrayLike) -> F64:
@@ -189,13 +194,6 @@ def _capture_area(ranges: F64, target_raw: float, diameters: F64, counts: F64, r
     need = np.maximum(sensor.noise_floor / (peak * im.gain(ranges)), target_raw * ranges ** 2 / peak)  # (R,)
     offset = offset_reaching(0.5 * diameters[None, :] / w[:, None], need[:, None])  # (R, K) beam radii
     return np.pi * w ** 2 * (offset ** 2 @ counts)
-
-
-def _target_raw(target_range_m: F64, target_intensity: F64, sensor: EchoSensor) -> F64:
-    """Raw echo ``i0 / (g(R0) R0²)`` of each beam's target (0 without one)."""
-    im = sensor.intensity
-    r0 = np.where(target_intensity > 0.0, target_range_m, 1.0)
-    return np.where(target_intensity > 0.0, target_intensity / (im.gain(r0) * r0 ** 2), 0.0)
 
 
 def expected_weather_echoes(target_range_m: ArrayLike, target_intensity: ArrayLike, distribution: SizeDistribution,
