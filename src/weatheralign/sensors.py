@@ -523,8 +523,8 @@ def _rotation_rate(scans: list[LidarScan], num_rings: int) -> float:
 
 DEFAULT_NOISE_FLOOR = 0.5
 """Detector floor (0..255) of a real sensor whose scans do not show it: the synthetic world's HDL-32E floor. With
-the ``min(1, 10 m / R)`` intensity model it puts the snow echoes of a 64-beam scan where the labelled real snow of
-WADS lies (``docs/physics.md`` section 3.5)."""
+the ``min(1, 10 m / R)`` intensity model it puts the snow share of a real scan in the band of WADS's labelled real
+snow, and the snow echoes' ranges within 1.2x of theirs (``docs/physics.md`` section 3.5)."""
 
 CLAMP_SHARE = 0.01
 """Share of the points at exactly the smallest intensity above which that value is a clamp, not a floor."""
