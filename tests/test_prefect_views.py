@@ -68,10 +68,14 @@ def test_a_stage_run_shows_its_name_logs_figures_and_links_in_prefect(tmp_path: 
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterFlowRunId, LogFilter, LogFilterFlowRunId
     from prefect.server.api.server import SubprocessASGIServer
-    from prefect.settings import PREFECT_API_URL, temporary_settings
+    from prefect.settings import PREFECT_API_DATABASE_CONNECTION_URL, PREFECT_API_URL, temporary_settings
 
+    # the server's own database: with the project's (make test sets PREFECT_HOME to .prefect) the flow runs of an
+    # earlier test run, or of the user's pipeline runs, would be read back too
     server = SubprocessASGIServer()
-    server.start(timeout=120)
+    with temporary_settings(updates={PREFECT_API_DATABASE_CONNECTION_URL:
+                                     f"sqlite+aiosqlite:///{tmp_path / 'prefect.db'}"}):
+        server.start(timeout=120)
     try:
         script = tmp_path / "viewcheck.py"
         script.write_text(STAGE_SCRIPT)
