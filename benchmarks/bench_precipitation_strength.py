@@ -175,10 +175,27 @@ def _echo_shape(ranges: np.ndarray, intensities: np.ndarray, noise_floor: float)
             "near_floor_share": float(np.mean(intensities < 2.0 * noise_floor))}
 
 
+def _fast_counts(result: Any, origin: np.ndarray | None, noise_floor: float, clear_points: int) -> dict[str, Any]:
+    """Scattered, clutter, lost and attenuated points of a `simulate_particles` result, the weather share of a scan
+    of ``clear_points`` and the echoes' shape (ranges from ``origin`` [m], None: the output frame's origin,
+    `_echo_shape`)."""
+    from weatheralign.lidar.labels import WeatherLabel
+
+    weather = result.labels == WeatherLabel.SCATTERED
+    scattered = int((weather & (result.source_index >= 0)).sum())
+    clutter = int((weather & (result.source_index < 0)).sum())
+    lost = int(result.counts.get("LOST", 0))
+    echoes = result.points[weather]
+    return {"scattered": scattered, "clutter": clutter, "lost": lost,
+            "attenuated": int((result.labels == WeatherLabel.ATTENUATED).sum()),
+            "weather_share": _share(scattered, clutter, lost, clear_points),
+            **_echo_shape(np.linalg.norm(echoes[:, :3] if origin is None else echoes[:, :3] - origin, axis=1),
+                          echoes[:, 3], noise_floor)}
+
+
 def run_fast(scene: StreetScene, sensor: EchoSensor, beams: SceneBeams, medium: str, rate: float) -> dict[str, Any]:
     """The fast simulator (`simulate_particles`) on the scene's beams, noise-free detector."""
     from weatheralign.lidar.beams import Beams
-    from weatheralign.lidar.labels import WeatherLabel
     from weatheralign.lidar.particles import simulate_particles
     from weatheralign.sensors import LidarModel, PulseSensor
 
@@ -197,15 +214,7 @@ def run_fast(scene: StreetScene, sensor: EchoSensor, beams: SceneBeams, medium: 
     result = simulate_particles(b, particle_field(medium, rate), lidar=lidar, reflectivity=REFLECTIVITY[medium],
                                 intensity_max=255.0, faint_surfaces=False)
     seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
-    weather = result.labels == WeatherLabel.SCATTERED
-    scattered = int((weather & (result.source_index >= 0)).sum())
-    clutter = int((weather & (result.source_index < 0)).sum())
-    lost = int(result.counts.get("LOST", 0))
-    attenuated = int((result.labels == WeatherLabel.ATTENUATED).sum())
-    echoes = result.points[weather]
-    shape = _echo_shape(np.linalg.norm(echoes[:, :3] - beams.origin, axis=1), echoes[:, 3], sensor.noise_floor)
-    return {"scattered": scattered, "clutter": clutter, "lost": lost, "attenuated": attenuated,
-            "weather_share": _share(scattered, clutter, lost, int(has.sum())), **shape, "seconds": seconds,
+    return {**_fast_counts(result, beams.origin, sensor.noise_floor, int(has.sum())), "seconds": seconds,
             "cpu_seconds": cpu}
 
 
@@ -325,7 +334,6 @@ def run_cloud(name: str, scan: Any, columns: np.ndarray | None, lidar: Any, medi
               rate: float) -> dict[str, Any]:
     """Our fast simulator on one of `cloud_scans` (as `simulate` runs it: beams without return reconstructed or
     from the stored firing columns, faint surfaces)."""
-    from weatheralign.lidar.labels import WeatherLabel
     from weatheralign.lidar.particles import simulate_particles
 
     fld = particle_field(medium, rate)
@@ -333,20 +341,12 @@ def run_cloud(name: str, scan: Any, columns: np.ndarray | None, lidar: Any, medi
     result = simulate_particles(scan, fld, lidar=lidar, reflectivity=REFLECTIVITY[medium],
                                 columns=columns if columns is not None else "auto")
     seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
-    weather = result.labels == WeatherLabel.SCATTERED
-    scattered = int((weather & (result.source_index >= 0)).sum())
-    clutter = int((weather & (result.source_index < 0)).sum())
-    lost = int(result.counts.get("LOST", 0))
-    echoes = result.points[weather]
-    shape = _echo_shape(np.linalg.norm(echoes[:, :3], axis=1), echoes[:, 3], float(lidar.noise_floor))
     dror = dror_outliers(result.points[:, :3]) - dror_outliers(scan.points[:, :3])
+    counts = _fast_counts(result, None, float(lidar.noise_floor), int(len(scan.points)))
     return {"workload": f"cloud_{name}_{medium}_{rate:g}mmh", "cloud": name, "medium": medium, "rate_mm_h": rate,
             "points": int(len(scan.points)), "noise_floor": float(lidar.noise_floor),
             "intensity_model": vars(lidar.intensity),
-            "fast": {"scattered": scattered, "clutter": clutter, "lost": lost,
-                     "attenuated": int((result.labels == WeatherLabel.ATTENUATED).sum()),
-                     "weather_share": _share(scattered, clutter, lost, int(len(scan.points))), **shape,
-                     "dror_box_snow": dror, "seconds": seconds, "cpu_seconds": cpu}}
+            "fast": {**counts, "dror_box_snow": dror, "seconds": seconds, "cpu_seconds": cpu}}
 
 
 SENSOR_STYLE = {"world": ("tab:blue", "world HDL-32E sensor (floor 0.5)"),
