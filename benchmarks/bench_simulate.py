@@ -70,7 +70,7 @@ def run_condition(name: str, scratch: Path, extra: list[str] | None = None) -> d
     wall, c1 = time.perf_counter() - t0, os.times()
     if proc.returncode != 0:
         raise RuntimeError(f"simulate {name} failed:\n{proc.stderr[-4000:]}")
-    m = json.loads((reports / "simulate" / name / "metrics.json").read_text())
+    m = json.loads((reports / "simulate" / name / "details.json").read_text())
     m["own_bytes"] = own_bytes(data / "simulate" / name)
     shutil.rmtree(scratch, ignore_errors=True)
     entry = entry_from_metrics(name, m, wall)
@@ -92,11 +92,11 @@ def entry_from_metrics(name: str, m: dict[str, Any], wall: float | None) -> dict
 
 
 def from_reports() -> list[dict[str, Any]]:
-    """Entries of the last ``dvc repro`` (``reports/simulate/*/metrics.json``, the copies under ``data/simulate``):
+    """Entries of the last ``dvc repro`` (``reports/simulate/*/details.json``, the copies under ``data/simulate``):
     per-sample seconds as the stage measured them, the stage's wall time from its samples and rate."""
     entries = []
     for name in ALL:
-        path = REPO / "reports" / "simulate" / name / "metrics.json"
+        path = REPO / "reports" / "simulate" / name / "details.json"
         if not path.is_file():
             continue
         m = json.loads(path.read_text())

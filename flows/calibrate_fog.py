@@ -16,7 +16,7 @@ synthetic reference, or a Seeing Through Fog root) and, per fog level (``light``
    TorchScript Inception).
 
 Writes ``<paths.data>/calibrate_fog/fog_levels.json`` (``{level: {alpha, beta, mor, ks, airlight_gains}}``: what
-the fog conditions of `simulate` read), ``reports/calibrate_fog/metrics.json`` (per level ``alpha, beta, mor, ks,
+the fog conditions of `simulate` read), ``reports/calibrate_fog/details.json`` (per level ``alpha, beta, mor, ks,
 ks_ci_low, ks_ci_high, camera_visibility_ratio, kid, kid_std, kid_backbone, airlight_gain_median``, ...) and figures
 (ECDF with the reference's bootstrap band, KS over the grid, reference vs simulated images), also logged to MLflow. The
 synthetic reference's sealed truth is never read here.
@@ -41,7 +41,7 @@ from tasks.calibrate import evaluate_cell_task, reference_camera_task  # noqa: E
 from tasks.tracking import StageTracker  # noqa: E402
 from weatheralign import atomic  # noqa: E402
 from weatheralign.calibrate.camera import camera_visibility_ratio  # noqa: E402
-from weatheralign.calibrate.figures import ks_heatmap, level_ecdf_figure  # noqa: E402
+from weatheralign.calibrate.figures import ecdf_rows, ks_heatmap, level_ecdf_figure  # noqa: E402
 from weatheralign.calibrate.histograms import IntensityHistograms  # noqa: E402
 from weatheralign.calibrate.kid import feature_extractor, kid_from_features  # noqa: E402
 from weatheralign.calibrate.lidar import GridResult, LevelCalibration, finish_level, fog_frames, grid_cells  # noqa: E402
@@ -134,9 +134,20 @@ def reference_digest(ds: ReferenceDataset) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+HEADLINE = ("alpha", "alpha_ci_low", "alpha_ci_high", "beta", "mor", "ks", "camera_visibility_ratio", "kid",
+            "airlight_gain_median")
+"""Per fog level, the figures of reports/calibrate_fog/metrics.json (the rest in details.json)."""
+
+
+def headline(details: dict) -> dict:
+    """Per fog level its `HEADLINE` figures, and the stage's seconds."""
+    return {**{level: {k: details[level].get(k) for k in HEADLINE} for level in FOG_LEVELS if level in details},
+            "seconds": details.get("seconds")}
+
+
 @flow(name="calibrate_fog", log_prints=True)
 def calibrate_fog_flow(params: Params) -> dict:
-    """ReDAM per fog level; returns the metrics written to reports/calibrate_fog/metrics.json."""
+    """ReDAM per fog level; returns the figures written to reports/calibrate_fog/details.json."""
     cfg = params.calibrate_fog
     t0 = time.time()
     with StageTracker(params, "calibrate_fog") as tracker:
@@ -180,6 +191,8 @@ def calibrate_fog_flow(params: Params) -> dict:
                 fig.savefig(tracker.reports / name, dpi=110)
                 plt.close(fig)
                 tracker.log_artifact(tracker.reports / name, "figures")
+            atomic.write_json(tracker.reports / f"ecdf_{level}.json", ecdf_rows(
+                {"reference": reference, "simulated": result.simulated, "clear": result.clear}), indent=1)
             camera_figure(ref_images, sim_images, level, result.alpha, tracker.reports / f"camera_{level}.png")
             tracker.log_artifact(tracker.reports / f"camera_{level}.png", "figures")
             print(f"calibrate_fog {level}: alpha* = {result.alpha:.5f} /m (MOR {result.mor:.0f} m), beta* = "
@@ -190,7 +203,7 @@ def calibrate_fog_flow(params: Params) -> dict:
                           indent=2)
         metrics["seconds"] = round(time.time() - t0, 2)
         tracker.log_dataset(f"reference-{params.reference.source}", reference_digest(ds), str(ds.root), "reference")
-        tracker.finish(metrics, logged={"seconds": metrics["seconds"]}, children={
+        tracker.finish(metrics, headline(metrics), logged={"seconds": metrics["seconds"]}, children={
             level: ({"weather": "fog", "severity": level}, metrics[level]) for level in FOG_LEVELS})
     return metrics
 

@@ -11,8 +11,9 @@ reference frames at these rates.
 
 Writes ``<paths.data>/calibrate_precipitation/rates.json`` (``{snow|rain: {rate_mm_h, ci_low, ci_high}}``: what
 the media stage applies to the particle fields with ``simulate.precipitation_rates: calibrated``),
-``reports/calibrate_precipitation/metrics.json`` and ``rates.png`` (the statistic against the rate, per kind, with the
-reference's mean and interval), also logged to MLflow. The synthetic reference's sealed truth is never read here.
+``reports/calibrate_precipitation/details.json`` (its headline in ``metrics.json``) and ``rates.png`` (the
+statistic against the rate, per kind, with the reference's mean and interval), also logged to MLflow. The synthetic
+reference's sealed truth is never read here.
 """
 
 from __future__ import annotations
@@ -62,10 +63,21 @@ def rates_figure(fits: dict[str, RateFit], reference: dict[str, np.ndarray], sim
     return fig
 
 
+HEADLINE = ("rate_mm_h", "rate_ci_low", "rate_ci_high", "open_path_echo_rate_reference", "beyond_grid")
+"""Per kind, the figures of reports/calibrate_precipitation/metrics.json (the rest, the statistic on the rate grid
+included, in details.json)."""
+
+
+def headline(details: dict) -> dict:
+    """Per calibrated kind its `HEADLINE` figures, and the stage's seconds."""
+    return {**{kind: {k: details[kind].get(k) for k in HEADLINE} for kind in details["kinds"]},
+            "seconds": details.get("seconds")}
+
+
 @flow(name="calibrate_precipitation", log_prints=True)
 def calibrate_precipitation_flow(params: Params) -> dict:
-    """The tuned rate per precipitation split of the reference; returns the metrics written to
-    reports/calibrate_precipitation/metrics.json."""
+    """The tuned rate per precipitation split of the reference; returns the figures written to
+    reports/calibrate_precipitation/details.json."""
     cfg = params.calibrate_precipitation
     t0 = time.time()
     with StageTracker(params, "calibrate_precipitation") as tracker:
@@ -115,7 +127,7 @@ def calibrate_precipitation_flow(params: Params) -> dict:
         plt.close(fig)
         tracker.log_artifact(figure, "figures")
         metrics["seconds"] = round(time.time() - t0, 2)
-        tracker.finish(metrics, logged={"seconds": metrics["seconds"]}, children={
+        tracker.finish(metrics, headline(metrics), logged={"seconds": metrics["seconds"]}, children={
             kind: ({"weather": kind, "severity": f"{rates[kind]['rate_mm_h']:.3g} mm/h"},
                    {k: v for k, v in metrics[kind].items() if isinstance(v, (int, float))}) for kind in kinds})
     return metrics

@@ -14,10 +14,11 @@ matrix (``<paths.data>/simulate/<condition>-<aligned|unaligned>``), caches each 
 3. finetunes the first seed's model on each of ``detect.finetune_conditions``: the aligned train split, the unaligned
    one, and the aligned one mixed 30/70 with clean at the data-loader level, each evaluated on clean val and on its
    weather's aligned and unaligned val (Table 3);
-4. writes ``reports/detect/metrics.json`` (models -> evaluation sets -> mAP / NDS averaged over the seeds, with
+4. writes ``reports/detect/details.json`` (models -> evaluation sets -> mAP / NDS averaged over the seeds, with
    seed x scene-block bootstrap intervals, and RA = NDS_weather / NDS_clean), paired differences with the same
-   intervals, ``table_alignment.md`` and ``table_finetune.md`` (the paper's figures beside ours, labelled),
-   ``learning_curve.png`` and ``predictions_bev.png``; and every evaluation's detections as a nuScenes results file,
+   intervals; ``metrics.json`` its `headline`), ``table_alignment.md`` and ``table_finetune.md`` (the paper's
+   figures beside ours, labelled), ``learning_curve.png`` and ``predictions_bev.png``; and every evaluation's detections
+   as a nuScenes results file,
    ``<paths.data>/detect/results/seed<k>/<model>/<evaluation set>.json`` (score others with ``flows.score``).
 
 Every training and evaluation is an MLflow child run tagged ``model``, ``seed``, ``weather``, ``alignment``. Finished
@@ -65,7 +66,12 @@ from weatheralign.detect.data import (  # noqa: E402
     scene_split,
 )
 from weatheralign.detect.evaluate import ego_positions, ground_truth, resistance_ability, scene_blocks  # noqa: E402
-from weatheralign.detect.figures import detections_bev_figure, learning_curve_figure  # noqa: E402
+from weatheralign.detect.figures import (  # noqa: E402
+    detections_bev_figure,
+    learning_curve_figure,
+    learning_curve_rows,
+    per_class_rows,
+)
 from weatheralign.detect.model import BEVFusionDetector, count_parameters  # noqa: E402
 from weatheralign.detect.results import write_submission  # noqa: E402
 from weatheralign.manifest import manifest_path, read_manifest  # noqa: E402
@@ -100,9 +106,12 @@ MODALITY_LABELS = {"fused": "", "lidar": "-lidar_only", "camera": "-camera_only"
 SHUFFLED_LABEL = "-shuffled_images"
 
 
+CAMERA_WEATHER_PREFIX = "clean_lidar_with_"
+
+
 def camera_weather_set(variant: str) -> str:
     """The evaluation set of clean LiDAR with the cameras of weather copy ``variant`` (e.g. ``snow-aligned``)."""
-    return f"clean_lidar_with_{variant}_cameras"
+    return f"{CAMERA_WEATHER_PREFIX}{variant}_cameras"
 
 
 @dataclass(frozen=True)
@@ -631,6 +640,29 @@ def summarise(evaluations: list[Evaluation], results: dict[str, dict[str, Any]],
     return models, differences
 
 
+def headline(details: dict[str, Any], conditions: list[str], finetuned: list[str]) -> dict[str, Any]:
+    """reports/detect/metrics.json: the pretrained model's clean mAP / NDS (with the mAP's interval) and its modality
+    ablation, its mAP on every weather copy, per condition the unaligned - aligned mAP difference (Table 2) and the
+    cost of the weather cameras alone (clean - clean LiDAR with the aligned copy's cameras), the finetuned models' mAP
+    on their weather's aligned copy (Table 3), and the stage's seconds; the rest in details.json."""
+    models, diff = details["models"], details["differences"]
+    clean = models["pretrained"][CLEAN]
+
+    def difference(name: str) -> float | None:
+        return (diff.get(f"{name}:map") or {}).get("difference")
+
+    return {
+        "clean": {"map": clean["map"], "map_ci_low": clean["map_ci"][0], "map_ci_high": clean["map_ci"][1],
+                  "nds": clean["nds"], **{f"{m}_map": models[f"pretrained-{m}"][CLEAN]["map"]
+                                          for m in ("lidar_only", "camera_only", "shuffled_images")}},
+        "map": {evalset: m["map"] for evalset, m in models["pretrained"].items()
+                if evalset != CLEAN and not evalset.startswith(CAMERA_WEATHER_PREFIX)},
+        "unaligned_minus_aligned_map": {c: difference(f"pretrained:{c}:unaligned-aligned") for c in conditions},
+        "weather_cameras_cost_map": {c: difference(f"pretrained:{c}:clean-aligned_cameras") for c in conditions},
+        "finetuned_map": {c: models[f"finetuned-{c}"][f"{c}-aligned"]["map"] for c in finetuned},
+        "seconds": details["seconds"]}
+
+
 @flow(name="detect", log_prints=True)
 def detect_flow(params: Params) -> dict:
     """Train and evaluate every model of the protocol; returns the metrics written to reports/detect/."""
@@ -681,9 +713,13 @@ def detect_flow(params: Params) -> dict:
                                     cfg.bev_range_m)
         fig.savefig(reports / "predictions_bev.png", dpi=110)
         plt.close(fig)
+        atomic.write_json(reports / "learning_curve.json",
+                          learning_curve_rows([metas[s].get("curve", []) for s in seeds]), indent=1)
+        atomic.write_json(reports / "per_class_ap.json", per_class_rows(pre["per_class_ap"]), indent=1)
         for name in ("table_alignment.md", "table_finetune.md", "learning_curve.png", "predictions_bev.png"):
             tracker.log_artifact(reports / name, "detect")
-        tracker.finish(metrics, logged={k: v for k, v in metrics.items() if k in (
+        tracker.finish(metrics, headline(metrics, [v.rsplit("-", 1)[0] for v in variants if v.endswith("-aligned")],
+                                         conditions), logged={k: v for k, v in metrics.items() if k in (
             "parameters", "val_samples", "train_samples", "sweeps", "seconds")}, children={
             key: difference_run(key, d) for key, d in differences.items()})
     return metrics

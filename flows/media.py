@@ -29,6 +29,15 @@ from weatheralign.simulate.media import (
 )
 
 
+def headline(details: dict) -> dict:
+    """reports/media/metrics.json: the precipitation rates in force and each fogged condition's extinction and
+    backscatter (the rest in details.json)."""
+    rates = details["precipitation_rates"] or {}
+    return {"rate_mm_h": {k: v["rate_mm_h"] for k, v in rates.items()},
+            "fog": {name: {"alpha": c["fog_alpha"], "beta": c["fog_beta"]}
+                    for name, c in details["conditions"].items() if c["fog_alpha"] is not None}}
+
+
 @flow(name="media", log_prints=True)
 def media_flow(params: Params) -> dict:
     """Write every condition's media file; returns the metrics (per condition: fog level, α, β, fields)."""
@@ -54,7 +63,7 @@ def media_flow(params: Params) -> dict:
                 "fields": 0 if media.fields is None else len(media.fields)}
         snow_rain = (params.particles.snow.rate_mm_h, params.particles.rain.rate_mm_h) if rates is None else \
             (rates.rate_mm_h["snow"], rates.rate_mm_h["rain"])
-        tracker.finish(metrics, logged={}, children={
+        tracker.finish(metrics, headline(metrics), logged={}, children={
             name: (condition_tags(name, None, *snow_rain), values) for name, values in metrics["conditions"].items()})
     return metrics
 

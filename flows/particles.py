@@ -2,8 +2,8 @@
 write them for the `simulate` stage.
 
 Writes ``<paths.data>/particles/fields.json`` (the exact field of every scene and condition),
-``reports/particles/metrics.json`` and figures (size histograms against the distributions; a side view of a
-materialised region with the LiDAR beams and a camera's field of view).
+``reports/particles/details.json`` (its headline in ``metrics.json``) and figures (size histograms against the
+distributions; a side view of a materialised region with the LiDAR beams and a camera's field of view).
 """
 
 from __future__ import annotations
@@ -168,10 +168,22 @@ def particles_flow(params: Params) -> dict:
             _side_view(specs[c][0], anchors[0], rig, side)
             tracker.log_artifact(side, "figures")
         metrics = {"fields_file": str(out), "num_scenes": len(anchors), **results}
-        tracker.finish(metrics, logged={"num_scenes": len(anchors)}, children={
+        tracker.finish(metrics, headline(metrics), logged={"num_scenes": len(anchors)}, children={
             c: ({"weather": c, "severity": f"{getattr(params.particles, c).rate_mm_h:g} mm/h"}, results[c])
             for c in PRECIPITATION})
     return metrics
+
+
+HEADLINE = ("number_density_per_m3", "mean_diameter_mm", "extinction_per_m", "visibility_m", "max_abs_z_score",
+            "min_size_chi2_pvalue")
+"""Per precipitation, the figures of reports/particles/metrics.json (the rest, per-region checks included, in
+details.json)."""
+
+
+def headline(details: dict) -> dict:
+    """The number of scenes and per precipitation its `HEADLINE` figures."""
+    return {"num_scenes": details["num_scenes"],
+            **{c: {k: details[c].get(k) for k in HEADLINE} for c in PRECIPITATION if c in details}}
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -7,7 +7,7 @@ hidden rates, by exact processes — into
 per frame, resumable. With ``reference.source: stf`` the stage checks a real Seeing Through Fog root in place
 (every split file read, every listed frame loaded) and copies nothing.
 
-Both write ``reports/reference/metrics.json`` (frames, points per scan, mean intensity on 0..255, share of returns
+Both write ``reports/reference/details.json`` (frames, points per scan, mean intensity on 0..255, share of returns
 within 3 m, isolated returns per scan (snow / rain clutter, `weatheralign.lidar.clutter`), per split; seconds) and
 ``reports/reference/overview.png`` (intensity histograms and one image per split), and log them to MLflow.
 """
@@ -93,10 +93,22 @@ def _root_for_report(root: Path) -> str:
         return str(root.resolve())
 
 
+def headline(details: dict) -> dict:
+    """reports/reference/metrics.json: per split its frames, points and isolated returns per scan, and the weather's
+    returns per scan (the rest in details.json)."""
+    per_split = {split: {k: values.get(k) for k in ("frames", "points_per_scan", "isolated_per_scan")}
+                 for split, values in details["splits"].items()}
+    for key in ("fog_returns_per_scan", "particle_returns_per_scan"):
+        for split, value in details.get(key, {}).items():
+            if split in per_split and value:
+                per_split[split][key] = value
+    return {"splits": per_split, "seconds": details.get("seconds")}
+
+
 @flow(name="reference", log_prints=True)
 def reference_flow(params: Params) -> dict:
-    """Render (synthetic) or check (real STF) the reference; returns the metrics written to
-    reports/reference/metrics.json."""
+    """Render (synthetic) or check (real STF) the reference; returns the figures written to
+    reports/reference/details.json."""
     cfg = params.reference
     t0 = time.time()
     with StageTracker(params, "reference") as tracker:
@@ -114,8 +126,8 @@ def reference_flow(params: Params) -> dict:
         tracker.log_artifact(figure, "figures")
         metrics["seconds"] = round(time.time() - t0, 2)
         per_scan = {key: metrics.get(key, {}) for key in ("fog_returns_per_scan", "particle_returns_per_scan")}
-        tracker.finish(metrics, logged={k: v for k, v in metrics.items() if isinstance(v, (int, float))
-                                        and not isinstance(v, bool)}, children={
+        logged = {k: v for k, v in metrics.items() if isinstance(v, (int, float)) and not isinstance(v, bool)}
+        tracker.finish(metrics, headline(metrics), logged=logged, children={
             split: (split_tags(split),
                     {**values, **{key: table[split] for key, table in per_scan.items() if split in table}})
             for split, values in metrics["splits"].items()})

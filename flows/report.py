@@ -1,10 +1,11 @@
 """`report` stage: ``reports/summary.md`` and ``reports/summary.html`` (the same, one self-contained page).
 
-``python -m flows.report`` reads the stages' ``reports/<stage>/metrics.json`` (world, calibrate_fog, simulate,
+``python -m flows.report`` reads the stages' ``reports/<stage>/details.json`` (world, calibrate_fog, simulate,
 detect), the detect stage's Tables 2 and 3, the reference's sealed truth where the reference is synthetic, the
-figures the stages drew, and what each stage cost (wall time of its latest tracked MLflow run, disk of its outputs),
-and writes the summary (`weatheralign.report`). ``reports/report/metrics.json`` holds the findings with their
-intervals. A stage whose metrics are missing is an error naming the stage to run.
+figures the stages drew, what each stage cost (wall time of its latest tracked MLflow run, disk of its outputs) and
+where each table came from (that MLflow run and its DVC experiment), and writes the summary (`weatheralign.report`).
+``reports/report/details.json`` holds the findings with their intervals, ``metrics.json`` their counts. A stage
+whose figures are missing is an error naming the stage to run.
 """
 
 from __future__ import annotations
@@ -16,14 +17,14 @@ from typing import Any
 from prefect import flow
 
 from flows.common import parse_stage_args, run_stage
-from tasks.tracking import StageTracker, tracking_client
+from tasks.tracking import StageTracker, mlflow_run_url, tracking_client
 from weatheralign import atomic
 from weatheralign.config import Params
 from weatheralign.data.errors import read_json_file
-from weatheralign.report import StageCost, findings, markdown_to_html, summary_markdown
+from weatheralign.report import StageCost, StageSource, findings, markdown_to_html, summary_markdown
 
 STAGES_READ = ("world", "calibrate_fog", "simulate", "detect")
-"""Stages whose ``reports/<stage>/metrics.json`` the summary reads."""
+"""Stages whose ``reports/<stage>/details.json`` the summary reads."""
 
 COST_STAGES: tuple[tuple[str, str | None], ...] = (
     ("world", "world"), ("reference", "reference"), ("calibrate_fog", None), ("calibrate_precipitation", None),
@@ -60,32 +61,52 @@ def disk_bytes(folder: Path, seen: set[tuple[int, int]]) -> int:
     return total
 
 
-def stage_seconds(params: Params) -> dict[str, float]:
-    """Per stage (the ``stage`` tag; the simulate variants and their summary summed into ``simulate``), the wall
-    seconds of the latest finished MLflow run of each of its runs; empty when tracking is off or nothing was
-    tracked."""
+def latest_stage_runs(params: Params) -> dict[tuple[str, str], Any]:
+    """Per (``stage`` tag, run name) the latest finished MLflow stage run (the ten simulate variants are ten runs of
+    the stage simulate); empty when tracking is off or nothing was tracked."""
     if not params.tracking.enabled:
         return {}
     client = tracking_client(params, Path.cwd())
     exp = client.get_experiment_by_name(params.tracking.experiment)
     if exp is None:
         return {}
-    latest: dict[tuple[str, str], float] = {}
+    latest: dict[tuple[str, str], Any] = {}
     for run in client.search_runs([exp.experiment_id], "attributes.status = 'FINISHED' AND tags.kind = 'stage'",
                                   max_results=5000, order_by=["attributes.start_time ASC"]):
         stage, name = run.data.tags.get("stage"), run.data.tags.get("mlflow.runName", "")
-        if stage and "stage_seconds" in run.data.metrics:
-            latest[(stage, name)] = run.data.metrics["stage_seconds"]
+        if stage:
+            latest[(stage, name)] = run
+    return latest
+
+
+def stage_seconds(runs: dict[tuple[str, str], Any]) -> dict[str, float]:
+    """Per stage the wall seconds of its latest runs (the simulate variants and their summary summed into
+    ``simulate``)."""
     out: dict[str, float] = {}
-    for (stage, _), seconds in latest.items():
-        base = "simulate" if stage == "simulate_summary" else stage
-        out[base] = out.get(base, 0.0) + seconds
+    for (stage, _), run in runs.items():
+        if "stage_seconds" in run.data.metrics:
+            base = "simulate" if stage == "simulate_summary" else stage
+            out[base] = out.get(base, 0.0) + run.data.metrics["stage_seconds"]
     return out
 
 
-def run_costs(params: Params) -> list[StageCost]:
-    """Wall time and disk use per stage."""
-    seconds = stage_seconds(params)
+def stage_sources(runs: dict[tuple[str, str], Any]) -> dict[str, StageSource]:
+    """Per stage whose tables the summary shows (``simulate``: its summary run) the latest run's name, MLflow UI page
+    and DVC experiment (``workspace`` outside ``dvc exp run``)."""
+    out: dict[str, StageSource] = {}
+    for (stage, name), run in runs.items():
+        if stage == "simulate" or stage == "report":
+            continue
+        base = "simulate" if stage == "simulate_summary" else stage
+        experiment = run.data.tags.get("dvc_experiment", "none")
+        out[base] = StageSource(base, name, mlflow_run_url(run.info.experiment_id, run.info.run_id),
+                                "workspace" if experiment == "none" else experiment)
+    return out
+
+
+def run_costs(params: Params, runs: dict[tuple[str, str], Any]) -> list[StageCost]:
+    """Wall time (of ``runs``, `latest_stage_runs`) and disk use per stage."""
+    seconds = stage_seconds(runs)
     seen: set[tuple[int, int]] = set()
     costs = []
     for stage, folder in COST_STAGES:
@@ -95,18 +116,18 @@ def run_costs(params: Params) -> list[StageCost]:
 
 
 def read_inputs(params: Params) -> tuple[dict[str, dict[str, Any]], dict[str, Any] | None, list[str]]:
-    """The stages' metrics, the sealed truth (None unless the reference is synthetic) and the detect tables."""
+    """The stages' figures, the sealed truth (None unless the reference is synthetic) and the detect tables."""
     reports = params.paths.reports
-    metrics = {s: read_json_file(reports / s / "metrics.json", f"run the stage {s} first (dvc repro {s})")
+    metrics = {s: read_json_file(reports / s / "details.json", f"run the stage {s} first (dvc repro {s})")
                for s in STAGES_READ}
     truth_path = params.paths.data / "reference" / "sealed_truth.json"
     truth = read_json_file(truth_path, "") if truth_path.is_file() else None
     tables = [(reports / "detect" / name).read_text() for name in ("table_alignment.md", "table_finetune.md")
               if (reports / "detect" / name).is_file()]
-    rates = reports / "calibrate_precipitation" / "metrics.json"
+    rates = reports / "calibrate_precipitation" / "details.json"
     if rates.is_file():  # ReDAM for snow and rain
         metrics["calibrate_precipitation"] = read_json_file(rates, "")
-    verify = reports / "verify" / "metrics.json"
+    verify = reports / "verify" / "details.json"
     if verify.is_file():  # Table 1's MMD half (the verify stage)
         metrics["verify"] = read_json_file(verify, "run the stage verify first (dvc repro verify)")
         metrics["verify"]["table_markdown"] = (reports / "verify" / "table.md").read_text()
@@ -123,13 +144,15 @@ def severity_figures(reports: Path) -> dict[str, str]:
 
 @flow(name="report", log_prints=True)
 def report_flow(params: Params) -> dict:
-    """Write reports/summary.md, reports/summary.html and reports/report/metrics.json; returns the metrics."""
+    """Write reports/summary.md, reports/summary.html and reports/report/{details,metrics}.json; returns the
+    details."""
     with StageTracker(params, "report") as tracker:
         metrics, truth, tables = read_inputs(params)
         reports = params.paths.reports
         figures = {caption: path for caption, path in FIGURES if (reports / path).is_file()}
         figures.update(severity_figures(reports))
-        text = summary_markdown(metrics, truth, tables, figures, run_costs(params))
+        runs = latest_stage_runs(params)
+        text = summary_markdown(metrics, truth, tables, figures, run_costs(params, runs), stage_sources(runs))
         atomic.write_text(reports / "summary.md", text)
         page = markdown_to_html(text, reports, "weatheralign: run summary")
         atomic.write_text(reports / "summary.html", page)
@@ -139,7 +162,7 @@ def report_flow(params: Params) -> dict:
                "figures": len(figures), "html_bytes": len(page.encode())}
         tracker.log_artifact(reports / "summary.md")
         tracker.log_artifact(reports / "summary.html")
-        tracker.finish(out)
+        tracker.finish(out, {k: v for k, v in out.items() if k != "findings"})
     return out
 
 

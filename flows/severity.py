@@ -12,22 +12,21 @@ paper's 2 and 50 mm/h); any other value works the same through ``-S``.
   A queued experiment runs in a fresh copy of the repository, and the generated datasets are not in the DVC cache
   (``cache: false``), so it runs every stage its targets need from the world on; to reuse this workspace's world and
   calibration run the levels one at a time in the workspace with ``dvc exp run -S ...`` (printed by ``levels``).
-- ``curve --weather snow``: reads ``dvc exp show --json`` and writes ``reports/severity/<weather>.json`` and
-  ``<weather>.png``: per experiment (and the workspace) the severity value against the LiDAR points lost and
-  scattered per keyframe (``reports/simulate/<condition>-aligned/metrics.json``) and the pretrained detector's mAP on
-  the aligned and unaligned copy (``reports/detect/metrics.json``, where the experiment ran detect). The report stage
-  shows the figure when it is there. ``dvc metrics diff`` / ``dvc plots diff`` compare any two experiments' declared
-  metrics and figures stage by stage.
+- ``curve --weather snow``: reads the finished experiments through `dvc.api` (``exp_show``, ``params_show``,
+  ``metrics_show``) and writes ``reports/severity/<weather>.json`` and ``<weather>.png``: per experiment (and the
+  workspace) the severity value against the LiDAR points lost and scattered per keyframe
+  (``reports/simulate/<condition>-aligned/metrics.json``) and the pretrained detector's mAP on the aligned and
+  unaligned copy (``reports/detect/metrics.json``, where the experiment ran detect). The report stage shows the figure
+  when it is there, and ``dvc plots show`` draws the JSON (dvc.yaml's severity plots). ``dvc metrics diff`` /
+  ``dvc plots diff`` compare any two experiments' declared metrics and figures stage by stage.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import subprocess
 import sys
-from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -99,36 +98,70 @@ def severity_value(weather: str, params: dict[str, Any]) -> float | None:
         return None
 
 
-def _records(entries: list[dict[str, Any]], baseline: str | None = None) -> Iterator[tuple[str, str, dict]]:
-    """(name, rev, data) of every workspace, baseline and experiment entry of ``dvc exp show --json``."""
-    for entry in entries:
-        data = entry.get("data") or {}
-        if data:
-            yield entry.get("name") or entry.get("rev", "?"), entry.get("rev", "?"), data
-        for exp in entry.get("experiments") or []:
-            yield from _records(exp.get("revs") or [], entry.get("name"))
+@dataclass(frozen=True)
+class ExperimentFigures:
+    """One row of ``dvc exp show`` (the workspace, a commit or an experiment) read through `dvc.api`: its name, rev,
+    params.yaml and the two metrics files a severity curve needs (empty where the experiment did not write them)."""
+
+    name: str
+    rev: str
+    params: dict[str, Any]
+    simulate: dict[str, Any]
+    detect: dict[str, Any]
 
 
-def curve_rows(exp_show: list[dict[str, Any]], weather: str) -> list[dict[str, Any]]:
+UNFINISHED = ("Queued", "Running", "Failed")
+"""``dvc exp show`` states whose experiments have no figures to read."""
+
+
+def _metrics_file(path: str, rev: str | None) -> dict[str, Any]:
+    """The metrics file ``path`` at ``rev`` (None: the workspace) as written, or {} where that revision lacks it."""
+    import dvc.api
+
+    try:
+        return dvc.api.metrics_show(path, rev=rev)
+    except Exception:  # noqa: BLE001 - a revision without the file (or unreadable) has no figures for the curve
+        return {}
+
+
+def experiment_figures(weather: str) -> list[ExperimentFigures]:
+    """Every finished experiment of ``dvc exp show`` (`dvc.api.exp_show`) with its params and the metrics of
+    ``weather``'s aligned simulate variant and of the detect stage (`dvc.api.params_show`, `dvc.api.metrics_show`)."""
+    import dvc.api
+
+    condition = CONDITION[weather]
+    out = []
+    for row in dvc.api.exp_show():
+        if row.get("State") in UNFINISHED:
+            continue
+        rev = row["rev"]
+        at = None if rev == "workspace" else rev
+        try:
+            params = dvc.api.params_show(rev=at)
+        except Exception:  # noqa: BLE001 - a revision whose params cannot be read has no severity
+            continue
+        out.append(ExperimentFigures(row.get("Experiment") or rev, rev, params,
+                                     _metrics_file(f"reports/simulate/{condition}-aligned/metrics.json", at),
+                                     _metrics_file("reports/detect/metrics.json", at)))
+    return out
+
+
+def curve_rows(experiments: list[ExperimentFigures], weather: str) -> list[dict[str, Any]]:
     """Per experiment with metrics of ``weather``'s condition: its name, rev, severity value, LiDAR points lost and
     scattered per keyframe, and the pretrained detector's mAP on the aligned and unaligned copy (None where the
     experiment has no detect metrics), sorted by severity (lightest first)."""
     condition = CONDITION[weather]
     rows = []
-    for name, rev, data in _records(exp_show):
-        params = ((data.get("params") or {}).get("params.yaml") or {}).get("data") or {}
-        metrics = data.get("metrics") or {}
-        sim = (metrics.get(f"reports/simulate/{condition}-aligned/metrics.json") or {}).get("data") or {}
-        value = severity_value(weather, params)
-        if value is None or not sim.get("num_samples"):
+    for e in experiments:
+        value = severity_value(weather, e.params)
+        if value is None or e.simulate.get("points_lost_per_keyframe") is None:
             continue
-        detect = ((metrics.get("reports/detect/metrics.json") or {}).get("data") or {}).get("models", {})
-        pre = detect.get("pretrained", {})
-        rows.append({"experiment": name, "rev": rev, "severity": value,
-                     "points_lost_per_keyframe": sim["points_lost"] / sim["num_samples"],
-                     "points_scattered_per_keyframe": sim["points_scattered"] / sim["num_samples"],
-                     "map_aligned": (pre.get(f"{condition}-aligned") or {}).get("map"),
-                     "map_unaligned": (pre.get(f"{condition}-unaligned") or {}).get("map")})
+        maps = e.detect.get("map") or {}
+        rows.append({"experiment": e.name, "rev": e.rev, "severity": value,
+                     "points_lost_per_keyframe": e.simulate["points_lost_per_keyframe"],
+                     "points_scattered_per_keyframe": e.simulate["points_scattered_per_keyframe"],
+                     "map_aligned": maps.get(f"{condition}-aligned"),
+                     "map_unaligned": maps.get(f"{condition}-unaligned")})
     unique = {(r["severity"], r["rev"]): r for r in rows}
     return sorted(unique.values(), key=lambda r: (-r["severity"] if weather == "fog" else r["severity"], r["rev"]))
 
@@ -180,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
     q.add_argument("--levels", type=int, nargs="*", default=[1, 2, 3, 4, 5])
     q.add_argument("--targets", nargs="*", default=[], help="stages to run (default: the whole pipeline)")
     q.add_argument("--run", action="store_true", help="then run the queue (dvc exp run --run-all)")
-    c = sub.add_parser("curve", help="the severity curve from dvc exp show")
+    c = sub.add_parser("curve", help="the severity curve of the finished experiments")
     c.add_argument("--weather", required=True, choices=sorted(LEVELS))
     c.add_argument("--out", type=Path, default=Path("reports") / "severity")
     args = parser.parse_args(argv)
@@ -204,11 +237,7 @@ def main(argv: list[str] | None = None) -> int:
                 done = subprocess.run(["dvc", "exp", "run", "--run-all"], cwd=Path.cwd())
                 return done.returncode
             return 0
-        shown = _dvc("exp", "show", "--json")
-        if shown.returncode != 0:
-            print(f"dvc exp show failed:\n{shown.stderr}", file=sys.stderr)
-            return 1
-        rows = curve_rows(json.loads(shown.stdout), args.weather)
+        rows = curve_rows(experiment_figures(args.weather), args.weather)
         if not rows:
             print(f"no experiment with {CONDITION[args.weather]}-aligned metrics and a {args.weather} severity in "
                   f"dvc exp show (queue some: python -m flows.severity queue --weather {args.weather})",

@@ -8,9 +8,10 @@ Dask workers, completes the copy with hard links and tracks. An unaligned copy h
 twin (``<condition>-aligned``, run first by dvc.yaml's matrix order) where the twin finished a sample with the same
 LiDAR fingerprint, and computes them otherwise: the LiDAR sees the condition's own media in both copies. Writes
 ``<paths.data>/simulate/<condition>-<aligned|unaligned>/`` (a complete nuScenes dataroot) and
-``reports/simulate/<condition>-<aligned|unaligned>/metrics.json`` plus a side-by-side figure (clean vs weather: LiDAR
-BEV coloured by label, CAM_FRONT), also logged to an MLflow child run, and hands the copy on by its manifest
-``<paths.data>/manifests/simulate-<condition>-<aligned|unaligned>.json`` (the stage's DVC output, written last).
+``reports/simulate/<condition>-<aligned|unaligned>/details.json`` (its headline in ``metrics.json``) plus a
+side-by-side figure (clean vs weather: LiDAR BEV coloured by label, CAM_FRONT), also logged to an MLflow child run,
+and hands the copy on by its manifest ``<paths.data>/manifests/simulate-<condition>-<aligned|unaligned>.json`` (the
+stage's DVC output, written last).
 """
 
 from __future__ import annotations
@@ -102,9 +103,21 @@ def particle_metrics(media: ConditionMedia, aligned: bool) -> dict:
     return {"rate_mm_h": rate, "camera_rate_mm_h": cam}
 
 
+PER_KEYFRAME = ("points_scattered", "points_clutter", "points_lost")
+"""Keyframe LiDAR point counts that reports/simulate/<variant>/metrics.json gives per keyframe."""
+
+
+def headline(details: dict) -> dict:
+    """reports/simulate/<variant>/metrics.json: the `PER_KEYFRAME` counts divided by the keyframes, and the 99th
+    percentile of the LiDAR particles' re-projection error [px] (the rest in details.json)."""
+    n = details.get("num_samples") or 0
+    return {**{f"{k}_per_keyframe": round(details[k] / n, 2) if n else None for k in PER_KEYFRAME},
+            "reprojection_p99_px": details.get("reprojection_p99_px")}
+
+
 @flow(name="simulate", log_prints=True)
 def simulate_flow(params: Params) -> dict:
-    """Write the weather copy of one condition; returns the metrics written to reports/simulate/<name>/."""
+    """Write the weather copy of one condition; returns the figures written to reports/simulate/<name>/details.json."""
     cfg = params.simulate
     name = variant_name(condition_named(cfg.condition).name, cfg.aligned)  # an unknown condition: named first
     media = read_media(media_path(params.paths.data, cfg.condition))
@@ -143,7 +156,7 @@ def simulate_flow(params: Params) -> dict:
             fig_path = tracker.reports / "side_by_side.png"
             side_by_side(src_root, out_root, world.version, jobs[0].sample_token, name, fig_path)
             tracker.log_artifact(fig_path, "figures")
-        tracker.finish(metrics)
+        tracker.finish(metrics, headline(metrics))
         write_manifest(handoff, DatasetManifest(display_path(out_root), world.version, "simulate", world.sensors,
                                                 dataset_digest(out_root, world.version), world.scenes))
     return metrics

@@ -1,7 +1,8 @@
 """`simulate_summary` stage: one table of every simulate condition, aligned vs unaligned side by side.
 
-``python -m flows.simulate_summary`` reads ``reports/simulate/<condition>-<alignment>/metrics.json`` of every
-condition of the `simulate` matrix and writes ``reports/simulate/metrics.json`` (per condition: `SUMMARY_KEYS`) and
+``python -m flows.simulate_summary`` reads ``reports/simulate/<condition>-<alignment>/details.json`` of every
+condition of the `simulate` matrix and writes ``reports/simulate/details.json`` (per condition: `SUMMARY_KEYS`;
+``metrics.json`` holds only the number of variants, theirs are the DVC metrics) and
 ``reports/simulate/summary.png`` (LiDAR point labels per condition; aligned vs unaligned re-projection error), also
 logged to an MLflow child run. A condition without a metrics file is an error naming the stage to run.
 """
@@ -27,7 +28,7 @@ from weatheralign.data.errors import read_json_file  # noqa: E402
 SUMMARY_KEYS = ("dataroot", "points_unchanged", "points_attenuated", "points_scattered", "points_lost",
                 "points_clutter", "particles_rendered", "reprojection_mean_px", "reprojection_max_px",
                 "reprojection_p99_px", "reprojection_pairs", "seconds_per_sample", "num_samples")
-"""Keys copied per condition into ``reports/simulate/metrics.json``."""
+"""Keys copied per condition into ``reports/simulate/details.json``."""
 
 
 def condition_names() -> list[str]:
@@ -40,7 +41,7 @@ def collect(reports: Path, names: list[str]) -> dict[str, dict]:
     """Per condition name the `SUMMARY_KEYS` of its metrics file (missing keys -> None)."""
     out: dict[str, dict] = {}
     for name in names:
-        path = reports / "simulate" / name / "metrics.json"
+        path = reports / "simulate" / name / "details.json"
         metrics = read_json_file(path, f"run the stage simulate@{name} first (dvc repro simulate@{name})")
         out[name] = {k: metrics.get(k) for k in SUMMARY_KEYS}
     return out
@@ -81,7 +82,7 @@ def summary_figure(summary: dict[str, dict]) -> Figure:
 
 @flow(name="simulate_summary", log_prints=True)
 def simulate_summary_flow(params: Params) -> dict:
-    """Write reports/simulate/metrics.json and summary.png; returns the summary."""
+    """Write reports/simulate/details.json and summary.png; returns the summary."""
     with StageTracker(params, "simulate_summary", name="simulate") as tracker:
         summary = collect(params.paths.reports, condition_names())
         fig = summary_figure(summary)
@@ -89,7 +90,8 @@ def simulate_summary_flow(params: Params) -> dict:
         fig.savefig(fig_path, dpi=110)
         plt.close(fig)
         tracker.log_artifact(fig_path, "figures")
-        tracker.finish(summary, logged={"conditions": len(summary)})  # per condition: its simulate run
+        # the figures per condition are the simulate runs' own
+        tracker.finish(summary, {"variants": len(summary)}, logged={"conditions": len(summary)})
     return summary
 
 

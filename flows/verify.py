@@ -33,7 +33,7 @@ snow, rain):
    misalign severity and positions (`ParticlePart.camera_rate`); the same tests also run against the unaligned
    camera at the LiDAR's rate (``mmd_*_positions``: positions alone misaligned).
 
-Writes ``reports/verify/metrics.json`` (``conditions: {<condition>: {...}}`` plus ``classifier_accuracy``,
+Writes ``reports/verify/details.json`` (``conditions: {<condition>: {...}}`` plus ``classifier_accuracy``,
 ``control_mmd``, ``control_p``), ``reports/verify/table.md`` (the paper's Table 1 regenerated beside the paper's
 real-data figures) and figures (ECDFs, embeddings, permutation histograms, confusion matrix), also logged to MLflow
 with one child run per condition. The synthetic reference's sealed truth is never read here.
@@ -56,6 +56,7 @@ from prefect import flow  # noqa: E402
 from flows.common import gather, parse_stage_args, run_stage  # noqa: E402
 from tasks.tracking import StageTracker  # noqa: E402
 from tasks.verify import reference_frame_task, simulated_pair_task  # noqa: E402
+from weatheralign import atomic  # noqa: E402
 from weatheralign.calibrate.camera import camera_visibility_ratio  # noqa: E402
 from weatheralign.calibrate.histograms import IntensityHistograms, bootstrap_ks, frame_counts  # noqa: E402
 from weatheralign.calibrate.kid import feature_extractor, kid_from_features  # noqa: E402
@@ -71,7 +72,13 @@ from weatheralign.verify.classifier import (  # noqa: E402
     held_out_split,
     train_weather_classifier,
 )
-from weatheralign.verify.figures import confusion_figure, ecdf_figure, embedding_figure, permutation_figure  # noqa: E402
+from weatheralign.verify.figures import (  # noqa: E402
+    confusion_figure,
+    confusion_rows,
+    ecdf_figure,
+    embedding_figure,
+    permutation_figure,
+)
 from weatheralign.verify.frames import Severity, SimulatedPair  # noqa: E402
 from weatheralign.verify.mmd import mmd_test, paired_mmd_difference, paired_mmd_test  # noqa: E402
 from weatheralign.verify.table import table_markdown  # noqa: E402
@@ -108,8 +115,8 @@ def verified_conditions(ds: ReferenceDataset) -> dict[str, str]:
 
 
 def simulate_reports(params: Params, condition: str) -> dict:
-    """The aligned simulate stage's metrics of ``condition`` (its re-projection errors), or {} when not run."""
-    path = params.paths.reports / "simulate" / variant_name(condition, True) / "metrics.json"
+    """The aligned simulate stage's figures of ``condition`` (its re-projection errors), or {} when not run."""
+    path = params.paths.reports / "simulate" / variant_name(condition, True) / "details.json"
     return json.loads(path.read_text()) if path.is_file() else {}
 
 
@@ -161,7 +168,7 @@ def condition_metrics(name: str, ref_feat: np.ndarray, sims: list[SimulatedPair]
 
 @flow(name="verify", log_prints=True)
 def verify_flow(params: Params) -> dict:
-    """The fused-feature check; returns the metrics written to reports/verify/metrics.json."""
+    """The fused-feature check; returns the figures written to reports/verify/details.json."""
     cfg = params.verify
     t0 = time.time()
     with StageTracker(params, "verify") as tracker:
@@ -263,6 +270,7 @@ def verify_flow(params: Params) -> dict:
         _figure(ecdf_figure(histograms, {n: per_condition[n]["ks"] for n in conditions}),
                 tracker.reports / "ecdf.png", tracker)
         _figure(confusion_figure(report), tracker.reports / "confusion.png", tracker)
+        atomic.write_json(tracker.reports / "confusion.json", confusion_rows(report), indent=1)
         control_p = max(m["control_p"] for m in per_condition.values())
         metrics = {
             "reference_root": str(ds.root), "reference_source": params.reference.source,
@@ -279,12 +287,26 @@ def verify_flow(params: Params) -> dict:
         }
         (tracker.reports / "table.md").write_text(table_markdown(metrics))
         tracker.log_artifact(tracker.reports / "table.md")
-        tracker.finish(metrics, logged={"classifier_accuracy": report.accuracy, "control_p": control_p,
-                                        "seconds": metrics["seconds"]["total"]}, children={
+        logged = {"classifier_accuracy": report.accuracy, "control_p": control_p,
+                  "seconds": metrics["seconds"]["total"]}
+        tracker.finish(metrics, headline(metrics), logged=logged, children={
             name: ({"weather": name, "reference_split": level},
                    {k: v for k, v in per_condition[name].items() if isinstance(v, (int, float))})
             for name, level in conditions.items()})
     return metrics
+
+
+HEADLINE = ("ks", "kid", "mmd_aligned", "mmd_unaligned", "mmd_difference", "mmd_difference_p")
+"""Per verified condition, the figures of reports/verify/metrics.json (the rest, intervals included, in
+details.json)."""
+
+
+def headline(details: dict) -> dict:
+    """The classifier's accuracy, the control's MMD and p-value, per condition its `HEADLINE` figures, and the
+    stage's seconds."""
+    return {**{k: details[k] for k in ("classifier_accuracy", "control_mmd", "control_p", "control_detected")},
+            **{name: {k: c.get(k) for k in HEADLINE} for name, c in details["conditions"].items()},
+            "seconds": details["seconds"]["total"]}
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -89,9 +89,18 @@ def write_figures(dataroot: Path, params: Params, tracker: StageTracker) -> None
     tracker.log_artifact(bev, "figures")
 
 
+HEADLINE = ("num_scenes", "num_samples", "num_sweeps", "num_annotations", "seconds_per_sample")
+"""The figures of reports/world/metrics.json (the rest, class counts included, in details.json)."""
+
+
+def headline(details: dict) -> dict:
+    """The `HEADLINE` figures of the stage's details (those it has)."""
+    return {k: details[k] for k in HEADLINE if k in details}
+
+
 @flow(name="world", log_prints=True)
 def world_flow(params: Params) -> dict:
-    """Build (or check) the clean dataset; returns the metrics written to reports/world/metrics.json."""
+    """Build (or check) the clean dataset; returns the figures written to reports/world/details.json."""
     manifest_file = manifest_path(params.paths.data, "world")
     manifest_file.unlink(missing_ok=True)
     with StageTracker(params, "world") as tracker:
@@ -111,7 +120,7 @@ def world_flow(params: Params) -> dict:
         if params.world.source != "synthetic":  # the user's dataroot, read in place
             tracker.log_dataset(f"{params.world.source}-{params.world.version}", manifest.content_digest, root_rel,
                                 "source")
-        tracker.finish(metrics)
+        tracker.finish(metrics, headline(metrics))
         write_manifest(manifest_file, manifest)
     return metrics
 

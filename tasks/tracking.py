@@ -1,5 +1,6 @@
-"""One helper that writes a stage's ``reports/<name>/metrics.json`` (for DVC) and logs the same numbers, params,
-figures, input datasets and models to MLflow.
+"""One helper that writes a stage's figures (``reports/<name>/details.json``, every figure the stage measured, and
+``reports/<name>/metrics.json``, its headline scalars: the DVC metrics that ``dvc exp show`` and ``dvc metrics diff``
+compare) and logs the numbers, params, figures, input datasets and models to MLflow.
 
 Runs. One parent run per pipeline run (``kind = pipeline``), found by the pipeline id: ``WEATHERALIGN_PIPELINE_ID``
 (set by ``make reproduce``), else DVC's ``DVC_EXP_NAME``; a stage run on its own gets a fresh parent. Under it one run
@@ -44,8 +45,10 @@ MLFLOW_UI_URL = "http://127.0.0.1:5000"
 artifacts point there."""
 SYSTEM_METRICS_INTERVAL_S = 10.0
 EXPERIMENT_KIND_TAG, EXPERIMENT_KIND = "mlflow.experimentKind", "custom_model_development"
-HEADLINE_ROWS = 40
-"""Rows of a stage's Prefect table artifact."""
+HEADLINE_LIMIT = 40
+"""Most scalars of a stage's ``metrics.json`` (its headline figures, one ``dvc exp show`` column each) and rows of its
+Prefect table artifact."""
+Scalar = int | float | str | bool | None
 
 
 def flatten(tree: dict[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -190,7 +193,8 @@ def tracking_client(params: Params, repo: Path) -> Any:
 
 
 class StageTracker:
-    """Context manager around one stage run. ``finish(metrics)`` writes metrics.json and logs to MLflow.
+    """Context manager around one stage run. ``finish(details, headline)`` writes details.json and metrics.json and logs
+    to MLflow.
 
     Args:
         stage: the DVC stage (the ``stage`` tag); name: the run's name and its report folder under ``paths.reports``
@@ -273,24 +277,28 @@ class StageTracker:
             for key, value in tags.items():
                 self.client.set_model_version_tag(registered_name, version, key, value)
 
-    def finish(self, metrics: dict[str, Any], logged: dict[str, float] | None = None,
+    def finish(self, details: dict[str, Any], headline: dict[str, Any], logged: dict[str, float] | None = None,
                children: dict[str, tuple[dict[str, str], dict[str, Any]]] | None = None) -> None:
-        """Write ``reports/<name>/metrics.json`` = ``metrics`` and log to MLflow: ``logged`` (default: every numeric
-        leaf of ``metrics``) on the stage run, and per entry ``label: (tags, values)`` of ``children`` a child run
-        ``<name>/<label>`` with those tags and the numeric leaves of ``values`` (so a per-condition or per-level
-        figure keeps one name across runs)."""
-        atomic.write_json(self.reports / "metrics.json", metrics, indent=2)
+        """Write ``reports/<name>/details.json`` = ``details`` and ``reports/<name>/metrics.json`` = ``headline``
+        (checked by `check_headline`), and log to MLflow: ``logged`` (default: every numeric leaf of ``headline``)
+        on the stage run, and per entry ``label: (tags, values)`` of ``children`` a child run ``<name>/<label>``
+        with those tags and the numeric leaves of ``values`` (so a per-condition or per-level figure keeps one name
+        across runs)."""
+        check_headline(headline, self.name)
+        atomic.write_json(self.reports / "details.json", details, indent=2)
+        atomic.write_json(self.reports / "metrics.json", headline, indent=2)
         run_url = None if self.client is None else mlflow_run_url(self.experiment_id, self.run_id)
-        publish_prefect_artifacts(self.name, metrics, run_url)
+        publish_prefect_artifacts(self.name, headline, run_url)
         if self.client is None:
             return
         for label, (tags, values) in (children or {}).items():
             with self.child(f"{self.name}/{label}", {"kind": "condition", **tags}) as run:
                 run.log_metrics(values)
-        numeric = numeric_leaves(metrics) if logged is None else dict(logged)
+        numeric = numeric_leaves(headline) if logged is None else dict(logged)
         numeric["stage_seconds"] = time.time() - self._t0
         log_metrics(self.client, self.run_id, numeric)
-        self.client.log_artifact(self.run_id, str(self.reports / "metrics.json"))
+        for name in ("metrics.json", "details.json"):
+            self.client.log_artifact(self.run_id, str(self.reports / name))
 
     def child(self, name: str, tags: dict[str, str]) -> ChildRun:
         """A nested MLflow run under this stage's run (one condition, training, evaluation or comparison) with the
@@ -399,7 +407,19 @@ class ChildRun:
         self.close(failed=exc_type is not None)
 
 
-def headline_rows(metrics: dict[str, Any], limit: int = HEADLINE_ROWS) -> list[dict[str, str]]:
+def check_headline(headline: dict[str, Any], stage: str) -> None:
+    """A ValueError unless ``headline`` is a tree of scalars (numbers, strings, booleans, None) with at most
+    `HEADLINE_LIMIT` leaves: a stage's DVC metrics stay one screen of ``dvc exp show`` columns."""
+    leaves = flatten(headline)
+    bad = [k for k, v in leaves.items() if not isinstance(v, Scalar)]
+    if bad:
+        raise ValueError(f"{stage}: headline metrics must be scalars; {bad[:3]} are not (put them in details.json)")
+    if len(leaves) > HEADLINE_LIMIT:
+        raise ValueError(f"{stage}: {len(leaves)} headline metrics, at most {HEADLINE_LIMIT} "
+                         "(the rest belongs in details.json)")
+
+
+def headline_rows(metrics: dict[str, Any], limit: int = HEADLINE_LIMIT) -> list[dict[str, str]]:
     """A stage's headline figures as table rows ``{"figure", "value"}``: the scalar leaves of ``metrics`` (numbers,
     strings, booleans; lists left out), shallowest first, at most ``limit``; numbers to 4 significant digits."""
     leaves = [(key, value) for key, value in flatten(metrics).items()
@@ -446,7 +466,7 @@ def publish_prefect_artifacts(name: str, metrics: dict[str, Any], mlflow_url: st
             return
         key = artifact_key(name)
         create_table_artifact(headline_rows(metrics), key=f"{key}-figures",
-                              description=f"{name}: headline figures (all of them: reports/{name}/metrics.json)")
+                              description=f"{name}: headline figures (all of them: reports/{name}/details.json)")
         if mlflow_url:
             create_link_artifact(mlflow_url, link_text=f"MLflow run of {name}", key=f"{key}-mlflow",
                                  description=f"{name}: params, metrics, figures and models in MLflow")

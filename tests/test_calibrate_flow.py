@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from flows.calibrate_fog import HEADLINE as CALIBRATE_FOG_HEADLINE
 from weatheralign.camera.depth import dense_depth
 from weatheralign.camera.fog import estimate_airlight, fog_image
 from weatheralign.data.stf import load_stf_frame
@@ -87,7 +88,7 @@ def test_calibrate_fog_flow_on_an_stf_layout_tree(tmp_path: Path) -> None:
         env={**os.environ, "PYTHONPATH": str(REPO), "PREFECT_LOGGING_LEVEL": "WARNING"})
     assert run.returncode == 0, run.stderr[-3000:]
     levels = json.loads((data / "calibrate_fog" / "fog_levels.json").read_text())
-    metrics = json.loads((reports / "calibrate_fog" / "metrics.json").read_text())
+    metrics = json.loads((reports / "calibrate_fog" / "details.json").read_text())
     grid = (0.001, 0.005, 0.01, 0.02, 0.04, 0.06, 0.08, 0.1)
     for level, alpha in LEVELS.items():
         lo = max(g for g in grid if g < alpha)
@@ -98,9 +99,16 @@ def test_calibrate_fog_flow_on_an_stf_layout_tree(tmp_path: Path) -> None:
         for key in ("alpha", "beta", "mor", "camera_visibility_ratio", "kid", "kid_backbone"):
             assert key in m
         assert m["kid_backbone"] == "efficientnet_lite0"
+        ecdf = json.loads((reports / "calibrate_fog" / f"ecdf_{level}.json").read_text())  # the DVC plot's data
+        assert len(ecdf) == 256 and ecdf[-1]["reference"] == ecdf[-1]["simulated"] == ecdf[-1]["clear"] == 1.0
+        for key in ("reference", "simulated", "clear"):
+            assert all(a[key] <= b[key] for a, b in zip(ecdf, ecdf[1:]))
         # the foggy images' sky is the airlight the tree was fogged with, the clear image's sky's luminance: gain 1
         assert len(levels[level]["airlight_gains"]) == m["airlight_frames"] == 2
         assert levels[level]["airlight_gains"] == pytest.approx([1.0, 1.0], abs=0.02)
+    headline = json.loads((reports / "calibrate_fog" / "metrics.json").read_text())
+    assert headline == {**{level: {k: metrics[level][k] for k in CALIBRATE_FOG_HEADLINE} for level in LEVELS},
+                        "seconds": metrics["seconds"]}
     assert levels["dense"]["alpha"] > levels["light"]["alpha"]
     for name in ("ecdf_light.png", "ks_grid_dense.png", "camera_dense.png"):
         assert (reports / "calibrate_fog" / name).is_file()

@@ -14,6 +14,7 @@ from pathlib import Path
 import pytest
 
 from flows.detect import camera_weather_set
+from flows.detect import headline as headline_of
 from weatheralign.conditions import CONDITIONS, variant_name
 from weatheralign.data.nuscenes import load_frame, open_nuscenes
 from weatheralign.manifest import DatasetManifest, dataset_digest, manifest_path, write_manifest
@@ -67,7 +68,7 @@ def stage_run(tiny_world, tmp_path_factory):
     data, reports, run = _stage_env(tiny_world, tmp, tiny_world.dataroot, "synthetic")
     first = run()
     assert first.returncode == 0, first.stderr[-4000:]
-    metrics = json.loads((reports / "detect" / "metrics.json").read_text())
+    metrics = json.loads((reports / "detect" / "details.json").read_text())
     return tmp, data, reports, metrics, run
 
 
@@ -80,7 +81,7 @@ def test_a_real_layout_dataroot_goes_through_the_same_stage(tiny_world, tmp_path
     _, reports, run = _stage_env(tiny_world, tmp_path / "stage", real, "nuscenes")
     done = run()
     assert done.returncode == 0, done.stderr[-4000:]
-    metrics = json.loads((reports / "detect" / "metrics.json").read_text())
+    metrics = json.loads((reports / "detect" / "details.json").read_text())
     variants = [variant_name(c, a) for c in CONDITIONS for a in (True, False)]
     assert set(metrics["models"]["pretrained"]) == {"clean", *variants, *map(camera_weather_set, variants)}
     assert 0.0 <= metrics["models"]["pretrained"]["clean"]["map"] <= 1.0
@@ -118,6 +119,26 @@ def test_metrics_layout_and_reports(stage_run):
     for name in ("table_alignment.md", "table_finetune.md", "learning_curve.png", "predictions_bev.png"):
         assert (reports / "detect" / name).stat().st_size > 0
     assert "paper" in (reports / "detect" / "table_alignment.md").read_text()
+
+
+def test_headline_metrics_and_plot_data(stage_run):
+    """metrics.json (what ``dvc exp show`` compares) is the headline of details.json; the learning curve and the
+    per-class AP are written as DVC plot data."""
+    _, _, reports, metrics, _ = stage_run
+    headline = json.loads((reports / "detect" / "metrics.json").read_text())
+    assert headline == headline_of(metrics, list(CONDITIONS), ["snow"])
+    assert headline["clean"]["camera_only_map"] == metrics["modality_ablation"]["camera_only"]["map"]
+    assert headline["unaligned_minus_aligned_map"]["snow"] == metrics["differences"][
+        "pretrained:snow:unaligned-aligned:map"]["difference"]
+    assert set(headline["map"]) == {variant_name(c, a) for c in CONDITIONS for a in (True, False)}
+    curve = json.loads((reports / "detect" / "learning_curve.json").read_text())
+    assert [r["step"] for r in curve] == [2, 4]
+    for row in curve:
+        maps = [p["map"] for s in ("0", "1") for p in metrics["learning_curve"][s] if p["step"] == row["step"]]
+        assert row["map_mean"] == pytest.approx(sum(maps) / 2) and (row["map_min"], row["map_max"]) == (min(maps),
+                                                                                                       max(maps))
+    per_class = json.loads((reports / "detect" / "per_class_ap.json").read_text())
+    assert {r["class"]: r["ap"] for r in per_class} == metrics["models"]["pretrained"]["clean"]["per_class_ap"]
 
 
 def test_identical_copies_score_identically(stage_run):
@@ -222,7 +243,7 @@ def test_rerun_resumes_without_training_or_evaluating(stage_run):
     assert again.returncode == 0, again.stderr[-4000:]
     assert {p: p.stat().st_mtime_ns for p in checkpoints} == checkpoints
     assert {p: p.stat().st_mtime_ns for p in evals} == evals
-    rerun = json.loads((reports / "detect" / "metrics.json").read_text())
+    rerun = json.loads((reports / "detect" / "details.json").read_text())
     assert rerun["models"] == metrics["models"] and rerun["learning_curve"] == metrics["learning_curve"]
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from flows.common import RunLabel
-from tasks.tracking import artifact_key, headline_rows, mlflow_run_url
+from tasks.tracking import HEADLINE_LIMIT, artifact_key, check_headline, headline_rows, mlflow_run_url
 
 from .conftest import REPO
 
@@ -32,7 +32,8 @@ STAGE_SCRIPT = textwrap.dedent('''
         with StageTracker(params, "viewcheck", name="viewcheck/snow-aligned") as tracker:
             values = gather([square.submit(i) for i in range(5)], "viewcheck: squares", False)
             print(f"squares {values}")
-            tracker.finish({"total": sum(values), "detail": {"first": values[0], "list": values}})
+            tracker.finish({"total": sum(values), "detail": {"first": values[0], "list": values}},
+                           {"total": sum(values)})
         return values
 
     run_stage(viewcheck, parse_stage_args("viewcheck", sys.argv[1:]), runner="threads",
@@ -54,6 +55,16 @@ def test_headline_rows_shallowest_first_scalars_only_and_capped():
     assert rows == [{"figure": "samples", "value": "400"}, {"figure": "name", "value": "snow"},
                     {"figure": "flag", "value": "True"}, {"figure": "deep.map", "value": "0.1235"}]
     assert len(headline_rows({f"k{i}": i for i in range(100)}, limit=40)) == 40
+
+
+def test_headline_metrics_are_few_scalars():
+    """A stage's metrics.json (one ``dvc exp show`` column per leaf) holds at most `HEADLINE_LIMIT` scalars."""
+    check_headline({"clean": {"map": 0.3, "ok": True, "name": "x", "missing": None}}, "detect")
+    check_headline({f"k{i}": i for i in range(HEADLINE_LIMIT)}, "detect")
+    with pytest.raises(ValueError, match=r"detect: 41 headline metrics, at most 40"):
+        check_headline({f"k{i}": i for i in range(HEADLINE_LIMIT + 1)}, "detect")
+    with pytest.raises(ValueError, match=r"world: headline metrics must be scalars; \['a.list'\]"):
+        check_headline({"a": {"list": [1, 2]}}, "world")
 
 
 def test_artifact_keys_and_mlflow_links(monkeypatch):

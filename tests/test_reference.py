@@ -549,7 +549,7 @@ def test_reference_flow_writes_metrics_figure_and_resumes(tmp_path):
             "--set", "reference.camera.image_scale=0.1"]
     run = subprocess.run(args, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]
-    metrics = json.loads((tmp_path / "reports" / "reference" / "metrics.json").read_text())
+    metrics = json.loads((tmp_path / "reports" / "reference" / "details.json").read_text())
     assert metrics["source"] == "synthetic" and metrics["root"] == "data/reference/synthetic"
     assert metrics["frames_total"] == 10 and metrics["frames_rendered_this_run"] == 10
     assert metrics["particle_returns_per_scan"]["snow"] > 0 and metrics["particle_returns_per_scan"]["clear"] == 0
@@ -571,5 +571,5 @@ def test_reference_flow_writes_metrics_figure_and_resumes(tmp_path):
     assert {a.path for a in client.list_artifacts(child.info.run_id, "figures")} == {"figures/overview.png"}
     run = subprocess.run(args, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]
-    again = json.loads((tmp_path / "reports" / "reference" / "metrics.json").read_text())
+    again = json.loads((tmp_path / "reports" / "reference" / "details.json").read_text())
     assert again["frames_rendered_this_run"] == 0 and again["splits"] == splits

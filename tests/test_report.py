@@ -14,11 +14,14 @@ from weatheralign.data.errors import DataFormatError
 from weatheralign.report import (
     PAPER_TABLE1,
     StageCost,
+    StageSource,
     cost_table,
     findings,
     markdown_to_html,
     redam_table,
     reprojection_table,
+    source_line,
+    summary_markdown,
 )
 
 REPO = Path(__file__).resolve().parents[1]
@@ -87,6 +90,20 @@ def test_reprojection_table_shows_the_papers_figures_beside_aligned_snow_and_rai
     assert rows[1].endswith("| — |") and rows[2].startswith("| fog_light-aligned | — | — | 0 |")
 
 
+def test_every_table_names_its_mlflow_run_and_dvc_experiment():
+    """The summary names under each table the stage run it came from (a link to its MLflow page) and the DVC
+    experiment it ran in; without tracking no such line."""
+    sources = {"detect": StageSource("detect", "detect", "http://127.0.0.1:5000/#/experiments/1/runs/abc",
+                                     "exp-snow-5"),
+               "calibrate_fog": StageSource("calibrate_fog", "calibrate_fog", "http://x/runs/def", "workspace")}
+    assert source_line(sources, "detect") == ("*From `detect`: MLflow run [detect](http://127.0.0.1:5000/#/experiments/"
+                                              "1/runs/abc), DVC experiment `exp-snow-5`.*")
+    assert source_line(sources, "simulate", "verify") == ""
+    text = summary_markdown({"calibrate_fog": {}}, None, ["## Table 2\n\n| a |\n| --- |\n| 1 |"], {}, [], sources)
+    assert text.count("DVC experiment `exp-snow-5`") == 1 and text.count("[calibrate_fog](http://x/runs/def)") == 1
+    assert "MLflow run" not in summary_markdown({"calibrate_fog": {}}, None, ["## Table 2"], {}, [])
+
+
 def test_cost_table_totals():
     table = cost_table([StageCost("world", 360.0, 11_000_000_000), StageCost("media", None, None)])
     assert "| world | 6.0 min | 11.00 GB |" in table and "| media | — | — |" in table
@@ -118,7 +135,7 @@ def test_html_page_is_self_contained(tmp_path: Path):
     assert "<script" not in page
 
 
-@pytest.mark.skipif(not (REPORTS / "detect" / "metrics.json").is_file(), reason="no committed reports")
+@pytest.mark.skipif(not (REPORTS / "detect" / "details.json").is_file(), reason="no committed reports")
 def test_report_stage_on_the_committed_reports(tmp_path: Path):
     from flows.report import report_flow
     from tests.conftest import tiny_params
@@ -142,22 +159,23 @@ def test_report_stage_on_the_committed_reports(tmp_path: Path):
     assert "Severity curve: snow (experiments from dvc exp show)" in text
     for heading in ("## Findings", "## Table 1", "## ReDAM", "Table 2", "Table 3", "## What the run cost"):
         assert heading in text
-    assert out["findings_total"] == len(json.loads((REPORTS / "detect" / "metrics.json").read_text())["differences"])
+    assert out["findings_total"] == len(json.loads((REPORTS / "detect" / "details.json").read_text())["differences"])
     assert "| world | — | 0.00 GB |" in text and "| simulate | — | 0.00 GB |" in text  # 1000 bytes, counted once
-    dense = json.loads((REPORTS / "calibrate_fog" / "metrics.json").read_text())["dense"]["alpha"]
+    dense = json.loads((REPORTS / "calibrate_fog" / "details.json").read_text())["dense"]["alpha"]
     assert f"{dense / 0.05 - 1:+.1%}" in text
     page = (reports / "summary.html").read_text()
     assert page.count("data:image/png;base64,") == out["figures"] >= 4
-    assert json.loads((reports / "report" / "metrics.json").read_text())["findings"] == out["findings"]
+    assert json.loads((reports / "report" / "details.json").read_text())["findings"] == out["findings"]
+    assert json.loads((reports / "report" / "metrics.json").read_text())["findings_total"] == out["findings_total"]
     assert "needs the `verify` stage, which did not run" in text
     (reports / "verify").mkdir()
-    (reports / "verify" / "metrics.json").write_text(json.dumps({"conditions": {}}))
+    (reports / "verify" / "details.json").write_text(json.dumps({"conditions": {}}))
     (reports / "verify" / "table.md").write_text("# Table 1 regenerated\n\n## Ours\n\n| | snow |\n|---|---|\n")
     report_flow.fn(params)
     text = (reports / "summary.md").read_text()
     assert "### Table 1 regenerated" in text and "#### Ours" in text and "did not run" not in text
     shutil.rmtree(reports / "detect")
-    with pytest.raises(DataFormatError, match=r"detect/metrics.json: missing; run the stage detect first"):
+    with pytest.raises(DataFormatError, match=r"detect/details.json: missing; run the stage detect first"):
         report_flow.fn(params)
 
 

@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from flows.severity import LEVELS, curve_rows, named_level, queue_command, severity_value
+from flows.severity import LEVELS, ExperimentFigures, curve_rows, named_level, queue_command, severity_value
 from weatheralign.config import load_params
 
 from .test_stage_contracts import _dvc, _project_repo
@@ -44,33 +44,29 @@ def test_named_levels_are_valid_params_and_grow_in_severity(tmp_path):
                                    "particles": {"snow": {"rate_mm_h": 2.0}}}) is None
 
 
-def _entry(name: str, rev: str, rate: float, lost: int, scattered: int, maps: tuple[float, float] | None) -> dict:
-    metrics = {"reports/simulate/snow-aligned/metrics.json": {"data": {
-        "num_samples": 4, "points_lost": lost, "points_scattered": scattered}}}
-    if maps is not None:
-        metrics["reports/detect/metrics.json"] = {"data": {"models": {"pretrained": {
-            "snow-aligned": {"map": maps[0]}, "snow-unaligned": {"map": maps[1]}}}}}
-    return {"rev": rev, "name": name, "data": {
-        "params": {"params.yaml": {"data": {"particles": {"snow": {"rate_mm_h": rate}}}}}, "metrics": metrics}}
+def _experiment(name: str, rev: str, rate: float, lost: float, scattered: float,
+                maps: tuple[float, float] | None) -> ExperimentFigures:
+    return ExperimentFigures(name, rev, {"particles": {"snow": {"rate_mm_h": rate}}},
+                             {"points_lost_per_keyframe": lost, "points_scattered_per_keyframe": scattered},
+                             {} if maps is None else {"map": {"snow-aligned": maps[0], "snow-unaligned": maps[1]}})
 
 
-def test_curve_rows_from_exp_show_json():
-    """The workspace, the baseline and every experiment with the condition's metrics, sorted by severity; an entry
-    without them (or without the param) is left out."""
-    shown = [
-        _entry("workspace", "workspace", 2.0, 40, 400, None),
-        {**_entry("main", "abc", 2.0, 40, 400, None), "experiments": [
-            {"name": "severity-snow-5", "revs": [_entry("severity-snow-5", "e5", 8.0, 200, 1600, (0.2, 0.25))]},
-            {"name": "severity-snow-1", "revs": [_entry("severity-snow-1", "e1", 0.5, 8, 100, (0.3, 0.3))]},
-            {"name": "broken", "revs": [{"rev": "e9", "name": "broken", "data": {}, "error": {"msg": "failed"}}]},
-        ]},
+def test_curve_rows_of_the_experiments():
+    """The workspace, the baseline and every experiment with the condition's metrics, sorted by severity; an
+    experiment without them (or without the param) is left out."""
+    experiments = [
+        _experiment("workspace", "workspace", 2.0, 10.0, 100.0, None),
+        _experiment("main", "abc", 2.0, 10.0, 100.0, None),
+        _experiment("severity-snow-5", "e5", 8.0, 50.0, 400.0, (0.2, 0.25)),
+        _experiment("severity-snow-1", "e1", 0.5, 2.0, 25.0, (0.3, 0.3)),
+        ExperimentFigures("broken", "e9", {"particles": {"snow": {"rate_mm_h": 4.0}}}, {}, {}),
     ]
-    rows = curve_rows(shown, "snow")
+    rows = curve_rows(experiments, "snow")
     assert [r["experiment"] for r in rows] == ["severity-snow-1", "main", "workspace", "severity-snow-5"]
     assert [r["severity"] for r in rows] == [0.5, 2.0, 2.0, 8.0]
     assert rows[0]["points_lost_per_keyframe"] == 2.0 and rows[-1]["points_scattered_per_keyframe"] == 400.0
     assert rows[-1]["map_unaligned"] == 0.25 and rows[1]["map_aligned"] is None
-    assert curve_rows(shown, "rain") == []
+    assert curve_rows(experiments, "rain") == []
 
 
 @pytest.mark.slow
@@ -121,7 +117,9 @@ def test_queued_severity_experiments_and_their_curve(tmp_path: Path) -> None:
     diff = _dvc(repo, "metrics", "diff", "severity-snow-1", "severity-snow-5", "--json")
     assert diff.returncode == 0, diff.stderr[-2000:]
     changed = json.loads(diff.stdout)["reports/simulate/snow-aligned/metrics.json"]
-    assert changed["points_scattered"]["diff"] > 0
+    assert changed["points_scattered_per_keyframe"]["diff"] > 0
+    plots = _dvc(repo, "plots", "show", "--json")  # dvc.yaml's severity plot draws the curve's JSON
+    assert '"Severity curve, snow' in plots.stdout and '"severity": 8.0' in plots.stdout
 
 
 def _env(repo: Path) -> dict[str, str]:

@@ -321,7 +321,7 @@ def test_flow_writes_copy_and_metrics(world, tmp_path):
                           "simulate.max_samples=1"], cwd=REPO, capture_output=True, text=True, timeout=600, env=env)
     assert run.returncode == 0, run.stderr[-3000:]
     out = data / "simulate" / "fog_dense-unaligned"
-    metrics = json.loads((reports / "simulate" / "fog_dense-unaligned" / "metrics.json").read_text())
+    metrics = json.loads((reports / "simulate" / "fog_dense-unaligned" / "details.json").read_text())
     assert metrics["samples_simulated_this_run"] == 1 and metrics["condition"] == "fog_dense"
     assert (metrics["fog_alpha"], metrics["fog_beta"], metrics["fog_levels"]) == (0.05, 0.0007, "calibrated")
     assert 0.012 <= metrics["camera_fog_alpha"] <= 0.05
@@ -351,7 +351,7 @@ def test_flow_writes_copy_and_metrics(world, tmp_path):
     media_runs = client.search_runs([exp.experiment_id], "tags.stage = 'media' AND tags.kind = 'condition'")
     assert {r.data.tags["weather"]: r.data.tags["severity"] for r in media_runs} == {
         "fog_light": "light", "fog_dense": "dense", "snow": "3 mm/h", "rain": "50 mm/h", "fog_snow": "light + 3 mm/h"}
-    media_metrics = json.loads((reports / "media" / "metrics.json").read_text())
+    media_metrics = json.loads((reports / "media" / "details.json").read_text())
     assert media_metrics["precipitation_rates"] == {"snow": {"rate_mm_h": 3.0, "source": "calibrated"}, "rain": {
         "rate_mm_h": 50.0, "source": "params (no rain split in the reference)"}}
     snow = json.loads((data / "media" / "snow.json").read_text())

@@ -110,27 +110,31 @@ def test_simulate_matrix_equals_the_conditions_dict() -> None:
 
 
 def test_summary_and_media_enumerate_every_condition() -> None:
-    summary_deps = [d for d in DVC["simulate_summary"]["deps"] if "metrics.json" in d]
-    expected = [f"${{paths.reports}}/simulate/{c}-{a}/metrics.json" for c in CONDITIONS for a in ALIGNMENTS]
+    summary_deps = [d for d in DVC["simulate_summary"]["deps"] if "details.json" in d]
+    expected = [f"${{paths.reports}}/simulate/{c}-{a}/details.json" for c in CONDITIONS for a in ALIGNMENTS]
     assert summary_deps == expected
     media_outs = [next(iter(o)) if isinstance(o, dict) else o for o in DVC["media"]["outs"]]
-    assert media_outs == [f"${{paths.data}}/media/{c}.json" for c in CONDITIONS]
+    expected_outs = [f"${{paths.data}}/media/{c}.json" for c in CONDITIONS] + ["${paths.reports}/media/details.json"]
+    assert media_outs == expected_outs
 
 
 def test_simulate_depends_only_on_its_condition_media() -> None:
     data_deps = [d for d in DVC["simulate"]["deps"] if d.startswith("${paths.data}")]
     assert sorted(data_deps) == ["${paths.data}/manifests/world.json", "${paths.data}/media/${item.condition}.json"]
-    # their job is to summarise the other stages' metrics (verify: Table 1's re-projection rows are simulate's)
+    # their job is to summarise the other stages' figures (verify: Table 1's re-projection rows are simulate's)
     summaries = ("simulate_summary", "verify", "report")
-    assert not any("metrics.json" in d for name, s in DVC.items() if name not in summaries
+    assert not any(d.endswith(("metrics.json", "details.json")) for name, s in DVC.items() if name not in summaries
                    for d in s.get("deps", [])), "a stage hands data on through metrics"
+    assert not any(d.endswith("metrics.json") for s in DVC.values() for d in s.get("deps", [])), \
+        "a stage reads another's headline metrics (read its details.json)"
 
 
 def test_datasets_are_handed_on_by_manifest_not_by_folder() -> None:
     """The dataset stages' DVC outputs are their manifests (DVC would hash every file of every weather copy and of the
     world: ~10 s per copy, 40 s for the world); `detect` depends on every copy's manifest."""
-    def outs(stage: str) -> list[str]:
-        return [next(iter(o)) if isinstance(o, dict) else o for o in DVC[stage].get("outs", [])]
+    def outs(stage: str) -> list[str]:  # the data outputs (the reports' details.json aside)
+        return [p for o in DVC[stage].get("outs", []) for p in [next(iter(o)) if isinstance(o, dict) else o]
+                if not p.startswith("${paths.reports}")]
 
     assert outs("world") == ["${paths.data}/manifests/world.json"]
     assert outs("simulate") == ["${paths.data}/manifests/simulate-${item.condition}-${item.alignment}.json"]

@@ -90,8 +90,15 @@ def test_verify_and_rate_calibration_on_an_stf_layout_tree_with_snow_and_rain(tm
                          cwd=REPO, capture_output=True, text=True, timeout=HANG_GUARD_S,
                          env={**os.environ, "PYTHONPATH": str(REPO), "PREFECT_LOGGING_LEVEL": "WARNING"})
     assert run.returncode == 0, run.stderr[-3000:]
-    metrics = json.loads((reports / "verify" / "metrics.json").read_text())
+    metrics = json.loads((reports / "verify" / "details.json").read_text())
     assert set(metrics["conditions"]) == {"fog_light", "fog_dense", "snow", "rain"}
+    headline = json.loads((reports / "verify" / "metrics.json").read_text())  # what DVC compares
+    assert headline["control_p"] == metrics["control_p"]
+    assert headline["snow"]["ks"] == metrics["conditions"]["snow"]["ks"]
+    confusion = json.loads((reports / "verify" / "confusion.json").read_text())  # the DVC confusion plot's data
+    assert len(confusion) == metrics["classifier_held_out"]
+    correct = sum(r["actual"] == r["predicted"] for r in confusion)
+    assert correct == round(metrics["classifier_accuracy"] * len(confusion))
     for name, m in metrics["conditions"].items():
         assert all(key in m for key in KEYS), (name, sorted(set(KEYS) - set(m)))
         assert m["frames_reference"] == m["frames_simulated"] == 2  # held out of the classifier's training
@@ -122,6 +129,6 @@ def test_verify_and_rate_calibration_on_an_stf_layout_tree_with_snow_and_rain(tm
     for kind, truth in (("snow", 3.0), ("rain", 60.0)):  # the rates the tree's snow and rain were made at
         assert rates[kind]["ci_low"] <= truth <= rates[kind]["ci_high"], rates
         assert abs(rates[kind]["rate_mm_h"] / truth - 1.0) < 0.3, rates
-    tuned = json.loads((reports / "calibrate_precipitation" / "metrics.json").read_text())
+    tuned = json.loads((reports / "calibrate_precipitation" / "details.json").read_text())
     assert tuned["kinds"] == ["snow", "rain"] and not tuned["snow"]["beyond_grid"]
     assert (reports / "calibrate_precipitation" / "rates.png").is_file()

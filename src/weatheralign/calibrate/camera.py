@@ -376,7 +376,7 @@ class VisibilityComparison:
     reference: SetSeverity
 
     def metrics(self) -> dict[str, float | str | None]:
-        """Flat numbers for metrics.json / MLflow; a figure that could not be estimated is None (JSON null) and
+        """Flat numbers for details.json / MLflow; a figure that could not be estimated is None (JSON null) and
         ``camera_check`` says why (``ok``, or how many images of each set gave an estimate)."""
         values = {"camera_visibility_ratio": self.ratio,
                   "camera_alpha_sim": self.simulated.alpha, "camera_alpha_ref": self.reference.alpha,

@@ -76,6 +76,17 @@ def ecdf_figure(
     return fig
 
 
+def ecdf_rows(sets: dict[str, IntensityHistograms]) -> list[dict[str, float]]:
+    """The pooled intensity ECDFs of ``sets`` (name -> histograms of one scale) as DVC plot rows, one per bin:
+    ``intensity`` (the bin's lower edge on the sets' scale) and each set's ECDF."""
+    scales = {h.intensity_max for h in sets.values()}
+    if len(scales) != 1:
+        raise ValueError(f"ecdf_rows: the sets have different intensity scales {sorted(scales)}")
+    x = np.arange(NUM_BINS) * (scales.pop() / 255.0)
+    ecdfs = {name: h.ecdf() for name, h in sets.items()}
+    return [{"intensity": float(x[i]), **{name: float(e[i]) for name, e in ecdfs.items()}} for i in range(NUM_BINS)]
+
+
 def level_ecdf_figure(result: LevelCalibration, reference: IntensityHistograms, level: str = "",
                       **kwargs: object) -> Figure:
     """`ecdf_figure` of a `LevelCalibration` (its tuned and clear histograms, values in the title)."""

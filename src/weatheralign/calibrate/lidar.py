@@ -533,7 +533,7 @@ class LevelCalibration:
         return self.beta_sensitivity > BETA_SENSITIVITY_MIN
 
     def metrics(self) -> dict[str, float]:
-        """Flat numbers for metrics.json / MLflow."""
+        """Flat numbers for details.json / MLflow."""
         return {
             "alpha": self.alpha, "beta": self.beta, "beta_factor": self.beta_factor, "mor": self.mor,
             "ks": self.ks, "ks_ci_low": self.ks_ci_low, "ks_ci_high": self.ks_ci_high,

@@ -37,6 +37,29 @@ def learning_curve_figure(curve: Sequence[dict[str, float]], losses: Sequence[fl
     return fig
 
 
+def learning_curve_rows(curves: Sequence[Sequence[dict[str, float]]]) -> list[dict[str, float]]:
+    """The learning curves of several seeds as DVC plot rows, one per evaluated step the seeds share: ``step``, the
+    val mAP's mean, min and max over the seeds, and the NDS's mean (``curves``: per seed the dicts of
+    `learning_curve_figure`)."""
+    by_step: dict[int, list[dict[str, float]]] = {}
+    for curve in curves:
+        for point in curve:
+            by_step.setdefault(int(point["step"]), []).append(point)
+    rows = []
+    for step, points in sorted(by_step.items()):
+        if len(points) != len(curves):
+            continue
+        maps = [float(p["map"]) for p in points]
+        rows.append({"step": step, "map_mean": float(np.mean(maps)), "map_min": min(maps), "map_max": max(maps),
+                     "nds_mean": float(np.mean([float(p["nds"]) for p in points]))})
+    return rows
+
+
+def per_class_rows(per_class_ap: dict[str, float]) -> list[dict[str, float | str]]:
+    """Per-class AP as DVC plot rows ``{"class", "ap"}`` in `DETECTION_CLASSES` order."""
+    return [{"class": name, "ap": float(per_class_ap[name])} for name in DETECTION_CLASSES if name in per_class_ap]
+
+
 def _box_corners(row: np.ndarray) -> np.ndarray:
     """(5, 2) closed outline in x, y of a box row (x, y, z, w, l, h, yaw, ...): length along yaw."""
     x, y, w, length, yaw = row[0], row[1], row[3], row[4], row[6]

@@ -10,13 +10,15 @@ from weatheralign.report.html import markdown_to_html
 from weatheralign.report.summary import (
     PAPER_TABLE1,
     StageCost,
+    StageSource,
     cost_table,
     findings,
     rate_table,
     redam_table,
     reprojection_table,
+    source_line,
     summary_markdown,
 )
 
-__all__ = ["PAPER_TABLE1", "StageCost", "cost_table", "findings", "markdown_to_html", "rate_table", "redam_table",
-           "reprojection_table", "summary_markdown"]
+__all__ = ["PAPER_TABLE1", "StageCost", "StageSource", "cost_table", "findings", "markdown_to_html", "rate_table",
+           "redam_table", "reprojection_table", "source_line", "summary_markdown"]

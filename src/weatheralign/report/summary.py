@@ -1,4 +1,4 @@
-"""The summary's Markdown, built from the stages' metrics (``reports/<stage>/metrics.json``); no file I/O here.
+"""The summary's Markdown, built from the stages' figures (``reports/<stage>/details.json``); no file I/O here.
 
 Every number comes from a metrics dict; the paper's figures (`PAPER_TABLE1`, and Tables 2 and 3 inside the detect
 stage's tables) are shown beside ours and labelled as the paper's real-data figures, never used to tune anything.
@@ -18,7 +18,7 @@ def _num(value: Any, fmt: str = ".3f") -> str:
 
 
 def reprojection_table(simulate: dict[str, Any]) -> str:
-    """Per simulated variant (``reports/simulate/metrics.json``): the re-projection error of the particles the LiDAR
+    """Per simulated variant (``reports/simulate/details.json``): the re-projection error of the particles the LiDAR
     saw, projected into every camera that drew them [px], and what the weather did to the LiDAR points; the paper's
     figures beside (snow and rain only: it has none for fog)."""
     lines = ["| variant | re-projection mean [px] | max [px] | pairs | points lost | points scattered | "
@@ -41,7 +41,7 @@ def reprojection_table(simulate: dict[str, Any]) -> str:
 
 
 def redam_table(calibrate: dict[str, Any], truth: dict[str, Any] | None) -> str:
-    """ReDAM per fog level (``reports/calibrate_fog/metrics.json``): the tuned LiDAR parameters (α with its
+    """ReDAM per fog level (``reports/calibrate_fog/details.json``): the tuned LiDAR parameters (α with its
     frame-bootstrap interval), D_KS with its interval, the camera's check (KID, visibility ratio, the fog's airlight
     gain over the clear sky), and, for the synthetic reference, the hidden truth it was tuned blind to (relative
     error of the tuned α)."""
@@ -62,7 +62,7 @@ def redam_table(calibrate: dict[str, Any], truth: dict[str, Any] | None) -> str:
 
 
 def rate_table(calibrate: dict[str, Any], truth: dict[str, Any] | None) -> str:
-    """ReDAM for snow and rain (``reports/calibrate_precipitation/metrics.json``): per weather the tuned rate with
+    """ReDAM for snow and rain (``reports/calibrate_precipitation/details.json``): per weather the tuned rate with
     its frame-bootstrap interval, the reference's open-path echo rate it was matched on, and, for the synthetic
     reference, the hidden rate it was tuned blind to (relative error; whether the interval holds it)."""
     lines = ["| weather | tuned rate [mm/h] [interval] | hidden rate [mm/h] | error | interval holds it | "
@@ -130,6 +130,28 @@ class StageCost:
     disk_bytes: int | None
 
 
+@dataclass(frozen=True)
+class StageSource:
+    """Where a stage's figures came from: its latest finished MLflow stage run (name and UI page) and the DVC
+    experiment it ran in (``workspace`` for a plain ``dvc repro``)."""
+
+    stage: str
+    run_name: str
+    run_url: str
+    dvc_experiment: str
+
+
+def source_line(sources: dict[str, StageSource], *stages: str) -> str:
+    """One Markdown line naming, for each of ``stages`` with a known source, its MLflow run (a link) and its DVC
+    experiment; empty when none is known (tracking off)."""
+    known = [sources[s] for s in stages if s in sources]
+    if not known:
+        return ""
+    items = [f"`{s.stage}`: MLflow run [{s.run_name}]({s.run_url}), DVC experiment `{s.dvc_experiment}`"
+             for s in known]
+    return "*From " + "; ".join(items) + ".*"
+
+
 def cost_table(costs: list[StageCost]) -> str:
     """The stages' wall time and disk use, with totals."""
     lines = ["| stage | wall time | disk |", "| --- | ---: | ---: |"]
@@ -143,11 +165,14 @@ def cost_table(costs: list[StageCost]) -> str:
 
 
 def summary_markdown(metrics: dict[str, dict[str, Any]], truth: dict[str, Any] | None, detect_tables: list[str],
-                     figures: dict[str, str], costs: list[StageCost]) -> str:
+                     figures: dict[str, str], costs: list[StageCost],
+                     sources: dict[str, StageSource] | None = None) -> str:
     """The whole summary. ``metrics``: per stage (``world``, ``calibrate_fog``, ``simulate``, ``detect``) its
-    metrics dict (a missing stage: its section says so); ``truth``: the reference's sealed truth (None for real
-    data); ``detect_tables``: the detect stage's Markdown tables (Tables 2 and 3); ``figures``: caption -> image path
-    relative to the summary; ``costs``: per stage."""
+    figures (``details.json``; a missing stage: its section says so); ``truth``: the reference's sealed truth (None
+    for real data); ``detect_tables``: the detect stage's Markdown tables (Tables 2 and 3); ``figures``: caption ->
+    image path relative to the summary; ``costs``: per stage; ``sources``: per stage its MLflow run and DVC
+    experiment, named under each table."""
+    sources = sources or {}
     world = metrics.get("world", {})
     parts = ["# weatheralign: run summary", "",
              f"Dataset: {world.get('source', '?')} world, {world.get('num_scenes', '?')} scenes, "
@@ -167,19 +192,22 @@ def summary_markdown(metrics: dict[str, dict[str, Any]], truth: dict[str, Any] |
               "Re-projection: each particle the LiDAR saw, projected into every camera that drew it, against where the "
               "camera drew it.", "",
               reprojection_table(metrics.get("simulate", {})), "", mmd_half, "",
+              source_line(sources, "simulate", "verify"), "",
               "## ReDAM: fog severity tuned to the reference", "",
               "The LiDAR fog parameters tuned so that the simulated intensity distribution matches the reference's "
               "(two-sample Kolmogorov-Smirnov distance, frame-bootstrap interval); the cameras get the same α. For "
               "the synthetic reference, the hidden levels it was tuned blind to are beside.", "",
-              redam_table(metrics.get("calibrate_fog", {}), truth), ""]
+              redam_table(metrics.get("calibrate_fog", {}), truth), "", source_line(sources, "calibrate_fog"), ""]
     if "calibrate_precipitation" in metrics:
         parts += ["## ReDAM for snow and rain: rates tuned to the reference", "",
                   "The snow and rain rates tuned so that the fast simulator's statistic "
                   f"({metrics['calibrate_precipitation'].get('statistic', 'an echo rate')}) matches the reference's "
                   "(frame-bootstrap interval). For the synthetic reference, the hidden rates it was tuned blind to "
-                  "are beside.", "", rate_table(metrics["calibrate_precipitation"], truth), ""]
+                  "are beside.", "", rate_table(metrics["calibrate_precipitation"], truth), "",
+                  source_line(sources, "calibrate_precipitation"), ""]
     for table in detect_tables:
-        parts += [re.sub(r"^(#+) ", r"#\1 ", table, flags=re.MULTILINE), ""]  # one level below the summary
+        parts += [re.sub(r"^(#+) ", r"#\1 ", table, flags=re.MULTILINE), "",  # one level below the summary
+                  source_line(sources, "detect"), ""]
     parts += ["## Figures", ""]
     parts += [f"![{caption}]({path})\n\n*{caption}*\n" for caption, path in figures.items()]
     parts += ["## What the run cost", "", "Wall time of each stage's latest tracked run (MLflow) and the disk its "

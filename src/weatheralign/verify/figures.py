@@ -72,6 +72,14 @@ def ecdf_figure(histograms: Mapping[str, Mapping[str, IntensityHistograms]], ks:
     return fig
 
 
+def confusion_rows(report: ClassifierReport) -> list[dict[str, str]]:
+    """The held-out confusion matrix as DVC confusion-plot rows, one ``{"actual", "predicted"}`` per held-out frame
+    (rows of the same pair in a row)."""
+    return [{"actual": report.classes[i], "predicted": report.classes[j]}
+            for i in range(len(report.classes)) for j in range(len(report.classes))
+            for _ in range(int(report.confusion[i, j]))]
+
+
 def confusion_figure(report: ClassifierReport) -> Figure:
     """The held-out confusion matrix (counts; rows true, columns predicted) with the accuracy in the title."""
     fig, ax = plt.subplots(figsize=(4.2, 3.8))
@@ -87,4 +95,4 @@ def confusion_figure(report: ClassifierReport) -> Figure:
     return fig
 
 
-__all__ = ["SET_COLOURS", "confusion_figure", "ecdf_figure", "embedding_figure", "permutation_figure"]
+__all__ = ["SET_COLOURS", "confusion_figure", "confusion_rows", "ecdf_figure", "embedding_figure", "permutation_figure"]
