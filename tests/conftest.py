@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import os
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -43,6 +45,41 @@ def tiny_world(tmp_path_factory: pytest.TempPathFactory) -> TinyWorld:
     results = [render_or_resume(spec, k, params.world, dataroot)[0] for spec, k in sample_jobs(params.world)]
     summary = finalize(params.world, dataroot, results)
     return TinyWorld(params, dataroot, results, summary)
+
+
+@pytest.fixture(scope="session")
+def shared_prefect_api(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """One Prefect API server for the stages the tests run in subprocesses (``PREFECT_API_URL`` in the environment
+    they inherit), on a database of the test session's own: each stage would otherwise start a server of its own.
+    A test that needs a stage to start its own server removes ``PREFECT_API_URL`` from the child's environment."""
+    if os.environ.get("PREFECT_API_URL"):
+        yield os.environ["PREFECT_API_URL"]
+        return
+    from flows.prefect_server import ApiServer
+
+    home = os.environ.get("PREFECT_HOME")
+    os.environ["PREFECT_HOME"] = str(tmp_path_factory.mktemp("prefect_api"))
+    server = ApiServer()
+    try:
+        url = server.start()
+    finally:
+        if home is None:
+            os.environ.pop("PREFECT_HOME")
+        else:
+            os.environ["PREFECT_HOME"] = home
+    os.environ["PREFECT_API_URL"] = url
+    try:
+        yield url
+    finally:
+        os.environ.pop("PREFECT_API_URL", None)
+        server.stop()
+
+
+@pytest.fixture(scope="session")
+def prefect_home(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A Prefect home of the test session's own (not the project's ``.prefect``), shared by the tests that run a
+    stage in a subprocess on Prefect's ephemeral server: its database is created and migrated once, by the first."""
+    return tmp_path_factory.mktemp("prefect_home")
 
 
 def make_lidar(**overrides: object) -> LidarModel:

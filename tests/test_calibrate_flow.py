@@ -32,6 +32,8 @@ from weatheralign.sensors import PulseSensor
 
 from .conftest import REPO, make_lidar
 
+pytestmark = pytest.mark.usefixtures("shared_prefect_api")  # stages in subprocesses share one Prefect server
+
 STF = REPO.parent / "shared" / "data" / "real" / "stf"
 STF_ID = "2019-09-11_19-13-44_00960"
 LEVELS = {"light": 0.012, "dense": 0.05}  # hidden extinctions [1/m], off the grid

@@ -303,10 +303,13 @@ def test_motion_is_exactly_d_dt(snow_sample) -> None:
     common, ia, ib = np.intersect1d(p.ids, box_later.ids, return_indices=True)
     np.testing.assert_array_equal(later[ia], box_later.positions[ib])
     np.testing.assert_array_equal(field.positions_at(box_later.ids, 137.25 + dt), box_later.positions)
-    # each particle at its own time (wrapped ones included) equals one query per time, bit for bit
-    times = 137.25 + np.random.default_rng(3).uniform(0.0, dt, len(p))
-    each = np.vstack([field.positions_at(p.ids[i:i + 1], t) for i, t in enumerate(times)])
-    np.testing.assert_array_equal(field.positions_at_times(p.ids, times), each)
+    # each particle at its own time equals one query per time, bit for bit: every particle at once against one query
+    # each for 2,000 of them, those that wrap within the interval included
+    rng = np.random.default_rng(3)
+    times = 137.25 + rng.uniform(0.0, dt, len(p))
+    checked = np.union1d(rng.choice(len(p), size=min(2000, len(p)), replace=False), np.flatnonzero(wrapped)[:500])
+    each = np.vstack([field.positions_at(p.ids[i:i + 1], times[i]) for i in checked])
+    np.testing.assert_array_equal(field.positions_at_times(p.ids, times)[checked], each)
     with pytest.raises(ValueError, match="times"):
         field.positions_at_times(p.ids, times[:-1])
 

@@ -59,6 +59,8 @@ from weatheralign.sensors import PulseSensor
 
 from .conftest import REPO
 
+pytestmark = pytest.mark.usefixtures("shared_prefect_api")  # stages in subprocesses share one Prefect server
+
 STF = REPO.parent / "shared" / "data" / "real" / "stf"
 STF_ID = "2019-09-11_19-13-44_00960"
 SPLITS = {"clear": "splits/clear.txt", "light": "splits/light_fog.txt", "dense": "splits/dense_fog.txt",

@@ -57,9 +57,10 @@ def _seen_fraction(ids: np.ndarray, lidar_field: ParticleField, camera_field: Pa
     J = np.full((HEIGHT, WIDTH, 3), 0.2)
     img = particle_image(J, np.full((HEIGHT, WIDTH), np.inf), K, T_WORLD_CAM, 0.0, camera_field, np.full(3, 0.9),
                          exposure_s=0.0, samples=16)
-    box = lidar_field.materialize(LIDAR_ORIGIN - 40.0, LIDAR_ORIGIN + 40.0, 0.0, min_diameter=5e-4)
-    diameter = dict(zip(box.ids.tolist(), box.diameters.tolist()))
     pos = lidar_field.positions_at(ids, 0.0)
+    cells = np.unique(lidar_field.cell_indices(pos, 0.0), axis=0)  # the cells holding the LiDAR's particles
+    held = lidar_field.materialize_cells(cells, 0.0, min_diameter=5e-4)
+    diameter = dict(zip(held.ids.tolist(), held.diameters.tolist()))
     pc = (pos - T_WORLD_CAM[:3, 3]) @ T_WORLD_CAM[:3, :3]
     u = F_PX * pc[:, 0] / pc[:, 2] + WIDTH / 2.0
     v = F_PX * pc[:, 1] / pc[:, 2] + HEIGHT / 2.0

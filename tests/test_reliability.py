@@ -671,7 +671,7 @@ def test_reconstruction_is_bounded_for_near_duplicate_points():
 
 
 @pytest.mark.flow
-def test_a_stage_failing_on_bad_input_prints_one_clear_line(tmp_path):
+def test_a_stage_failing_on_bad_input_prints_one_clear_line(tmp_path, prefect_home):
     """A stage that stops on a data error says so first and once, without Prefect's ~75-line traceback (which
     WEATHERALIGN_VERBOSE=1 brings back)."""
     import subprocess
@@ -682,7 +682,7 @@ def test_a_stage_failing_on_bad_input_prints_one_clear_line(tmp_path):
     args = [sys.executable, "-m", "flows.media", "--set", f"paths.data={tmp_path / 'data'}",
             "--set", f"paths.reports={tmp_path / 'reports'}", "--set", "tracking.enabled=false"]
     env = {**{k: v for k, v in os.environ.items() if k != "PREFECT_API_URL"}, "PYTHONPATH": str(REPO),
-           "PREFECT_HOME": str(tmp_path / "prefect"), "PREFECT_LOGGING_LEVEL": "WARNING"}
+           "PREFECT_HOME": str(prefect_home), "PREFECT_LOGGING_LEVEL": "WARNING"}
     run = subprocess.run(args, cwd=REPO, env=env, capture_output=True, text=True, timeout=300)
     assert run.returncode == 2
     lines = [ln for ln in run.stderr.splitlines() if ln.strip()]
@@ -976,7 +976,7 @@ run_stage(worker_failure, params_from_dict({"tracking": {"enabled": False}}))
 
 
 @pytest.mark.flow
-def test_a_worker_task_failing_on_bad_data_prints_one_clear_line(tmp_path):
+def test_a_worker_task_failing_on_bad_data_prints_one_clear_line(tmp_path, prefect_home):
     """Before: a task on a Dask worker process that raised a `DataFormatError` printed the worker's Prefect traceback
     (and a 'Finished in state Failed' line) before the stage's one line. Now each worker preloads the same console
     filter (`flows.common.dask_setup`); ``WEATHERALIGN_VERBOSE=1`` brings the traceback back."""
@@ -986,7 +986,7 @@ def test_a_worker_task_failing_on_bad_data_prints_one_clear_line(tmp_path):
     from .conftest import REPO
 
     env = {**{k: v for k, v in os.environ.items() if k not in ("PREFECT_API_URL", "WEATHERALIGN_VERBOSE")},
-           "PYTHONPATH": str(REPO), "PREFECT_HOME": str(tmp_path / "prefect"), "PREFECT_LOGGING_LEVEL": "WARNING"}
+           "PYTHONPATH": str(REPO), "PREFECT_HOME": str(prefect_home), "PREFECT_LOGGING_LEVEL": "WARNING"}
     args = [sys.executable, "-c", WORKER_FAILURE]
     run = subprocess.run(args, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600)
     assert run.returncode == 2, run.stderr[-3000:]

@@ -61,6 +61,8 @@ from weatheralign.simulate.weather_copy import (
 
 from .conftest import REPO, write_params_file
 
+pytestmark = pytest.mark.usefixtures("shared_prefect_api")  # stages in subprocesses share one Prefect server
+
 CFG = params_from_dict({}).simulate
 OPTIONS = ObserveOptions(threads=2)
 RUN = "test-run"

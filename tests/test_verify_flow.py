@@ -30,6 +30,8 @@ from weatheralign.verify.frames import Severity, scene_media
 
 from .conftest import HANG_GUARD_S, REPO
 
+pytestmark = pytest.mark.usefixtures("shared_prefect_api")  # stages in subprocesses share one Prefect server
+
 STF = REPO.parent / "shared" / "data" / "real" / "stf"
 STF_ID = "2019-09-11_19-13-44_00960"
 SPLITS = {"clear": ("clear", None), "light": ("light_fog", "fog_light"), "dense": ("dense_fog", "fog_dense"),
