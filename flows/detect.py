@@ -645,15 +645,15 @@ def headline(details: dict[str, Any], conditions: list[str], finetuned: list[str
     ablation, its mAP on every weather copy, per condition the unaligned - aligned mAP difference (Table 2) and the
     cost of the weather cameras alone (clean - clean LiDAR with the aligned copy's cameras), the finetuned models' mAP
     on their weather's aligned copy (Table 3), and the stage's seconds; the rest in details.json."""
-    models, diff = details["models"], details["differences"]
+    models, diff, ablation = details["models"], details["differences"], details["modality_ablation"]
     clean = models["pretrained"][CLEAN]
 
-    def difference(name: str) -> float | None:
+    def difference(name: str) -> float | None:  # None where the run did not measure it
         return (diff.get(f"{name}:map") or {}).get("difference")
 
     return {
         "clean": {"map": clean["map"], "map_ci_low": clean["map_ci"][0], "map_ci_high": clean["map_ci"][1],
-                  "nds": clean["nds"], **{f"{m}_map": models[f"pretrained-{m}"][CLEAN]["map"]
+                  "nds": clean["nds"], **{f"{m}_map": (ablation.get(m) or {}).get("map")
                                           for m in ("lidar_only", "camera_only", "shuffled_images")}},
         "map": {evalset: m["map"] for evalset, m in models["pretrained"].items()
                 if evalset != CLEAN and not evalset.startswith(CAMERA_WEATHER_PREFIX)},
