@@ -79,13 +79,18 @@ def latest_stage_runs(params: Params) -> dict[tuple[str, str], Any]:
     return latest
 
 
+def summary_stage(stage: str) -> str:
+    """The stage a run's ``stage`` tag counts under in the summary (``simulate_summary`` under ``simulate``)."""
+    return "simulate" if stage == "simulate_summary" else stage
+
+
 def stage_seconds(runs: dict[tuple[str, str], Any]) -> dict[str, float]:
     """Per stage the wall seconds of its latest runs (the simulate variants and their summary summed into
     ``simulate``)."""
     out: dict[str, float] = {}
     for (stage, _), run in runs.items():
         if "stage_seconds" in run.data.metrics:
-            base = "simulate" if stage == "simulate_summary" else stage
+            base = summary_stage(stage)
             out[base] = out.get(base, 0.0) + run.data.metrics["stage_seconds"]
     return out
 
@@ -97,7 +102,7 @@ def stage_sources(runs: dict[tuple[str, str], Any]) -> dict[str, StageSource]:
     for (stage, name), run in runs.items():
         if stage == "simulate" or stage == "report":
             continue
-        base = "simulate" if stage == "simulate_summary" else stage
+        base = summary_stage(stage)
         experiment = run.data.tags.get("dvc_experiment", "none")
         out[base] = StageSource(base, name, mlflow_run_url(run.info.experiment_id, run.info.run_id),
                                 "workspace" if experiment == "none" else experiment)
