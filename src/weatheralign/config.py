@@ -628,7 +628,7 @@ class DetectConfig(_Section):
     bev_range_m: Annotated[float, Field(gt=10.0, le=100.0)] = 51.2
     bev_cell_m: Annotated[float, Field(gt=0.1, le=2.0)] = 0.8
     batch_size: Annotated[int, Field(ge=1, le=64)] = 2
-    pretrain_steps: Annotated[int, Field(ge=1, le=1_000_000)] = 1000
+    pretrain_steps: Annotated[int, Field(ge=1, le=1_000_000)] = 1500
     finetune_steps: Annotated[int, Field(ge=0, le=1_000_000)] = 160
     lr: Annotated[float, Field(gt=0.0, le=1.0)] = 2e-3
     finetune_lr: Annotated[float, Field(gt=0.0, le=1.0)] = 5e-4
