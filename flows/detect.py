@@ -170,6 +170,7 @@ class DetectRun:
         self.model_fingerprints: dict[str, str] = {}
         self.metas: dict[str, dict[str, Any]] = {}  # checkpoint name -> its meta (curve, losses, seconds)
         self.detections: dict[str, list] = {}  # evaluation key -> detections
+        self.pred_boxes: dict[str, Any] = {}  # evaluation key -> its detections as devkit EvalBoxes (`eval_boxes`)
         self.logged_models: dict[str, LoggedDetector] = {}  # MLflow logged models of the models trained by this run
         self._input_example: dict[str, Any] | None = None
 
@@ -330,12 +331,12 @@ class DetectRun:
         child run."""
         record_path, det_path, results_path, fingerprint = self._evaluation_files(e)
         evalset = self.evalset(e.evalset)
-        pred = protocol.eval_boxes(detections, evalset)
+        self.detections[e.key] = detections
+        pred = self.eval_boxes(e.key, e.evalset)
         result = protocol.evaluate(detections, evalset, 0, self.cfg.seed, self.cfg.confidence)
         write_submission(results_path, pred, use_camera=e.modality != "lidar", use_lidar=e.modality != "camera")
         atomic.save_npz(det_path, protocol.detections_to_arrays(detections), compress=True)
         atomic.write_json(record_path, {"fingerprint": fingerprint, "metrics": result})
-        self.detections[e.key] = detections
         lidar, cameras = self.evalset_roots(e.evalset)
         model_tag = e.label if cameras == lidar else f"{e.label}-clean_lidar"  # weather on the cameras only
         tags = {**self.dataroot_tags(cameras), "model": model_tag, "seed": str(e.seed), "modality": e.modality,
@@ -354,6 +355,13 @@ class DetectRun:
                                            {f"{k}.{e.evalset}": f"{v:.4f}" for k, v in headline.items()
                                             if k in ("map", "nds")})
         return result
+
+    def eval_boxes(self, key: str, evalset: str) -> Any:
+        """The detections of evaluation ``key`` on ``evalset`` as devkit ``EvalBoxes``, converted once (the pooled
+        intervals use each evaluation in several comparisons)."""
+        if key not in self.pred_boxes:
+            self.pred_boxes[key] = protocol.eval_boxes(self.detections[key], self.evalset(evalset))
+        return self.pred_boxes[key]
 
     def dataroot_tags(self, dataroot: str) -> dict[str, str]:
         """``weather``, ``alignment`` and ``severity`` tags of a dataroot (`CLEAN` or a weather variant)."""
@@ -409,9 +417,8 @@ class DetectRun:
         bootstrap intervals (`seed_block_bootstrap`), as tasks on the stage's task runner."""
         futures = []
         for keys_a, keys_b in comparisons.values():
-            evalset = self.evalset(keys_a[0].rsplit("/", 1)[1])
-            preds = [[protocol.eval_boxes(self.detections[k], evalset) for k in keys]
-                     for keys in (keys_a, keys_b or [])]
+            evalset = keys_a[0].rsplit("/", 1)[1]
+            preds = [[self.eval_boxes(k, evalset) for k in keys] for keys in (keys_a, keys_b or [])]
             futures.append(paired_task.submit(self.gt, preds[0], preds[1] if keys_b else None, self.blocks,
                                               ("map", "nds"), self.cfg.num_bootstrap, self.cfg.seed,
                                               self.cfg.confidence))

@@ -46,8 +46,10 @@ def config_to_json(config: DetectorConfig) -> str:
 
 
 def config_from_json(text: str) -> DetectorConfig:
-    """The inverse of `config_to_json`."""
+    """The inverse of `config_to_json`. A model logged before ``pillar_keyframe_only`` existed ran its pillar network
+    on every sweep's points, and keeps doing so."""
     fields = json.loads(text)
+    fields.setdefault("pillar_keyframe_only", False)
     fields["loss_weights"] = LossWeights(**fields["loss_weights"])
     fields["z_range_m"] = tuple(fields["z_range_m"])
     return DetectorConfig(**fields)

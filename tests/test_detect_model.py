@@ -434,6 +434,21 @@ def test_pillar_encoder_appends_the_sweep_statistics() -> None:
                                                                  0.0, 0.0, 0.0]))
 
 
+def test_keyframe_only_pillars_take_earlier_sweeps_through_their_statistics_alone() -> None:
+    torch.manual_seed(0)
+    grid = BevGrid(4.0, 1.0)
+    both = PillarEncoder(grid, (-5.0, 3.0), channels=16, motion_sweeps=3, keyframe_only=True).eval()
+    every = PillarEncoder(grid, (-5.0, 3.0), channels=16, motion_sweeps=3, keyframe_only=False).eval()
+    every.load_state_dict(both.state_dict())
+    keyframe = torch.tensor([[0, 0.5, -3.5, 0.0, 0.2, 0.0], [0, 2.5, 1.5, -1.0, 0.9, 0.0]])
+    earlier = torch.tensor([[0, 0.7, -3.3, -1.0, 0.9, 0.05], [0, -2.5, 2.5, 0.5, 0.4, 0.1]])
+    alone, with_sweeps = both(keyframe, 1), both(torch.cat([keyframe, earlier]), 1)
+    torch.testing.assert_close(with_sweeps[:, :16], alone[:, :16])  # the MLP and max see the keyframe only
+    assert not torch.equal(with_sweeps[:, 16:], alone[:, 16:])  # the earlier sweeps' statistics are there
+    assert with_sweeps[0, :16, 6, 1].abs().sum() == 0  # a pillar of earlier sweeps alone has no MLP feature
+    assert not torch.equal(every(torch.cat([keyframe, earlier]), 1)[:, :16], alone[:, :16])
+
+
 # --- the model -------------------------------------------------------------------------------------------------
 
 

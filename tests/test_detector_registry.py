@@ -52,6 +52,10 @@ def _detector(seed: int = 0) -> BEVFusionDetector:
 def test_config_json_round_trip():
     config = DetectorConfig(motion_sweeps=2, depth_bins=32)
     assert config_from_json(config_to_json(config)) == config
+    # a model logged before the option ran its pillar network on every sweep: it keeps doing so
+    old = json.loads(config_to_json(config))
+    del old["pillar_keyframe_only"]
+    assert config.pillar_keyframe_only and not config_from_json(json.dumps(old)).pillar_keyframe_only
 
 
 def test_input_example_is_a_valid_smaller_input_with_the_crop_in_the_intrinsics():

@@ -3,8 +3,9 @@
 Structure (every step runs on whatever device the model and batch are on; no custom operators):
 
 1. LiDAR branch (`LidarBranch`): PointPillars-style pillar encoder on the BEV grid (`DetectorConfig.bev_grid`, default
-   [-51.2, 51.2) m, 0.8 m cells -> 128 x 128): per point x, y, z, intensity, time lag, offsets to the pillar's mean
-   and to the pillar's centre -> Linear + BN + ReLU -> max per pillar (``scatter_reduce(amax)``); beside them, per
+   [-51.2, 51.2) m, 0.8 m cells -> 128 x 128): per keyframe point (``pillar_keyframe_only``; else every point) x, y,
+   z, intensity, time lag, offsets to the pillar's mean and to the pillar's centre -> Linear + BN + ReLU -> max per
+   pillar (``scatter_reduce(amax)``); beside them, per
    sweep (``motion_sweeps``) and cell the point count and the mean offset from the cell's centre
    (`sweep_statistics`): a max over a pillar's points cannot compare where a surface was in one sweep with where it
    was in another, the displacement that velocity and a symmetric box's heading rest on -> two conv blocks, the
@@ -93,6 +94,9 @@ class DetectorConfig:
     motion_sweeps: int = 3
     #: the LiDAR's sweep period [s] (nuScenes: 20 Hz), which maps a point's time lag to its sweep index
     sweep_period_s: float = 0.05
+    #: the pillar features (the per-point MLP and the max per pillar) from the keyframe's points alone; the earlier
+    #: sweeps reach the detector through their `sweep_statistics` (a third of the points through the MLP)
+    pillar_keyframe_only: bool = True
     image_channels: int = 64
     depth_min_m: float = 1.0
     depth_max_m: float = 60.0
@@ -348,12 +352,16 @@ def lift_splat(depth_prob: Tensor, context: Tensor, geometry: Tensor, grid: BevG
     (B, C, D, h, w, 3) [m], sum-pooled into the BEV grid (points outside dropped) -> (B, F, H, W)."""
     batch_size, cameras, bins, h, w = depth_prob.shape
     channels = context.shape[2]
-    context_last = context.permute(0, 1, 3, 4, 2).contiguous()  # so that the product below is contiguous
-    features = depth_prob[:, :, :, :, :, None] * context_last[:, :, None]  # (B, C, D, h, w, F)
-    batch_index = torch.arange(batch_size, device=geometry.device).view(-1, 1, 1, 1, 1).expand(geometry.shape[:-1])
-    with torch.no_grad():
-        cells = bev_cell_indices(geometry, batch_index, grid, z_range_m)
-    return bev_sum_pool(features.reshape(-1, channels), cells.reshape(-1), batch_size, grid)
+    with torch.no_grad():  # only the frustum points inside the grid are multiplied out (about half of them)
+        batch_index = torch.arange(batch_size, device=geometry.device).view(-1, 1, 1, 1, 1).expand(
+            geometry.shape[:-1])
+        cells = bev_cell_indices(geometry, batch_index, grid, z_range_m).reshape(-1)
+        inside = torch.nonzero(cells >= 0).squeeze(1)  # flat (b, c, d, row, col) indices, in order
+        pixels = h * w
+        ray = (inside // (bins * pixels)) * pixels + inside % pixels  # flat (b, c, row, col) of each point's ray
+    context_rows = context.permute(0, 1, 3, 4, 2).reshape(-1, channels)  # (B C h w, F)
+    features = depth_prob.reshape(-1)[inside, None] * context_rows[ray]  # (points inside, F)
+    return bev_sum_pool(features, cells[inside], batch_size, grid)
 
 
 # --- branches ----------------------------------------------------------------------------------------------------
@@ -366,10 +374,10 @@ class PillarEncoder(nn.Module):
     dropped."""
 
     def __init__(self, grid: BevGrid, z_range_m: tuple[float, float], channels: int = 32, motion_sweeps: int = 0,
-                 sweep_period_s: float = 0.05) -> None:
+                 sweep_period_s: float = 0.05, keyframe_only: bool = False) -> None:
         super().__init__()
         self.grid, self.z_range_m = grid, z_range_m
-        self.motion_sweeps, self.sweep_period_s = motion_sweeps, sweep_period_s
+        self.motion_sweeps, self.sweep_period_s, self.keyframe_only = motion_sweeps, sweep_period_s, keyframe_only
         self.linear = nn.Linear(PILLAR_POINT_FEATURES, channels, bias=False)
         self.norm = nn.BatchNorm1d(channels)
 
@@ -395,11 +403,13 @@ class PillarEncoder(nn.Module):
         flat = bev_cell_indices(points[:, 1:4], points[:, 0].long(), self.grid, self.z_range_m)
         keep = flat >= 0
         points, flat = points[keep], flat[keep]
-        if len(points) < 2:  # BatchNorm needs two values in training; a (nearly) empty cloud gives an empty BEV
+        mlp = points[:, 5] < 0.5 * self.sweep_period_s if self.keyframe_only else None
+        mlp_points, mlp_flat = (points, flat) if mlp is None else (points[mlp], flat[mlp])
+        if len(mlp_points) < 2:  # BatchNorm needs two values in training; a (nearly) empty cloud gives an empty BEV
             size = self.grid.size
             return points.new_zeros(batch_size, self.out_channels, size, size)
-        features = F.relu(self.norm(self.linear(self.point_features(points, flat, batch_size))))
-        pillars = bev_max_pool(features, flat, batch_size, self.grid)
+        features = F.relu(self.norm(self.linear(self.point_features(mlp_points, mlp_flat, batch_size))))
+        pillars = bev_max_pool(features, mlp_flat, batch_size, self.grid)
         if self.motion_sweeps == 0:
             return pillars
         motion = sweep_statistics(points, flat, batch_size, self.grid, self.motion_sweeps, self.sweep_period_s)
@@ -412,7 +422,7 @@ class LidarBranch(nn.Module):
     def __init__(self, config: DetectorConfig) -> None:
         super().__init__()
         self.pillars = PillarEncoder(config.bev_grid, config.z_range_m, config.pillar_channels, config.motion_sweeps,
-                                     config.sweep_period_s)
+                                     config.sweep_period_s, config.pillar_keyframe_only)
         self.convs = nn.Sequential(conv_bn_relu(self.pillars.out_channels, config.bev_channels, stride=2),
                                    conv_bn_relu(config.bev_channels, config.bev_channels))
 
