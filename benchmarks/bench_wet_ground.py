@@ -14,8 +14,13 @@ real ground returns.
    weakest intensity the dry scan reports (Seeing Through Fog clamps its weakest returns at 24: those would read
    24). Real intensities need not be linear in the received power; the ratios assume they are.
 
-Figure: ``reports/benchmarks/wet_ground.png`` (the factor against incidence; per real frame the ground's intensity
-in bird's-eye view dry and wet); numbers: ``reports/benchmarks/wet_ground.json``.
+3. the same ground plane and water-depth field in each frame's camera (`weatheralign.ground.camera`, dense depth from
+   the scan): the wet road's image, and how well the two sensors agree on the ground (the share of the LiDAR's
+   ground points that project onto the camera's ground pixels, and of its other points).
+
+Figures: ``reports/benchmarks/wet_ground.png`` (the factor against incidence; per real frame the ground's intensity
+in bird's-eye view dry and wet), ``reports/benchmarks/wet_ground_cameras.png`` (each camera dry and wet); numbers:
+``reports/benchmarks/wet_ground.json``.
 """
 
 from __future__ import annotations
@@ -51,19 +56,18 @@ def optics_rows(photons: int) -> list[dict[str, float]]:
     return rows
 
 
-def ground_plane(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(unit normal pointing up (3,), inlier mask (N,)) of the dominant plane below the sensor (open3d RANSAC,
-    seeded), fitted to points (N, 3) lower than 1 m under the sensor."""
+def ground_plane(points: np.ndarray) -> tuple[np.ndarray, float]:
+    """(unit normal pointing up (3,), offset ``d``: ``n . x + d = 0``) of the dominant plane below the sensor
+    (open3d RANSAC, seeded), fitted to points (N, 3) lower than 1 m under the sensor."""
     import open3d as o3d
 
     o3d.utility.random.seed(0)
     low = np.nonzero(points[:, 2] < -1.0)[0]
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points[low].astype(np.float64)))
     (a, b, c, d), inliers = cloud.segment_plane(distance_threshold=0.15, ransac_n=3, num_iterations=2000)
-    normal = np.array([a, b, c]) * (1.0 if c >= 0 else -1.0)
-    offset = d * (1.0 if c >= 0 else -1.0)
-    distance = points @ normal + offset
-    return normal / np.linalg.norm(normal), np.abs(distance) < 0.15
+    sign = 1.0 if c >= 0 else -1.0
+    length = float(np.linalg.norm([a, b, c]))
+    return np.array([a, b, c]) * sign / length, d * sign / length
 
 
 def frame_rows(name: str, frame: Any) -> tuple[list[dict[str, Any]], dict[str, np.ndarray]]:
@@ -78,7 +82,8 @@ def frame_rows(name: str, frame: Any) -> tuple[list[dict[str, Any]], dict[str, n
     floor = estimate_lidar_model([scan], rotation_hz=10.0).noise_floor
     positive = intensity[intensity > 0]
     weakest = float(positive.min()) if len(positive) else floor
-    normal, ground = ground_plane(xyz)
+    normal, offset = ground_plane(xyz)
+    ground = np.abs(xyz @ normal + offset) < 0.15
     T = scan.T_global_ego @ scan.T_ego_lidar
     world_xy = (xyz[ground] @ T[:3, :3].T + T[:3, 3])[:, :2]
     theta = incidence_angle(xyz[ground], np.zeros(3), normal)
@@ -98,8 +103,62 @@ def frame_rows(name: str, frame: Any) -> tuple[list[dict[str, Any]], dict[str, n
                      "cpu_s": time.process_time() - t0})
         if film_mm == FIGURE_FILM_MM:
             figure = {"xy": xyz[ground, :2], "dry": intensity[ground], "wet": effect.intensity, "weakest": weakest,
-                      "lost": effect.lost | ((effect.intensity < weakest) & (intensity[ground] >= weakest))}
+                      "lost": effect.lost | ((effect.intensity < weakest) & (intensity[ground] >= weakest)),
+                      "normal": normal, "offset": offset}
     return rows, figure
+
+
+def camera_wet(name: str, frame: Any, normal_lidar: np.ndarray, offset_lidar: float) -> tuple[dict[str, Any],
+                                                                                              list[np.ndarray]]:
+    """The wet road in the frame's first camera, from the same ground plane and water-depth field as the LiDAR:
+    (numbers, [clean, wet] sRGB uint8 images). Dense depth from the scan (`camera_range_map`); ground pixels are
+    those within 0.15 m of the LiDAR's ground plane."""
+    from weatheralign.camera.depth import camera_range_map
+    from weatheralign.camera.fog import decode_srgb_u8, encode_srgb_u8
+    from weatheralign.ground.camera import CameraGeometry, wet_road_image
+    from weatheralign.ground.wet import WetRoad, water_depth
+
+    view = next(iter(frame.cameras.values()))
+    image = view.load_image()
+    t0 = time.process_time()
+    range_map = camera_range_map(view, frame.lidar, image).astype(np.float64)
+    depth_cpu = time.process_time() - t0
+    scan = frame.lidar
+    T_world_lidar = scan.T_global_ego @ scan.T_ego_lidar
+    camera = CameraGeometry(np.asarray(view.K, np.float64), view.T_global_cam)
+    height, width = range_map.shape
+    rays = camera.rays_world(height, width)
+    finite = np.isfinite(range_map)
+    points_world = camera.T_world_cam[:3, 3] + rays * np.where(finite, range_map, 0.0)[..., None]
+    T_lidar_world = np.linalg.inv(T_world_lidar)
+    points_lidar = points_world @ T_lidar_world[:3, :3].T + T_lidar_world[:3, 3]
+    ground = finite & (np.abs(points_lidar @ normal_lidar + offset_lidar) < 0.15)
+    road = replace(WetRoad(), film_depth_m=FIGURE_FILM_MM / 1000.0)
+    depth = np.zeros(range_map.shape)
+    depth[ground] = water_depth(points_world[ground][:, :2], road, seed=0)
+    linear = decode_srgb_u8(image).astype(np.float64)
+    sky_rows = ~finite[: max(height // 8, 1)]
+    sky = linear[: max(height // 8, 1)][sky_rows].mean(axis=0) if sky_rows.any() else linear[:4].reshape(-1, 3).mean(0)
+    normal_world = T_world_lidar[:3, :3] @ normal_lidar
+    t0 = time.process_time()
+    wet = wet_road_image(linear, np.where(finite, range_map, np.inf), camera, ground, depth, road, normal_world, sky)
+    wet_cpu = time.process_time() - t0
+    # agreement: the LiDAR's ground points projected into the camera against the camera's ground pixels
+    xyz = scan.points[:, :3].astype(np.float64)
+    lidar_ground = np.abs(xyz @ normal_lidar + offset_lidar) < 0.15
+    world = xyz @ T_world_lidar[:3, :3].T + T_world_lidar[:3, 3]
+    u, v, length = camera.project(world)
+    col, row = np.rint(u).astype(np.int64), np.rint(v).astype(np.int64)
+    seen = (length > 0) & (col >= 0) & (col < width) & (row >= 0) & (row < height)
+    on_camera_ground = np.zeros(len(xyz), bool)
+    on_camera_ground[seen] = ground[row[seen], col[seen]]
+    numbers = {"frame": name, "camera": view.channel, "ground_pixels_share": float(ground.mean()),
+               "wet_pixels_share": float((depth > 0).mean()), "puddle_pixels_share": float(
+                   (depth >= road.texture_depth_m).mean()),
+               "lidar_ground_on_camera_ground": float(on_camera_ground[seen & lidar_ground].mean()),
+               "lidar_other_on_camera_ground": float(on_camera_ground[seen & ~lidar_ground].mean()),
+               "dense_depth_cpu_s": depth_cpu, "wet_road_cpu_s": wet_cpu}
+    return numbers, [image, encode_srgb_u8(wet.astype(np.float32))]
 
 
 def figure(optics: list[dict[str, float]], frames: dict[str, dict[str, np.ndarray]], path: Path) -> None:
@@ -140,19 +199,46 @@ def figure(optics: list[dict[str, float]], frames: dict[str, dict[str, np.ndarra
     plt.close(fig)
 
 
+def camera_figure(tiles: list[list[np.ndarray]], names: list[str], path: Path) -> None:
+    """Per real frame its camera image dry (left) and wet (right), at most 900 px wide each."""
+    from PIL import Image, ImageDraw
+
+    rows = []
+    for (dry, wet), name in zip(tiles, names):
+        scale = min(1.0, 900 / dry.shape[1])
+        size = (int(dry.shape[1] * scale), int(dry.shape[0] * scale))
+        pair = []
+        for img, text in ((dry, f"{name}: dry"), (wet, f"{name}: wet road, film {FIGURE_FILM_MM} mm + puddles")):
+            tile = Image.fromarray(img).resize(size, Image.BILINEAR)
+            ImageDraw.Draw(tile).text((8, 8), text, fill=(255, 255, 0))
+            pair.append(np.asarray(tile))
+        rows.append(np.concatenate(pair, axis=1))
+    width = max(r.shape[1] for r in rows)
+    rows = [np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0))) for r in rows]
+    Image.fromarray(np.concatenate(rows, axis=0)).save(path)
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--photons", type=int, default=2_000_000)
     args = parser.parse_args(argv)
     optics = optics_rows(args.photons)
-    rows, figures = [], {}
+    rows, figures, cameras, tiles = [], {}, [], []
     for name, load in real_frames().items():
-        frame_result, figures[name] = frame_rows(name, load())
+        frame = load()
+        frame_result, figures[name] = frame_rows(name, frame)
         rows += frame_result
+        numbers, images = camera_wet(name, frame, figures[name]["normal"], figures[name]["offset"])
+        cameras.append(numbers)
+        tiles.append(images)
     OUT.mkdir(parents=True, exist_ok=True)
-    result = {"optics": optics, "real_frames": rows}
+    result = {"optics": optics, "real_frames": rows, "cameras": cameras}
     write_json(OUT / "wet_ground.json", result)
     figure(optics, figures, OUT / "wet_ground.png")
+    camera_figure(tiles, [c["frame"] for c in cameras], OUT / "wet_ground_cameras.png")
+    for c in cameras:
+        print(f"{c['frame']:6s} camera: ground pixels {c['ground_pixels_share']:.1%}, LiDAR ground points on camera "
+              f"ground {c['lidar_ground_on_camera_ground']:.1%}, other points {c['lidar_other_on_camera_ground']:.1%}")
     for r in rows:
         print(f"{r['frame']:6s} film {r['film_mm']:4.2f} mm: ground {r['ground_points']}, intensity x "
               f"{r['mean_intensity_ratio']:.3f}, lost {r['ground_lost']} ({r['ground_lost_share']:.1%}), "

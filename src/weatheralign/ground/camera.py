@@ -1,0 +1,138 @@
+"""A wet road in a camera image, from the same water-depth field and the same ground as the LiDAR sees.
+
+Per ground pixel, in linear light, with ``c`` the share of the surface under water (`weatheralign.ground.wet`):
+
+    L = (1 - c) L_dry + c (k(theta_v) L_dry + R(theta_v) L_reflected)
+
+- ``k = (1 - r_e) T(theta_v) / (n^2 (1 - rho r_i))``: the pavement seen through the water under diffuse daylight
+  (Lekner & Dorf 1988: light enters with ``1 - r_e``, is scattered ``1 / (1 - rho r_i)`` times over, leaves towards
+  the camera with ``T(theta_v) / n^2``), per colour channel with the pavement's reflectivity ``rho`` scaled by the
+  pixel's own colour: the wet road is darker and more saturated;
+- ``R(theta_v) L_reflected``: the Fresnel mirror image of the scene at the viewing angle ``theta_v`` from the
+  road's normal, found by marching the mirrored ray through the camera's own range map (screen-space reflection);
+  rays that leave the image or pass every surface see ``sky`` radiance. Puddles (water above the macrotexture) are
+  sharp mirrors; a thin film's broken surface smears its reflection, mostly along the image's columns, as the glossy
+  lobe of a rough surface seen at a grazing angle does (``film_blur_px``: rows, columns).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.ndimage import uniform_filter
+
+from weatheralign.ground.optics import fresnel_reflectance, hemispherical_reflectance
+from weatheralign.ground.wet import WetRoad, wetted_share
+
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class CameraGeometry:
+    """A pinhole camera: intrinsics ``K`` (3, 3) [px] and ``T_world_cam`` (4, 4) camera (OpenCV axes) -> world."""
+
+    K: F64
+    T_world_cam: F64
+
+    def rays_world(self, height: int, width: int) -> F64:
+        """(H, W, 3) unit ray directions in the world frame through the pixel centres."""
+        v, u = np.mgrid[0:height, 0:width].astype(np.float64)
+        cam = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(self.K).T
+        cam /= np.linalg.norm(cam, axis=-1, keepdims=True)
+        return cam @ self.T_world_cam[:3, :3].T
+
+    def project(self, points_world: F64) -> tuple[F64, F64, F64]:
+        """Pixel coordinates (u, v) and ray length [m] of world points (..., 3); the depth is negative behind."""
+        T_cam_world = np.linalg.inv(self.T_world_cam)
+        cam = points_world @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+        z = cam[..., 2]
+        safe = np.where(z > 1e-6, z, 1e-6)
+        uv = cam @ self.K.T
+        return uv[..., 0] / safe, uv[..., 1] / safe, np.where(z > 1e-6, np.linalg.norm(cam, axis=-1), -1.0)
+
+
+def screen_space_reflection(image: F64, range_map: F64, camera: CameraGeometry, pixels: NDArray[np.int64],
+                            normal: F64, sky: F64, max_distance_m: float = 80.0, steps: int = 64,
+                            thickness_m: float = 1.5, start_m: float = 0.5) -> F64:
+    """Radiance (P, 3) seen along the mirrored rays of ground ``pixels`` (P, 2) (row, col): each ray is marched from
+    ``start_m`` beyond its ground point (clear of the noise of a real range map) in ``steps`` geometrically growing
+    steps up to ``max_distance_m``; the first sample that lies
+    behind the surface the camera sees at its pixel (by less than ``thickness_m``) takes that pixel's radiance; a ray
+    that leaves the image or passes every surface sees ``sky`` (3,)."""
+    height, width = range_map.shape
+    rays = camera.rays_world(height, width)[pixels[:, 0], pixels[:, 1]]
+    origin = camera.T_world_cam[:3, 3]
+    ground = origin + rays * range_map[pixels[:, 0], pixels[:, 1], None]
+    mirrored = rays - 2.0 * (rays @ normal)[:, None] * normal
+    out = np.tile(np.asarray(sky, dtype=np.float64), (len(pixels), 1))
+    pending = np.ones(len(pixels), dtype=bool)
+    distances = start_m * (max_distance_m / start_m) ** (np.arange(steps) / (steps - 1))
+
+    def look(index: NDArray[np.int64], distance: F64) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray, NDArray]:
+        """For rays ``index`` at ``distance``: (inside the image, behind the seen surface, row, col)."""
+        u, v, length = camera.project(ground[index] + mirrored[index] * distance[:, None])
+        col, row = np.rint(u).astype(np.int64), np.rint(v).astype(np.int64)
+        inside = (length > 0) & (col >= 0) & (col < width) & (row >= 0) & (row < height)
+        seen = range_map[np.where(inside, row, 0), np.where(inside, col, 0)]
+        return inside, inside & (length > seen) & (length < seen + thickness_m), row, col
+
+    previous = 0.0
+    for distance in distances:
+        index = np.nonzero(pending)[0]
+        if len(index) == 0:
+            break
+        inside, hit, row, col = look(index, np.full(len(index), distance))
+        pending[index[~inside]] = False  # left the image: the sky (or what no pixel shows)
+        index = index[hit]
+        if len(index):  # bisect between the last step in front of a surface and the first behind it
+            low, high = np.full(len(index), previous), np.full(len(index), distance)
+            for _ in range(8):
+                middle = 0.5 * (low + high)
+                behind = look(index, middle)[1]
+                high, low = np.where(behind, middle, high), np.where(behind, low, middle)
+            _, _, row, col = look(index, high)
+            out[index] = image[row, col]
+            pending[index] = False
+        previous = distance
+    return out
+
+
+def wet_road_image(image: F64, range_map: F64, camera: CameraGeometry, ground_mask: NDArray[np.bool_],
+                   water_depth_m: F64, road: WetRoad, normal: F64, sky: F64,
+                   film_blur_px: tuple[int, int] = (31, 5)) -> F64:
+    """The linear-light image (H, W, 3) with its ``ground_mask`` pixels (H, W) wet under ``water_depth_m`` (H, W) [m]
+    (module docstring); ``normal`` the road's unit normal in the world frame, ``sky`` (3,) the radiance rays that
+    escape see. Pixels off the ground, or dry, are returned unchanged."""
+    out = np.array(image, dtype=np.float64, copy=True)
+    share = np.where(ground_mask, wetted_share(water_depth_m, road.texture_depth_m), 0.0)
+    pixels = np.argwhere(share > 0)
+    if len(pixels) == 0:
+        return out
+    n = road.refractive_index
+    rays = camera.rays_world(*range_map.shape)[pixels[:, 0], pixels[:, 1]]
+    theta_v = np.arccos(np.clip(np.abs(rays @ normal), 0.0, 1.0))
+    dry = out[pixels[:, 0], pixels[:, 1]]
+    colour = dry / np.maximum(dry.mean(axis=1, keepdims=True), 1e-6)
+    rho = np.clip(road.pavement_reflectivity * colour, 0.0, 0.95)
+    r_e, r_i = hemispherical_reflectance(1.0, n), hemispherical_reflectance(n, 1.0)
+    reflectance = fresnel_reflectance(theta_v, 1.0, n)[:, None]
+    through_water = (1.0 - r_e) * (1.0 - reflectance) / (n**2 * (1.0 - rho * r_i))
+    reflected = screen_space_reflection(image, range_map, camera, pixels, normal, sky)
+    puddle = water_depth_m[pixels[:, 0], pixels[:, 1]] >= road.texture_depth_m
+    if max(film_blur_px) > 1 and not puddle.all():  # a film's broken surface: a mirror image smeared vertically
+        layer = np.zeros_like(out)
+        layer[pixels[:, 0], pixels[:, 1]] = reflected
+        weight = np.zeros(range_map.shape)
+        weight[pixels[:, 0], pixels[:, 1]] = 1.0
+        blurred = uniform_filter(layer, size=(*film_blur_px, 1))
+        norm = uniform_filter(weight, size=film_blur_px)[..., None]
+        soft = (blurred / np.maximum(norm, 1e-9))[pixels[:, 0], pixels[:, 1]]
+        reflected = np.where(puddle[:, None], reflected, soft)
+    c = share[pixels[:, 0], pixels[:, 1]][:, None]
+    out[pixels[:, 0], pixels[:, 1]] = (1.0 - c) * dry + c * (through_water * dry + reflectance * reflected)
+    return out
+
+
+__all__ = ["CameraGeometry", "screen_space_reflection", "wet_road_image"]
