@@ -148,3 +148,17 @@ def _cmdline(proc: Path) -> str:
         return (proc / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")
     except OSError:
         return ""
+
+
+def test_mlflow_link_opens_the_experiment_on_its_runs(tmp_path: Path) -> None:
+    """MLflow 3's UI opens an experiment on its GenAI overview unless the address names its runs table."""
+    from mlflow.tracking import MlflowClient
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    assert cli.mlflow_runs_url(uri, "weatheralign", 5123) == "http://127.0.0.1:5123"  # no store yet
+    assert not (tmp_path / "mlflow.db").exists()  # and asking did not create one
+    experiment_id = MlflowClient(uri).create_experiment("weatheralign")
+    assert cli.mlflow_runs_url(uri, "weatheralign", 5123) == f"http://127.0.0.1:5123/#/experiments/{experiment_id}/runs"
+    (tmp_path / "project").mkdir()
+    assert cli.tracked_experiment(_fake_project(tmp_path / "project")) == "weatheralign"  # empty params: the default
+    assert cli.tracked_experiment(REPO) == "weatheralign"

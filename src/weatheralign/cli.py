@@ -140,6 +140,30 @@ def _doctor(project: Path | None) -> int:
     return 0 if all(c.ok for c in checks) else 1
 
 
+def mlflow_runs_url(tracking_uri: str, experiment: str, port: int) -> str:
+    """The MLflow UI address that opens ``experiment`` on its runs table; the UI's own root when the experiment is
+    not in the store yet. (MLflow 3's UI opens an experiment on its GenAI overview in a browser that never chose a
+    workflow: that choice lives in the browser's local storage, not in the experiment.)"""
+    base = f"http://127.0.0.1:{port}"
+    if tracking_uri.startswith("sqlite:///") and not Path(tracking_uri.removeprefix("sqlite:///")).is_file():
+        return base  # no store yet: asking would create it, racing the UI server that creates it too
+    from mlflow.tracking import MlflowClient
+
+    found = MlflowClient(tracking_uri).get_experiment_by_name(experiment)
+    return f"{base}/#/experiments/{found.experiment_id}/runs" if found is not None else base
+
+
+def tracked_experiment(project: Path) -> str:
+    """The MLflow experiment of the project's params (``tracking.experiment``); the default name when the params do
+    not load (the stages report why; the UIs still start)."""
+    from weatheralign.config import ConfigError, TrackingConfig, load_params
+
+    try:
+        return load_params(project / "params.yaml").tracking.experiment
+    except ConfigError:
+        return TrackingConfig().experiment
+
+
 def _ui(project: Path, prefect_port: int, mlflow_port: int) -> int:
     """The Prefect UI and the MLflow UI on the project's stores, until Ctrl-C (or SIGTERM); both stop together."""
     def _stop(signum: int, _frame: object) -> None:
@@ -149,12 +173,12 @@ def _ui(project: Path, prefect_port: int, mlflow_port: int) -> int:
     signal.signal(signal.SIGINT, _stop)
     signal.signal(signal.SIGTERM, _stop)
     env = project_env(project)
+    mlflow_url = mlflow_runs_url(env["MLFLOW_TRACKING_URI"], tracked_experiment(project), mlflow_port)
     procs = [subprocess.Popen([sys.executable, "-m", "prefect", "server", "start", "--host", "127.0.0.1", "--port",
                                str(prefect_port)], cwd=project, env=env),
              subprocess.Popen([sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", env["MLFLOW_TRACKING_URI"],
                                "--host", "127.0.0.1", "--port", str(mlflow_port)], cwd=project, env=env)]
-    print(f"Prefect UI: http://127.0.0.1:{prefect_port}   MLflow UI: http://127.0.0.1:{mlflow_port}   "
-          "(Ctrl-C stops both)")
+    print(f"Prefect UI: http://127.0.0.1:{prefect_port}   MLflow UI: {mlflow_url}   (Ctrl-C stops both)")
     try:
         while all(p.poll() is None for p in procs):
             try:
