@@ -151,14 +151,35 @@ def _cmdline(proc: Path) -> str:
 
 
 def test_mlflow_link_opens_the_experiment_on_its_runs(tmp_path: Path) -> None:
-    """MLflow 3's UI opens an experiment on its GenAI overview unless the address names its runs table."""
-    from mlflow.tracking import MlflowClient
+    """MLflow 3's UI opens an experiment on its GenAI overview unless the address names its runs table: the address
+    comes from the server's REST API (a stub here); the UI's root when the experiment is not there or no server
+    answers."""
+    import http.server
+    import json
+    import threading
 
-    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
-    assert cli.mlflow_runs_url(uri, "weatheralign", 5123) == "http://127.0.0.1:5123"  # no store yet
-    assert not (tmp_path / "mlflow.db").exists()  # and asking did not create one
-    experiment_id = MlflowClient(uri).create_experiment("weatheralign")
-    assert cli.mlflow_runs_url(uri, "weatheralign", 5123) == f"http://127.0.0.1:5123/#/experiments/{experiment_id}/runs"
+    class Stub(http.server.BaseHTTPRequestHandler):
+        def do_GET(self) -> None:  # noqa: N802 (the http.server API)
+            if self.path == "/api/2.0/mlflow/experiments/get-by-name?experiment_name=weatheralign":
+                body = json.dumps({"experiment": {"experiment_id": "7", "name": "weatheralign"}}).encode()
+                self.send_response(200)
+                self.end_headers()
+                self.wfile.write(body)
+            else:
+                self.send_error(404)
+
+        def log_message(self, *args: object) -> None:
+            pass
+
+    server = http.server.HTTPServer(("127.0.0.1", 0), Stub)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    base = f"http://127.0.0.1:{server.server_address[1]}"
+    try:
+        assert cli.mlflow_runs_url(base, "weatheralign") == f"{base}/#/experiments/7/runs"
+        assert cli.mlflow_runs_url(base, "another") == base
+    finally:
+        server.shutdown()
+    assert cli.mlflow_runs_url(base, "weatheralign", timeout_s=1.5) == base  # nobody answers
     (tmp_path / "project").mkdir()
     assert cli.tracked_experiment(_fake_project(tmp_path / "project")) == "weatheralign"  # empty params: the default
     assert cli.tracked_experiment(REPO) == "weatheralign"

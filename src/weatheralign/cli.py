@@ -12,11 +12,15 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import json
 import os
 import shutil
 import signal
 import subprocess
 import sys
+import time
+import urllib.error
+import urllib.parse
 import urllib.request
 from dataclasses import dataclass
 from pathlib import Path
@@ -140,17 +144,22 @@ def _doctor(project: Path | None) -> int:
     return 0 if all(c.ok for c in checks) else 1
 
 
-def mlflow_runs_url(tracking_uri: str, experiment: str, port: int) -> str:
-    """The MLflow UI address that opens ``experiment`` on its runs table; the UI's own root when the experiment is
-    not in the store yet. (MLflow 3's UI opens an experiment on its GenAI overview in a browser that never chose a
-    workflow: that choice lives in the browser's local storage, not in the experiment.)"""
-    base = f"http://127.0.0.1:{port}"
-    if tracking_uri.startswith("sqlite:///") and not Path(tracking_uri.removeprefix("sqlite:///")).is_file():
-        return base  # no store yet: asking would create it, racing the UI server that creates it too
-    from mlflow.tracking import MlflowClient
-
-    found = MlflowClient(tracking_uri).get_experiment_by_name(experiment)
-    return f"{base}/#/experiments/{found.experiment_id}/runs" if found is not None else base
+def mlflow_runs_url(base: str, experiment: str, timeout_s: float = 90.0) -> str:
+    """The address that opens ``experiment`` on its runs table in the MLflow UI at ``base`` (asked through the
+    server's REST API once it answers); ``base`` itself when the experiment is not there or the server does not
+    answer within ``timeout_s``. (MLflow 3's UI opens an experiment on its GenAI overview in a browser that never
+    chose a workflow: that choice lives in the browser's local storage, not in the experiment.)"""
+    query = urllib.parse.urlencode({"experiment_name": experiment})
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            with urllib.request.urlopen(f"{base}/api/2.0/mlflow/experiments/get-by-name?{query}", timeout=5) as r:
+                return f"{base}/#/experiments/{json.load(r)['experiment']['experiment_id']}/runs"
+        except urllib.error.HTTPError:
+            return base  # the server answers: no such experiment
+        except OSError:
+            time.sleep(1.0)  # not up yet
+    return base
 
 
 def tracked_experiment(project: Path) -> str:
@@ -173,13 +182,13 @@ def _ui(project: Path, prefect_port: int, mlflow_port: int) -> int:
     signal.signal(signal.SIGINT, _stop)
     signal.signal(signal.SIGTERM, _stop)
     env = project_env(project)
-    mlflow_url = mlflow_runs_url(env["MLFLOW_TRACKING_URI"], tracked_experiment(project), mlflow_port)
     procs = [subprocess.Popen([sys.executable, "-m", "prefect", "server", "start", "--host", "127.0.0.1", "--port",
                                str(prefect_port)], cwd=project, env=env),
              subprocess.Popen([sys.executable, "-m", "mlflow", "ui", "--backend-store-uri", env["MLFLOW_TRACKING_URI"],
                                "--host", "127.0.0.1", "--port", str(mlflow_port)], cwd=project, env=env)]
-    print(f"Prefect UI: http://127.0.0.1:{prefect_port}   MLflow UI: {mlflow_url}   (Ctrl-C stops both)")
     try:
+        mlflow_url = mlflow_runs_url(f"http://127.0.0.1:{mlflow_port}", tracked_experiment(project))
+        print(f"Prefect UI: http://127.0.0.1:{prefect_port}   MLflow UI: {mlflow_url}   (Ctrl-C stops both)")
         while all(p.poll() is None for p in procs):
             try:
                 procs[0].wait(timeout=1)
