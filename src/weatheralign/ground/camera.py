@@ -54,15 +54,15 @@ class CameraGeometry:
 
 
 def screen_space_reflection(image: F64, range_map: F64, camera: CameraGeometry, pixels: NDArray[np.int64],
-                            normal: F64, sky: F64, max_distance_m: float = 80.0, steps: int = 64,
+                            rays: F64, normal: F64, sky: F64, max_distance_m: float = 80.0, steps: int = 64,
                             thickness_m: float = 1.5, start_m: float = 0.5) -> F64:
-    """Radiance (P, 3) seen along the mirrored rays of ground ``pixels`` (P, 2) (row, col): each ray is marched from
+    """Radiance (P, 3) seen along the mirrored rays of ground ``pixels`` (P, 2) (row, col), whose camera rays are
+    ``rays`` (P, 3) (unit, world frame: `CameraGeometry.rays_world` at those pixels): each ray is marched from
     ``start_m`` beyond its ground point (clear of the noise of a real range map) in ``steps`` geometrically growing
     steps up to ``max_distance_m``; the first sample that lies
     behind the surface the camera sees at its pixel (by less than ``thickness_m``) takes that pixel's radiance; a ray
     that leaves the image or passes every surface sees ``sky`` (3,)."""
     height, width = range_map.shape
-    rays = camera.rays_world(height, width)[pixels[:, 0], pixels[:, 1]]
     origin = camera.T_world_cam[:3, 3]
     ground = origin + rays * range_map[pixels[:, 0], pixels[:, 1], None]
     mirrored = rays - 2.0 * (rays @ normal)[:, None] * normal
@@ -119,7 +119,7 @@ def wet_road_image(image: F64, range_map: F64, camera: CameraGeometry, ground_ma
     r_e, r_i = hemispherical_reflectance(1.0, n), hemispherical_reflectance(n, 1.0)
     reflectance = fresnel_reflectance(theta_v, 1.0, n)[:, None]
     through_water = (1.0 - r_e) * (1.0 - reflectance) / (n**2 * (1.0 - rho * r_i))
-    reflected = screen_space_reflection(image, range_map, camera, pixels, normal, sky)
+    reflected = screen_space_reflection(image, range_map, camera, pixels, rays, normal, sky)
     puddle = water_depth_m[pixels[:, 0], pixels[:, 1]] >= road.texture_depth_m
     if max(film_blur_px) > 1 and not puddle.all():  # a film's broken surface: a mirror image smeared vertically
         layer = np.zeros_like(out)
