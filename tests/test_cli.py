@@ -175,7 +175,7 @@ def test_mlflow_link_opens_the_experiment_on_its_runs(tmp_path: Path) -> None:
     threading.Thread(target=server.serve_forever, daemon=True).start()
     base = f"http://127.0.0.1:{server.server_address[1]}"
     try:
-        assert cli.mlflow_runs_url(base, "weatheralign") == f"{base}/#/experiments/7/runs"
+        assert cli.mlflow_runs_url(base, "weatheralign") == f"{base}/#/experiments/7/runs?workflowType=machine_learning"
         assert cli.mlflow_runs_url(base, "another") == base
     finally:
         server.shutdown()

@@ -85,3 +85,34 @@ def test_wet_asphalt_is_darker_and_more_saturated() -> None:
     assert np.all(wet.sum(axis=1) < 0.6 * brown.sum())
     saturation = (wet.max(axis=1) - wet.min(axis=1)) / wet.max(axis=1)
     assert np.all(saturation > (brown.max() - brown.min()) / brown.max())
+
+
+def test_snow_cover_is_sky_lit_snow_that_keeps_the_shading() -> None:
+    from weatheralign.ground.camera import LUMINANCE, snow_cover_image
+    from weatheralign.ground.optics import wet_albedo
+    from weatheralign.ground.snow import SnowCover
+
+    image, range_map, camera, ground_x = street()
+    ground = np.isfinite(ground_x)
+    points = camera.T_world_cam[:3, 3] + camera.rays_world(240, 320) * np.where(
+        np.isfinite(range_map), range_map, 0.0)[..., None]
+    shadow = ground & (ground_x < 6.0)  # the near road lies in a shadow: half as bright
+    lit = np.where(shadow[..., None], 0.5 * image, image)
+    cover = SnowCover(visible_albedo=0.8, pavement_reflectivity=0.15)
+    coverage = np.where(ground, 1.0, 0.0)
+    out = snow_cover_image(lit, coverage, points, ground, cover, SKY, seed=0, grain=0.0)
+    assert np.array_equal(out[~ground], lit[~ground])  # the wall and the sky unchanged
+    sky_luminance = SKY @ LUMINANCE
+    expected = 0.8 * sky_luminance * (0.75 + 0.25 * SKY / sky_luminance)
+    far = ground & (ground_x > 9.0) & (ground_x < 18.0)
+    assert far.sum() > 500
+    np.testing.assert_allclose(out[far], np.broadcast_to(expected, (far.sum(), 3)), rtol=1e-9)
+    deep = shadow & (ground_x < 3.0)  # away from the shadow's edge (the shading is smoothed over 31 px)
+    assert deep.sum() > 500
+    np.testing.assert_allclose(out[deep], np.broadcast_to(0.5 * expected, (deep.sum(), 3)), rtol=1e-9)
+    half = snow_cover_image(lit, 0.5 * coverage, points, ground, cover, SKY, seed=0, grain=0.0)
+    melt = wet_albedo(0.15) / 0.15
+    np.testing.assert_allclose(half[far], 0.5 * melt * lit[far] + 0.5 * expected, rtol=1e-9)
+    grainy = snow_cover_image(lit, coverage, points, ground, cover, SKY, seed=0, grain=0.05)
+    ratio = grainy[far][:, 1] / out[far][:, 1]
+    assert 0.95 <= ratio.min() < 0.99 and 1.01 < ratio.max() <= 1.05

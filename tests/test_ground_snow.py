@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from weatheralign.ground.snow import SnowCover, snow_covered_ground, snow_depth
+from weatheralign.ground.snow import SnowCover, TireTracks, snow_coverage, snow_covered_ground, snow_depth
 
 
 def test_returns_move_along_their_beams_onto_the_snow_surface() -> None:
@@ -49,3 +49,40 @@ def test_bad_cover_is_refused() -> None:
         SnowCover(variation=1.0)
     with pytest.raises(ValueError, match="snow_reflectivity"):
         SnowCover(snow_reflectivity=0.0)
+
+
+def test_tire_tracks_press_the_snow_where_the_wheels_ran() -> None:
+    tracks = TireTracks(direction=(0.0, 2.0), origin=(10.0, 5.0), lane_offsets_m=(0.0,), gauge_m=1.6, width_m=0.4,
+                        remaining_share=0.2, wander_m=0.0)
+    along = np.linspace(-50, 50, 101)
+    # the road runs along +y through (10, 5): the wheels run at x = 10 -+ 0.8 (left of +y is -x)
+    for x, expected in ((9.2, 0.2), (10.8, 0.2), (10.0, 1.0), (9.2 + 0.2, 1.0), (13.0, 1.0)):
+        xy = np.column_stack([np.full(101, x), 5.0 + along])
+        np.testing.assert_allclose(tracks.depth_factor(xy, seed=0), expected, atol=1e-12)
+    xy = np.column_stack([np.full(101, 9.2 + 0.1), 5.0 + along])  # half-way to the track's edge: raised cosine
+    np.testing.assert_allclose(tracks.depth_factor(xy, seed=0), 1.0 - 0.8 * 0.5, atol=1e-12)
+    cover = SnowCover(depth_m=0.1, variation=0.0)
+    on_track = np.column_stack([np.full(3, 9.2), [0.0, 20.0, 40.0]])
+    np.testing.assert_allclose(snow_depth(on_track, cover, seed=1, tracks=tracks), 0.02, atol=1e-12)
+    wandering = TireTracks(direction=(0.0, 1.0), origin=(10.0, 5.0), lane_offsets_m=(0.0,), wander_m=0.15)
+    factor = wandering.depth_factor(np.column_stack([np.full(2000, 9.2), np.linspace(-500, 500, 2000)]), seed=0)
+    assert factor.min() < 0.35 and factor.max() > 0.75  # the track wanders off the straight line and back
+    with pytest.raises(ValueError, match="direction"):
+        TireTracks(direction=(0.0, 0.0), origin=(0.0, 0.0))
+
+
+def test_snow_stays_on_surfaces_that_face_up() -> None:
+    cover = SnowCover(hiding_depth_m=0.01, max_slope_deg=60.0)
+    depth = np.full(4, 0.05)
+    cos_up = np.array([1.0, 0.75, 0.5, 0.0])
+    coverage, on_surface = snow_coverage(depth, cos_up, cover)
+    weight = np.array([1.0, 0.5, 0.0, 0.0])  # (cos - cos 60) / (1 - cos 60)
+    np.testing.assert_allclose(on_surface, weight * 0.05, atol=1e-12)
+    np.testing.assert_allclose(coverage, weight * (1 - np.exp(-weight * 5.0)), atol=1e-12)
+
+
+def test_partly_covered_footprints_mix_the_intensities() -> None:
+    cover = SnowCover(snow_reflectivity=0.8, pavement_reflectivity=0.2)
+    effect = snow_covered_ground(np.array([[10.0, 0, -1.8]] * 3), np.zeros(3), np.array([0, 0, 1.0]),
+                                 np.full(3, 30.0), np.full(3, 0.05), cover, coverage=np.array([0.0, 0.5, 1.0]))
+    assert effect.intensity.tolist() == [30.0, 75.0, 120.0]

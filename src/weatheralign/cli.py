@@ -147,14 +147,16 @@ def _doctor(project: Path | None) -> int:
 def mlflow_runs_url(base: str, experiment: str, timeout_s: float = 90.0) -> str:
     """The address that opens ``experiment`` on its runs table in the MLflow UI at ``base`` (asked through the
     server's REST API once it answers); ``base`` itself when the experiment is not there or the server does not
-    answer within ``timeout_s``. (MLflow 3's UI opens an experiment on its GenAI overview in a browser that never
-    chose a workflow: that choice lives in the browser's local storage, not in the experiment.)"""
+    answer within ``timeout_s``. The address names the model-training workflow: MLflow 3's UI otherwise shows a
+    browser that never chose one the GenAI sidebar, whatever the experiment's kind (that choice lives in the
+    browser's local storage; mlflow/mlflow#24498)."""
     query = urllib.parse.urlencode({"experiment_name": experiment})
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         try:
             with urllib.request.urlopen(f"{base}/api/2.0/mlflow/experiments/get-by-name?{query}", timeout=5) as r:
-                return f"{base}/#/experiments/{json.load(r)['experiment']['experiment_id']}/runs"
+                experiment_id = json.load(r)["experiment"]["experiment_id"]
+            return f"{base}/#/experiments/{experiment_id}/runs?workflowType=machine_learning"
         except urllib.error.HTTPError:
             return base  # the server answers: no such experiment
         except OSError:

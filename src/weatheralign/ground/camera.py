@@ -13,6 +13,21 @@ Per ground pixel, in linear light, with ``c`` the share of the surface under wat
   rays that leave the image or pass every surface see ``sky`` radiance. Puddles (water above the macrotexture) are
   sharp mirrors; a thin film's broken surface smears its reflection, mostly along the image's columns, as the glossy
   lobe of a rough surface seen at a grazing angle does (``film_blur_px``: rows, columns).
+
+Lying snow (`snow_cover_image`) over the share ``c`` of a pixel's surface (`weatheralign.ground.snow.snow_coverage`,
+from the same depth field and surface normals as the LiDAR's):
+
+    L = (1 - c) L_under + c A s L_sky (1 + g)
+
+- ``A L_sky``: a Lambertian surface of albedo ``A`` under a sky of uniform radiance ``L_sky`` has radiance
+  ``A L_sky``; its colour is the sky light's, a quarter of the way from neutral (snow also answers the light of its
+  surroundings and the sun's);
+- ``s``: the surface's own shading kept (buildings' and cars' shadows, a street canyon's smaller share of the sky):
+  the dry image's luminance smoothed over ``shading_px`` on the snowy pixels, relative to its 90th percentile there;
+- ``g``: the snow surface's grain, fractal noise of world position (so every camera sees the same), contrast
+  ``grain``;
+- ``L_under``: what shows between thin snow and in wheel tracks; on the ground the pavement darkened as wet
+  (`weatheralign.ground.optics.wet_albedo`: melt water).
 """
 
 from __future__ import annotations
@@ -23,8 +38,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import uniform_filter
 
-from weatheralign.ground.optics import fresnel_reflectance, hemispherical_reflectance
-from weatheralign.ground.wet import WetRoad, wetted_share
+from weatheralign.ground.optics import fresnel_reflectance, hemispherical_reflectance, wet_albedo
+from weatheralign.ground.snow import SnowCover
+from weatheralign.ground.wet import WetRoad, fractal_noise, wetted_share
 
 F64 = NDArray[np.float64]
 
@@ -135,4 +151,35 @@ def wet_road_image(image: F64, range_map: F64, camera: CameraGeometry, ground_ma
     return out
 
 
-__all__ = ["CameraGeometry", "screen_space_reflection", "wet_road_image"]
+def snow_cover_image(image: F64, coverage: F64, points_world: F64, ground_mask: NDArray[np.bool_], cover: SnowCover,
+                     sky: F64, seed: int, shading_px: int = 31, grain: float = 0.05, grain_cell_m: float = 0.4) -> F64:
+    """The linear-light image (H, W, 3) with lying snow over the share ``coverage`` (H, W) of each pixel's surface
+    (module docstring); ``points_world`` (H, W, 3) [m] the pixels' surfaces (nan: sky), ``ground_mask`` (H, W) the
+    road's pixels, ``sky`` (3,) the sky's radiance. Pixels without snow are returned unchanged."""
+    out = np.array(image, dtype=np.float64, copy=True)
+    pixels = np.argwhere(coverage > 0)
+    if len(pixels) == 0:
+        return out
+    luminance = out @ LUMINANCE
+    snowy = coverage > 0
+    weight = uniform_filter(snowy.astype(np.float64), shading_px)
+    local = uniform_filter(np.where(snowy, luminance, 0.0), shading_px) / np.maximum(weight, 1e-9)
+    rows, cols = pixels[:, 0], pixels[:, 1]
+    reference = max(float(np.percentile(local[rows, cols], 90)), 1e-6)
+    shading = np.clip(local[rows, cols] / reference, 0.2, 1.0)[:, None]
+    sky = np.asarray(sky, dtype=np.float64)
+    sky_luminance = max(float(sky @ LUMINANCE), 1e-6)
+    tint = 0.75 + 0.25 * sky / sky_luminance
+    g = 1.0 + grain * (2.0 * fractal_noise(points_world[rows, cols, :2], grain_cell_m, seed + 11, octaves=3) - 1.0)
+    snow = cover.visible_albedo * sky_luminance * tint * shading * g[:, None]
+    dry = out[rows, cols]
+    melt = float(wet_albedo(cover.pavement_reflectivity) / cover.pavement_reflectivity)
+    under = np.where(ground_mask[rows, cols, None], melt * dry, dry)
+    c = coverage[rows, cols][:, None]
+    out[rows, cols] = (1.0 - c) * under + c * snow
+    return out
+
+
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 / sRGB primaries, linear light
+
+__all__ = ["CameraGeometry", "LUMINANCE", "screen_space_reflection", "snow_cover_image", "wet_road_image"]

@@ -2,11 +2,17 @@
 returns: the surface rises by the snow's depth and answers with snow's reflectivity.
 
 The depth (`snow_depth`) is a function of the world position (x, y) and a seed alone, so every frame, the LiDAR and
-every camera of a scene see the same drifts. A ground return at range ``r`` on a surface of normal ``n`` now comes from
-the snow surface ``d`` above it, along the same beam: ``r' = r - d / cos(theta)``, ``theta`` the incidence angle from
-the normal. Both surfaces are taken as Lambertian at the same incidence, so the intensity scales by the ratio of
-their reflectivities at the LiDAR's wavelength (fresh snow about 0.8 at 905 nm, asphalt 0.1-0.2), up to the
-sensor's saturation.
+every camera of a scene see the same drifts and the same wheel tracks (`TireTracks`: lines along the road where
+traffic has pressed the snow down to a thin slush). Snow stays on surfaces that face up: on a surface tilted by
+``phi`` from the vertical it lies ``w = clip((cos phi - cos phi_max) / (1 - cos phi_max), 0, 1)`` times as deep
+(nothing beyond ``max_slope_deg``), and hides the surface under it over the share
+``c = w (1 - exp(-w d / hiding_depth_m))`` (`snow_coverage`); the LiDAR and the cameras use the same ``c``.
+
+A return at range ``r`` on a surface of normal ``n`` now comes from the snow surface ``d`` above it, along the same
+beam: ``r' = r - d / cos(theta)``, ``theta`` the incidence angle from the normal. Both surfaces are taken as
+Lambertian at the same incidence, so over the covered share of the beam's footprint the intensity scales by the
+ratio of their reflectivities at the LiDAR's wavelength (fresh snow about 0.8 at 905 nm, asphalt 0.1-0.2), up to
+the sensor's saturation.
 """
 
 from __future__ import annotations
@@ -17,7 +23,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from weatheralign.ground.wet import fractal_noise
+from weatheralign.ground.wet import fractal_noise, value_noise
 
 F64 = NDArray[np.float64]
 
@@ -32,13 +38,19 @@ class SnowCover:
     cell_m: float = 6.0
     snow_reflectivity: float = 0.8
     pavement_reflectivity: float = 0.15
+    visible_albedo: float = 0.85  # fresh snow in the visible (Warren 1982: 0.8-0.95)
+    hiding_depth_m: float = 0.01  # the depth that hides all but 1/e of the surface under it
+    max_slope_deg: float = 50.0  # steeper surfaces hold no snow
 
     def __post_init__(self) -> None:
-        if not self.depth_m > 0 or not self.cell_m > 0:
-            raise ValueError(f"SnowCover.depth_m and cell_m must be > 0, got {self.depth_m}, {self.cell_m}")
+        if not self.depth_m > 0 or not self.cell_m > 0 or not self.hiding_depth_m > 0:
+            raise ValueError(f"SnowCover.depth_m, cell_m and hiding_depth_m must be > 0, got {self.depth_m}, "
+                             f"{self.cell_m}, {self.hiding_depth_m}")
+        if not 0.0 < self.max_slope_deg < 90.0:
+            raise ValueError(f"SnowCover.max_slope_deg must be in (0, 90), got {self.max_slope_deg}")
         if not 0.0 <= self.variation < 1.0:
             raise ValueError(f"SnowCover.variation must be in [0, 1), got {self.variation}")
-        for name in ("snow_reflectivity", "pavement_reflectivity"):
+        for name in ("snow_reflectivity", "pavement_reflectivity", "visible_albedo"):
             if not 0.0 < getattr(self, name) <= 1.0:
                 raise ValueError(f"SnowCover.{name} must be in (0, 1], got {getattr(self, name)}")
 
@@ -51,17 +63,72 @@ class SnowCoverEffect(NamedTuple):
     depth_m: F64  # (N,) snow depth at the return [m]
 
 
-def snow_depth(xy_world: F64, cover: SnowCover, seed: int) -> F64:
-    """Snow depth [m] at world positions (N, 2): ``depth_m (1 + variation (2 u - 1))``, ``u`` fractal noise."""
+@dataclass(frozen=True)
+class TireTracks:
+    """Wheel tracks in the snow along a road running in the world direction ``direction`` (x, y) through the world
+    point ``origin`` (x, y) [m] (e.g. the ego's position and heading): per lane centre at the lateral offsets
+    ``lane_offsets_m`` (left positive) two tracks ``gauge_m`` apart, each ``width_m`` wide, that wander sideways by up
+    to ``wander_m`` over ``wander_cell_m`` along the road; in them only ``remaining_share`` of the snow is left."""
+
+    direction: tuple[float, float]
+    origin: tuple[float, float]
+    lane_offsets_m: tuple[float, ...] = (-3.5, 0.0, 3.5)
+    gauge_m: float = 1.6
+    width_m: float = 0.45
+    remaining_share: float = 0.3
+    wander_m: float = 0.15
+    wander_cell_m: float = 25.0
+
+    def __post_init__(self) -> None:
+        if not np.hypot(*self.direction) > 0:
+            raise ValueError(f"TireTracks.direction must be a non-zero (x, y) vector, got {self.direction}")
+        if not self.width_m > 0 or not self.gauge_m > self.width_m:
+            raise ValueError(f"TireTracks needs gauge_m > width_m > 0, got {self.gauge_m}, {self.width_m}")
+        if not 0.0 <= self.remaining_share <= 1.0:
+            raise ValueError(f"TireTracks.remaining_share must be in [0, 1], got {self.remaining_share}")
+
+    def depth_factor(self, xy_world: F64, seed: int) -> F64:
+        """(N,) the share of the snow left at world positions (N, 2): ``remaining_share`` at a track's centre
+        line, rising as a raised cosine to 1 at its edges, 1 off the tracks."""
+        xy = np.asarray(xy_world, dtype=np.float64) - np.asarray(self.origin, dtype=np.float64)
+        along_unit = np.asarray(self.direction, dtype=np.float64) / np.hypot(*self.direction)
+        along = xy @ along_unit
+        lateral = xy @ np.array([-along_unit[1], along_unit[0]])
+        shift = self.wander_m * (2.0 * value_noise(np.column_stack([along, np.zeros_like(along)]),
+                                                   self.wander_cell_m, seed + 7) - 1.0)
+        factor = np.ones(len(xy))
+        half = 0.5 * self.width_m
+        for lane in self.lane_offsets_m:
+            for wheel in (-0.5 * self.gauge_m, 0.5 * self.gauge_m):
+                distance = np.abs(lateral - shift - lane - wheel)
+                dip = np.where(distance < half, 0.5 * (1.0 + np.cos(np.pi * distance / half)), 0.0)
+                factor = np.minimum(factor, 1.0 - (1.0 - self.remaining_share) * dip)
+        return factor
+
+
+def snow_depth(xy_world: F64, cover: SnowCover, seed: int, tracks: TireTracks | None = None) -> F64:
+    """Snow depth [m] on level ground at world positions (N, 2): ``depth_m (1 + variation (2 u - 1))``, ``u``
+    fractal noise, pressed down in the ``tracks``."""
     u = fractal_noise(xy_world, cover.cell_m, seed)
-    return cover.depth_m * (1.0 + cover.variation * (2.0 * u - 1.0))
+    depth = cover.depth_m * (1.0 + cover.variation * (2.0 * u - 1.0))
+    return depth if tracks is None else depth * tracks.depth_factor(xy_world, seed)
+
+
+def snow_coverage(depth_m: F64, cos_up: F64, cover: SnowCover) -> tuple[F64, F64]:
+    """(covered share ``c``, depth [m]) of surfaces whose unit normals make ``cos_up`` (N,) with the vertical, under
+    level-ground snow ``depth_m`` (N,) (module docstring): both 0 on surfaces steeper than ``max_slope_deg``."""
+    cos_max = np.cos(np.radians(cover.max_slope_deg))
+    weight = np.clip((np.asarray(cos_up, dtype=np.float64) - cos_max) / (1.0 - cos_max), 0.0, 1.0)
+    depth = weight * np.asarray(depth_m, dtype=np.float64)
+    return weight * (1.0 - np.exp(-depth / cover.hiding_depth_m)), depth
 
 
 def snow_covered_ground(points: F64, origins: F64, normals: F64, intensity: F64, depth_m: F64, cover: SnowCover,
-                        saturation: float = 255.0) -> SnowCoverEffect:
-    """Ground returns (N, 3) seen from ``origins`` (N, 3) or (3,) on surfaces of unit ``normals`` (N, 3) or (3,),
-    under snow ``depth_m`` (N,) [m]: each moved along its beam onto the snow surface, its intensity scaled by
-    ``snow_reflectivity / pavement_reflectivity`` and clipped at ``saturation``."""
+                        saturation: float = 255.0, coverage: F64 | None = None) -> SnowCoverEffect:
+    """Returns (N, 3) seen from ``origins`` (N, 3) or (3,) on surfaces of unit ``normals`` (N, 3) or (3,), under
+    snow ``depth_m`` (N,) [m]: each moved along its beam onto the snow surface; over the ``coverage`` (N,) share of
+    its footprint (default all) the intensity scaled by ``snow_reflectivity / pavement_reflectivity``, clipped at
+    ``saturation``."""
     points = np.asarray(points, dtype=np.float64)
     rays = points - origins
     ranges = np.linalg.norm(rays, axis=-1, keepdims=True)
@@ -71,8 +138,10 @@ def snow_covered_ground(points: F64, origins: F64, normals: F64, intensity: F64,
     depth = np.asarray(depth_m, dtype=np.float64)
     moved = points - directions * (depth[:, None] / np.maximum(cos_incidence, 1e-6))
     ratio = cover.snow_reflectivity / cover.pavement_reflectivity
-    new = np.minimum(np.asarray(intensity, dtype=np.float64) * ratio, saturation)
+    dry = np.asarray(intensity, dtype=np.float64)
+    snowy = np.minimum(dry * ratio, saturation)
+    new = snowy if coverage is None else (1.0 - coverage) * dry + coverage * snowy
     return SnowCoverEffect(moved, new, depth)
 
 
-__all__ = ["snow_covered_ground", "snow_depth", "SnowCover", "SnowCoverEffect"]
+__all__ = ["snow_coverage", "snow_covered_ground", "snow_depth", "SnowCover", "SnowCoverEffect", "TireTracks"]

@@ -1,0 +1,185 @@
+"""The surfaces that receive water or snow, found once per frame so that the LiDAR and every camera edit the same ones.
+
+On real data the ground is the dominant plane under the sensor (`fit_ground_plane`: open3d's RANSAC on the returns
+more than ``min_drop_m`` below the LiDAR); a LiDAR return is on it within ``tolerance_m``. The up-facing surfaces
+elsewhere (car roofs, ledges, tree crowns) come from surface normals: the LiDAR's from its points' neighbourhoods
+(`point_normals`), a camera's from the 3-D points of an exact range map (`pixel_normals`: the synthetic world's). A
+dense depth interpolated from a LiDAR's rings is no such map: between rings it spans flat facets, and its normals on
+facades, cars and people point anywhere; there a pixel takes the orientation of the LiDAR return nearest its surface
+point (`nearest_return_values`), so both sensors read one set of normals. Both sensors then ask the
+same questions of the same world positions (`weatheralign.ground.snow.snow_coverage`,
+`weatheralign.ground.wet.water_depth`), and `mask_agreement` measures how well they agree: the LiDAR's edited returns
+projected into a camera against the camera's edited pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.ndimage import uniform_filter
+
+from weatheralign.ground.camera import CameraGeometry
+
+F64 = NDArray[np.float64]
+Mask = NDArray[np.bool_]
+
+
+@dataclass(frozen=True)
+class GroundPlane:
+    """The plane ``normal . x + offset = 0`` in the frame of the points it was fitted to (unit ``normal`` (3,)
+    pointing up), and the distance [m] within which a point is on it."""
+
+    normal: tuple[float, float, float]
+    offset: float
+    tolerance_m: float = 0.15
+
+    def height(self, points: F64) -> F64:
+        """(N,) signed height [m] of points (N, 3) above the plane."""
+        return np.asarray(points, dtype=np.float64) @ np.asarray(self.normal) + self.offset
+
+    def contains(self, points: F64) -> Mask:
+        """(N,) points within ``tolerance_m`` of the plane."""
+        return np.abs(self.height(points)) < self.tolerance_m
+
+    def transformed(self, T: F64) -> GroundPlane:
+        """The same plane in the frame that the rigid transform ``T`` (4, 4) maps this frame into."""
+        normal = np.asarray(T, dtype=np.float64)[:3, :3] @ np.asarray(self.normal)
+        offset = self.offset - float(normal @ np.asarray(T, dtype=np.float64)[:3, 3])
+        return GroundPlane((float(normal[0]), float(normal[1]), float(normal[2])), offset, self.tolerance_m)
+
+
+def fit_ground_plane(points: F64, min_drop_m: float = 1.0, tolerance_m: float = 0.15, seed: int = 0) -> GroundPlane:
+    """The dominant plane among the LiDAR returns (N, 3) (sensor frame, z up) lying more than ``min_drop_m`` below
+    the sensor: open3d's RANSAC (``tolerance_m`` inlier distance, 2000 iterations, seeded). Raises ``ValueError``
+    when fewer than 100 returns lie that low."""
+    import open3d as o3d
+
+    low = np.nonzero(np.asarray(points)[:, 2] < -min_drop_m)[0]
+    if len(low) < 100:
+        raise ValueError(f"fit_ground_plane: {len(low)} returns lie {min_drop_m} m below the sensor; need >= 100 "
+                         "(is the cloud in the sensor frame, z up?)")
+    o3d.utility.random.seed(seed)
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points)[low, :3].astype(np.float64)))
+    (a, b, c, d), _ = cloud.segment_plane(distance_threshold=tolerance_m, ransac_n=3, num_iterations=2000)
+    sign = 1.0 if c >= 0 else -1.0
+    length = float(np.linalg.norm([a, b, c]))
+    return GroundPlane((a * sign / length, b * sign / length, c * sign / length), d * sign / length, tolerance_m)
+
+
+def point_normals(points: F64, origin: F64, neighbours: int = 16) -> F64:
+    """(N, 3) unit normals of LiDAR returns (N, 3) from their ``neighbours`` nearest returns (open3d's PCA), turned
+    towards the sensor at ``origin`` (3,)."""
+    import open3d as o3d
+
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=neighbours))
+    normals = np.asarray(cloud.normals)
+    facing = np.sum(normals * (np.asarray(origin) - points), axis=1) < 0
+    normals[facing] *= -1.0
+    return normals
+
+
+def median_over_neighbours(points: F64, values: F64, neighbours: int = 16) -> F64:
+    """(N,) the median of ``values`` (N,) over each point's ``neighbours`` nearest points (N, 3) (itself included):
+    a lone odd normal among its neighbours' is outvoted."""
+    from scipy.spatial import cKDTree
+
+    _, index = cKDTree(np.asarray(points, dtype=np.float64)).query(points, k=neighbours)
+    return np.median(np.asarray(values, dtype=np.float64)[index], axis=1)
+
+
+class PixelSurfaces(NamedTuple):
+    """A camera's surfaces from its dense range map."""
+
+    points_world: F64  # (H, W, 3) world position of each pixel's surface [m]; nan for the sky
+    normals_world: F64  # (H, W, 3) unit normals turned towards the camera; nan where unknown (sky, depth edges)
+
+
+def pixel_normals(range_map: F64, camera: CameraGeometry, smooth_px: int = 5, edge_ratio: float = 0.05
+                  ) -> PixelSurfaces:
+    """World points and normals of a camera's pixels from its range map (H, W) [m] (inf: sky): the points averaged
+    over ``smooth_px`` x ``smooth_px`` (a real map's noise would scatter its normals), the normal the cross product
+    of the central differences along the rows and the columns. Pixels beside a depth edge (a neighbour's range
+    differs by more than ``edge_ratio`` of its own) get nan: their differences span two surfaces."""
+    height, width = range_map.shape
+    finite = np.isfinite(range_map)
+    rays = camera.rays_world(height, width)
+    points = camera.T_world_cam[:3, 3] + rays * np.where(finite, range_map, 0.0)[..., None]
+    weight = uniform_filter(finite.astype(np.float64), smooth_px)
+    smooth = uniform_filter(points * finite[..., None], (smooth_px, smooth_px, 1)) / np.maximum(weight, 1e-9)[..., None]
+    d_col = np.zeros_like(smooth)
+    d_row = np.zeros_like(smooth)
+    d_col[:, 1:-1] = smooth[:, 2:] - smooth[:, :-2]
+    d_row[1:-1] = smooth[2:] - smooth[:-2]
+    normals = np.cross(d_col, d_row)
+    length = np.linalg.norm(normals, axis=-1, keepdims=True)
+    normals = normals / np.maximum(length, 1e-12)
+    normals *= np.where(np.sum(normals * rays, axis=-1, keepdims=True) > 0, -1.0, 1.0)
+    r = np.where(finite, range_map, np.nan)
+    jump = np.zeros(range_map.shape, dtype=bool)
+    with np.errstate(invalid="ignore"):
+        jump[:, 1:-1] |= np.abs(r[:, 2:] - r[:, :-2]) > edge_ratio * r[:, 1:-1]
+        jump[1:-1] |= np.abs(r[2:] - r[:-2]) > edge_ratio * r[1:-1]
+    border = np.zeros_like(jump)
+    border[[0, -1], :] = border[:, [0, -1]] = True
+    unknown = ~finite | jump | border | (weight < 0.999) | (length[..., 0] < 1e-12)
+    normals[unknown] = np.nan
+    points[~finite] = np.nan
+    return PixelSurfaces(points, normals)
+
+
+def nearest_return_values(points_world: F64, returns_world: F64, values: F64, max_distance_m: float = 0.3) -> F64:
+    """(M,) for surface points (M, 3) the ``values`` (N,) of the nearest LiDAR return (N, 3) within
+    ``max_distance_m``; nan where none is that near (and for nan points)."""
+    from scipy.spatial import cKDTree
+
+    points = np.asarray(points_world, dtype=np.float64)
+    out = np.full(len(points), np.nan)
+    finite = np.all(np.isfinite(points), axis=1)
+    distance, index = cKDTree(np.asarray(returns_world, dtype=np.float64)).query(
+        points[finite], distance_upper_bound=max_distance_m)
+    near = np.isfinite(distance)
+    found = np.full(int(finite.sum()), np.nan)
+    found[near] = np.asarray(values, dtype=np.float64)[index[near]]
+    out[finite] = found
+    return out
+
+
+class MaskAgreement(NamedTuple):
+    """The LiDAR's edited returns projected into a camera against the camera's edited pixels, over the pixels some
+    return projects to."""
+
+    iou: float  # |L and C| / |L or C| over those pixels
+    lidar_on_camera: float  # share of the pixels the LiDAR edits that the camera edits too
+    camera_on_lidar: float  # share of the pixels the camera edits that the LiDAR edits too
+    pixels: int  # pixels some return projects to
+
+
+def mask_agreement(points_world: F64, edited: Mask, camera: CameraGeometry, camera_mask: Mask,
+                   max_range_m: float = 60.0) -> MaskAgreement:
+    """How well a LiDAR's edits (``edited`` (N,) of its returns at ``points_world`` (N, 3)) and a camera's
+    (``camera_mask`` (H, W)) agree: per pixel some return within ``max_range_m`` projects to, the LiDAR's label
+    (the nearest such return's) against the camera's."""
+    height, width = camera_mask.shape
+    u, v, length = camera.project(np.asarray(points_world, dtype=np.float64))
+    col, row = np.rint(u).astype(np.int64), np.rint(v).astype(np.int64)
+    seen = (length > 0) & (length < max_range_m) & (col >= 0) & (col < width) & (row >= 0) & (row < height)
+    index = np.nonzero(seen)[0]
+    index = index[np.argsort(-length[index], kind="stable")]  # nearest last: it wins the pixel
+    label = np.full((height, width), -1, dtype=np.int8)
+    label[row[index], col[index]] = edited[index]
+    hit = label >= 0
+    lidar = hit & (label == 1)
+    cam = hit & camera_mask
+    union = int(np.count_nonzero(lidar | cam))
+    both = int(np.count_nonzero(lidar & cam))
+    return MaskAgreement(both / union if union else 1.0, both / max(int(lidar.sum()), 1),
+                         both / max(int(cam.sum()), 1), int(hit.sum()))
+
+
+__all__ = ["fit_ground_plane", "GroundPlane", "mask_agreement", "MaskAgreement", "median_over_neighbours",
+           "nearest_return_values",
+           "pixel_normals", "PixelSurfaces", "point_normals"]
