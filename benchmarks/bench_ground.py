@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -62,159 +62,121 @@ def optics_rows(photons: int) -> list[dict[str, float]]:
     return rows
 
 
-@dataclass(frozen=True)
-class LidarGround:
-    """One real scan's ground and surfaces, found once for both sensors."""
-
-    xyz: np.ndarray  # (N, 3) returns, LiDAR frame [m]
-    world: np.ndarray  # (N, 3) the same in the world frame
-    intensity: np.ndarray  # (N,) 0..255
-    plane: Any  # GroundPlane in the LiDAR frame
-    on_ground: np.ndarray  # (N,) bool
-    normals: np.ndarray  # (N, 3) unit surface normals, LiDAR frame (the plane's on the ground)
-    cos_up: np.ndarray  # (N,) of each return's surface normal with the world's vertical
-    T_world_lidar: np.ndarray  # (4, 4)
-    floor: float  # the scan's estimated detector floor (0..255)
-
-
-def lidar_ground(frame: Any) -> LidarGround:
-    """The scan's ground plane and its returns' surface orientation."""
-    from weatheralign.ground.surfaces import fit_ground_plane, median_over_neighbours, point_normals
-    from weatheralign.sensors import estimate_lidar_model
-
-    scan = frame.lidar
-    xyz = scan.points[:, :3].astype(np.float64)
-    plane = fit_ground_plane(xyz)
-    T = scan.T_global_ego @ scan.T_ego_lidar
-    on_ground = plane.contains(xyz)
-    normals = np.where(on_ground[:, None], np.asarray(plane.normal), point_normals(xyz, np.zeros(3)))
-    cos_up = median_over_neighbours(xyz, np.abs((normals @ T[:3, :3].T)[:, 2]))  # one stray normal holds no snow
-    return LidarGround(xyz, xyz @ T[:3, :3].T + T[:3, 3], scan.points[:, 3].astype(np.float64)
-                       * (255.0 / scan.intensity_max), plane, on_ground, normals, cos_up, T,
-                       estimate_lidar_model([scan], rotation_hz=10.0).noise_floor)
-
-
-def tracks_for(ground: LidarGround) -> Any:
+def tracks_for(scan: Any) -> Any:
     """Wheel tracks along the ego's heading through the LiDAR's position (a straight road, ego in its lane)."""
     from weatheralign.ground.snow import TireTracks
 
-    heading = ground.T_world_lidar[:3, 0]
-    return TireTracks(direction=(float(heading[0]), float(heading[1])),
-                      origin=(float(ground.T_world_lidar[0, 3]), float(ground.T_world_lidar[1, 3])))
+    T = scan.T_global_lidar
+    return TireTracks(direction=(float(T[0, 0]), float(T[1, 0])), origin=(float(T[0, 3]), float(T[1, 3])))
 
 
-def frame_rows(name: str, g: LidarGround) -> tuple[list[dict[str, Any]], dict[str, Any]]:
-    """The wet road on one real frame at every film depth, and the snow cover; the arrays of the figure."""
-    from weatheralign.ground.snow import SnowCover, snow_coverage, snow_covered_ground, snow_depth
-    from weatheralign.ground.wet import WetRoad, incidence_angle, water_depth, wet_ground
+def ground_states(scan: Any, film_mm: float = FIGURE_FILM_MM) -> dict[str, Any]:
+    """The figure's wet road and snow cover for ``scan``'s scene."""
+    from weatheralign.ground.edit import GroundState
+    from weatheralign.ground.snow import SnowCover
+    from weatheralign.ground.wet import WetRoad
 
-    positive = g.intensity[g.intensity > 0]
-    weakest = float(positive.min()) if len(positive) else g.floor
-    ground = g.on_ground
-    normal = np.asarray(g.plane.normal)
-    theta = incidence_angle(g.xyz[ground], np.zeros(3), normal)
+    return {"wet": GroundState(road=replace(WetRoad(), film_depth_m=film_mm / 1000.0)),
+            "snow": GroundState(cover=replace(SnowCover(), depth_m=SNOW_DEPTH_M), tracks=tracks_for(scan))}
+
+
+def frame_rows(name: str, scan: Any, surfaces: Any, floor: float) -> tuple[list[dict[str, Any]], dict[str, Any]]:
+    """The wet road on one real scan at every film depth, and the snow cover; the arrays of the figure."""
+    from weatheralign.ground.edit import edit_scan
+
+    intensity = scan.intensity_255().astype(np.float64)
+    positive = intensity[intensity > 0]
+    weakest = float(positive.min()) if len(positive) else floor
+    ground = surfaces.on_ground
     rows: list[dict[str, Any]] = []
-    figure: dict[str, Any] = {"xy": g.xyz[:, :2], "dry": g.intensity, "weakest": weakest, "ground": ground}
+    figure: dict[str, Any] = {"xy": scan.points[:, :2], "dry": intensity, "weakest": weakest, "ground": ground}
     for film_mm in FILM_DEPTHS_MM:
-        road = replace(WetRoad(), film_depth_m=film_mm / 1000.0)
-        depth = water_depth(g.world[ground, :2], road, seed=0)
         t0 = time.process_time()
-        effect = wet_ground(g.intensity[ground], theta, depth, road, g.floor)
-        below = (effect.intensity < weakest) & (g.intensity[ground] >= weakest)
-        rows.append({"frame": name, "film_mm": film_mm, "points": int(len(g.xyz)), "ground_points": int(ground.sum()),
-                     "noise_floor": g.floor, "incidence_deg_median": float(np.degrees(np.median(theta))),
-                     "mean_intensity_ratio": float(effect.intensity.sum() / max(g.intensity[ground].sum(), 1e-9)),
-                     "ground_lost_share": float(effect.lost.mean()), "ground_lost": int(effect.lost.sum()),
-                     "weakest_reported": weakest, "below_weakest_share": float(np.mean(below)),
-                     "puddle_share": float(np.mean(depth >= road.puddle_depth_m)),
-                     "cpu_s": time.process_time() - t0})
+        edited = edit_scan(scan, surfaces, ground_states(scan, film_mm)["wet"], floor)
+        cpu = time.process_time() - t0
+        new = np.zeros(len(intensity))
+        new[edited.source_index] = edited.scan.intensity_255()
+        lost = ground & ~np.isin(np.arange(len(intensity)), edited.source_index)
+        below = ground & ~lost & (new < weakest) & (intensity >= weakest)
+        rows.append({"frame": name, "film_mm": film_mm, "points": int(len(intensity)),
+                     "ground_points": int(ground.sum()), "noise_floor": floor,
+                     "mean_intensity_ratio": float(new[ground].sum() / max(intensity[ground].sum(), 1e-9)),
+                     "ground_lost_share": float(lost[ground].mean()), "ground_lost": int(lost.sum()),
+                     "weakest_reported": weakest, "below_weakest_share": float(below[ground].mean()), "cpu_s": cpu})
         if film_mm == FIGURE_FILM_MM:
-            wet = g.intensity.copy()
-            wet[ground] = effect.intensity
-            lost = np.zeros(len(g.xyz), bool)
-            lost[ground] = effect.lost | below
-            figure.update(wet=wet, wet_lost=lost, wet_edited=ground.copy())
-    cover = replace(SnowCover(), depth_m=SNOW_DEPTH_M)
+            figure.update(wet=new, wet_lost=lost | below, wet_edited=edited.edited)
     t0 = time.process_time()
-    level = snow_depth(g.world[:, :2], cover, seed=0, tracks=tracks_for(g))
-    coverage, depth = snow_coverage(level, g.cos_up, cover)
-    effect = snow_covered_ground(g.xyz, np.zeros(3), g.normals, g.intensity, depth, cover, coverage=coverage)
-    snow_cpu = time.process_time() - t0
-    edited = coverage > 0.5
-    rise = (effect.points - g.xyz) @ normal
-    figure.update(snow=effect.intensity, snow_edited=edited)
-    snow_row = {"frame": name, "snow_depth_m": SNOW_DEPTH_M, "points": int(len(g.xyz)),
-                "covered_points": int(edited.sum()), "covered_ground_points": int((edited & ground).sum()),
-                "covered_other_points": int((edited & ~ground).sum()),
-                "ground_rise_m_median": float(np.median(rise[ground & edited])) if (ground & edited).any() else 0.0,
-                "mean_intensity_ratio_covered": float(effect.intensity[edited].sum()
-                                                      / max(g.intensity[edited].sum(), 1e-9)),
-                "cpu_s": snow_cpu}
+    snowy = edit_scan(scan, surfaces, ground_states(scan)["snow"], floor)
+    cpu = time.process_time() - t0
+    rise = (snowy.scan.points[:, :3] - scan.points[:, :3]).astype(np.float64) @ np.asarray(surfaces.plane.normal)
+    covered = snowy.edited
+    figure.update(snow=snowy.scan.intensity_255().astype(np.float64), snow_edited=covered)
+    snow_row = {"frame": name, "snow_depth_m": SNOW_DEPTH_M, "points": int(len(intensity)),
+                "covered_points": int(covered.sum()), "covered_ground_points": int((covered & ground).sum()),
+                "covered_other_points": int((covered & ~ground).sum()),
+                "ground_rise_m_median": float(np.median(rise[ground & covered])) if (ground & covered).any() else 0.0,
+                "mean_intensity_ratio_covered": float(figure["snow"][covered].sum()
+                                                      / max(intensity[covered].sum(), 1e-9)), "cpu_s": cpu}
     return rows + [snow_row], figure
 
 
-def camera_ground(name: str, frame: Any, g: LidarGround, figure: dict[str, Any]) -> tuple[dict[str, Any],
-                                                                                          list[np.ndarray]]:
-    """The wet road and the snow cover in the frame's first camera, from the same ground plane, fields and
-    surface rule as the LiDAR: (numbers, [clean, wet, snowy] sRGB uint8 images). Dense depth from the scan
-    (`camera_range_map`)."""
-    from scipy.ndimage import gaussian_filter
-
+def camera_ground(name: str, frame: Any, surfaces: Any, figure: dict[str, Any], channel: str | None = None
+                  ) -> tuple[dict[str, Any], list[np.ndarray]]:
+    """The wet road and the snow cover in one camera of the frame (the first unless ``channel``), from the same
+    ground plane, fields and surfaces as the LiDAR: (numbers, [clean, wet, snowy] sRGB uint8 images). The exact
+    range map where the dataset has one, else a dense depth from the scan (`camera_range_map`)."""
     from weatheralign.camera.depth import camera_range_map
     from weatheralign.camera.fog import decode_srgb_u8, encode_srgb_u8
-    from weatheralign.ground.camera import CameraGeometry, snow_cover_image, wet_road_image
-    from weatheralign.ground.snow import SnowCover, snow_coverage, snow_depth
-    from weatheralign.ground.surfaces import mask_agreement, nearest_return_values, pixel_normals
-    from weatheralign.ground.wet import WetRoad, water_depth
+    from weatheralign.ground.camera import CameraGeometry
+    from weatheralign.ground.edit import edit_image
+    from weatheralign.ground.surfaces import mask_agreement
 
-    view = next(iter(frame.cameras.values()))
+    view = frame.cameras[channel] if channel else next(iter(frame.cameras.values()))
     image = view.load_image()
     t0 = time.process_time()
     range_map = camera_range_map(view, frame.lidar, image).astype(np.float64)
     depth_cpu = time.process_time() - t0
     camera = CameraGeometry(np.asarray(view.K, np.float64), view.T_global_cam)
-    t0 = time.process_time()
-    surfaces = pixel_normals(range_map, camera)
-    finite = np.isfinite(range_map)
-    plane_world = g.plane.transformed(g.T_world_lidar)
-    ground = finite & plane_world.contains(np.nan_to_num(surfaces.points_world))
-    normal_world = np.asarray(plane_world.normal)
-    surfaces_cpu = time.process_time() - t0
     linear = decode_srgb_u8(image).astype(np.float64)
-    height = range_map.shape[0]
-    sky_rows = ~finite[: max(height // 8, 1)]
-    sky = linear[: max(height // 8, 1)][sky_rows].mean(axis=0) if sky_rows.any() else linear[:4].reshape(-1, 3).mean(0)
-    road = replace(WetRoad(), film_depth_m=FIGURE_FILM_MM / 1000.0)
-    water = np.zeros(range_map.shape)
-    water[ground] = water_depth(surfaces.points_world[ground][:, :2], road, seed=0)
-    t0 = time.process_time()
-    wet = wet_road_image(linear, np.where(finite, range_map, np.inf), camera, ground, water, road, normal_world, sky)
-    wet_cpu = time.process_time() - t0
-    cover = replace(SnowCover(), depth_m=SNOW_DEPTH_M)
-    t0 = time.process_time()
-    lidar_cos_up = nearest_return_values(surfaces.points_world.reshape(-1, 3), g.world, g.cos_up
-                                         ).reshape(range_map.shape)  # dense depth's own normals are facets
-    known = np.isfinite(lidar_cos_up) | ground
-    cos_up = np.where(ground, normal_world[2], np.nan_to_num(lidar_cos_up))
-    level = np.zeros(range_map.shape)
-    level[known] = snow_depth(surfaces.points_world[known][:, :2], cover, seed=0, tracks=tracks_for(g))
-    coverage = gaussian_filter(np.where(known, snow_coverage(level, cos_up, cover)[0], 0.0), 1.5)  # soft edges
-    snowy = snow_cover_image(linear, coverage, surfaces.points_world, ground, cover, sky, seed=0)
-    snow_cpu = time.process_time() - t0
-    wet_agreement = mask_agreement(g.world, figure["wet_edited"], camera, ground & (water > 0))
-    snow_agreement = mask_agreement(g.world, figure["snow_edited"], camera, coverage > 0.5)
-    numbers = {"frame": name, "camera": view.channel, "ground_pixels_share": float(ground.mean()),
-               "wet_pixels_share": float((water > 0).mean()),
-               "puddle_pixels_share": float((water >= road.texture_depth_m).mean()),
-               "snow_pixels_share": float((coverage > 0.5).mean()),
-               "snow_other_pixels_share": float(((coverage > 0.5) & ~ground).mean()),
-               "wet_iou": wet_agreement.iou, "wet_lidar_on_camera": wet_agreement.lidar_on_camera,
-               "wet_camera_on_lidar": wet_agreement.camera_on_lidar,
-               "snow_iou": snow_agreement.iou, "snow_lidar_on_camera": snow_agreement.lidar_on_camera,
-               "snow_camera_on_lidar": snow_agreement.camera_on_lidar, "compared_pixels": snow_agreement.pixels,
-               "dense_depth_cpu_s": depth_cpu, "surfaces_cpu_s": surfaces_cpu, "wet_road_cpu_s": wet_cpu,
-               "snow_cover_cpu_s": snow_cpu}
-    return numbers, [image, encode_srgb_u8(wet.astype(np.float32)), encode_srgb_u8(snowy.astype(np.float32))]
+    finite = np.isfinite(range_map)
+    rows = max(range_map.shape[0] // 8, 1)
+    sky_rows = ~finite[:rows]
+    sky = linear[:rows][sky_rows].mean(axis=0) if sky_rows.any() else linear[:4].reshape(-1, 3).mean(0)
+    numbers: dict[str, Any] = {"frame": name, "camera": view.channel, "dense_depth_cpu_s": depth_cpu,
+                               "exact_range": view.range_path is not None}
+    images = [image]
+    for kind, state in ground_states(frame.lidar).items():
+        t0 = time.process_time()
+        out = edit_image(linear, range_map, camera, view.range_path is not None, surfaces, frame.lidar.T_global_lidar,
+                         state, sky)
+        numbers[f"{kind}_cpu_s"] = time.process_time() - t0
+        agreement = mask_agreement(surfaces.world, figure[f"{kind}_edited"], camera, out.edited)
+        numbers.update({f"{kind}_pixels_share": float(out.edited.mean()), f"{kind}_iou": agreement.iou,
+                        f"{kind}_lidar_on_camera": agreement.lidar_on_camera,
+                        f"{kind}_camera_on_lidar": agreement.camera_on_lidar, "compared_pixels": agreement.pixels})
+        images.append(encode_srgb_u8(out.linear.astype(np.float32)))
+    return numbers, images
+
+
+def synthetic_frame(sample_index: int = 5) -> tuple[Any, np.ndarray] | None:
+    """A frame of the synthetic world under ``data/world`` (None when it has not been rendered) and its LiDAR
+    returns' materials."""
+    import json
+
+    from weatheralign.data.nuscenes import load_frame, read_point_extras
+
+    manifest = REPO / "data" / "manifests" / "world.json"
+    if not manifest.is_file():
+        return None
+    from nuscenes.nuscenes import NuScenes
+
+    info = json.loads(manifest.read_text())
+    root = REPO / info["dataroot"]
+    nusc = NuScenes(version=info["version"], dataroot=str(root), verbose=False)
+    token = nusc.sample[sample_index]["token"]
+    frame = load_frame(nusc, token, cameras=("CAM_FRONT",))
+    lidar = nusc.get("sample_data", nusc.get("sample", token)["data"]["LIDAR_TOP"])
+    return frame, read_point_extras(root, lidar["filename"])["material"]
 
 
 def figure(optics: list[dict[str, float]], frames: dict[str, dict[str, Any]], path: Path) -> None:
@@ -227,12 +189,13 @@ def figure(optics: list[dict[str, float]], frames: dict[str, dict[str, Any]], pa
 
     from weatheralign.ground.optics import wet_lidar_factor
 
-    fig, axes = plt.subplots(1, 1 + 3 * len(frames), figsize=(5 + 12.5 * len(frames), 4.9))
-    axes = np.atleast_1d(axes)
-    ax = axes[0]
-    grid = np.linspace(55, 89, 200)
+    fig = plt.figure(figsize=(5.5 + 13.5, 4.4 * len(frames)))
+    grid = fig.add_gridspec(len(frames), 4, width_ratios=(1.2, 1, 1, 1))
+    ax = fig.add_subplot(grid[:, 0])
+    incidence = np.linspace(55, 89, 200)
     for rho, colour in ((0.1, "tab:blue"), (0.5, "tab:orange")):
-        ax.plot(grid, wet_lidar_factor(np.radians(grid), rho), color=colour, label=f"closed form, rho = {rho}")
+        ax.plot(incidence, wet_lidar_factor(np.radians(incidence), rho), color=colour,
+                label=f"closed form, rho = {rho}")
         pts = [r for r in optics if r["rho"] == rho]
         ax.plot([r["incidence_deg"] for r in pts], [r["photon_tracing"] for r in pts], "o", color=colour,
                 mfc="none", label=f"photon tracing, rho = {rho}")
@@ -244,7 +207,7 @@ def figure(optics: list[dict[str, float]], frames: dict[str, dict[str, Any]], pa
         titles = {"dry": "dry", "wet": f"wet, film {FIGURE_FILM_MM} mm: red lost or under {f['weakest']:.1f}",
                   "snow": f"snow {SNOW_DEPTH_M * 100:.0f} cm: {int(f['snow_edited'].sum())} returns covered"}
         for j, key in enumerate(("dry", "wet", "snow")):
-            ax = axes[1 + 3 * i + j]
+            ax = fig.add_subplot(grid[i, 1 + j])
             keep = ~f["wet_lost"] if key == "wet" else np.ones(len(f["dry"]), bool)
             sc = ax.scatter(f["xy"][keep, 0], f["xy"][keep, 1], c=f[key][keep], s=0.3, cmap="viridis", vmin=0,
                             vmax=vmax)
@@ -286,34 +249,53 @@ def camera_figure(tiles: list[list[np.ndarray]], names: list[str], path: Path) -
 
 
 def main(argv: list[str] | None = None) -> dict[str, Any]:
+    from weatheralign.ground.edit import scan_surfaces
+    from weatheralign.sensors import estimate_lidar_model
+    from weatheralign.world.materials import Material
+
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--photons", type=int, default=2_000_000)
     args = parser.parse_args(argv)
     optics = optics_rows(args.photons)
-    rows, figures, cameras, tiles = [], {}, [], []
-    for name, load in real_frames().items():
-        frame = load()
-        g = lidar_ground(frame)
-        frame_result, figures[name] = frame_rows(name, g)
-        rows += frame_result
-        numbers, images = camera_ground(name, frame, g, figures[name])
+    rows, figures, cameras, tiles, synthetic = [], {}, [], [], {}
+    frames: dict[str, Any] = {name: load() for name, load in real_frames().items()}
+    world = synthetic_frame()
+    if world is not None:
+        frames["synthetic"] = world[0]
+    for name, frame in frames.items():
+        t0 = time.process_time()
+        surfaces = scan_surfaces(frame.lidar)
+        surfaces_cpu = time.process_time() - t0
+        floor = (0.5 if name == "synthetic" else estimate_lidar_model([frame.lidar], rotation_hz=10.0).noise_floor)
+        frame_result, figures[name] = frame_rows(name, frame.lidar, surfaces, floor)
+        rows += [{**r, "surfaces_cpu_s": surfaces_cpu} for r in frame_result]
+        numbers, images = camera_ground(name, frame, surfaces, figures[name])
         cameras.append(numbers)
         tiles.append(images)
+        if name == "synthetic":
+            truth = np.isin(world[1], [Material.ROAD, Material.SIDEWALK, Material.CURB])
+            found = surfaces.on_ground
+            synthetic = {"ground_precision": float((found & truth).sum() / max(found.sum(), 1)),
+                         "ground_recall": float((found & truth).sum() / max(truth.sum(), 1)),
+                         "returns": int(len(truth)), "surfaces_cpu_s": surfaces_cpu}
     OUT.mkdir(parents=True, exist_ok=True)
-    result = {"optics": optics, "real_frames": rows, "cameras": cameras}
+    result = {"optics": optics, "frames": rows, "cameras": cameras, "synthetic_ground_vs_materials": synthetic}
     write_json(OUT / "ground.json", result)
     figure(optics, figures, OUT / "ground_lidar.png")
     camera_figure(tiles, [c["frame"] for c in cameras], OUT / "ground_cameras.png")
+    if synthetic:
+        print(f"synthetic: the plane's ground against the world's road / sidewalk / curb materials: precision "
+              f"{synthetic['ground_precision']:.3f}, recall {synthetic['ground_recall']:.3f}")
     for c in cameras:
-        print(f"{c['frame']:6s} camera: ground pixels {c['ground_pixels_share']:.1%}, snow pixels "
-              f"{c['snow_pixels_share']:.1%}; IoU LiDAR vs camera: wet {c['wet_iou']:.3f}, snow {c['snow_iou']:.3f}")
+        print(f"{c['frame']:9s} {c['camera']}: IoU LiDAR vs camera: wet {c['wet_iou']:.3f}, snow {c['snow_iou']:.3f};"
+              f" CPU wet {c['wet_cpu_s']:.2f} s, snow {c['snow_cpu_s']:.2f} s")
     for r in rows:
         if "film_mm" in r:
-            print(f"{r['frame']:6s} film {r['film_mm']:4.2f} mm: ground {r['ground_points']}, intensity x "
+            print(f"{r['frame']:9s} film {r['film_mm']:4.2f} mm: ground {r['ground_points']}, intensity x "
                   f"{r['mean_intensity_ratio']:.3f}, lost {r['ground_lost']} ({r['ground_lost_share']:.1%}), "
                   f"below the weakest reported ({r['weakest_reported']:.1f}) {r['below_weakest_share']:.1%}")
         else:
-            print(f"{r['frame']:6s} snow {r['snow_depth_m']} m: covered {r['covered_points']} returns "
+            print(f"{r['frame']:9s} snow {r['snow_depth_m']} m: covered {r['covered_points']} returns "
                   f"({r['covered_ground_points']} ground, {r['covered_other_points']} other), ground raised "
                   f"{r['ground_rise_m_median']:.3f} m, intensity x {r['mean_intensity_ratio_covered']:.2f}")
     return result

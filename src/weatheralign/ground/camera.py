@@ -23,7 +23,9 @@ from the same depth field and surface normals as the LiDAR's):
   ``A L_sky``; its colour is the sky light's, a quarter of the way from neutral (snow also answers the light of its
   surroundings and the sun's);
 - ``s``: the surface's own shading kept (buildings' and cars' shadows, a street canyon's smaller share of the sky):
-  the dry image's luminance smoothed over ``shading_px`` on the snowy pixels, relative to its 90th percentile there;
+  the dry image's luminance smoothed over ``shading_px`` on the snowy pixels, relative to its 90th percentile there,
+  taken at ``shading_strength`` (the dry luminance mixes the light with the surface's albedo: dark asphalt beside
+  pale concrete is not a shadow; snowfall's diffuse light casts soft shadows);
 - ``g``: the snow surface's grain, fractal noise of world position (so every camera sees the same), contrast
   ``grain``;
 - ``L_under``: what shows between thin snow and in wheel tracks; on the ground the pavement darkened as wet
@@ -152,7 +154,8 @@ def wet_road_image(image: F64, range_map: F64, camera: CameraGeometry, ground_ma
 
 
 def snow_cover_image(image: F64, coverage: F64, points_world: F64, ground_mask: NDArray[np.bool_], cover: SnowCover,
-                     sky: F64, seed: int, shading_px: int = 31, grain: float = 0.05, grain_cell_m: float = 0.4) -> F64:
+                     sky: F64, seed: int, shading_px: int = 31, shading_strength: float = 0.5, grain: float = 0.05,
+                     grain_cell_m: float = 0.4) -> F64:
     """The linear-light image (H, W, 3) with lying snow over the share ``coverage`` (H, W) of each pixel's surface
     (module docstring); ``points_world`` (H, W, 3) [m] the pixels' surfaces (nan: sky), ``ground_mask`` (H, W) the
     road's pixels, ``sky`` (3,) the sky's radiance. Pixels without snow are returned unchanged."""
@@ -166,7 +169,7 @@ def snow_cover_image(image: F64, coverage: F64, points_world: F64, ground_mask: 
     local = uniform_filter(np.where(snowy, luminance, 0.0), shading_px) / np.maximum(weight, 1e-9)
     rows, cols = pixels[:, 0], pixels[:, 1]
     reference = max(float(np.percentile(local[rows, cols], 90)), 1e-6)
-    shading = np.clip(local[rows, cols] / reference, 0.2, 1.0)[:, None]
+    shading = 1.0 - shading_strength * (1.0 - np.clip(local[rows, cols] / reference, 0.2, 1.0))[:, None]
     sky = np.asarray(sky, dtype=np.float64)
     sky_luminance = max(float(sky @ LUMINANCE), 1e-6)
     tint = 0.75 + 0.25 * sky / sky_luminance

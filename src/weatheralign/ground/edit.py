@@ -1,0 +1,179 @@
+"""One scene's ground state applied to a LiDAR scan and to a camera image: the same surfaces, the same fields.
+
+`GroundState` is what lies on the ground of a scene under a condition: a water film (`WetRoad`) or snow
+(`SnowCover`, pressed down in `TireTracks`), its fields drawn from ``seed`` in world coordinates. Per scan the
+surfaces are found once (`scan_surfaces`: the ground plane by RANSAC, the returns' normals); `edit_scan` changes
+exactly the returns on them (wet: the ground's, intensity by the water film's optics, the weakest lost; snow: every
+up-facing return, raised onto the snow and brightened). A camera (`edit_image`) finds its pixels on the same plane
+and the same up-facing surfaces (its own normals where its range map is exact, the nearest LiDAR return's where it
+is a dense depth from the LiDAR) and draws the wet road or the snow over them. `mask_agreement` (in
+`weatheralign.ground.surfaces`) measures how well the two agree.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.ndimage import gaussian_filter
+
+from weatheralign.data.frame import LidarScan
+from weatheralign.ground.camera import CameraGeometry, snow_cover_image, wet_road_image
+from weatheralign.ground.snow import SnowCover, TireTracks, snow_coverage, snow_covered_ground, snow_depth
+from weatheralign.ground.surfaces import (
+    GroundPlane,
+    fit_ground_plane,
+    median_over_neighbours,
+    nearest_return_values,
+    pixel_normals,
+    point_normals,
+)
+from weatheralign.ground.wet import WetRoad, incidence_angle, water_depth, wet_ground
+
+F64 = NDArray[np.float64]
+Mask = NDArray[np.bool_]
+
+DENSE_DEPTH_SOFTEN_PX = 1.5
+"""Gaussian blur [px] of the snow coverage of a camera whose surfaces come from a dense depth (the nearest return's
+orientation is piecewise constant)."""
+
+SNOW_EDIT_MIN_COVERAGE = 0.5
+"""A return or pixel counts as snow-covered (edited, for the agreement of the sensors) over this covered share."""
+
+
+@dataclass(frozen=True)
+class GroundState:
+    """What lies on a scene's ground: a water film ``road`` or snow ``cover`` (with wheel ``tracks``), never both;
+    the fields' ``seed``; returns and pixels within ``plane_tolerance_m`` of the ground plane are on the ground."""
+
+    road: WetRoad | None = None
+    cover: SnowCover | None = None
+    tracks: TireTracks | None = None
+    seed: int = 0
+    plane_tolerance_m: float = 0.2
+
+    def __post_init__(self) -> None:
+        if (self.road is None) == (self.cover is None):
+            raise ValueError("GroundState needs exactly one of road (wet) and cover (snow)")
+
+    @property
+    def kind(self) -> str:
+        """``wet`` or ``snow``."""
+        return "wet" if self.road is not None else "snow"
+
+
+class ScanSurfaces(NamedTuple):
+    """One scan's surfaces, found once for every sensor."""
+
+    plane: GroundPlane  # in the scan's frame
+    on_ground: Mask  # (N,)
+    normals: F64  # (N, 3) unit, scan frame (the plane's on the ground)
+    cos_up: F64  # (N,) of the normal with the world's vertical (median over 16 neighbours off the ground)
+    world: F64  # (N, 3) the returns in the world frame [m]
+
+
+def scan_surfaces(scan: LidarScan, tolerance_m: float = 0.2) -> ScanSurfaces:
+    """The ground plane of ``scan`` (`fit_ground_plane`) and its returns' surface orientation."""
+    xyz = scan.points[:, :3].astype(np.float64)
+    plane = fit_ground_plane(xyz, tolerance_m=tolerance_m)
+    on_ground = plane.contains(xyz)
+    normals = np.where(on_ground[:, None], np.asarray(plane.normal), point_normals(xyz, np.zeros(3)))
+    T = scan.T_global_lidar
+    cos_up = np.abs((normals @ T[:3, :3].T)[:, 2])
+    off = ~on_ground
+    if off.sum() >= 16:
+        cos_up[off] = median_over_neighbours(xyz[off], cos_up[off])
+    return ScanSurfaces(plane, on_ground, normals, cos_up, xyz @ T[:3, :3].T + T[:3, 3])
+
+
+class EditedScan(NamedTuple):
+    """A scan after the ground edit."""
+
+    scan: LidarScan  # the returns left (lost ones removed)
+    source_index: NDArray[np.int64]  # (M,) row of the input scan of each
+    changed: Mask  # (M,) the ground edit changed it (intensity, position)
+    edited: Mask  # (N,) per input return: on a wet or snow-covered surface (lost ones included)
+    lost: int  # returns pushed under the detector floor
+
+
+def edit_scan(scan: LidarScan, surfaces: ScanSurfaces, state: GroundState, noise_floor: float) -> EditedScan:
+    """``scan`` with ``state``'s ground: wet ground returns dimmed by the film (`wet_ground`), the ones under
+    ``noise_floor`` (0..255) lost; snow-covered returns raised onto the snow along their beams and brightened over
+    the covered share (`snow_covered_ground`)."""
+    points = scan.points.copy()
+    intensity = scan.intensity_255().astype(np.float64)
+    keep = np.ones(len(points), dtype=bool)
+    if state.road is not None:
+        ground = surfaces.on_ground
+        xyz = points[ground, :3].astype(np.float64)
+        depth = water_depth(surfaces.world[ground, :2], state.road, state.seed)
+        effect = wet_ground(intensity[ground], incidence_angle(xyz, np.zeros(3), np.asarray(surfaces.plane.normal)),
+                            depth, state.road, noise_floor)
+        intensity[ground] = effect.intensity
+        keep[np.nonzero(ground)[0][effect.lost]] = False
+        edited = ground.copy()
+        changed = ground.copy()
+        changed[ground] = effect.factor != 1.0
+    else:
+        level = snow_depth(surfaces.world[:, :2], state.cover, state.seed, state.tracks)
+        coverage, depth = snow_coverage(level, surfaces.cos_up, state.cover)
+        covered = coverage > 0.0
+        effect = snow_covered_ground(points[covered, :3].astype(np.float64), np.zeros(3), surfaces.normals[covered],
+                                     intensity[covered], depth[covered], state.cover, coverage=coverage[covered])
+        points[covered, :3] = effect.points.astype(np.float32)
+        intensity[covered] = effect.intensity
+        edited = coverage > SNOW_EDIT_MIN_COVERAGE
+        changed = covered
+    points[:, 3] = (intensity * (scan.intensity_max / 255.0)).astype(np.float32)
+    rows = np.nonzero(keep)[0]
+    out = replace(scan, points=np.ascontiguousarray(points[rows]),
+                  time_offsets=None if scan.time_offsets is None else scan.time_offsets[rows],
+                  sweep_index=None if scan.sweep_index is None else scan.sweep_index[rows])
+    return EditedScan(out, rows.astype(np.int64), changed[rows], edited, int((~keep).sum()))
+
+
+class EditedImage(NamedTuple):
+    """A camera image after the ground edit."""
+
+    linear: F64  # (H, W, 3) linear light
+    edited: Mask  # (H, W) pixels on a wet or snow-covered surface
+
+
+def edit_image(linear: F64, range_map: NDArray, camera: CameraGeometry, exact_range: bool,
+               surfaces: ScanSurfaces, T_world_scan: F64, state: GroundState, sky: F64) -> EditedImage:
+    """The linear image (H, W, 3) of ``camera`` with ``state``'s ground over the pixels on the scan's ground plane
+    and up-facing surfaces (``surfaces`` of the scan whose frame ``T_world_scan`` (4, 4) maps to the world);
+    ``range_map`` (H, W) [m] (inf: sky) is exact (the synthetic world's) or a dense depth from that scan; ``sky``
+    (3,) the sky's linear radiance."""
+    finite = np.isfinite(range_map)
+    pixels = pixel_normals(np.asarray(range_map, dtype=np.float64), camera)
+    plane = surfaces.plane.transformed(T_world_scan)
+    ground = finite & plane.contains(np.nan_to_num(pixels.points_world))
+    if state.road is not None:
+        water = np.zeros(range_map.shape)
+        water[ground] = water_depth(pixels.points_world[ground][:, :2], state.road, state.seed)
+        out = wet_road_image(linear, np.where(finite, range_map, np.inf), camera, ground, water, state.road,
+                             np.asarray(plane.normal), sky)
+        return EditedImage(out, ground & (water > 0))
+    if exact_range:
+        cos_up = np.abs(np.nan_to_num(pixels.normals_world[..., 2]))
+        known = np.isfinite(pixels.normals_world[..., 2])
+    else:  # a dense depth between the LiDAR's rings has no normals of its own off the ground
+        near = nearest_return_values(pixels.points_world.reshape(-1, 3), surfaces.world, surfaces.cos_up)
+        near = near.reshape(range_map.shape)
+        cos_up, known = np.nan_to_num(near), np.isfinite(near)
+    cos_up = np.where(ground, plane.normal[2], cos_up)
+    known |= ground
+    level = np.zeros(range_map.shape)
+    level[known] = snow_depth(pixels.points_world[known][:, :2], state.cover, state.seed, state.tracks)
+    coverage = np.where(known, snow_coverage(level, cos_up, state.cover)[0], 0.0)
+    if not exact_range:  # the nearest return's orientation is constant over each return's cell: soften the edges
+        coverage = gaussian_filter(coverage, DENSE_DEPTH_SOFTEN_PX)
+    out = snow_cover_image(linear, coverage, pixels.points_world, ground, state.cover, sky, state.seed)
+    return EditedImage(out, coverage > SNOW_EDIT_MIN_COVERAGE)
+
+
+__all__ = ["EditedImage", "EditedScan", "GroundState", "SNOW_EDIT_MIN_COVERAGE", "ScanSurfaces", "edit_image",
+           "edit_scan", "scan_surfaces"]

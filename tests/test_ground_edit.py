@@ -1,0 +1,143 @@
+"""One ground state edits a LiDAR scan and a camera image on the same surfaces: the scan's rows map back to the
+input, the wet film's losses are the ones under the floor, snow raises exactly the up-facing returns, and the camera
+edits the pixels the LiDAR's edited returns land on."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from weatheralign.data.frame import LidarScan
+from weatheralign.ground.camera import CameraGeometry
+from weatheralign.ground.edit import GroundState, edit_image, edit_scan, scan_surfaces
+from weatheralign.ground.snow import SnowCover, TireTracks
+from weatheralign.ground.surfaces import mask_agreement
+from weatheralign.ground.wet import WetRoad, incidence_angle, water_depth, wet_ground
+
+HEIGHT_M = 1.8
+
+
+def street_scan(seed: int = 0) -> LidarScan:
+    """A LiDAR 1.8 m above flat ground (world z = 0) with a wall 15 m ahead (x = 15, 4 m tall) and a flat box roof
+    (1.5 m high, x 4..9, y 2..4): rings of returns, sensor at world (100, 50) heading +x."""
+    rng = np.random.default_rng(seed)
+    azimuth = np.repeat(np.linspace(-np.pi, np.pi, 720, endpoint=False), 32)
+    elevation = np.tile(np.radians(np.linspace(-25, 2, 32)), 720)
+    d = np.column_stack([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth), np.sin(elevation)])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_ground = np.where(d[:, 2] < 0, -HEIGHT_M / d[:, 2], np.inf)
+        t_wall = np.where(d[:, 0] > 0, 15.0 / d[:, 0], np.inf)
+        t_wall = np.where(HEIGHT_M + t_wall * d[:, 2] <= 4.0, t_wall, np.inf)
+        t_roof = np.where(d[:, 2] < 0, -(HEIGHT_M - 1.5) / d[:, 2], np.inf)
+    with np.errstate(invalid="ignore"):
+        roof_xy = t_roof[:, None] * d[:, :2]
+    on_roof = (roof_xy[:, 0] > 4) & (roof_xy[:, 0] < 9) & (roof_xy[:, 1] > 2) & (roof_xy[:, 1] < 4)
+    t_roof = np.where(on_roof, t_roof, np.inf)
+    t = np.minimum(np.minimum(t_ground, t_wall), t_roof)
+    hit = np.isfinite(t) & (t < 60)
+    xyz = d[hit] * t[hit, None] + rng.normal(0, 0.005, (int(hit.sum()), 3))
+    intensity = rng.uniform(5, 60, int(hit.sum()))
+    points = np.column_stack([xyz, intensity, np.zeros(len(xyz))]).astype(np.float32)
+    T = np.eye(4)
+    T[:3, 3] = [100.0, 50.0, HEIGHT_M]
+    return LidarScan(points, 0.0, np.eye(4), T)
+
+
+def on_box_roof(world: np.ndarray) -> np.ndarray:
+    """(N,) the world points (N, 3) on `street_scan`'s box roof."""
+    x, y = world[:, 0] - 100.0, world[:, 1] - 50.0
+    return (np.abs(world[:, 2] - 1.5) < 0.05) & (x > 4) & (x < 9) & (y > 2) & (y < 4)
+
+
+def test_the_scans_ground_and_roofs_are_found() -> None:
+    scan = street_scan()
+    surfaces = scan_surfaces(scan)
+    world_z = surfaces.world[:, 2]
+    clear_cut = np.abs(np.abs(world_z) - 0.2) > 0.01  # the wall's foot straddles the tolerance
+    np.testing.assert_array_equal(surfaces.on_ground[clear_cut], np.abs(world_z[clear_cut]) < 0.2)
+    roof = on_box_roof(surfaces.world)
+    assert roof.sum() > 50 and np.median(surfaces.cos_up[roof]) > 0.95
+    wall = (surfaces.world[:, 0] > 114.9) & (world_z > 0.5)
+    assert np.median(surfaces.cos_up[wall]) < 0.1
+
+
+def test_a_wet_ground_edit_is_the_film_on_the_ground_returns() -> None:
+    scan = street_scan()
+    surfaces = scan_surfaces(scan)
+    road = WetRoad(film_depth_m=0.001)
+    state = GroundState(road=road, seed=3)
+    edited = edit_scan(scan, surfaces, state, noise_floor=8.0)
+    ground = surfaces.on_ground
+    effect = wet_ground(scan.intensity_255()[ground].astype(np.float64),
+                        incidence_angle(scan.points[ground, :3].astype(np.float64), np.zeros(3),
+                                        np.asarray(surfaces.plane.normal)),
+                        water_depth(surfaces.world[ground, :2], road, 3), road, 8.0)
+    assert edited.lost == int(effect.lost.sum()) > 0
+    kept_in = np.ones(len(scan.points), bool)
+    kept_in[np.nonzero(ground)[0][effect.lost]] = False
+    np.testing.assert_array_equal(edited.source_index, np.nonzero(kept_in)[0])
+    new = np.zeros(len(scan.points))
+    new[ground] = effect.intensity
+    np.testing.assert_allclose(edited.scan.points[:, 3], np.where(ground, new, scan.points[:, 3])[kept_in],
+                               rtol=1e-6)
+    np.testing.assert_array_equal(edited.scan.points[:, :3], scan.points[kept_in, :3])  # nothing moves
+    assert not edited.changed[~ground[kept_in]].any()
+    assert np.array_equal(edited.edited, ground)
+
+
+def test_snow_raises_exactly_the_up_facing_returns() -> None:
+    scan = street_scan()
+    surfaces = scan_surfaces(scan)
+    state = GroundState(cover=SnowCover(depth_m=0.1, variation=0.0),
+                        tracks=TireTracks((1.0, 0.0), (100.0, 50.0), lane_offsets_m=(0.0,), wander_m=0.0), seed=1)
+    edited = edit_scan(scan, surfaces, state, noise_floor=0.5)
+    assert edited.lost == 0 and np.array_equal(edited.source_index, np.arange(len(scan.points)))
+    rise = edited.scan.points[:, 2] - scan.points[:, 2]  # the world's z axis is the scan's
+    ground = surfaces.on_ground
+    in_track = np.abs(np.abs(surfaces.world[:, 1] - 50.0) - 0.8) < 0.02
+    clear = ground & ~in_track & (np.abs(np.abs(surfaces.world[:, 1] - 50.0) - 0.8) > 0.5)
+    np.testing.assert_allclose(rise[clear], 0.1, atol=0.015)  # on level ground: the snow's depth
+    np.testing.assert_allclose(rise[ground & in_track], 0.1 * state.tracks.remaining_share, atol=0.015)
+    wall = (surfaces.world[:, 0] > 114.9) & (surfaces.world[:, 2] > 0.5)
+    assert not edited.changed[wall].any()  # walls hold no snow
+    roof = on_box_roof(surfaces.world)
+    assert edited.edited[roof].mean() > 0.9
+    assert (edited.scan.points[clear, 3] > scan.points[clear, 3]).all()  # snow is brighter than asphalt
+
+
+def test_the_camera_edits_the_pixels_the_lidars_edited_returns_land_on() -> None:
+    scan = street_scan()
+    surfaces = scan_surfaces(scan)
+    K = np.array([[300.0, 0, 200], [0, 300.0, 120], [0, 0, 1]])
+    T = np.eye(4)
+    T[:3, :3] = np.array([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]])  # looking along +x
+    T[:3, 3] = [100.5, 50.0, 1.6]
+    camera = CameraGeometry(K, T)
+    rays = camera.rays_world(240, 400)
+    origin = T[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_ground = np.where(rays[..., 2] < 0, -origin[2] / rays[..., 2], np.inf)
+        t_wall = np.where(rays[..., 0] > 0, (115.0 - origin[0]) / rays[..., 0], np.inf)
+        t_wall = np.where(origin[2] + t_wall * rays[..., 2] <= 4.0, t_wall, np.inf)
+        t_roof = np.where(rays[..., 2] < 0, -(origin[2] - 1.5) / rays[..., 2], np.inf)
+    with np.errstate(invalid="ignore"):
+        roof_xy = origin[:2] + t_roof[..., None] * rays[..., :2]
+    on_roof = (roof_xy[..., 0] > 104) & (roof_xy[..., 0] < 109) & (roof_xy[..., 1] > 52) & (roof_xy[..., 1] < 54)
+    range_map = np.minimum(np.minimum(t_ground, t_wall), np.where(on_roof, t_roof, np.inf))
+    image = np.full((240, 400, 3), 0.2)
+    sky = np.array([0.6, 0.65, 0.7])
+    for state in (GroundState(road=WetRoad(), seed=2), GroundState(cover=SnowCover(), seed=2)):
+        lidar = edit_scan(scan, surfaces, state, noise_floor=0.5)
+        out = edit_image(image, range_map, camera, True, surfaces, scan.T_global_lidar, state, sky)
+        agreement = mask_agreement(surfaces.world, lidar.edited, camera, out.edited)
+        assert agreement.pixels > 500 and agreement.iou > 0.95, (state.kind, agreement)
+        assert np.array_equal(out.linear[~out.edited & np.isinf(range_map)], image[np.isinf(range_map)][
+            ~out.edited[np.isinf(range_map)]])  # the sky unchanged
+
+
+def test_a_ground_state_is_wet_or_snowy() -> None:
+    with pytest.raises(ValueError, match="exactly one"):
+        GroundState()
+    with pytest.raises(ValueError, match="exactly one"):
+        GroundState(road=WetRoad(), cover=SnowCover())
+    assert GroundState(road=WetRoad()).kind == "wet" and GroundState(cover=SnowCover()).kind == "snow"
