@@ -40,6 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import uniform_filter
 
+from weatheralign.ground.kernels import screen_space_reflection_kernel
 from weatheralign.ground.optics import fresnel_reflectance, hemispherical_reflectance, wet_albedo
 from weatheralign.ground.snow import SnowCover
 from weatheralign.ground.wet import WetRoad, fractal_noise, wetted_share
@@ -74,6 +75,26 @@ class CameraGeometry:
 def screen_space_reflection(image: F64, range_map: F64, camera: CameraGeometry, pixels: NDArray[np.int64],
                             rays: F64, normal: F64, sky: F64, max_distance_m: float = 80.0, steps: int = 64,
                             thickness_m: float = 1.5, start_m: float = 0.5) -> F64:
+    """`screen_space_reflection_naive`'s march, compiled (`weatheralign.ground.kernels`)."""
+    origin = camera.T_world_cam[:3, 3]
+    ground = origin + rays * range_map[pixels[:, 0], pixels[:, 1], None]
+    normal = np.asarray(normal, dtype=np.float64)
+    mirrored = rays - 2.0 * (rays @ normal)[:, None] * normal
+    distances = start_m * (max_distance_m / start_m) ** (np.arange(steps) / (steps - 1))
+    return screen_space_reflection_kernel(
+        np.ascontiguousarray(image, dtype=np.float64), np.ascontiguousarray(range_map, dtype=np.float64),
+        np.ascontiguousarray(camera.K, dtype=np.float64), np.linalg.inv(camera.T_world_cam),
+        np.ascontiguousarray(ground), np.ascontiguousarray(mirrored), np.asarray(sky, dtype=np.float64),
+        distances, float(thickness_m), SSR_BISECTIONS)
+
+
+SSR_BISECTIONS = 8
+"""Halvings of the step in which a mirrored ray passes behind a surface."""
+
+
+def screen_space_reflection_naive(image: F64, range_map: F64, camera: CameraGeometry, pixels: NDArray[np.int64],
+                                  rays: F64, normal: F64, sky: F64, max_distance_m: float = 80.0, steps: int = 64,
+                                  thickness_m: float = 1.5, start_m: float = 0.5) -> F64:
     """Radiance (P, 3) seen along the mirrored rays of ground ``pixels`` (P, 2) (row, col), whose camera rays are
     ``rays`` (P, 3) (unit, world frame: `CameraGeometry.rays_world` at those pixels): each ray is marched from
     ``start_m`` beyond its ground point (clear of the noise of a real range map) in ``steps`` geometrically growing
@@ -106,7 +127,7 @@ def screen_space_reflection(image: F64, range_map: F64, camera: CameraGeometry, 
         index = index[hit]
         if len(index):  # bisect between the last step in front of a surface and the first behind it
             low, high = np.full(len(index), previous), np.full(len(index), distance)
-            for _ in range(8):
+            for _ in range(SSR_BISECTIONS):
                 middle = 0.5 * (low + high)
                 behind = look(index, middle)[1]
                 high, low = np.where(behind, middle, high), np.where(behind, low, middle)
@@ -117,12 +138,32 @@ def screen_space_reflection(image: F64, range_map: F64, camera: CameraGeometry, 
     return out
 
 
+def strided_reflection(image: F64, range_map: F64, camera: CameraGeometry, pixels: NDArray[np.int64], rays: F64,
+                       normal: F64, sky: F64, stride: int) -> F64:
+    """`screen_space_reflection` of ``pixels`` (P, 2) traced only at the top-left pixel of each ``stride`` x
+    ``stride`` block that is among them (the others of the block take its radiance); a pixel whose block corner is
+    not among them is traced itself."""
+    if stride <= 1:
+        return screen_space_reflection(image, range_map, camera, pixels, rays, normal, sky)
+    index = np.full(range_map.shape, -1, dtype=np.int64)
+    index[pixels[:, 0], pixels[:, 1]] = np.arange(len(pixels))
+    corner = index[pixels[:, 0] // stride * stride, pixels[:, 1] // stride * stride]
+    traced = np.nonzero((corner < 0) | (corner == np.arange(len(pixels))))[0]
+    radiance = screen_space_reflection(image, range_map, camera, pixels[traced], rays[traced], normal, sky)
+    slot = np.full(len(pixels), -1, dtype=np.int64)
+    slot[traced] = np.arange(len(traced))
+    source = np.where(corner < 0, np.arange(len(pixels)), corner)
+    return radiance[slot[source]]
+
+
 def wet_road_image(image: F64, range_map: F64, camera: CameraGeometry, ground_mask: NDArray[np.bool_],
                    water_depth_m: F64, road: WetRoad, normal: F64, sky: F64,
-                   film_blur_px: tuple[int, int] = (31, 5)) -> F64:
+                   film_blur_px: tuple[int, int] = (31, 5), reflection_stride: int = 2) -> F64:
     """The linear-light image (H, W, 3) with its ``ground_mask`` pixels (H, W) wet under ``water_depth_m`` (H, W) [m]
     (module docstring); ``normal`` the road's unit normal in the world frame, ``sky`` (3,) the radiance rays that
-    escape see. Pixels off the ground, or dry, are returned unchanged."""
+    escape see. The mirror image is traced for every ``reflection_stride``-th row and column and shared by the
+    pixels of each stride x stride block (`strided_reflection`). Pixels off the ground, or dry, are returned
+    unchanged."""
     out = np.array(image, dtype=np.float64, copy=True)
     share = np.where(ground_mask, wetted_share(water_depth_m, road.texture_depth_m), 0.0)
     pixels = np.argwhere(share > 0)
@@ -137,7 +178,7 @@ def wet_road_image(image: F64, range_map: F64, camera: CameraGeometry, ground_ma
     r_e, r_i = hemispherical_reflectance(1.0, n), hemispherical_reflectance(n, 1.0)
     reflectance = fresnel_reflectance(theta_v, 1.0, n)[:, None]
     through_water = (1.0 - r_e) * (1.0 - reflectance) / (n**2 * (1.0 - rho * r_i))
-    reflected = screen_space_reflection(image, range_map, camera, pixels, rays, normal, sky)
+    reflected = strided_reflection(image, range_map, camera, pixels, rays, normal, sky, reflection_stride)
     puddle = water_depth_m[pixels[:, 0], pixels[:, 1]] >= road.texture_depth_m
     if max(film_blur_px) > 1 and not puddle.all():  # a film's broken surface: a mirror image smeared vertically
         layer = np.zeros_like(out)
@@ -185,4 +226,5 @@ def snow_cover_image(image: F64, coverage: F64, points_world: F64, ground_mask: 
 
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 / sRGB primaries, linear light
 
-__all__ = ["CameraGeometry", "LUMINANCE", "screen_space_reflection", "snow_cover_image", "wet_road_image"]
+__all__ = ["CameraGeometry", "LUMINANCE", "screen_space_reflection", "screen_space_reflection_naive",
+           "snow_cover_image", "strided_reflection", "wet_road_image"]

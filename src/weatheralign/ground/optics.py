@@ -28,6 +28,8 @@ Lambertian re-emission) and counts those leaving towards ``theta``: the closed f
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -57,6 +59,7 @@ def refraction_angle(theta: ArrayLike, n1: float, n2: float) -> F64:
     return np.arcsin(np.clip(n1 / n2 * np.sin(np.asarray(theta, dtype=np.float64)), -1.0, 1.0))
 
 
+@lru_cache(maxsize=64)
 def hemispherical_reflectance(n1: float, n2: float, nodes: int = 2048) -> float:
     """Reflectance of a flat ``n1``-``n2`` surface for Lambertian (isotropic) light arriving from the ``n1`` side:
     ``2 int_0^{pi/2} R(theta) cos theta sin theta dtheta`` (Gauss-Legendre in ``sin^2 theta``)."""

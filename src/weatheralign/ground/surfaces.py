@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 from scipy.ndimage import uniform_filter
 
 from weatheralign.ground.camera import CameraGeometry
+from weatheralign.ground.kernels import pixel_normals_kernel
 
 F64 = NDArray[np.float64]
 Mask = NDArray[np.bool_]
@@ -100,6 +101,17 @@ class PixelSurfaces(NamedTuple):
 
 def pixel_normals(range_map: F64, camera: CameraGeometry, smooth_px: int = 5, edge_ratio: float = 0.05
                   ) -> PixelSurfaces:
+    """World points and normals of a camera's pixels from its range map (H, W) [m] (inf: sky): the compiled
+    `weatheralign.ground.kernels.pixel_normals_kernel` of `pixel_normals_naive`'s rule."""
+    points, normals = pixel_normals_kernel(np.ascontiguousarray(range_map, dtype=np.float64),
+                                           np.linalg.inv(camera.K), np.ascontiguousarray(camera.T_world_cam[:3, :3]),
+                                           np.ascontiguousarray(camera.T_world_cam[:3, 3]), int(smooth_px),
+                                           float(edge_ratio))
+    return PixelSurfaces(points, normals)
+
+
+def pixel_normals_naive(range_map: F64, camera: CameraGeometry, smooth_px: int = 5, edge_ratio: float = 0.05
+                        ) -> PixelSurfaces:
     """World points and normals of a camera's pixels from its range map (H, W) [m] (inf: sky): the points averaged
     over ``smooth_px`` x ``smooth_px`` (a real map's noise would scatter its normals), the normal the cross product
     of the central differences along the rows and the columns. Pixels beside a depth edge (a neighbour's range
@@ -182,4 +194,4 @@ def mask_agreement(points_world: F64, edited: Mask, camera: CameraGeometry, came
 
 __all__ = ["fit_ground_plane", "GroundPlane", "mask_agreement", "MaskAgreement", "median_over_neighbours",
            "nearest_return_values",
-           "pixel_normals", "PixelSurfaces", "point_normals"]
+           "pixel_normals", "pixel_normals_naive", "PixelSurfaces", "point_normals"]

@@ -18,6 +18,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from weatheralign.ground.kernels import fractal_noise_kernel
 from weatheralign.ground.optics import WATER_ABSORPTION_905_PER_M, WATER_INDEX, wet_lidar_factor
 
 F64 = NDArray[np.float64]
@@ -80,7 +81,14 @@ def value_noise(xy: F64, cell_m: float, seed: int) -> F64:
 
 
 def fractal_noise(xy: F64, cell_m: float, seed: int, octaves: int = 4) -> F64:
-    """Value noise summed over ``octaves`` halving scales (weights 1/2, 1/4, ...), rescaled to [0, 1)."""
+    """Value noise summed over ``octaves`` halving scales (weights 1/2, 1/4, ...), rescaled to [0, 1): the compiled
+    `weatheralign.ground.kernels.fractal_noise_kernel` of `fractal_noise_naive`'s rule."""
+    xy = np.ascontiguousarray(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
+    return fractal_noise_kernel(xy, float(cell_m), int(seed), int(octaves))
+
+
+def fractal_noise_naive(xy: F64, cell_m: float, seed: int, octaves: int = 4) -> F64:
+    """`fractal_noise` in numpy: the oracle of its kernel."""
     total, weight, norm = np.zeros(len(xy)), 1.0, 0.0
     for octave in range(octaves):
         total += weight * value_noise(xy, cell_m / 2**octave, seed * 31 + octave)
@@ -137,5 +145,5 @@ def wet_ground(intensity: F64, incidence: F64, depth_m: F64, road: WetRoad, nois
     return WetGroundEffect(np.where(lost, 0.0, new), lost, np.asarray(depth_m, dtype=np.float64), factor)
 
 
-__all__ = ["fractal_noise", "incidence_angle", "value_noise", "water_depth", "wet_ground", "WetGroundEffect",
-           "WetRoad", "wetted_share"]
+__all__ = ["fractal_noise", "fractal_noise_naive", "incidence_angle", "value_noise", "water_depth", "wet_ground",
+           "WetGroundEffect", "WetRoad", "wetted_share"]

@@ -1,0 +1,207 @@
+"""Compiled per-point kernels of the ground fields: the value and fractal noise that the water-depth and snow-depth
+fields and the snow's grain are made of, evaluated at every LiDAR return and every camera pixel.
+
+`weatheralign.ground.wet.fractal_noise_naive` (numpy) defines the result; `fractal_noise_kernel` computes the same
+rule point by point (the same integer hash, the same operation order). Nothing here allocates per point; the kernels
+release the GIL.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def hash01(ix: np.int64, iy: np.int64, seed: np.int64) -> np.float64:
+    """A value in [0, 1) per integer lattice point and seed (`weatheralign.ground.wet._hash01`, wrapping int64)."""
+    h = (ix * np.int64(73856093)) ^ (iy * np.int64(19349663)) ^ (seed * np.int64(83492791))
+    h = (h ^ (h >> np.int64(13))) * np.int64(1274126177)
+    h = h ^ (h >> np.int64(16))
+    return np.float64(h & np.int64(0xFFFFFF)) / np.float64(1 << 24)
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def value_noise_one(x: np.float64, y: np.float64, cell_m: np.float64, seed: np.int64) -> np.float64:
+    """Smooth value noise in [0, 1) at one world position [m] (`weatheralign.ground.wet.value_noise`)."""
+    gx, gy = x / cell_m, y / cell_m
+    fx0, fy0 = np.floor(gx), np.floor(gy)
+    fx, fy = gx - fx0, gy - fy0
+    fx = fx * fx * (3.0 - 2.0 * fx)
+    fy = fy * fy * (3.0 - 2.0 * fy)
+    ix, iy = np.int64(fx0), np.int64(fy0)
+    n00, n10 = hash01(ix, iy, seed), hash01(ix + 1, iy, seed)
+    n01, n11 = hash01(ix, iy + 1, seed), hash01(ix + 1, iy + 1, seed)
+    return (n00 * (1 - fx) + n10 * fx) * (1 - fy) + (n01 * (1 - fx) + n11 * fx) * fy
+
+
+@numba.njit(cache=True, nogil=True)
+def fractal_noise_kernel(xy: F64, cell_m: float, seed: int, octaves: int) -> F64:
+    """(N,) fractal noise in [0, 1) at world positions ``xy`` (N, 2) [m] (`weatheralign.ground.wet.fractal_noise`)."""
+    out = np.empty(xy.shape[0])
+    for i in range(xy.shape[0]):
+        total, weight, norm = 0.0, 1.0, 0.0
+        for octave in range(octaves):
+            total += weight * value_noise_one(xy[i, 0], xy[i, 1], cell_m / 2.0**octave, np.int64(seed * 31 + octave))
+            norm += weight
+            weight *= 0.5
+        out[i] = total / norm
+    return out
+
+
+
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def reflect_index(k: np.int64, n: np.int64) -> np.int64:
+    """``k`` folded into ``0..n-1`` as scipy.ndimage's ``reflect`` mode does (``d c b a | a b c d | d c b a``)."""
+    while k < 0 or k >= n:
+        k = -k - 1 if k < 0 else 2 * n - k - 1
+    return k
+
+
+@numba.njit(cache=True, nogil=True)
+def pixel_normals_kernel(range_map: F64, K_inv: F64, R: F64, origin: F64, smooth_px: int,
+                         edge_ratio: float) -> tuple[F64, F64]:
+    """World points (H, W, 3) and unit normals (H, W, 3) of a camera's pixels from its range map
+    (`weatheralign.ground.surfaces.pixel_normals_naive`'s rule: points averaged over ``smooth_px`` x ``smooth_px``
+    finite pixels, normals from the central differences, nan at depth edges, on the border and for the sky)."""
+    height, width = range_map.shape
+    points = np.empty((height, width, 3))
+    rays = np.empty((height, width, 3))
+    finite = np.empty((height, width), np.bool_)
+    for i in range(height):
+        for j in range(width):
+            cx = K_inv[0, 0] * j + K_inv[0, 1] * i + K_inv[0, 2]
+            cy = K_inv[1, 0] * j + K_inv[1, 1] * i + K_inv[1, 2]
+            cz = K_inv[2, 0] * j + K_inv[2, 1] * i + K_inv[2, 2]
+            norm = np.sqrt(cx * cx + cy * cy + cz * cz)
+            cx, cy, cz = cx / norm, cy / norm, cz / norm
+            r = range_map[i, j]
+            ok = np.isfinite(r)
+            finite[i, j] = ok
+            length = r if ok else 0.0
+            for c in range(3):
+                d = R[c, 0] * cx + R[c, 1] * cy + R[c, 2] * cz
+                rays[i, j, c] = d
+                points[i, j, c] = origin[c] + d * length
+    half = smooth_px // 2
+    rows = np.zeros((height, width, 4))  # the horizontal box sums of (x, y, z) * finite and finite
+    for i in range(height):
+        for j in range(width):
+            for dj in range(-half, smooth_px - half):
+                jj = reflect_index(j + dj, width)
+                if finite[i, jj]:
+                    for c in range(3):
+                        rows[i, j, c] += points[i, jj, c]
+                    rows[i, j, 3] += 1.0
+    smooth = np.zeros((height, width, 3))
+    weight = np.zeros((height, width))
+    for i in range(height):
+        for j in range(width):
+            sx = sy = sz = sw = 0.0
+            for di in range(-half, smooth_px - half):
+                ii = reflect_index(i + di, height)
+                sx += rows[ii, j, 0]
+                sy += rows[ii, j, 1]
+                sz += rows[ii, j, 2]
+                sw += rows[ii, j, 3]
+            weight[i, j] = sw / (smooth_px * smooth_px)
+            scale = max(sw, 1e-9 * smooth_px * smooth_px)
+            smooth[i, j, 0] = sx / scale
+            smooth[i, j, 1] = sy / scale
+            smooth[i, j, 2] = sz / scale
+    normals = np.full((height, width, 3), np.nan)
+    for i in range(1, height - 1):
+        for j in range(1, width - 1):
+            r = range_map[i, j]
+            if not finite[i, j] or weight[i, j] < 0.999:
+                continue
+            if (abs(range_map[i, j + 1] - range_map[i, j - 1]) > edge_ratio * r
+                    or abs(range_map[i + 1, j] - range_map[i - 1, j]) > edge_ratio * r):
+                continue  # a depth edge (or a sky neighbour: inf) between its neighbours
+            ax = smooth[i, j + 1, 0] - smooth[i, j - 1, 0]
+            ay = smooth[i, j + 1, 1] - smooth[i, j - 1, 1]
+            az = smooth[i, j + 1, 2] - smooth[i, j - 1, 2]
+            bx = smooth[i + 1, j, 0] - smooth[i - 1, j, 0]
+            by = smooth[i + 1, j, 1] - smooth[i - 1, j, 1]
+            bz = smooth[i + 1, j, 2] - smooth[i - 1, j, 2]
+            nx, ny, nz = ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx
+            length = np.sqrt(nx * nx + ny * ny + nz * nz)
+            if length < 1e-12:
+                continue
+            sign = -1.0 if nx * rays[i, j, 0] + ny * rays[i, j, 1] + nz * rays[i, j, 2] > 0 else 1.0
+            normals[i, j, 0] = sign * nx / length
+            normals[i, j, 1] = sign * ny / length
+            normals[i, j, 2] = sign * nz / length
+    for i in range(height):
+        for j in range(width):
+            if not finite[i, j]:
+                points[i, j, 0] = points[i, j, 1] = points[i, j, 2] = np.nan
+    return points, normals
+
+
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _look(px: np.float64, py: np.float64, pz: np.float64, K: F64, T_cam_world: F64, range_map: F64,
+          thickness_m: float) -> tuple[bool, bool, np.int64, np.int64]:
+    """A world point seen by the camera: (inside the image, behind the surface its pixel shows by less than
+    ``thickness_m``, row, col) (`weatheralign.ground.camera.screen_space_reflection_naive`'s ``look``)."""
+    cx = T_cam_world[0, 0] * px + T_cam_world[0, 1] * py + T_cam_world[0, 2] * pz + T_cam_world[0, 3]
+    cy = T_cam_world[1, 0] * px + T_cam_world[1, 1] * py + T_cam_world[1, 2] * pz + T_cam_world[1, 3]
+    cz = T_cam_world[2, 0] * px + T_cam_world[2, 1] * py + T_cam_world[2, 2] * pz + T_cam_world[2, 3]
+    if cz <= 1e-6:
+        return False, False, np.int64(0), np.int64(0)
+    u = (K[0, 0] * cx + K[0, 1] * cy + K[0, 2] * cz) / cz
+    v = (K[1, 0] * cx + K[1, 1] * cy + K[1, 2] * cz) / cz
+    col, row = np.int64(np.rint(u)), np.int64(np.rint(v))
+    height, width = range_map.shape
+    if col < 0 or col >= width or row < 0 or row >= height:
+        return False, False, row, col
+    length = np.sqrt(cx * cx + cy * cy + cz * cz)
+    seen = range_map[row, col]
+    return True, (length > seen) and (length < seen + thickness_m), row, col
+
+
+@numba.njit(cache=True, nogil=True)
+def screen_space_reflection_kernel(image: F64, range_map: F64, K: F64, T_cam_world: F64, ground: F64,
+                                   mirrored: F64, sky: F64, distances: F64, thickness_m: float,
+                                   bisections: int) -> F64:
+    """(P, 3) radiance along the mirrored rays ``mirrored`` (P, 3) from the ground points ``ground`` (P, 3)
+    (`weatheralign.ground.camera.screen_space_reflection_naive`'s march: the first step behind a surface, bisected
+    ``bisections`` times; the sky once a ray leaves the image or passes every surface)."""
+    out = np.empty((ground.shape[0], 3))
+    for p in range(ground.shape[0]):
+        out[p, 0], out[p, 1], out[p, 2] = sky[0], sky[1], sky[2]
+        previous = 0.0
+        for distance in distances:
+            x = ground[p, 0] + mirrored[p, 0] * distance
+            y = ground[p, 1] + mirrored[p, 1] * distance
+            z = ground[p, 2] + mirrored[p, 2] * distance
+            inside, hit, row, col = _look(x, y, z, K, T_cam_world, range_map, thickness_m)
+            if not inside:
+                break
+            if hit:
+                low, high = previous, distance
+                for _ in range(bisections):
+                    middle = 0.5 * (low + high)
+                    behind = _look(ground[p, 0] + mirrored[p, 0] * middle, ground[p, 1] + mirrored[p, 1] * middle,
+                                   ground[p, 2] + mirrored[p, 2] * middle, K, T_cam_world, range_map, thickness_m)[1]
+                    if behind:
+                        high = middle
+                    else:
+                        low = middle
+                _, _, row, col = _look(ground[p, 0] + mirrored[p, 0] * high, ground[p, 1] + mirrored[p, 1] * high,
+                                       ground[p, 2] + mirrored[p, 2] * high, K, T_cam_world, range_map, thickness_m)
+                out[p, 0], out[p, 1], out[p, 2] = image[row, col, 0], image[row, col, 1], image[row, col, 2]
+                break
+            previous = distance
+    return out
+
+
+__all__ = ["fractal_noise_kernel", "hash01", "pixel_normals_kernel", "reflect_index", "screen_space_reflection_kernel",
+           "value_noise_one"]
