@@ -141,3 +141,27 @@ def test_a_ground_state_is_wet_or_snowy() -> None:
     with pytest.raises(ValueError, match="exactly one"):
         GroundState(road=WetRoad(), cover=SnowCover())
     assert GroundState(road=WetRoad()).kind == "wet" and GroundState(cover=SnowCover()).kind == "snow"
+
+
+def test_a_coarser_working_grid_gives_nearly_the_same_image() -> None:
+    scan = street_scan()
+    surfaces = scan_surfaces(scan)
+    K = np.array([[300.0, 0, 200], [0, 300.0, 120], [0, 0, 1]])
+    T = np.eye(4)
+    T[:3, :3] = np.array([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]])
+    T[:3, 3] = [100.5, 50.0, 1.6]
+    camera = CameraGeometry(K, T)
+    rays = camera.rays_world(240, 400)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_ground = np.where(rays[..., 2] < 0, -1.6 / rays[..., 2], np.inf)
+        t_wall = np.where(rays[..., 0] > 0, 14.5 / rays[..., 0], np.inf)
+    range_map = np.minimum(t_ground, np.where(1.6 + t_wall * rays[..., 2] <= 4.0, t_wall, np.inf))
+    stripes = 0.15 + 0.1 * (np.arange(400) // 10 % 2)[None, :, None] * np.ones(3)
+    image = np.where(np.isfinite(range_map)[..., None], stripes, 0.6)
+    sky = np.array([0.6, 0.65, 0.7])
+    for state in (GroundState(road=WetRoad(puddle_share=0.0), seed=2), GroundState(cover=SnowCover(), seed=2)):
+        fine = edit_image(image, range_map, camera, True, surfaces, scan.T_global_lidar, state, sky, work_stride=1)
+        coarse = edit_image(image, range_map, camera, True, surfaces, scan.T_global_lidar, state, sky, work_stride=2)
+        both = fine.edited | coarse.edited
+        assert (fine.edited & coarse.edited).sum() / both.sum() > 0.97, state.kind
+        assert np.abs(fine.linear - coarse.linear)[fine.edited & coarse.edited].mean() < 0.01, state.kind

@@ -164,15 +164,26 @@ def wet_road_image(image: F64, range_map: F64, camera: CameraGeometry, ground_ma
     escape see. The mirror image is traced for every ``reflection_stride``-th row and column and shared by the
     pixels of each stride x stride block (`strided_reflection`). Pixels off the ground, or dry, are returned
     unchanged."""
-    out = np.array(image, dtype=np.float64, copy=True)
+    gain, offset = wet_road_layers(image, range_map, camera, ground_mask, water_depth_m, road, normal, sky,
+                                   film_blur_px, reflection_stride)
+    return np.asarray(image, dtype=np.float64) * gain + offset
+
+
+def wet_road_layers(image: F64, range_map: F64, camera: CameraGeometry, ground_mask: NDArray[np.bool_],
+                    water_depth_m: F64, road: WetRoad, normal: F64, sky: F64,
+                    film_blur_px: tuple[int, int] = (31, 5), reflection_stride: int = 2) -> tuple[F64, F64]:
+    """`wet_road_image` as ``(gain, offset)`` (H, W, 3): the wet image is ``image * gain + offset`` (gain 1 and
+    offset 0 where nothing changes), so that layers found at a coarser resolution can edit the full image."""
+    image = np.asarray(image, dtype=np.float64)
+    gain, offset = np.ones_like(image), np.zeros_like(image)
     share = np.where(ground_mask, wetted_share(water_depth_m, road.texture_depth_m), 0.0)
     pixels = np.argwhere(share > 0)
     if len(pixels) == 0:
-        return out
+        return gain, offset
     n = road.refractive_index
     rays = camera.rays_world(*range_map.shape)[pixels[:, 0], pixels[:, 1]]
     theta_v = np.arccos(np.clip(np.abs(rays @ normal), 0.0, 1.0))
-    dry = out[pixels[:, 0], pixels[:, 1]]
+    dry = image[pixels[:, 0], pixels[:, 1]]
     colour = dry / np.maximum(dry.mean(axis=1, keepdims=True), 1e-6)
     rho = np.clip(road.pavement_reflectivity * colour, 0.0, 0.95)
     r_e, r_i = hemispherical_reflectance(1.0, n), hemispherical_reflectance(n, 1.0)
@@ -181,7 +192,7 @@ def wet_road_image(image: F64, range_map: F64, camera: CameraGeometry, ground_ma
     reflected = strided_reflection(image, range_map, camera, pixels, rays, normal, sky, reflection_stride)
     puddle = water_depth_m[pixels[:, 0], pixels[:, 1]] >= road.texture_depth_m
     if max(film_blur_px) > 1 and not puddle.all():  # a film's broken surface: a mirror image smeared vertically
-        layer = np.zeros_like(out)
+        layer = np.zeros_like(image)
         layer[pixels[:, 0], pixels[:, 1]] = reflected
         weight = np.zeros(range_map.shape)
         weight[pixels[:, 0], pixels[:, 1]] = 1.0
@@ -190,8 +201,9 @@ def wet_road_image(image: F64, range_map: F64, camera: CameraGeometry, ground_ma
         soft = (blurred / np.maximum(norm, 1e-9))[pixels[:, 0], pixels[:, 1]]
         reflected = np.where(puddle[:, None], reflected, soft)
     c = share[pixels[:, 0], pixels[:, 1]][:, None]
-    out[pixels[:, 0], pixels[:, 1]] = (1.0 - c) * dry + c * (through_water * dry + reflectance * reflected)
-    return out
+    gain[pixels[:, 0], pixels[:, 1]] = (1.0 - c) + c * through_water
+    offset[pixels[:, 0], pixels[:, 1]] = c * reflectance * reflected
+    return gain, offset
 
 
 def snow_cover_image(image: F64, coverage: F64, points_world: F64, ground_mask: NDArray[np.bool_], cover: SnowCover,
@@ -200,11 +212,21 @@ def snow_cover_image(image: F64, coverage: F64, points_world: F64, ground_mask: 
     """The linear-light image (H, W, 3) with lying snow over the share ``coverage`` (H, W) of each pixel's surface
     (module docstring); ``points_world`` (H, W, 3) [m] the pixels' surfaces (nan: sky), ``ground_mask`` (H, W) the
     road's pixels, ``sky`` (3,) the sky's radiance. Pixels without snow are returned unchanged."""
-    out = np.array(image, dtype=np.float64, copy=True)
+    gain, offset = snow_cover_layers(image, coverage, points_world, ground_mask, cover, sky, seed, shading_px,
+                                     shading_strength, grain, grain_cell_m)
+    return np.asarray(image, dtype=np.float64) * gain + offset
+
+
+def snow_cover_layers(image: F64, coverage: F64, points_world: F64, ground_mask: NDArray[np.bool_], cover: SnowCover,
+                      sky: F64, seed: int, shading_px: int = 31, shading_strength: float = 0.5, grain: float = 0.05,
+                      grain_cell_m: float = 0.4) -> tuple[F64, F64]:
+    """`snow_cover_image` as ``(gain, offset)`` (H, W, 3): the snowy image is ``image * gain + offset``."""
+    image = np.asarray(image, dtype=np.float64)
+    gain, offset = np.ones_like(image), np.zeros_like(image)
     pixels = np.argwhere(coverage > 0)
     if len(pixels) == 0:
-        return out
-    luminance = out @ LUMINANCE
+        return gain, offset
+    luminance = image @ LUMINANCE
     snowy = coverage > 0
     weight = uniform_filter(snowy.astype(np.float64), shading_px)
     local = uniform_filter(np.where(snowy, luminance, 0.0), shading_px) / np.maximum(weight, 1e-9)
@@ -216,15 +238,14 @@ def snow_cover_image(image: F64, coverage: F64, points_world: F64, ground_mask: 
     tint = 0.75 + 0.25 * sky / sky_luminance
     g = 1.0 + grain * (2.0 * fractal_noise(points_world[rows, cols, :2], grain_cell_m, seed + 11, octaves=3) - 1.0)
     snow = cover.visible_albedo * sky_luminance * tint * shading * g[:, None]
-    dry = out[rows, cols]
     melt = float(wet_albedo(cover.pavement_reflectivity) / cover.pavement_reflectivity)
-    under = np.where(ground_mask[rows, cols, None], melt * dry, dry)
     c = coverage[rows, cols][:, None]
-    out[rows, cols] = (1.0 - c) * under + c * snow
-    return out
+    gain[rows, cols] = (1.0 - c) * np.where(ground_mask[rows, cols, None], melt, 1.0)
+    offset[rows, cols] = c * snow
+    return gain, offset
 
 
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 / sRGB primaries, linear light
 
 __all__ = ["CameraGeometry", "LUMINANCE", "screen_space_reflection", "screen_space_reflection_naive",
-           "snow_cover_image", "strided_reflection", "wet_road_image"]
+           "snow_cover_image", "snow_cover_layers", "strided_reflection", "wet_road_image", "wet_road_layers"]

@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from scipy.ndimage import gaussian_filter
 
 from weatheralign.data.frame import LidarScan
-from weatheralign.ground.camera import CameraGeometry, snow_cover_image, wet_road_image
+from weatheralign.ground.camera import CameraGeometry, snow_cover_layers, wet_road_layers
 from weatheralign.ground.snow import SnowCover, TireTracks, snow_coverage, snow_covered_ground, snow_depth
 from weatheralign.ground.surfaces import (
     GroundPlane,
@@ -38,6 +38,10 @@ Mask = NDArray[np.bool_]
 DENSE_DEPTH_SOFTEN_PX = 1.5
 """Gaussian blur [px] of the snow coverage of a camera whose surfaces come from a dense depth (the nearest return's
 orientation is piecewise constant)."""
+
+REFLECTION_STRIDE = 1
+"""The mirror image is traced on every this-many rows and columns of the working grid (`strided_reflection`): a
+puddle is a sharp mirror, and coarser blocks show as steps in its image."""
 
 SNOW_EDIT_MIN_COVERAGE = 0.5
 """A return or pixel counts as snow-covered (edited, for the agreement of the sensors) over this covered share."""
@@ -142,21 +146,47 @@ class EditedImage(NamedTuple):
 
 
 def edit_image(linear: F64, range_map: NDArray, camera: CameraGeometry, exact_range: bool,
-               surfaces: ScanSurfaces, T_world_scan: F64, state: GroundState, sky: F64) -> EditedImage:
+               surfaces: ScanSurfaces, T_world_scan: F64, state: GroundState, sky: F64,
+               work_stride: int = 2) -> EditedImage:
     """The linear image (H, W, 3) of ``camera`` with ``state``'s ground over the pixels on the scan's ground plane
     and up-facing surfaces (``surfaces`` of the scan whose frame ``T_world_scan`` (4, 4) maps to the world);
     ``range_map`` (H, W) [m] (inf: sky) is exact (the synthetic world's) or a dense depth from that scan; ``sky``
-    (3,) the sky's linear radiance."""
+    (3,) the sky's linear radiance. The ground's layers (`weatheralign.ground.camera.wet_road_layers`,
+    `snow_cover_layers`) are found on every ``work_stride``-th row and column (their fields vary over decimetres,
+    their filters over tens of pixels) and applied to every pixel of the full image."""
+    stride = max(int(work_stride), 1)
+    height, width = range_map.shape
+    small = CameraGeometry(np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ np.asarray(camera.K, dtype=np.float64),
+                           camera.T_world_cam)
+    gain, offset, edited = ground_layers(np.asarray(linear, dtype=np.float64)[::stride, ::stride],
+                                         np.asarray(range_map, dtype=np.float64)[::stride, ::stride], small,
+                                         exact_range, surfaces, T_world_scan, state, sky, stride)
+    if stride > 1:
+        gain, offset, edited = (np.repeat(np.repeat(a, stride, 0), stride, 1)[:height, :width]
+                                for a in (gain, offset, edited))
+    return EditedImage(np.asarray(linear, dtype=np.float64) * gain + offset, edited)
+
+
+def odd_px(size: float) -> int:
+    """The odd window [px] nearest ``size`` (at least 1)."""
+    return max(1, int(round(size)) // 2 * 2 + 1)
+
+
+def ground_layers(linear: F64, range_map: F64, camera: CameraGeometry, exact_range: bool, surfaces: ScanSurfaces,
+                  T_world_scan: F64, state: GroundState, sky: F64, stride: int = 1) -> tuple[F64, F64, Mask]:
+    """(gain, offset) (H, W, 3) and the edited pixels (H, W) of `edit_image` at the resolution of ``range_map``,
+    ``stride`` times coarser than the full image (its filters' windows scaled)."""
     finite = np.isfinite(range_map)
-    pixels = pixel_normals(np.asarray(range_map, dtype=np.float64), camera)
+    pixels = pixel_normals(range_map, camera, smooth_px=odd_px(5 / stride))
     plane = surfaces.plane.transformed(T_world_scan)
     ground = finite & plane.contains(np.nan_to_num(pixels.points_world))
     if state.road is not None:
         water = np.zeros(range_map.shape)
         water[ground] = water_depth(pixels.points_world[ground][:, :2], state.road, state.seed)
-        out = wet_road_image(linear, np.where(finite, range_map, np.inf), camera, ground, water, state.road,
-                             np.asarray(plane.normal), sky)
-        return EditedImage(out, ground & (water > 0))
+        gain, offset = wet_road_layers(linear, np.where(finite, range_map, np.inf), camera, ground, water, state.road,
+                                       np.asarray(plane.normal), sky, (odd_px(31 / stride), odd_px(5 / stride)),
+                                       REFLECTION_STRIDE)
+        return gain, offset, ground & (water > 0)
     if exact_range:
         cos_up = np.abs(np.nan_to_num(pixels.normals_world[..., 2]))
         known = np.isfinite(pixels.normals_world[..., 2])
@@ -170,10 +200,11 @@ def edit_image(linear: F64, range_map: NDArray, camera: CameraGeometry, exact_ra
     level[known] = snow_depth(pixels.points_world[known][:, :2], state.cover, state.seed, state.tracks)
     coverage = np.where(known, snow_coverage(level, cos_up, state.cover)[0], 0.0)
     if not exact_range:  # the nearest return's orientation is constant over each return's cell: soften the edges
-        coverage = gaussian_filter(coverage, DENSE_DEPTH_SOFTEN_PX)
-    out = snow_cover_image(linear, coverage, pixels.points_world, ground, state.cover, sky, state.seed)
-    return EditedImage(out, coverage > SNOW_EDIT_MIN_COVERAGE)
+        coverage = gaussian_filter(coverage, DENSE_DEPTH_SOFTEN_PX / stride)
+    gain, offset = snow_cover_layers(linear, coverage, pixels.points_world, ground, state.cover, sky, state.seed,
+                                     shading_px=odd_px(31 / stride))
+    return gain, offset, coverage > SNOW_EDIT_MIN_COVERAGE
 
 
 __all__ = ["EditedImage", "EditedScan", "GroundState", "SNOW_EDIT_MIN_COVERAGE", "ScanSurfaces", "edit_image",
-           "edit_scan", "scan_surfaces"]
+           "edit_scan", "ground_layers", "odd_px", "scan_surfaces"]
