@@ -27,7 +27,10 @@ from weatheralign.data.nuscenes import (
     open_nuscenes,
     read_point_extras,
 )
+from weatheralign.ground.edit import edit_scan, scan_surfaces
+from weatheralign.ground.snow import TireTracks
 from weatheralign.lidar import simulate_fog, simulate_particle_scans
+from weatheralign.lidar.labels import WeatherLabel
 from weatheralign.manifest import DatasetManifest, dataset_digest, manifest_path, read_manifest, write_manifest
 from weatheralign.medium.conditions import field_spec
 from weatheralign.sensors import SensorRig, camera_models, ego_body_from_params, lidar_model_from_params
@@ -515,7 +518,7 @@ def test_fast_fields_run_each_scan_alone_slow_ones_jointly(world):
     scans = [frame.lidar, *(load_lidar(nusc, sd["token"]) for sd in sweep_records(nusc, frame.token))]
     assert len(scans) == 3
     for condition, joint_expected in (("snow", True), ("rain", False)):
-        media = _media(condition, scenes, fields).for_scene(scenes[0], True)
+        media = replace(_media(condition, scenes, fields).for_scene(scenes[0], True), ground=None)  # the air alone
         fld = media.field.field()
         drift = joint_drift_m(scans, sensors.lidar, float(np.linalg.norm(fld.velocity_array)))
         assert (drift <= JOINT_DRIFT_MAX_M) == joint_expected, drift
@@ -537,8 +540,8 @@ def test_fog_snow_lidar_is_the_composition_of_its_media(world):
     once reported them at the raw power peak, 1.5 m farther)."""
     tw, nusc, fields, frame, _, sensors, scenes = world
     scan = frame.lidar
-    mixed = _media("fog_snow", scenes, fields).for_scene(scenes[0], True)
-    snow = _media("snow", scenes, fields).for_scene(scenes[0], True)
+    mixed = replace(_media("fog_snow", scenes, fields).for_scene(scenes[0], True), ground=None)  # the air alone
+    snow = replace(_media("snow", scenes, fields).for_scene(scenes[0], True), ground=None)
     no_field = replace(mixed, field=replace(mixed.field, rate_mm_h=0.0))
     a = observe_lidar(scan, no_field, sensors.lidar)
     fog = simulate_fog(scan, mixed.lidar_alpha, mixed.lidar_beta, lidar=sensors.lidar)
@@ -575,6 +578,58 @@ def test_fog_snow_cameras_see_fog_and_prefogged_flakes(world):
     assert fw.cameras[ch].drawn > 100 and fog_only.cameras[ch].drawn == 0
     assert not np.array_equal(fw.cameras[ch].image, fog_only.cameras[ch].image)
     assert fw.reprojection_px.size >= 10 and fw.reprojection_px.max() < 0.5
+
+
+# ------------------------------------------------------------------------------------------------ the ground
+def test_the_lidar_sees_the_ground_first_then_the_air(world):
+    """With a ground, each scan is edited on its surfaces first (`edit_scan`) and the air's weather runs on what is
+    left: the same points as the air alone on the edited scan, rows told in the input's numbering, the points the
+    ground alone changed labelled GROUND, every input point counted once."""
+    tw, nusc, fields, frame, _, sensors, scenes = world
+    scans = [frame.lidar, *(load_lidar(nusc, sd["token"]) for sd in sweep_records(nusc, frame.token))]
+    for condition in ("snow", "rain"):
+        media = _media(condition, scenes, fields).for_scene(scenes[0], True)
+        assert media.ground is not None and media.ground.kind == {"snow": "snow", "rain": "wet"}[condition]
+        got = observe_lidar_scans(scans, media, sensors.lidar)
+        state = media.ground.state(camera=False, tracks=TireTracks.along_heading(scans[0].T_global_lidar))
+        edited = [edit_scan(scan, scan_surfaces(scan, off_ground=state.kind == "snow"), state,
+                            sensors.lidar.noise_floor) for scan in scans]
+        air = observe_lidar_scans([e.scan for e in edited], replace(media, ground=None), sensors.lidar)
+        for lw, e, a, scan in zip(got, edited, air, scans):
+            np.testing.assert_array_equal(lw.scan.points, a.scan.points)
+            kept = a.source_index >= 0
+            np.testing.assert_array_equal(lw.source_index[kept], e.source_index[a.source_index[kept]])
+            ground_only = kept & (a.labels == 0) & e.changed[np.where(kept, a.source_index, 0)]
+            assert ground_only.sum() > 0
+            assert (lw.labels[ground_only] == WeatherLabel.GROUND).all()
+            points = sum(lw.counts[k] for k in ("UNCHANGED", "ATTENUATED", "SCATTERED", "LOST", "GROUND",
+                                                  "GROUND_LOST"))
+            assert points == len(scan.points) and lw.counts["GROUND_LOST"] == e.lost
+        if condition == "rain":
+            assert sum(e.lost for e in edited) > 0  # the film pushes the weakest ground returns under the floor
+
+
+def test_one_ground_for_the_lidar_and_the_cameras(world):
+    """Aligned, the cameras edit the pixels the LiDAR's edited ground returns land on (IoU >= 0.9 in every camera);
+    unaligned, they see another field at another depth on the same surfaces; with simulate.ground off, nothing of the
+    ground is left."""
+    tw, nusc, fields, frame, airlight, sensors, scenes = world
+    images, ranges = _inputs(frame)
+    for condition in ("snow", "rain"):
+        aligned = observe(frame, images, ranges, _media(condition, scenes, fields).for_scene(scenes[0], True),
+                          sensors, np.asarray(airlight), OPTIONS)
+        assert set(aligned.ground_iou) == set(images) and min(aligned.ground_iou.values()) >= 0.9, aligned.ground_iou
+        unaligned_media = _media(condition, scenes, fields).for_scene(scenes[0], False)
+        assert (unaligned_media.ground.camera_seed != unaligned_media.ground.seed
+                and unaligned_media.ground.camera_amount_m != unaligned_media.ground.amount_m)
+        unaligned = observe(frame, images, ranges, unaligned_media, sensors, np.asarray(airlight), OPTIONS,
+                            lidar=aligned.lidar)
+        # the twin's film or snow lies on the same surfaces (the masks agree as well), drawn otherwise
+        assert not np.array_equal(unaligned.cameras["CAM_FRONT"].image, aligned.cameras["CAM_FRONT"].image)
+    off = _media("snow", scenes, fields, CFG.model_copy(update={"ground": False})).for_scene(scenes[0], True)
+    assert off.ground is None and CONDITIONS["fog_dense"].ground is None
+    plain = observe(frame, images, ranges, off, sensors, np.asarray(airlight), OPTIONS)
+    assert plain.ground_iou == {} and all(c.ground_mask is None for c in plain.cameras.values())
 
 
 # ------------------------------------------------------------------------------------------------ real frames

@@ -100,6 +100,29 @@ class ParticlePart:
 
 
 @dataclass(frozen=True)
+class GroundPart:
+    """What the condition leaves on the ground (`weatheralign.ground`): ``wet`` (a water film and puddles) or
+    ``snow`` (lying snow with wheel tracks); its amount (film or snow depth) and fields come from ``simulate.ground``.
+
+    Unaligned: the cameras see the ground's twin: its fields from another seed and its amount drawn log-uniformly
+    within ``simulate.unaligned_rate_factor`` of the LiDAR's, once per scene (`camera_amount`), as a camera-only
+    background edit picks its own.
+    """
+
+    kind: Literal["wet", "snow"]
+
+    @staticmethod
+    def camera_amount(aligned: bool, amount_m: float, factor: float, seed: int) -> float:
+        """The cameras' film or snow depth [m]: ``amount_m`` when aligned (or ``factor`` 1), else ``amount_m ·
+        factor^u`` with ``u ~ U[-1, 1]`` from a hash of the scene's ground ``seed``."""
+        if aligned or factor == 1.0:
+            return amount_m
+        digest = hashlib.sha256(f"{seed}/camera_ground".encode()).digest()
+        u = int.from_bytes(digest[:8], "little") / 2.0**64
+        return amount_m * factor ** (2.0 * u - 1.0)
+
+
+@dataclass(frozen=True)
 class Condition:
     """One named weather condition: its media (``fog``, ``particles``, or both) and a one-line description."""
 
@@ -107,6 +130,7 @@ class Condition:
     description: str
     fog: FogPart | None = None
     particles: ParticlePart | None = None
+    ground: GroundPart | None = None
 
     def __post_init__(self) -> None:
         if self.fog is None and self.particles is None:
@@ -134,9 +158,11 @@ RAIN_PART = ParticlePart("rain", RAIN_REFLECTIVITY, "rain")
 CONDITIONS: dict[str, Condition] = {
     "fog_light": Condition("fog_light", "light fog (the tuned light level)", fog=FogPart("light")),
     "fog_dense": Condition("fog_dense", "dense fog (the tuned dense level)", fog=FogPart("dense")),
-    "snow": Condition("snow", "snowfall (particles.snow)", particles=SNOW_PART),
-    "rain": Condition("rain", "rain (particles.rain)", particles=RAIN_PART),
-    "fog_snow": Condition("fog_snow", "light fog and snowfall together", fog=FogPart("light"), particles=SNOW_PART),
+    "snow": Condition("snow", "snowfall on snow-covered ground (particles.snow)", particles=SNOW_PART,
+                      ground=GroundPart("snow")),
+    "rain": Condition("rain", "rain on a wet road (particles.rain)", particles=RAIN_PART, ground=GroundPart("wet")),
+    "fog_snow": Condition("fog_snow", "light fog and snowfall together, snow-covered ground", fog=FogPart("light"),
+                          particles=SNOW_PART, ground=GroundPart("snow")),
 }
 """Every named condition; the `simulate` DVC matrix runs each, aligned and unaligned."""
 if tuple(CONDITIONS) != CONDITION_NAMES:
@@ -173,5 +199,6 @@ def condition_tags(name: str, aligned: bool | None, snow_rate_mm_h: float, rain_
             "severity": severity_label(name, snow_rate_mm_h, rain_rate_mm_h)}
 
 
-__all__ = ["ALIGNMENTS", "CONDITIONS", "RAIN_APPEARANCES", "Condition", "FogPart", "ParticlePart", "condition_named",
+__all__ = ["ALIGNMENTS", "CONDITIONS", "RAIN_APPEARANCES", "Condition", "FogPart", "GroundPart", "ParticlePart",
+           "condition_named",
            "condition_tags", "severity_label", "variant_name"]

@@ -343,6 +343,11 @@ class SimulateConfig(_Section):
     ``rain_appearance``: how the cameras draw the drops (`weatheralign.camera.splat.APPEARANCES`): ``rain``
     (default) opaque refracting drops whose radiance is their environment's; ``rain_weather_edit`` Weather-edit's
     translucent grey drops (opacity 0.2, grey 0.7).
+    Ground (``ground``: on; false: the air alone): rain leaves a wet road (a water film ``wet_film_depth_m`` deep on
+    average, puddles over ``wet_puddle_share`` of the ground), snow ``snow_depth_m`` of lying snow with wheel tracks;
+    one field per scene in world coordinates (seed ``ground_seed``), seen by the LiDAR and the cameras
+    (`weatheralign.ground.edit`); unaligned cameras see another seed's field at a depth drawn like the particles'
+    rate (``unaligned_rate_factor``).
     The sensors (noise floor, divergence, exposure, ...) are the dataset's (its manifest), not simulate params.
     """
 
@@ -363,6 +368,11 @@ class SimulateConfig(_Section):
     refine_transmission: bool = True
     max_samples: Annotated[int, Field(ge=0, le=10_000_000)] = 0
     sweeps: Annotated[int, Field(ge=0, le=9)] = 2
+    ground: bool = True
+    wet_film_depth_m: Annotated[float, Field(gt=0.0, le=0.01)] = 0.0005
+    wet_puddle_share: Annotated[float, Field(ge=0.0, le=1.0)] = 0.08
+    snow_depth_m: Annotated[float, Field(gt=0.0, le=1.0)] = 0.05
+    ground_seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 11
 
     @field_validator("aligned", mode="before")
     @classmethod

@@ -24,6 +24,9 @@ class WeatherLabel(IntEnum):
     """The weather pushed the return below the detector noise floor: dropped."""
     NO_ECHO = 4
     """A beam without return that stays empty (nothing detected). Per-beam only: never the label of a point."""
+    GROUND = 5
+    """Changed by the ground's weather alone (a wet road's film, lying snow: `weatheralign.ground`), not by the air's;
+    a label of the simulate stage's scans, never of the air's simulators (not in `POINT_LABELS`)."""
 
 
 POINT_LABELS: tuple[WeatherLabel, ...] = (WeatherLabel.UNCHANGED, WeatherLabel.ATTENUATED, WeatherLabel.SCATTERED,

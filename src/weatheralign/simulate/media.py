@@ -10,15 +10,19 @@ cameras' unaligned fog extinction per scene, and the particle field of every sce
 
 from __future__ import annotations
 
+import hashlib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from weatheralign.conditions import CONDITIONS, Condition, FogPart, ParticlePart
+from weatheralign.conditions import CONDITIONS, Condition, FogPart, GroundPart, ParticlePart
 from weatheralign.config import ParticlesConfig, SimulateConfig
 from weatheralign.data.errors import DataFormatError, read_json_file
+from weatheralign.ground.edit import GroundState
+from weatheralign.ground.snow import SnowCover, TireTracks
+from weatheralign.ground.wet import WetRoad
 from weatheralign.manifest import FOG_LEVELS_FILE, PRECIPITATION_RATES_FILE
 from weatheralign.medium.conditions import FieldSpec
 from weatheralign.medium.field import ParticleField
@@ -153,6 +157,39 @@ def load_fields(path: Path) -> dict[str, list[FieldSpec]]:
 
 
 @dataclass(frozen=True)
+class SceneGround:
+    """A scene's ground under a condition: ``kind`` (``wet`` or ``snow``), the LiDAR's film or snow depth
+    ``amount_m`` and field ``seed``, the cameras' (``camera_amount_m``, ``camera_seed``: the LiDAR's when aligned,
+    the twin's when not), the puddles' share of a wet road."""
+
+    kind: str
+    amount_m: float
+    seed: int
+    camera_amount_m: float
+    camera_seed: int
+    puddle_share: float = 0.0
+
+    def state(self, camera: bool, tracks: TireTracks | None) -> GroundState:
+        """The `GroundState` the LiDAR (``camera`` False) or the cameras see; snow pressed down in ``tracks``."""
+        amount, seed = (self.camera_amount_m, self.camera_seed) if camera else (self.amount_m, self.seed)
+        if self.kind == "wet":
+            return GroundState(road=WetRoad(film_depth_m=amount, puddle_share=self.puddle_share), seed=seed)
+        return GroundState(cover=SnowCover(depth_m=amount), tracks=tracks, seed=seed)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "amount_m": self.amount_m, "seed": self.seed,
+                "camera_amount_m": self.camera_amount_m, "camera_seed": self.camera_seed,
+                "puddle_share": self.puddle_share}
+
+
+def ground_seed(seed: int, condition: str, scene: str, camera: bool) -> int:
+    """The ground field's seed of ``scene`` (the cameras' twin's with ``camera``): a hash of (``seed``,
+    ``condition``, ``scene``)."""
+    digest = hashlib.sha256(f"{seed}/{condition}/{scene}/ground{'/camera' if camera else ''}".encode()).digest()
+    return int.from_bytes(digest[:4], "little") & 0x7FFFFFFF
+
+
+@dataclass(frozen=True)
 class SceneMedia:
     """A condition over one scene, as each sensor sees it.
 
@@ -165,6 +202,7 @@ class SceneMedia:
             field's own.
         airlight_gain: the fog's airlight over the scene's clear-sky airlight (`FogPart.airlight_gain`; 1 without
             fog).
+        ground: the scene's ground (`SceneGround`) or None (the air alone).
     """
 
     condition: Condition
@@ -176,6 +214,7 @@ class SceneMedia:
     field: FieldSpec | None = None
     camera_rate_mm_h: float | None = None
     airlight_gain: float = 1.0
+    ground: SceneGround | None = None
 
     @property
     def has_particles(self) -> bool:
@@ -203,12 +242,15 @@ class ConditionMedia:
             {scene: gain}}`` or None (media without ``airlight_gain``: 1, the clear sky's airlight).
         fields: ``{scene: FieldSpec}`` or None.
         camera_rate_unaligned: ``{scene: rate [mm/h]}`` the unaligned cameras' rate (with ``fields``).
+        ground: ``{scene: SceneGround}`` as the unaligned copy sees it (the aligned copy's cameras see the LiDAR's
+            ground), or None.
     """
 
     condition: str
     fog: dict[str, Any] | None
     fields: dict[str, FieldSpec] | None
     camera_rate_unaligned: dict[str, float] | None = None
+    ground: dict[str, SceneGround] | None = None
 
     def for_scene(self, scene: str, aligned: bool, rain_appearance: str = "rain") -> SceneMedia:
         """`SceneMedia` of ``scene``.
@@ -235,6 +277,12 @@ class ConditionMedia:
                     raise DataFormatError(f"media of {self.condition}: no unaligned camera rate for scene {scene!r}; "
                                           f"rerun the media stage")
                 kw["camera_rate_mm_h"] = self.camera_rate_unaligned[scene]
+        if self.ground is not None:
+            if scene not in self.ground:
+                raise DataFormatError(f"media of {self.condition}: no ground for scene {scene!r}; rerun the media "
+                                      f"stage")
+            g = self.ground[scene]
+            kw["ground"] = g if not aligned else replace(g, camera_amount_m=g.amount_m, camera_seed=g.seed)
         return SceneMedia(condition, aligned, scene, **kw)
 
     def rates(self, particles: ParticlesConfig) -> tuple[float, float]:
@@ -250,7 +298,8 @@ class ConditionMedia:
         return {"condition": self.condition, "fog": self.fog,
                 "fields": None if self.fields is None else {k: v.to_dict() for k, v in sorted(self.fields.items())},
                 "camera_rate_unaligned": None if self.camera_rate_unaligned is None
-                else dict(sorted(self.camera_rate_unaligned.items()))}
+                else dict(sorted(self.camera_rate_unaligned.items())),
+                "ground": None if self.ground is None else {k: v.to_dict() for k, v in sorted(self.ground.items())}}
 
     @staticmethod
     def from_dict(d: dict[str, Any], where: str = "media") -> ConditionMedia:
@@ -260,7 +309,9 @@ class ConditionMedia:
             fields = None if d["fields"] is None else {k: FieldSpec.from_dict(v) for k, v in d["fields"].items()}
             rates = d.get("camera_rate_unaligned")
             rates = None if rates is None else {k: float(v) for k, v in rates.items()}
-            return ConditionMedia(d["condition"], d["fog"], fields, rates)
+            ground = d.get("ground")
+            ground = None if ground is None else {k: SceneGround(**v) for k, v in ground.items()}
+            return ConditionMedia(d["condition"], d["fog"], fields, rates, ground)
         except (KeyError, TypeError, ValueError) as exc:
             raise DataFormatError(f"{where}: not a valid media file ({exc})") from None
 
@@ -299,8 +350,25 @@ def resolve_media(condition: Condition, cfg: SimulateConfig, scenes: list[str], 
                      for s in scenes}
         camera_rates = {s: ParticlePart.camera_rate(False, spec.rate_mm_h, cfg.unaligned_rate_factor, spec.seed)
                         for s, spec in per_scene.items()}
-        return ConditionMedia(condition.name, fog, per_scene, camera_rates)
-    return ConditionMedia(condition.name, fog, per_scene)
+        return ConditionMedia(condition.name, fog, per_scene, camera_rates, resolve_ground(condition, cfg, scenes))
+    return ConditionMedia(condition.name, fog, per_scene, ground=resolve_ground(condition, cfg, scenes))
+
+
+def resolve_ground(condition: Condition, cfg: SimulateConfig, scenes: list[str]) -> dict[str, SceneGround] | None:
+    """The ground of ``condition`` per scene as an unaligned copy sees it (None without one or with
+    ``simulate.ground`` off)."""
+    if condition.ground is None or not cfg.ground:
+        return None
+    wet = condition.ground.kind == "wet"
+    amount = cfg.wet_film_depth_m if wet else cfg.snow_depth_m
+    out = {}
+    for scene in scenes:
+        seed = ground_seed(cfg.ground_seed, condition.name, scene, camera=False)
+        out[scene] = SceneGround(condition.ground.kind, amount, seed,
+                                 GroundPart.camera_amount(False, amount, cfg.unaligned_rate_factor, seed),
+                                 ground_seed(cfg.ground_seed, condition.name, scene, camera=True),
+                                 cfg.wet_puddle_share if wet else 0.0)
+    return out
 
 
 def media_path(data: Path, condition: str) -> Path:

@@ -23,12 +23,12 @@ How media compose (see `weatheralign.conditions`):
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
-from weatheralign.camera.fog import composite_image, encode_srgb_u8, fog_airlight
+from weatheralign.camera.fog import composite_image, decode_srgb_u8, encode_srgb_u8, fog_airlight, srgb_to_linear
 from weatheralign.camera.fog import transmission as fog_transmission
 from weatheralign.camera.splat import (
     APPEARANCES,
@@ -39,6 +39,10 @@ from weatheralign.camera.splat import (
 )
 from weatheralign.data.frame import CameraView, Frame, LidarScan
 from weatheralign.geometry import invert
+from weatheralign.ground.camera import CameraGeometry
+from weatheralign.ground.edit import EditedScan, GroundState, ScanSurfaces, edit_image, edit_scan, scan_surfaces
+from weatheralign.ground.snow import TireTracks
+from weatheralign.ground.surfaces import mask_agreement
 from weatheralign.lidar import simulate_fog, simulate_particle_scans
 from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel
 from weatheralign.medium.fog import FogMedium
@@ -46,8 +50,9 @@ from weatheralign.metrics.reprojection import CameraParticles, lidar_particles, 
 from weatheralign.sensors import CameraModel, LidarModel, SensorRig
 from weatheralign.simulate.media import SceneMedia
 
-COUNT_KEYS: tuple[str, ...] = (*(label.name for label in POINT_LABELS), "CLUTTER")
-"""Keys of `LidarWeather.counts`: input points per label, plus clutter points added on beams without return."""
+COUNT_KEYS: tuple[str, ...] = (*(label.name for label in POINT_LABELS), "CLUTTER", "GROUND", "GROUND_LOST")
+"""Keys of `LidarWeather.counts`: input points per label, clutter points added on beams without return, points the
+ground alone changed (`WeatherLabel.GROUND`) and points the ground pushed under the detector floor."""
 
 
 @dataclass(frozen=True)
@@ -87,11 +92,13 @@ class LidarWeather:
 @dataclass(frozen=True, eq=False)
 class CameraWeather:
     """A weather image (``image`` uint8 sRGB, or None = the input unchanged), the particles it drew
-    (`CameraParticles` for the re-projection check, None without particles) and ``drawn`` (their number)."""
+    (`CameraParticles` for the re-projection check, None without particles), ``drawn`` (their number) and the pixels
+    its ground edit changed (``ground_mask`` (H, W), None without a ground)."""
 
     image: NDArray[np.uint8] | None
     particles: CameraParticles | None
     drawn: int
+    ground_mask: NDArray[np.bool_] | None = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -103,6 +110,9 @@ class FrameWeather:
     cameras: dict[str, CameraWeather]
     reprojection_px: NDArray[np.float64]
     reprojection_channels: list[str] = field(default_factory=list)
+    ground_iou: dict[str, float] = field(default_factory=dict)
+    """Per camera: the LiDAR's ground-edited returns projected into it against its ground-edited pixels (IoU,
+    `weatheralign.ground.surfaces.mask_agreement`)."""
 
     @property
     def particles_rendered(self) -> int:
@@ -137,20 +147,43 @@ def observe_lidar_scans(scans: list[LidarScan], media: SceneMedia, lidar: LidarM
     sees: fog alone scan by scan; a particle field for all scans at once (`simulate_particle_scans`: each field cell
     generated once for all of them) unless the field drifts more than `JOINT_DRIFT_MAX_M` over their span (fast
     rain), then scan by scan."""
+    grounded = None
+    if media.ground is not None:  # the ground first: the air's weather sees the wet or snowy returns
+        state = media.ground.state(camera=False, tracks=TireTracks.along_heading(scans[0].T_global_lidar))
+        grounded = [edit_scan(scan, scan_surfaces(scan, off_ground=state.kind == "snow"), state, lidar.noise_floor)
+                    for scan in scans]
+        scans = [g.scan for g in grounded]
     fog = FogMedium(media.lidar_alpha, media.lidar_beta) if media.lidar_alpha > 0.0 else None
     if media.field is None:
-        return [_fog_weather(scan, media, lidar) for scan in scans]
-    fld = media.field.field() if media.has_particles else None
-    kw = {"lidar": lidar, "reflectivity": media.condition.particles.lidar_reflectivity, "fog": fog}
-    speed = 0.0 if fld is None else float(np.linalg.norm(fld.velocity_array))
-    if len(scans) > 1 and joint_drift_m(scans, lidar, speed) > JOINT_DRIFT_MAX_M:
-        results = [simulate_particle_scans([scan], fld, **kw)[0] for scan in scans]
+        out = [_fog_weather(scan, media, lidar) for scan in scans]
     else:
-        results = simulate_particle_scans(scans, fld, **kw)
-    return [LidarWeather(res.apply_to(scan), res.labels.astype(np.uint8), res.particle_id.astype(np.int64),
-                         res.source_index.astype(np.int64), res.times.astype(np.float64),
-                         {k: int(res.counts.get(k, 0)) for k in COUNT_KEYS})
-            for scan, res in zip(scans, results)]
+        fld = media.field.field() if media.has_particles else None
+        kw = {"lidar": lidar, "reflectivity": media.condition.particles.lidar_reflectivity, "fog": fog}
+        speed = 0.0 if fld is None else float(np.linalg.norm(fld.velocity_array))
+        if len(scans) > 1 and joint_drift_m(scans, lidar, speed) > JOINT_DRIFT_MAX_M:
+            results = [simulate_particle_scans([scan], fld, **kw)[0] for scan in scans]
+        else:
+            results = simulate_particle_scans(scans, fld, **kw)
+        out = [LidarWeather(res.apply_to(scan), res.labels.astype(np.uint8), res.particle_id.astype(np.int64),
+                            res.source_index.astype(np.int64), res.times.astype(np.float64),
+                            {k: int(res.counts.get(k, 0)) for k in COUNT_KEYS})
+               for scan, res in zip(scans, results)]
+    return out if grounded is None else [_with_ground(lw, g) for lw, g in zip(out, grounded)]
+
+
+def _with_ground(lw: LidarWeather, grounded: EditedScan) -> LidarWeather:
+    """The air's weather ``lw`` of a ground-edited scan, told in the rows of the scan before the ground edit: source
+    rows mapped back, points the ground alone changed labelled `WeatherLabel.GROUND`, the ground's counts added."""
+    src = lw.source_index
+    kept = src >= 0
+    source = np.where(kept, grounded.source_index[np.where(kept, src, 0)], -1)
+    ground_only = kept & (lw.labels == WeatherLabel.UNCHANGED) & grounded.changed[np.where(kept, src, 0)]
+    labels = np.where(ground_only, np.uint8(WeatherLabel.GROUND), lw.labels).astype(np.uint8)
+    counts = dict(lw.counts)
+    counts["UNCHANGED"] -= int(ground_only.sum())
+    counts["GROUND"] = int(ground_only.sum())
+    counts["GROUND_LOST"] = grounded.lost
+    return replace(lw, labels=labels, source_index=source.astype(np.int64), counts=counts)
 
 
 def _fog_weather(scan: LidarScan, media: SceneMedia, lidar: LidarModel) -> LidarWeather:
@@ -188,9 +221,20 @@ def ego_velocity(frame: Frame) -> NDArray[np.float64]:
     return (dt @ (xyz - xyz.mean(axis=0))) / float(dt @ dt)
 
 
+@dataclass(frozen=True, eq=False)
+class FrameGround:
+    """A frame's ground for its cameras: the keyframe scan's surfaces (found once), the pose that maps the scan to
+    the world, and the `GroundState` the cameras see."""
+
+    surfaces: ScanSurfaces
+    T_world_scan: NDArray[np.float64]
+    state: GroundState
+
+
 def observe_camera(image: NDArray[np.uint8], range_map: NDArray[np.float32], view: CameraView, media: SceneMedia,
-                   camera: CameraModel, airlight: NDArray, ego_vel: NDArray, options: ObserveOptions) -> CameraWeather:
-    """One camera through the media it sees (see the module docstring).
+                   camera: CameraModel, airlight: NDArray, ego_vel: NDArray, options: ObserveOptions,
+                   ground: FrameGround | None = None) -> CameraWeather:
+    """One camera through the media it sees (see the module docstring), on the ``ground`` first when there is one.
 
     Args:
         image: (H, W, 3) uint8 sRGB clear image; range_map: (H, W) float32 ray length [m], inf = sky.
@@ -200,8 +244,14 @@ def observe_camera(image: NDArray[np.uint8], range_map: NDArray[np.float32], vie
     """
     alpha = media.camera_alpha
     fld = media.camera_field()
+    ground_mask = None
+    if ground is not None:  # the wet or snowy ground under the clear air, lit by the scene's clear sky
+        edited = edit_image(decode_srgb_u8(image).astype(np.float64), range_map, CameraGeometry(
+            np.asarray(view.K, dtype=np.float64), view.T_global_cam), view.range_path is not None, ground.surfaces,
+            ground.T_world_scan, ground.state, srgb_to_linear(airlight))
+        image, ground_mask = encode_srgb_u8(edited.linear.astype(np.float32)), edited.edited
     if alpha <= 0.0 and fld is None:
-        return CameraWeather(None, None, 0)
+        return CameraWeather(image if ground_mask is not None else None, None, 0, ground_mask)
     near = options.near_clip_m
     look = APPEARANCES[media.condition.particles.camera_appearance] if fld is not None else None
     t = fog_transmission(range_map, alpha) if alpha > 0.0 else None
@@ -213,7 +263,7 @@ def observe_camera(image: NDArray[np.uint8], range_map: NDArray[np.float32], vie
     a_lin = fog_airlight(airlight, media.airlight_gain)
     refine = options.refine_transmission and view.range_path is None  # exact depth needs no edge-aware smoothing
     if fld is None:
-        return CameraWeather(composite_image(image, t, a_lin, refine), None, 0)
+        return CameraWeather(composite_image(image, t, a_lin, refine), None, 0, ground_mask)
     background = composite_image(image, t, a_lin, refine, encode=False)
     T_global_cam = view.T_global_cam
     spec = media.field
@@ -228,7 +278,7 @@ def observe_camera(image: NDArray[np.uint8], range_map: NDArray[np.float32], vie
                            appearance=look, fog_alpha=alpha, airlight=a_lin, unresolved=profile, near_clip=near)
     cp = CameraParticles(view.channel, view.K, T_global_cam, view.timestamp, view.width, view.height, parts.ids,
                          res.centroids, res.drawn & res.unoccluded & res.in_frame, range_map, profile.r_end)
-    return CameraWeather(encode_srgb_u8(res.image), cp, int(res.drawn.sum()))
+    return CameraWeather(encode_srgb_u8(res.image), cp, int(res.drawn.sum()), ground_mask)
 
 
 # ------------------------------------------------------------------------------------------------ one frame
@@ -247,10 +297,17 @@ def observe(frame: Frame, images: dict[str, NDArray[np.uint8]], ranges: dict[str
         raise ValueError(f"observe: no camera model for {missing} (the dataset's sensors have "
                          f"{sorted(sensors.cameras)})")
     vel = ego_velocity(frame)
+    ground = None
+    if media.ground is not None:
+        surfaces = scan_surfaces(frame.lidar, off_ground=media.ground.kind == "snow")
+        tracks = TireTracks.along_heading(frame.lidar.T_global_lidar)
+        ground = FrameGround(surfaces, frame.lidar.T_global_lidar, media.ground.state(camera=True, tracks=tracks))
+        lidar_edited = edit_scan(frame.lidar, surfaces, media.ground.state(camera=False, tracks=tracks),
+                                 sensors.lidar.noise_floor).edited
 
     def one_camera(channel: str) -> CameraWeather:
         return observe_camera(images[channel], ranges[channel], frame.cameras[channel], media,
-                              sensors.cameras[channel], airlight, vel, options)
+                              sensors.cameras[channel], airlight, vel, options, ground)
 
     with ThreadPoolExecutor(max_workers=max(1, options.threads)) as pool:
         lidar_future = pool.submit(observe_lidar, frame.lidar, media, sensors.lidar) if lidar is None else None
@@ -262,8 +319,16 @@ def observe(frame: Frame, images: dict[str, NDArray[np.uint8]], ranges: dict[str
         rendered = [c.particles for c in cams.values() if c.particles is not None]
         check = reprojection_check(media.field.field(), ids, times, rendered, media.aligned, options.near_clip_m)
         errors, channels = check.error_px, check.channel
-    return FrameWeather(lidar, cams, errors, channels)
+    iou = {}
+    if ground is not None:
+        for channel, cam in cams.items():
+            view = frame.cameras[channel]
+            iou[channel] = mask_agreement(ground.surfaces.world, lidar_edited, CameraGeometry(
+                np.asarray(view.K, dtype=np.float64), view.T_global_cam), cam.ground_mask,
+                range_map=ranges[channel]).iou
+    return FrameWeather(lidar, cams, errors, channels, iou)
 
 
-__all__ = ["COUNT_KEYS", "JOINT_DRIFT_MAX_M", "CameraWeather", "FrameWeather", "LidarWeather", "ObserveOptions",
+__all__ = ["COUNT_KEYS", "JOINT_DRIFT_MAX_M", "CameraWeather", "FrameGround", "FrameWeather", "LidarWeather",
+           "ObserveOptions",
            "ego_velocity", "joint_drift_m", "observe", "observe_camera", "observe_lidar", "observe_lidar_scans"]

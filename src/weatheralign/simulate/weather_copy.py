@@ -122,6 +122,7 @@ def copy_fingerprint(run_digest: str, media: SceneMedia, sensors: SensorRig, air
                        "fog": [media.lidar_alpha, media.lidar_beta, media.camera_alpha],
                        "field": None if media.field is None else media.field.to_dict(),
                        "camera_rate": media.camera_rate_mm_h,
+                       "ground": None if media.ground is None else media.ground.to_dict(),
                        "sensors": sensors.to_dict(), "airlight": list(airlight)}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
@@ -136,6 +137,8 @@ def lidar_fingerprint(run_digest: str, media: SceneMedia, sensors: SensorRig) ->
                        "fog": [media.lidar_alpha, media.lidar_beta],
                        "field": None if media.field is None else media.field.to_dict(),
                        "reflectivity": None if particles is None else particles.lidar_reflectivity,
+                       "ground": None if media.ground is None else [media.ground.kind, media.ground.amount_m,
+                                                                    media.ground.seed, media.ground.puddle_share],
                        "lidar": sensors.lidar.to_dict()}, sort_keys=True)
     return hashlib.sha256(blob.encode()).hexdigest()[:16]
 
@@ -349,7 +352,8 @@ def run_sample(nusc, src_root: Path, out_root: Path, job: SampleJob, sensors: Se
         "counts": fw.lidar.counts, "sweep_counts": sweep_counts,
         "sweeps_simulated": len(sweep_list), "particles_rendered": fw.particles_rendered,
         "reprojection_px": [float(e) for e in fw.reprojection_px],
-        "reprojection_channels": list(fw.reprojection_channels), "bytes_written": _bytes_written(out_root, outputs),
+        "reprojection_channels": list(fw.reprojection_channels), "ground_iou": dict(fw.ground_iou),
+        "bytes_written": _bytes_written(out_root, outputs),
         "seconds": round(time.time() - t0, 3), "cpu_seconds": round(time.process_time() - cpu0, 3)})
     return record, True
 
@@ -503,10 +507,13 @@ def summarise(records: list[dict]) -> dict:
     """Stage metrics from the per-sample records."""
     counts = {k: sum(r["counts"].get(k, 0) for r in records) for k in COUNT_KEYS}
     errors = np.array([e for r in records for e in r["reprojection_px"]], dtype=np.float64)
+    ious = [v for r in records for v in r.get("ground_iou", {}).values()]
     return {
         "points_unchanged": counts["UNCHANGED"], "points_attenuated": counts["ATTENUATED"],
         "points_scattered": counts["SCATTERED"] + counts["CLUTTER"], "points_clutter": counts["CLUTTER"],
-        "points_lost": counts["LOST"], "particles_rendered": sum(r["particles_rendered"] for r in records),
+        "points_lost": counts["LOST"], "points_ground": counts["GROUND"], "points_ground_lost": counts["GROUND_LOST"],
+        "ground_iou_mean": float(np.mean(ious)) if ious else None,
+        "particles_rendered": sum(r["particles_rendered"] for r in records),
         "reprojection_mean_px": float(errors.mean()) if errors.size else None,
         "reprojection_max_px": float(errors.max()) if errors.size else None,
         "reprojection_p99_px": float(np.percentile(errors, 99)) if errors.size else None,
