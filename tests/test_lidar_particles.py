@@ -517,8 +517,9 @@ def test_clutter_on_a_beam_without_return():
 def test_one_label_enum_for_fog_snow_and_rain():
     assert ParticleLabel is WeatherLabel and FogLabel is WeatherLabel
     assert [(x.name, int(x)) for x in WeatherLabel] == [("UNCHANGED", 0), ("ATTENUATED", 1), ("SCATTERED", 2),
-                                                        ("LOST", 3), ("NO_ECHO", 4)]
-    assert WeatherLabel.NO_ECHO not in POINT_LABELS and len(POINT_LABELS) == 4
+                                                        ("LOST", 3), ("NO_ECHO", 4), ("GROUND", 5)]
+    assert WeatherLabel.NO_ECHO not in POINT_LABELS and WeatherLabel.GROUND not in POINT_LABELS
+    assert len(POINT_LABELS) == 4
 
 
 def test_rain_scatters_less_than_snow():
