@@ -69,3 +69,10 @@ def test_the_reflection_march_is_its_oracle_and_strides_share_it() -> None:
     for i in np.nonzero(~corner)[0][::97]:
         j = lookup.get((pixels[i, 0] // 2 * 2, pixels[i, 1] // 2 * 2), i)
         np.testing.assert_array_equal(strided[i], fast[j])  # the others share their corner's (or trace their own)
+
+
+def test_value_noise_is_its_oracle_bit_for_bit() -> None:
+    from weatheralign.ground.wet import value_noise, value_noise_naive
+
+    xy = np.random.default_rng(3).uniform(-1e5, 1e5, (20_000, 2))
+    assert np.array_equal(value_noise(xy, 25.0, 18), value_noise_naive(xy, 25.0, 18))

@@ -78,17 +78,24 @@ class ScanSurfaces(NamedTuple):
     world: F64  # (N, 3) the returns in the world frame [m]
 
 
-def scan_surfaces(scan: LidarScan, tolerance_m: float = 0.2) -> ScanSurfaces:
-    """The ground plane of ``scan`` (`fit_ground_plane`) and its returns' surface orientation."""
+def scan_surfaces(scan: LidarScan, tolerance_m: float = 0.2, off_ground: bool = True) -> ScanSurfaces:
+    """The ground plane of ``scan`` (`fit_ground_plane`) and its returns' surface orientation: the plane's on the
+    ground; elsewhere (``off_ground``) from the other off-ground returns around each (a car's flank is not levelled
+    by the road beside it), else vertical (0: no snow lies there)."""
     xyz = scan.points[:, :3].astype(np.float64)
     plane = fit_ground_plane(xyz, tolerance_m=tolerance_m)
     on_ground = plane.contains(xyz)
-    normals = np.where(on_ground[:, None], np.asarray(plane.normal), point_normals(xyz, np.zeros(3)))
+    normals = np.zeros_like(xyz)
+    normals[on_ground] = plane.normal
     T = scan.T_global_lidar
-    cos_up = np.abs((normals @ T[:3, :3].T)[:, 2])
-    off = ~on_ground
-    if off.sum() >= 16:
-        cos_up[off] = median_over_neighbours(xyz[off], cos_up[off])
+    off = np.nonzero(~on_ground)[0]
+    cos_up = np.zeros(len(xyz))
+    cos_up[on_ground] = abs(float((T[:3, :3] @ np.asarray(plane.normal))[2]))
+    if off_ground and len(off) >= 16:
+        normals[off] = point_normals(xyz[off], np.zeros(3))
+        cos_up[off] = median_over_neighbours(xyz[off], np.abs((normals[off] @ T[:3, :3].T)[:, 2]))
+    else:
+        normals[off] = xyz[off] / np.maximum(np.linalg.norm(xyz[off], axis=1, keepdims=True), 1e-9)
     return ScanSurfaces(plane, on_ground, normals, cos_up, xyz @ T[:3, :3].T + T[:3, 3])
 
 

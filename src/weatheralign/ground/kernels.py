@@ -39,6 +39,15 @@ def value_noise_one(x: np.float64, y: np.float64, cell_m: np.float64, seed: np.i
 
 
 @numba.njit(cache=True, nogil=True)
+def value_noise_kernel(xy: F64, cell_m: float, seed: int) -> F64:
+    """(N,) value noise in [0, 1) at world positions ``xy`` (N, 2) [m] (`weatheralign.ground.wet.value_noise`)."""
+    out = np.empty(xy.shape[0])
+    for i in range(xy.shape[0]):
+        out[i] = value_noise_one(xy[i, 0], xy[i, 1], cell_m, np.int64(seed))
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
 def fractal_noise_kernel(xy: F64, cell_m: float, seed: int, octaves: int) -> F64:
     """(N,) fractal noise in [0, 1) at world positions ``xy`` (N, 2) [m] (`weatheralign.ground.wet.fractal_noise`)."""
     out = np.empty(xy.shape[0])
@@ -204,4 +213,4 @@ def screen_space_reflection_kernel(image: F64, range_map: F64, K: F64, T_cam_wor
 
 
 __all__ = ["fractal_noise_kernel", "hash01", "pixel_normals_kernel", "reflect_index", "screen_space_reflection_kernel",
-           "value_noise_one"]
+           "value_noise_kernel", "value_noise_one"]

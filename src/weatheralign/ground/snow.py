@@ -87,6 +87,17 @@ class TireTracks:
         if not 0.0 <= self.remaining_share <= 1.0:
             raise ValueError(f"TireTracks.remaining_share must be in [0, 1], got {self.remaining_share}")
 
+    @staticmethod
+    def along_heading(T_world_sensor: F64) -> TireTracks:
+        """Tracks along the heading (x axis) of a sensor at pose ``T_world_sensor`` (4, 4), centred on its lane:
+        anchored at the foot of the perpendicular from the world origin onto that line, so that frames of one
+        straight drive share the tracks' wander."""
+        T = np.asarray(T_world_sensor, dtype=np.float64)
+        heading = T[:2, 0] / np.hypot(T[0, 0], T[1, 0])
+        position = T[:2, 3]
+        foot = position - (position @ heading) * heading
+        return TireTracks(direction=(float(heading[0]), float(heading[1])), origin=(float(foot[0]), float(foot[1])))
+
     def depth_factor(self, xy_world: F64, seed: int) -> F64:
         """(N,) the share of the snow left at world positions (N, 2): ``remaining_share`` at a track's centre
         line, rising as a raised cosine to 1 at its edges, 1 off the tracks."""

@@ -18,7 +18,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from weatheralign.ground.kernels import fractal_noise_kernel
+from weatheralign.ground.kernels import fractal_noise_kernel, value_noise_kernel
 from weatheralign.ground.optics import WATER_ABSORPTION_905_PER_M, WATER_INDEX, wet_lidar_factor
 
 F64 = NDArray[np.float64]
@@ -68,7 +68,14 @@ def _hash01(ix: NDArray[np.int64], iy: NDArray[np.int64], seed: int) -> F64:
 
 
 def value_noise(xy: F64, cell_m: float, seed: int) -> F64:
-    """Smooth value noise in [0, 1) at world positions ``xy`` (N, 2) [m], features about ``cell_m`` wide."""
+    """Smooth value noise in [0, 1) at world positions ``xy`` (N, 2) [m], features about ``cell_m`` wide: the
+    compiled `weatheralign.ground.kernels.value_noise_kernel` of `value_noise_naive`'s rule."""
+    xy = np.ascontiguousarray(np.asarray(xy, dtype=np.float64).reshape(-1, 2))
+    return value_noise_kernel(xy, float(cell_m), int(seed))
+
+
+def value_noise_naive(xy: F64, cell_m: float, seed: int) -> F64:
+    """`value_noise` in numpy: the oracle of its kernel."""
     g = np.asarray(xy, dtype=np.float64) / cell_m
     i = np.floor(g)
     f = g - i
@@ -91,7 +98,7 @@ def fractal_noise_naive(xy: F64, cell_m: float, seed: int, octaves: int = 4) -> 
     """`fractal_noise` in numpy: the oracle of its kernel."""
     total, weight, norm = np.zeros(len(xy)), 1.0, 0.0
     for octave in range(octaves):
-        total += weight * value_noise(xy, cell_m / 2**octave, seed * 31 + octave)
+        total += weight * value_noise_naive(xy, cell_m / 2**octave, seed * 31 + octave)
         norm += weight
         weight *= 0.5
     return total / norm
@@ -145,5 +152,5 @@ def wet_ground(intensity: F64, incidence: F64, depth_m: F64, road: WetRoad, nois
     return WetGroundEffect(np.where(lost, 0.0, new), lost, np.asarray(depth_m, dtype=np.float64), factor)
 
 
-__all__ = ["fractal_noise", "fractal_noise_naive", "incidence_angle", "value_noise", "water_depth", "wet_ground",
-           "WetGroundEffect", "WetRoad", "wetted_share"]
+__all__ = ["fractal_noise", "fractal_noise_naive", "incidence_angle", "value_noise", "value_noise_naive", "water_depth",
+           "wet_ground", "WetGroundEffect", "WetRoad", "wetted_share"]
