@@ -117,3 +117,23 @@ def test_mask_agreement_counts_pixels_the_returns_land_on() -> None:
 def test_ground_plane_record() -> None:
     plane = GroundPlane((0.0, 0.0, 1.0), 1.8)
     assert plane.height(np.array([[0.0, 0, -1.8], [0, 0, -1.0]])).tolist() == pytest.approx([0.0, 0.8])
+
+
+def test_the_plane_fit_is_reproducible() -> None:
+    points, _, _ = tilted_ground(seed=4)
+    planes = {fit_ground_plane(points, seed=3) for _ in range(3)}
+    assert len(planes) == 1
+
+
+def test_returns_hidden_from_the_camera_do_not_count() -> None:
+    camera = CameraGeometry(np.array([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]]), np.eye(4))
+    u, v = np.meshgrid(np.arange(100), np.arange(100))
+    points = np.column_stack([(u.ravel() - 50) / 100 * 10, (v.ravel() - 50) / 100 * 10, np.full(u.size, 10.0)])
+    edited = np.ones(u.size, bool)
+    camera_mask = np.zeros((100, 100), bool)
+    camera_mask[:, 50:] = True
+    range_map = np.hypot(np.hypot(points[:, 0], points[:, 1]), points[:, 2]).reshape(100, 100)
+    range_map[:, :50] = 2.0  # something near the camera hides the left half's returns
+    visible = mask_agreement(points, edited, camera, camera_mask, range_map=range_map)
+    assert visible.iou == 1.0 and visible.pixels == 5000
+    assert mask_agreement(points, edited, camera, camera_mask).iou == pytest.approx(0.5)

@@ -1,15 +1,15 @@
 """The surfaces that receive water or snow, found once per frame so that the LiDAR and every camera edit the same ones.
 
-On real data the ground is the dominant plane under the sensor (`fit_ground_plane`: open3d's RANSAC on the returns
-more than ``min_drop_m`` below the LiDAR); a LiDAR return is on it within ``tolerance_m``. The up-facing surfaces
-elsewhere (car roofs, ledges, tree crowns) come from surface normals: the LiDAR's from its points' neighbourhoods
-(`point_normals`), a camera's from the 3-D points of an exact range map (`pixel_normals`: the synthetic world's). A
-dense depth interpolated from a LiDAR's rings is no such map: between rings it spans flat facets, and its normals on
-facades, cars and people point anywhere; there a pixel takes the orientation of the LiDAR return nearest its surface
-point (`nearest_return_values`), so both sensors read one set of normals. Both sensors then ask the
-same questions of the same world positions (`weatheralign.ground.snow.snow_coverage`,
-`weatheralign.ground.wet.water_depth`), and `mask_agreement` measures how well they agree: the LiDAR's edited returns
-projected into a camera against the camera's edited pixels.
+The ground is the dominant plane under the sensor (`fit_ground_plane`: a seeded RANSAC on the returns more than
+``min_drop_m`` below the LiDAR, refined by least squares); a LiDAR return is on it within ``tolerance_m``. The
+up-facing surfaces elsewhere (car roofs, ledges, tree crowns) come from surface normals: the LiDAR's from its
+points' neighbourhoods (`point_normals`), a camera's from the 3-D points of an exact range map (`pixel_normals`: the
+synthetic world's). A dense depth interpolated from a LiDAR's rings is no such map: between rings it spans flat
+facets, and its normals on facades, cars and people point anywhere; there a pixel takes the orientation of the LiDAR
+return nearest its surface point (`nearest_return_values`), so both sensors read one set of normals. Both sensors
+then ask the same questions of the same world positions (`weatheralign.ground.snow.snow_coverage`,
+`weatheralign.ground.wet.water_depth`), and `mask_agreement` measures how well they agree: the LiDAR's edited
+returns projected into a camera against the camera's edited pixels.
 """
 
 from __future__ import annotations
@@ -52,22 +52,39 @@ class GroundPlane:
         return GroundPlane((float(normal[0]), float(normal[1]), float(normal[2])), offset, self.tolerance_m)
 
 
-def fit_ground_plane(points: F64, min_drop_m: float = 1.0, tolerance_m: float = 0.15, seed: int = 0) -> GroundPlane:
+def fit_ground_plane(points: F64, min_drop_m: float = 1.0, tolerance_m: float = 0.15, seed: int = 0,
+                     hypotheses: int = 512, sample: int = 4096) -> GroundPlane:
     """The dominant plane among the LiDAR returns (N, 3) (sensor frame, z up) lying more than ``min_drop_m`` below
-    the sensor: open3d's RANSAC (``tolerance_m`` inlier distance, 2000 iterations, seeded). Raises ``ValueError``
-    when fewer than 100 returns lie that low."""
-    import open3d as o3d
-
-    low = np.nonzero(np.asarray(points)[:, 2] < -min_drop_m)[0]
+    the sensor: RANSAC over ``hypotheses`` planes through three returns, scored by the returns of a ``sample`` of the
+    low ones within ``tolerance_m`` (all drawn from a generator seeded with ``seed``: same cloud, same plane; open3d's
+    multithreaded ``segment_plane`` is not reproducible), then refined by least squares on the best plane's inliers
+    among all the low returns, twice. Raises ``ValueError`` when fewer than 100 returns lie that low."""
+    xyz = np.asarray(points, dtype=np.float64)[:, :3]
+    low = xyz[xyz[:, 2] < -min_drop_m]
     if len(low) < 100:
         raise ValueError(f"fit_ground_plane: {len(low)} returns lie {min_drop_m} m below the sensor; need >= 100 "
                          "(is the cloud in the sensor frame, z up?)")
-    o3d.utility.random.seed(seed)
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points)[low, :3].astype(np.float64)))
-    (a, b, c, d), _ = cloud.segment_plane(distance_threshold=tolerance_m, ransac_n=3, num_iterations=2000)
-    sign = 1.0 if c >= 0 else -1.0
-    length = float(np.linalg.norm([a, b, c]))
-    return GroundPlane((a * sign / length, b * sign / length, c * sign / length), d * sign / length, tolerance_m)
+    rng = np.random.default_rng(seed)
+    scored = low[rng.choice(len(low), min(sample, len(low)), replace=False)]
+    triples = low[rng.integers(0, len(low), (hypotheses, 3))]
+    normals = np.cross(triples[:, 1] - triples[:, 0], triples[:, 2] - triples[:, 0])
+    length = np.linalg.norm(normals, axis=1)
+    valid = length > 1e-9
+    normals = normals[valid] / length[valid, None]
+    normals *= np.where(normals[:, 2] < 0, -1.0, 1.0)[:, None]
+    offsets = -np.sum(normals * triples[valid, 0], axis=1)
+    inliers = (np.abs(scored @ normals.T + offsets) < tolerance_m).sum(axis=0)
+    best = int(np.argmax(inliers))
+    normal, offset = normals[best], float(offsets[best])
+    for _ in range(2):  # least squares on the inliers: the plane through their centroid along their least variance
+        near = low[np.abs(low @ normal + offset) < tolerance_m]
+        if len(near) < 3:
+            break
+        centre = near.mean(axis=0)
+        refined = np.linalg.svd(near - centre, full_matrices=False)[2][-1]
+        normal = refined if refined[2] >= 0 else -refined
+        offset = float(-normal @ centre)
+    return GroundPlane((float(normal[0]), float(normal[1]), float(normal[2])), offset, tolerance_m)
 
 
 def point_normals(points: F64, origin: F64, neighbours: int = 16) -> F64:
@@ -171,14 +188,21 @@ class MaskAgreement(NamedTuple):
 
 
 def mask_agreement(points_world: F64, edited: Mask, camera: CameraGeometry, camera_mask: Mask,
-                   max_range_m: float = 60.0) -> MaskAgreement:
+                   max_range_m: float = 60.0, range_map: F64 | None = None,
+                   visible_tolerance: float = 0.05) -> MaskAgreement:
     """How well a LiDAR's edits (``edited`` (N,) of its returns at ``points_world`` (N, 3)) and a camera's
     (``camera_mask`` (H, W)) agree: per pixel some return within ``max_range_m`` projects to, the LiDAR's label
-    (the nearest such return's) against the camera's."""
+    (the nearest such return's) against the camera's. With the camera's ``range_map`` (H, W) [m], only returns the
+    camera sees count: within ``visible_tolerance`` (relative, at least 0.3 m) of the surface its pixel shows (a
+    return behind the ego's body, or hidden from the camera by parallax, is not on that pixel's surface)."""
     height, width = camera_mask.shape
     u, v, length = camera.project(np.asarray(points_world, dtype=np.float64))
     col, row = np.rint(u).astype(np.int64), np.rint(v).astype(np.int64)
     seen = (length > 0) & (length < max_range_m) & (col >= 0) & (col < width) & (row >= 0) & (row < height)
+    if range_map is not None:
+        shown = np.full(len(length), np.inf)
+        shown[seen] = np.asarray(range_map)[row[seen], col[seen]]
+        seen &= np.abs(length - shown) <= np.maximum(visible_tolerance * shown, 0.3)
     index = np.nonzero(seen)[0]
     index = index[np.argsort(-length[index], kind="stable")]  # nearest last: it wins the pixel
     label = np.full((height, width), -1, dtype=np.int8)
