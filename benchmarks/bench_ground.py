@@ -20,7 +20,7 @@ one wet road and one snow cover seen by the LiDAR and the camera of each frame.
    rings has no normals of its own off the ground): the returns raised onto the snow and
    brightened, the camera's image under the same cover (`weatheralign.ground.camera.snow_cover_image`);
 4. how well the sensors agree (`weatheralign.ground.surfaces.mask_agreement`): the LiDAR's edited returns projected
-   into the camera against the camera's edited pixels, IoU over the pixels some return lands on.
+   into the camera against the camera's edited pixels, IoU over the pixels some return the camera sees lands on.
 
 Figures: ``reports/benchmarks/ground_lidar.png`` (the factor against incidence; per real frame the returns'
 intensity in bird's-eye view dry, wet and snow-covered), ``reports/benchmarks/ground_cameras.png`` (each camera dry,
@@ -150,7 +150,7 @@ def camera_ground(name: str, frame: Any, surfaces: Any, figure: dict[str, Any], 
         out = edit_image(linear, range_map, camera, view.range_path is not None, surfaces, frame.lidar.T_global_lidar,
                          state, sky)
         numbers[f"{kind}_cpu_s"] = time.process_time() - t0
-        agreement = mask_agreement(surfaces.world, figure[f"{kind}_edited"], camera, out.edited)
+        agreement = mask_agreement(surfaces.world, figure[f"{kind}_edited"], camera, out.edited, range_map=range_map)
         numbers.update({f"{kind}_pixels_share": float(out.edited.mean()), f"{kind}_iou": agreement.iou,
                         f"{kind}_lidar_on_camera": agreement.lidar_on_camera,
                         f"{kind}_camera_on_lidar": agreement.camera_on_lidar, "compared_pixels": agreement.pixels})

@@ -350,8 +350,9 @@ def test_flow_writes_copy_and_metrics(world, tmp_path):
     tags = unaligned[0].data.tags
     assert ((tags["stage"], tags["kind"], tags["weather"], tags["severity"])
             == ("simulate", "stage", "fog_dense", "dense"))
-    assert unaligned[0].data.metrics["points_lost"] == metrics["points_lost"]
-    assert unaligned[0].data.metrics["reprojection_pairs"] == 0
+    assert unaligned[0].data.metrics["points_lost_per_keyframe"] == round(metrics["points_lost"]
+                                                                          / metrics["num_samples"], 2)
+    assert "reprojection_p99_px" not in unaligned[0].data.metrics  # fog: no particle to re-project (None: not logged)
     assert [d.dataset.digest for d in unaligned[0].inputs.dataset_inputs] == [dataset_digest(tw.dataroot, version)]
     media_runs = client.search_runs([exp.experiment_id], "tags.stage = 'media' AND tags.kind = 'condition'")
     assert {r.data.tags["weather"]: r.data.tags["severity"] for r in media_runs} == {
