@@ -449,9 +449,10 @@ def artifact_key(text: str) -> str:
 
 
 def mlflow_run_url(experiment_id: str | None, run_id: str | None) -> str:
-    """The MLflow UI page of a run (`MLFLOW_UI_URL`)."""
+    """The MLflow UI page of a run (`MLFLOW_UI_URL`), in the model-training workflow (without it MLflow 3's UI
+    shows a browser that never chose one the GenAI sidebar; mlflow/mlflow#24498)."""
     base = os.environ.get("MLFLOW_UI_URL", MLFLOW_UI_URL).rstrip("/")
-    return f"{base}/#/experiments/{experiment_id}/runs/{run_id}"
+    return f"{base}/#/experiments/{experiment_id}/runs/{run_id}?workflowType=machine_learning"
 
 
 def publish_prefect_artifacts(name: str, metrics: dict[str, Any], mlflow_url: str | None) -> None:

@@ -71,7 +71,8 @@ def test_artifact_keys_and_mlflow_links(monkeypatch):
     assert artifact_key("simulate snow-aligned: samples") == "simulate-snow-aligned-samples"
     assert artifact_key("detect/Finetuned_Snow") == "detect-finetuned-snow"
     monkeypatch.setenv("MLFLOW_UI_URL", "http://mlflow.example:5000/")
-    assert mlflow_run_url("3", "abc") == "http://mlflow.example:5000/#/experiments/3/runs/abc"
+    assert mlflow_run_url("3", "abc") == ("http://mlflow.example:5000/#/experiments/3/runs/abc"
+                                          "?workflowType=machine_learning")
 
 
 @pytest.mark.flow

@@ -71,7 +71,8 @@ class LidarWeather:
     """A weather scan: ``scan`` (new points), per output point ``labels`` (`WeatherLabel`), ``particle_id`` (-1: none),
     ``source_index`` (input row, -1: clutter), ``times`` (firing time [s]); ``counts`` per `COUNT_KEYS`;
     ``stored_offsets``: the (N,) float32 firing times relative to ``scan.timestamp`` as a weather copy stores them,
-    where the scan was read back from one (None: computed here)."""
+    where the scan was read back from one (None: computed here); with a ground, the input scan's surfaces and which of
+    its returns the ground edited (None where not computed here)."""
 
     scan: LidarScan
     labels: NDArray[np.uint8]
@@ -80,6 +81,8 @@ class LidarWeather:
     times: NDArray[np.float64]
     counts: dict[str, int]
     stored_offsets: NDArray[np.float32] | None = None
+    ground_surfaces: ScanSurfaces | None = None
+    ground_edited: NDArray[np.bool_] | None = None
 
     def fire_times(self) -> NDArray[np.float64]:
         """(N,) firing time [s] at the precision a weather copy stores it (a float32 offset from the scan's
@@ -150,8 +153,8 @@ def observe_lidar_scans(scans: list[LidarScan], media: SceneMedia, lidar: LidarM
     grounded = None
     if media.ground is not None:  # the ground first: the air's weather sees the wet or snowy returns
         state = media.ground.state(camera=False, tracks=TireTracks.along_heading(scans[0].T_global_lidar))
-        grounded = [edit_scan(scan, scan_surfaces(scan, off_ground=state.kind == "snow"), state, lidar.noise_floor)
-                    for scan in scans]
+        surfaces = [scan_surfaces(scan, off_ground=state.kind == "snow") for scan in scans]
+        grounded = [edit_scan(scan, found, state, lidar.noise_floor) for scan, found in zip(scans, surfaces)]
         scans = [g.scan for g in grounded]
     fog = FogMedium(media.lidar_alpha, media.lidar_beta) if media.lidar_alpha > 0.0 else None
     if media.field is None:
@@ -168,10 +171,10 @@ def observe_lidar_scans(scans: list[LidarScan], media: SceneMedia, lidar: LidarM
                             res.source_index.astype(np.int64), res.times.astype(np.float64),
                             {k: int(res.counts.get(k, 0)) for k in COUNT_KEYS})
                for scan, res in zip(scans, results)]
-    return out if grounded is None else [_with_ground(lw, g) for lw, g in zip(out, grounded)]
+    return out if grounded is None else [_with_ground(lw, g, found) for lw, g, found in zip(out, grounded, surfaces)]
 
 
-def _with_ground(lw: LidarWeather, grounded: EditedScan) -> LidarWeather:
+def _with_ground(lw: LidarWeather, grounded: EditedScan, surfaces: ScanSurfaces) -> LidarWeather:
     """The air's weather ``lw`` of a ground-edited scan, told in the rows of the scan before the ground edit: source
     rows mapped back, points the ground alone changed labelled `WeatherLabel.GROUND`, the ground's counts added."""
     src = lw.source_index
@@ -183,7 +186,8 @@ def _with_ground(lw: LidarWeather, grounded: EditedScan) -> LidarWeather:
     counts["UNCHANGED"] -= int(ground_only.sum())
     counts["GROUND"] = int(ground_only.sum())
     counts["GROUND_LOST"] = grounded.lost
-    return replace(lw, labels=labels, source_index=source.astype(np.int64), counts=counts)
+    return replace(lw, labels=labels, source_index=source.astype(np.int64), counts=counts, ground_surfaces=surfaces,
+                   ground_edited=grounded.edited)
 
 
 def _fog_weather(scan: LidarScan, media: SceneMedia, lidar: LidarModel) -> LidarWeather:
@@ -298,12 +302,14 @@ def observe(frame: Frame, images: dict[str, NDArray[np.uint8]], ranges: dict[str
                          f"{sorted(sensors.cameras)})")
     vel = ego_velocity(frame)
     ground = None
-    if media.ground is not None:
-        surfaces = scan_surfaces(frame.lidar, off_ground=media.ground.kind == "snow")
+    if media.ground is not None:  # the keyframe's surfaces and edits: the LiDAR's own where it was computed here
         tracks = TireTracks.along_heading(frame.lidar.T_global_lidar)
+        known = lidar is not None and lidar.ground_surfaces is not None
+        surfaces = lidar.ground_surfaces if known else scan_surfaces(frame.lidar,
+                                                                     off_ground=media.ground.kind == "snow")
         ground = FrameGround(surfaces, frame.lidar.T_global_lidar, media.ground.state(camera=True, tracks=tracks))
-        lidar_edited = edit_scan(frame.lidar, surfaces, media.ground.state(camera=False, tracks=tracks),
-                                 sensors.lidar.noise_floor).edited
+        lidar_edited = lidar.ground_edited if known else edit_scan(
+            frame.lidar, surfaces, media.ground.state(camera=False, tracks=tracks), sensors.lidar.noise_floor).edited
 
     def one_camera(channel: str) -> CameraWeather:
         return observe_camera(images[channel], ranges[channel], frame.cameras[channel], media,
