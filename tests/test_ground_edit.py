@@ -165,3 +165,29 @@ def test_a_coarser_working_grid_gives_nearly_the_same_image() -> None:
         both = fine.edited | coarse.edited
         assert (fine.edited & coarse.edited).sum() / both.sum() > 0.97, state.kind
         assert np.abs(fine.linear - coarse.linear)[fine.edited & coarse.edited].mean() < 0.01, state.kind
+
+
+def test_the_uint8_path_is_the_linear_edit_encoded() -> None:
+    from weatheralign.camera.fog import decode_srgb_u8, encode_srgb_u8
+    from weatheralign.ground.edit import edit_image_u8
+
+    scan = street_scan()
+    surfaces = scan_surfaces(scan)
+    K = np.array([[300.0, 0, 200], [0, 300.0, 120], [0, 0, 1]])
+    T = np.eye(4)
+    T[:3, :3] = np.array([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]])
+    T[:3, 3] = [100.5, 50.0, 1.6]
+    camera = CameraGeometry(K, T)
+    rays = camera.rays_world(241, 401)  # odd sizes: the last block is cut
+    with np.errstate(divide="ignore", invalid="ignore"):
+        range_map = np.where(rays[..., 2] < 0, -1.6 / rays[..., 2], np.inf)
+    image = np.random.default_rng(0).integers(20, 120, (241, 401, 3)).astype(np.uint8)
+    sky = np.array([0.6, 0.65, 0.7])
+    for state in (GroundState(road=WetRoad(), seed=2), GroundState(cover=SnowCover(), seed=2)):
+        linear = edit_image(decode_srgb_u8(image).astype(np.float64), range_map, camera, True, surfaces,
+                            scan.T_global_lidar, state, sky)
+        coded, mask = edit_image_u8(image, range_map, camera, True, surfaces, scan.T_global_lidar, state, sky)
+        assert np.array_equal(mask, linear.edited) and mask.mean() > 0.3
+        expected = encode_srgb_u8(linear.linear.astype(np.float32))
+        assert np.abs(coded.astype(int) - expected.astype(int)).max() <= 1
+        assert (coded == expected).mean() > 0.999

@@ -76,3 +76,12 @@ def test_value_noise_is_its_oracle_bit_for_bit() -> None:
 
     xy = np.random.default_rng(3).uniform(-1e5, 1e5, (20_000, 2))
     assert np.array_equal(value_noise(xy, 25.0, 18), value_noise_naive(xy, 25.0, 18))
+
+
+def test_tire_tracks_are_their_oracle() -> None:
+    from weatheralign.ground.snow import TireTracks
+
+    tracks = TireTracks(direction=(0.6, 0.8), origin=(12.0, -7.0))
+    xy = np.random.default_rng(5).uniform(-60, 60, (50_000, 2))
+    np.testing.assert_allclose(tracks.depth_factor(xy, 9), tracks.depth_factor_naive(xy, 9), atol=1e-12)
+    assert (tracks.depth_factor(xy, 9) < 1.0).mean() > 0.02  # some points lie in the tracks

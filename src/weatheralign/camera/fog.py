@@ -35,7 +35,12 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from weatheralign.camera.kernels import composite_guided_kernel, composite_plain_kernel, encode_srgb_kernel
+from weatheralign.camera.kernels import (
+    affine_edit_kernel,
+    composite_guided_kernel,
+    composite_plain_kernel,
+    encode_srgb_kernel,
+)
 
 F32 = NDArray[np.float32]
 U8 = NDArray[np.uint8]
@@ -123,6 +128,16 @@ def encode_srgb_u8(linear: NDArray) -> U8:
     x = np.ascontiguousarray(np.asarray(linear, dtype=np.float32))
     codes = encode_srgb_kernel(x.reshape(-1), _ENCODE_LUT, _ENCODE_AMBIGUOUS, _ENCODE_THRESHOLDS, _ENC_BINS)
     return codes.reshape(x.shape)
+
+
+def affine_edit_u8(image: U8, gain: NDArray, offset: NDArray, stride: int = 1) -> U8:
+    """``encode_srgb_u8(decode_srgb_u8(image) * gain + offset)`` for a uint8 sRGB ``image`` (H, W, 3), ``gain`` and
+    ``offset`` (ceil(H / stride), ceil(W / stride), 3) in linear light given per ``stride`` x ``stride`` block, in one
+    compiled pass (`weatheralign.camera.kernels.affine_edit_kernel`)."""
+    return affine_edit_kernel(np.ascontiguousarray(image, dtype=np.uint8),
+                              np.ascontiguousarray(gain, dtype=np.float64),
+                              np.ascontiguousarray(offset, dtype=np.float64), int(stride), _DECODE_LUT, _ENCODE_LUT,
+                              _ENCODE_AMBIGUOUS, _ENCODE_THRESHOLDS, _ENC_BINS)
 
 
 def _as_srgb_float(image: NDArray, what: str = "image") -> F32:

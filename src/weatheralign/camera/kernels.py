@@ -128,3 +128,21 @@ def composite_plain_kernel(image: NDArray, t: NDArray, airlight: NDArray, decode
 
 
 __all__ = ["composite_guided_kernel", "composite_plain_kernel", "encode_one", "encode_srgb_kernel"]
+
+
+@numba.njit(cache=True, nogil=True)
+def affine_edit_kernel(image: U8, gain: NDArray, offset: NDArray, stride: int, decode_lut: NDArray, lut: NDArray,
+                       ambiguous: NDArray, thresholds: NDArray, bins: int) -> U8:
+    """(H, W, 3) uint8 sRGB ``image`` edited per pixel in linear light as ``decode(image) * gain + offset``, with
+    ``gain`` and ``offset`` (h, w, 3) given on every ``stride``-th row and column (each value used for its stride x
+    stride block), encoded back exactly (`encode_one`): one pass, nothing full-size allocated but the output."""
+    height, width = image.shape[0], image.shape[1]
+    out = np.empty((height, width, 3), np.uint8)
+    for i in range(height):
+        si = i // stride
+        for j in range(width):
+            sj = j // stride
+            for c in range(3):
+                x = np.float64(decode_lut[image[i, j, c]]) * gain[si, sj, c] + offset[si, sj, c]
+                out[i, j, c] = encode_one(np.float32(x), lut, ambiguous, thresholds, bins)
+    return out

@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import gaussian_filter
 
+from weatheralign.camera.fog import affine_edit_u8, decode_srgb_u8
 from weatheralign.data.frame import LidarScan
 from weatheralign.ground.camera import CameraGeometry, snow_cover_layers, wet_road_layers
 from weatheralign.ground.snow import SnowCover, TireTracks, snow_coverage, snow_covered_ground, snow_depth
@@ -174,6 +175,22 @@ def edit_image(linear: F64, range_map: NDArray, camera: CameraGeometry, exact_ra
     return EditedImage(np.asarray(linear, dtype=np.float64) * gain + offset, edited)
 
 
+def edit_image_u8(image: NDArray[np.uint8], range_map: NDArray, camera: CameraGeometry, exact_range: bool,
+                  surfaces: ScanSurfaces, T_world_scan: F64, state: GroundState, sky: F64,
+                  work_stride: int = 2) -> tuple[NDArray[np.uint8], Mask]:
+    """`edit_image` of a uint8 sRGB ``image`` (H, W, 3), returned as uint8 sRGB with its edited pixels (H, W): the
+    layers applied and encoded in one compiled pass (`weatheralign.camera.fog.affine_edit_u8`)."""
+    stride = max(int(work_stride), 1)
+    height, width = range_map.shape
+    small = CameraGeometry(np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ np.asarray(camera.K, dtype=np.float64),
+                           camera.T_world_cam)
+    linear = decode_srgb_u8(np.asarray(image)[::stride, ::stride]).astype(np.float64)
+    gain, offset, edited = ground_layers(linear, np.asarray(range_map, dtype=np.float64)[::stride, ::stride], small,
+                                         exact_range, surfaces, T_world_scan, state, sky, stride)
+    mask = np.repeat(np.repeat(edited, stride, 0), stride, 1)[:height, :width]
+    return affine_edit_u8(image, gain, offset, stride), mask
+
+
 def odd_px(size: float) -> int:
     """The odd window [px] nearest ``size`` (at least 1)."""
     return max(1, int(round(size)) // 2 * 2 + 1)
@@ -214,4 +231,4 @@ def ground_layers(linear: F64, range_map: F64, camera: CameraGeometry, exact_ran
 
 
 __all__ = ["EditedImage", "EditedScan", "GroundState", "SNOW_EDIT_MIN_COVERAGE", "ScanSurfaces", "edit_image",
-           "edit_scan", "ground_layers", "odd_px", "scan_surfaces"]
+           "edit_image_u8", "edit_scan", "ground_layers", "odd_px", "scan_surfaces"]

@@ -48,6 +48,29 @@ def value_noise_kernel(xy: F64, cell_m: float, seed: int) -> F64:
 
 
 @numba.njit(cache=True, nogil=True)
+def tracks_factor_kernel(xy: F64, origin: F64, along_unit: F64, lanes: F64, gauge_m: float, width_m: float,
+                         remaining_share: float, wander_m: float, wander_cell_m: float, seed: int) -> F64:
+    """(N,) the share of the snow left at world positions ``xy`` (N, 2) by wheel tracks
+    (`weatheralign.ground.snow.TireTracks.depth_factor_naive`'s rule)."""
+    out = np.empty(xy.shape[0])
+    half = 0.5 * width_m
+    for i in range(xy.shape[0]):
+        dx, dy = xy[i, 0] - origin[0], xy[i, 1] - origin[1]
+        along = dx * along_unit[0] + dy * along_unit[1]
+        lateral = -dx * along_unit[1] + dy * along_unit[0]
+        shift = wander_m * (2.0 * value_noise_one(along, 0.0, wander_cell_m, np.int64(seed + 7)) - 1.0)
+        factor = 1.0
+        for lane in lanes:
+            for wheel in (-0.5 * gauge_m, 0.5 * gauge_m):
+                distance = abs(lateral - shift - lane - wheel)
+                if distance < half:
+                    dip = 0.5 * (1.0 + np.cos(np.pi * distance / half))
+                    factor = min(factor, 1.0 - (1.0 - remaining_share) * dip)
+        out[i] = factor
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
 def fractal_noise_kernel(xy: F64, cell_m: float, seed: int, octaves: int) -> F64:
     """(N,) fractal noise in [0, 1) at world positions ``xy`` (N, 2) [m] (`weatheralign.ground.wet.fractal_noise`)."""
     out = np.empty(xy.shape[0])
@@ -213,4 +236,4 @@ def screen_space_reflection_kernel(image: F64, range_map: F64, K: F64, T_cam_wor
 
 
 __all__ = ["fractal_noise_kernel", "hash01", "pixel_normals_kernel", "reflect_index", "screen_space_reflection_kernel",
-           "value_noise_kernel", "value_noise_one"]
+           "tracks_factor_kernel", "value_noise_kernel", "value_noise_one"]

@@ -23,6 +23,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from weatheralign.ground.kernels import tracks_factor_kernel
 from weatheralign.ground.wet import fractal_noise, value_noise
 
 F64 = NDArray[np.float64]
@@ -100,7 +101,17 @@ class TireTracks:
 
     def depth_factor(self, xy_world: F64, seed: int) -> F64:
         """(N,) the share of the snow left at world positions (N, 2): ``remaining_share`` at a track's centre
-        line, rising as a raised cosine to 1 at its edges, 1 off the tracks."""
+        line, rising as a raised cosine to 1 at its edges, 1 off the tracks (compiled: `depth_factor_naive`'s rule
+        in `weatheralign.ground.kernels.tracks_factor_kernel`)."""
+        along_unit = np.asarray(self.direction, dtype=np.float64) / np.hypot(*self.direction)
+        return tracks_factor_kernel(np.ascontiguousarray(np.asarray(xy_world, dtype=np.float64).reshape(-1, 2)),
+                                    np.asarray(self.origin, dtype=np.float64), along_unit,
+                                    np.asarray(self.lane_offsets_m, dtype=np.float64), float(self.gauge_m),
+                                    float(self.width_m), float(self.remaining_share), float(self.wander_m),
+                                    float(self.wander_cell_m), int(seed))
+
+    def depth_factor_naive(self, xy_world: F64, seed: int) -> F64:
+        """`depth_factor` in numpy: the oracle of its kernel."""
         xy = np.asarray(xy_world, dtype=np.float64) - np.asarray(self.origin, dtype=np.float64)
         along_unit = np.asarray(self.direction, dtype=np.float64) / np.hypot(*self.direction)
         along = xy @ along_unit

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from weatheralign.camera.fog import composite_image, decode_srgb_u8, encode_srgb_u8, fog_airlight, srgb_to_linear
+from weatheralign.camera.fog import composite_image, encode_srgb_u8, fog_airlight, srgb_to_linear
 from weatheralign.camera.fog import transmission as fog_transmission
 from weatheralign.camera.splat import (
     APPEARANCES,
@@ -40,7 +40,7 @@ from weatheralign.camera.splat import (
 from weatheralign.data.frame import CameraView, Frame, LidarScan
 from weatheralign.geometry import invert
 from weatheralign.ground.camera import CameraGeometry
-from weatheralign.ground.edit import EditedScan, GroundState, ScanSurfaces, edit_image, edit_scan, scan_surfaces
+from weatheralign.ground.edit import EditedScan, GroundState, ScanSurfaces, edit_image_u8, edit_scan, scan_surfaces
 from weatheralign.ground.snow import TireTracks
 from weatheralign.ground.surfaces import mask_agreement
 from weatheralign.lidar import simulate_fog, simulate_particle_scans
@@ -250,10 +250,9 @@ def observe_camera(image: NDArray[np.uint8], range_map: NDArray[np.float32], vie
     fld = media.camera_field()
     ground_mask = None
     if ground is not None:  # the wet or snowy ground under the clear air, lit by the scene's clear sky
-        edited = edit_image(decode_srgb_u8(image).astype(np.float64), range_map, CameraGeometry(
+        image, ground_mask = edit_image_u8(image, range_map, CameraGeometry(
             np.asarray(view.K, dtype=np.float64), view.T_global_cam), view.range_path is not None, ground.surfaces,
             ground.T_world_scan, ground.state, srgb_to_linear(airlight))
-        image, ground_mask = encode_srgb_u8(edited.linear.astype(np.float32)), edited.edited
     if alpha <= 0.0 and fld is None:
         return CameraWeather(image if ground_mask is not None else None, None, 0, ground_mask)
     near = options.near_clip_m
