@@ -19,6 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import gaussian_filter
 
+from weatheralign.camera.fog import affine_edit_u8, decode_srgb_u8
 from weatheralign.data.frame import LidarScan
 from weatheralign.ground.camera import CameraGeometry, snow_cover_layers, wet_road_layers
 from weatheralign.ground.snow import SnowCover, TireTracks, snow_coverage, snow_covered_ground, snow_depth
@@ -179,8 +180,6 @@ def edit_image_u8(image: NDArray[np.uint8], range_map: NDArray, camera: CameraGe
                   work_stride: int = 2) -> tuple[NDArray[np.uint8], Mask]:
     """`edit_image` of a uint8 sRGB ``image`` (H, W, 3), returned as uint8 sRGB with its edited pixels (H, W): the
     layers applied and encoded in one compiled pass (`weatheralign.camera.fog.affine_edit_u8`)."""
-    from weatheralign.camera.fog import affine_edit_u8, decode_srgb_u8  # the cameras' codec: simulate's, not media's
-
     stride = max(int(work_stride), 1)
     height, width = range_map.shape
     small = CameraGeometry(np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ np.asarray(camera.K, dtype=np.float64),
