@@ -105,16 +105,20 @@ def test_snow_raises_exactly_the_up_facing_returns() -> None:
     assert (edited.scan.points[clear, 3] > scan.points[clear, 3]).all()  # snow is brighter than asphalt
 
 
+def front_camera() -> CameraGeometry:
+    """A 400 x 240 camera 1.6 m above `street_scan`'s road, 0.5 m ahead of its LiDAR, looking along +x."""
+    T = np.eye(4)
+    T[:3, :3] = np.array([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]])  # OpenCV axes: x forward, z up in the world
+    T[:3, 3] = [100.5, 50.0, 1.6]
+    return CameraGeometry(np.array([[300.0, 0, 200], [0, 300.0, 120], [0, 0, 1]]), T)
+
+
 def test_the_camera_edits_the_pixels_the_lidars_edited_returns_land_on() -> None:
     scan = street_scan()
     surfaces = scan_surfaces(scan)
-    K = np.array([[300.0, 0, 200], [0, 300.0, 120], [0, 0, 1]])
-    T = np.eye(4)
-    T[:3, :3] = np.array([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]])  # looking along +x
-    T[:3, 3] = [100.5, 50.0, 1.6]
-    camera = CameraGeometry(K, T)
+    camera = front_camera()
     rays = camera.rays_world(240, 400)
-    origin = T[:3, 3]
+    origin = camera.T_world_cam[:3, 3]
     with np.errstate(divide="ignore", invalid="ignore"):
         t_ground = np.where(rays[..., 2] < 0, -origin[2] / rays[..., 2], np.inf)
         t_wall = np.where(rays[..., 0] > 0, (115.0 - origin[0]) / rays[..., 0], np.inf)
@@ -146,11 +150,7 @@ def test_a_ground_state_is_wet_or_snowy() -> None:
 def test_a_coarser_working_grid_gives_nearly_the_same_image() -> None:
     scan = street_scan()
     surfaces = scan_surfaces(scan)
-    K = np.array([[300.0, 0, 200], [0, 300.0, 120], [0, 0, 1]])
-    T = np.eye(4)
-    T[:3, :3] = np.array([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]])
-    T[:3, 3] = [100.5, 50.0, 1.6]
-    camera = CameraGeometry(K, T)
+    camera = front_camera()
     rays = camera.rays_world(240, 400)
     with np.errstate(divide="ignore", invalid="ignore"):
         t_ground = np.where(rays[..., 2] < 0, -1.6 / rays[..., 2], np.inf)
