@@ -173,11 +173,7 @@ def test_the_uint8_path_is_the_linear_edit_encoded() -> None:
 
     scan = street_scan()
     surfaces = scan_surfaces(scan)
-    K = np.array([[300.0, 0, 200], [0, 300.0, 120], [0, 0, 1]])
-    T = np.eye(4)
-    T[:3, :3] = np.array([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]])
-    T[:3, 3] = [100.5, 50.0, 1.6]
-    camera = CameraGeometry(K, T)
+    camera = front_camera()
     rays = camera.rays_world(241, 401)  # odd sizes: the last block is cut
     with np.errstate(divide="ignore", invalid="ignore"):
         range_map = np.where(rays[..., 2] < 0, -1.6 / rays[..., 2], np.inf)
