@@ -85,3 +85,31 @@ def test_tire_tracks_are_their_oracle() -> None:
     xy = np.random.default_rng(5).uniform(-60, 60, (50_000, 2))
     np.testing.assert_allclose(tracks.depth_factor(xy, 9), tracks.depth_factor_naive(xy, 9), atol=1e-12)
     assert (tracks.depth_factor(xy, 9) < 1.0).mean() > 0.02  # some points lie in the tracks
+
+
+def test_the_range_guided_edit_is_its_numpy_oracle_encoded() -> None:
+    from weatheralign.camera.fog import affine_edit_u8, decode_srgb_u8, encode_srgb_u8, range_guided_upsample
+
+    rng = np.random.default_rng(0)
+    height, width, stride = 61, 83, 4  # sizes that cut the last blocks
+    range_map = 10.0 + rng.normal(0.0, 0.2, (height, width))
+    range_map[:20] = np.inf  # sky
+    range_map[30:50, 40:60] = 5.0  # a car before the road
+    range_map[35:45, 10] = 3.0  # a pole thinner than a block: no sample of its own
+    h, w = -(-height // stride), -(-width // stride)
+    gain = rng.uniform(0.5, 1.5, (h, w, 3))
+    offset = rng.uniform(0.0, 0.2, (h, w, 3))
+    edited = (rng.uniform(size=(h, w)) > 0.5).astype(np.float64)
+    gain[:3], offset[:3] = 1.0, 0.0  # untouched rows: copied as they are
+    image = rng.integers(0, 256, (height, width, 3)).astype(np.uint8)
+    coded, mask = affine_edit_u8(image, gain, offset, edited, range_map, stride)
+    up_gain = range_guided_upsample(gain, range_map, stride, fill=1.0)
+    up_offset = range_guided_upsample(offset, range_map, stride)
+    expected = encode_srgb_u8((decode_srgb_u8(image) * up_gain + up_offset).astype(np.float32))
+    assert np.array_equal(coded, expected)
+    assert np.array_equal(mask, range_guided_upsample(edited, range_map, stride) > 0.5)
+    assert np.array_equal(coded[:8], image[:8])
+    assert np.array_equal(up_gain[::stride, ::stride], gain)  # a pixel with a sample of its own reads it
+    assert np.allclose(up_gain[29, 44], gain[7, 11])  # the road above the car reads the road's row only
+    assert np.allclose(up_gain[19, 21], 0.75 * gain[4, 5] + 0.25 * gain[4, 6])  # the sky's edge reads the sky only
+    assert any(np.allclose(up_gain[40, 10], gain[10, k]) for k in (2, 3))  # the pole: its nearest sample alone

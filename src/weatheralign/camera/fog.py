@@ -36,10 +36,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from weatheralign.camera.kernels import (
-    affine_edit_kernel,
     composite_guided_kernel,
     composite_plain_kernel,
     encode_srgb_kernel,
+    guided_affine_edit_kernel,
 )
 
 F32 = NDArray[np.float32]
@@ -130,14 +130,70 @@ def encode_srgb_u8(linear: NDArray) -> U8:
     return codes.reshape(x.shape)
 
 
-def affine_edit_u8(image: U8, gain: NDArray, offset: NDArray, stride: int = 1) -> U8:
-    """``encode_srgb_u8(decode_srgb_u8(image) * gain + offset)`` for a uint8 sRGB ``image`` (H, W, 3), ``gain`` and
-    ``offset`` (ceil(H / stride), ceil(W / stride), 3) in linear light given per ``stride`` x ``stride`` block, in one
-    compiled pass (`weatheralign.camera.kernels.affine_edit_kernel`)."""
-    return affine_edit_kernel(np.ascontiguousarray(image, dtype=np.uint8),
-                              np.ascontiguousarray(gain, dtype=np.float64),
-                              np.ascontiguousarray(offset, dtype=np.float64), int(stride), _DECODE_LUT, _ENCODE_LUT,
-                              _ENCODE_AMBIGUOUS, _ENCODE_THRESHOLDS, _ENC_BINS)
+RANGE_SIGMA = 0.05
+"""Relative ray-length difference over which a coarse layer sample stops counting for a pixel
+(`range_guided_weights_naive`): a layer found for the road does not bleed onto the car in front of it."""
+
+
+def range_guided_weights_naive(range_map: NDArray, stride: int, sigma: float = RANGE_SIGMA
+                               ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
+    """How each pixel of ``range_map`` (H, W) [m] (inf: sky) reads values given on its every ``stride``-th row and
+    column: its 4 bilinear neighbours' (rows, cols) on the coarse grid (H, W, 4) and their weights (H, W, 4), the
+    bilinear weights times `weatheralign.camera.kernels.range_weight` (1 for sky to sky, 0 for sky to surface,
+    ``exp(-(dl / (sigma l))^2)`` else), normalised; where they all vanish, the neighbour of nearest ray length alone;
+    all 0 where no neighbour is sky for a sky pixel or surface for a surface pixel. The numpy oracle of
+    `weatheralign.camera.kernels.guided_affine_edit_kernel`."""
+    rng = np.asarray(range_map, dtype=np.float64)
+    height, width = rng.shape
+    h, w = -(-height // stride), -(-width // stride)
+    iy, ix = np.arange(height), np.arange(width)
+    y0, x0 = np.broadcast_arrays((iy // stride)[:, None], (ix // stride)[None, :])
+    fy, fx = np.broadcast_arrays((iy % stride / stride)[:, None], (ix % stride / stride)[None, :])
+    y1, x1 = np.minimum(y0 + 1, h - 1), np.minimum(x0 + 1, w - 1)
+    rows = np.stack([y0, y0, y1, y1], axis=-1)
+    cols = np.stack([x0, x1, x0, x1], axis=-1)
+    weights = np.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], axis=-1)
+    coarse = rng[rows * stride, cols * stride]
+    fine = rng[..., None]
+    same_kind = np.isinf(coarse) == np.isinf(fine)
+    with np.errstate(invalid="ignore"):
+        miss = np.where(np.isinf(fine), 0.0, np.abs(coarse - fine))
+        ratio = np.where(np.isinf(fine), 0.0, miss / (sigma * np.maximum(fine, 1e-6)))
+    weights = weights * np.where(same_kind, np.exp(-ratio**2), 0.0)
+    total = weights.sum(axis=-1, keepdims=True)
+    miss = np.where(same_kind, miss, np.inf)
+    nearest = np.argmin(miss, axis=-1)  # first of equals, as the kernel
+    fallback = (np.arange(4) == nearest[..., None]) & np.isfinite(np.min(miss, axis=-1))[..., None]
+    weights = np.where(total > 1e-12, weights / np.where(total > 1e-12, total, 1.0), fallback.astype(np.float64))
+    return rows, cols, weights
+
+
+def range_guided_upsample(values: NDArray, range_map: NDArray, stride: int, sigma: float = RANGE_SIGMA,
+                          fill: float = 0.0) -> NDArray[np.float64]:
+    """``values`` (h, w, ...) given on every ``stride``-th row and column of ``range_map`` (H, W) brought to every
+    pixel (H, W, ...) by `range_guided_weights_naive`; ``fill`` where no neighbour counts."""
+    rows, cols, weights = range_guided_weights_naive(range_map, stride, sigma)
+    v = np.asarray(values, dtype=np.float64)[rows, cols]  # (H, W, 4, ...)
+    wts = weights.reshape(weights.shape + (1,) * (v.ndim - 3))
+    none = weights.sum(axis=-1) == 0
+    out = (v * wts).sum(axis=2)
+    out[none] = fill
+    return out
+
+
+def affine_edit_u8(image: U8, gain: NDArray, offset: NDArray, edited: NDArray, range_map: NDArray, stride: int = 1,
+                   sigma: float = RANGE_SIGMA) -> tuple[U8, NDArray[np.bool_]]:
+    """``encode_srgb_u8(decode_srgb_u8(image) * G + O)`` for a uint8 sRGB ``image`` (H, W, 3), with ``gain`` and
+    ``offset`` (ceil(H / stride), ceil(W / stride), 3) in linear light and ``edited`` (same h, w) given on every
+    ``stride``-th row and column of ``range_map`` (H, W) [m] and brought to each pixel as G, O and E by
+    `range_guided_upsample` (gain 1 and offset 0 where no neighbour counts), in one compiled pass
+    (`weatheralign.camera.kernels.guided_affine_edit_kernel`); returns the image and the pixels where E > 0.5."""
+    return guided_affine_edit_kernel(np.ascontiguousarray(image, dtype=np.uint8),
+                                     np.ascontiguousarray(gain, dtype=np.float64),
+                                     np.ascontiguousarray(offset, dtype=np.float64),
+                                     np.ascontiguousarray(edited, dtype=np.float64),
+                                     np.ascontiguousarray(range_map, dtype=np.float64), int(stride), float(sigma),
+                                     _DECODE_LUT, _ENCODE_LUT, _ENCODE_AMBIGUOUS, _ENCODE_THRESHOLDS, _ENC_BINS)
 
 
 def _as_srgb_float(image: NDArray, what: str = "image") -> F32:

@@ -127,22 +127,86 @@ def composite_plain_kernel(image: NDArray, t: NDArray, airlight: NDArray, decode
                     out_linear[y, x, k] = v
 
 
-__all__ = ["composite_guided_kernel", "composite_plain_kernel", "encode_one", "encode_srgb_kernel"]
+@numba.njit(cache=True, nogil=True, inline="always")
+def range_weight(coarse: np.float64, fine: np.float64, sigma: float) -> np.float64:
+    """Weight of a coarse sample at ray length ``coarse`` [m] for a pixel at ``fine`` [m]: 1 for both infinite (sky),
+    0 for one infinite, else ``exp(-(|coarse - fine| / (sigma fine))^2)`` (`range_guided_weights_naive`)."""
+    if np.isinf(coarse) or np.isinf(fine):
+        return 1.0 if np.isinf(coarse) and np.isinf(fine) else 0.0
+    d = (coarse - fine) / (sigma * max(fine, 1e-6))
+    return np.exp(-d * d)
 
 
 @numba.njit(cache=True, nogil=True)
-def affine_edit_kernel(image: U8, gain: NDArray, offset: NDArray, stride: int, decode_lut: NDArray, lut: NDArray,
-                       ambiguous: NDArray, thresholds: NDArray, bins: int) -> U8:
-    """(H, W, 3) uint8 sRGB ``image`` edited per pixel in linear light as ``decode(image) * gain + offset``, with
-    ``gain`` and ``offset`` (h, w, 3) given on every ``stride``-th row and column (each value used for its stride x
-    stride block), encoded back exactly (`encode_one`): one pass, nothing full-size allocated but the output."""
+def guided_affine_edit_kernel(image: U8, gain: NDArray, offset: NDArray, edited: NDArray, range_map: NDArray,
+                              stride: int, sigma: float, decode_lut: NDArray, lut: NDArray, ambiguous: NDArray,
+                              thresholds: NDArray, bins: int) -> tuple[U8, NDArray]:
+    """(H, W, 3) uint8 sRGB ``image`` edited in linear light as ``decode(image) * gain + offset`` and encoded back
+    exactly (`encode_one`), with ``gain``, ``offset`` (h, w, 3) and ``edited`` (h, w) float given on every
+    ``stride``-th row and column of ``range_map`` (H, W) [m] and brought to each pixel by range-guided bilinear
+    weights (`weatheralign.camera.fog.range_guided_weights_naive`); returns the image and the (H, W) pixels whose
+    interpolated ``edited`` exceeds 0.5. Pixels whose four samples change nothing are copied as they are (the
+    identity round-trips every code). One pass; nothing full-size allocated but the outputs."""
     height, width = image.shape[0], image.shape[1]
+    h, w = gain.shape[0], gain.shape[1]
+    touched = np.zeros((h, w), np.bool_)
+    for y in range(h):
+        for x in range(w):
+            touched[y, x] = edited[y, x] != 0.0 or gain[y, x, 0] != 1.0 or gain[y, x, 1] != 1.0 or \
+                gain[y, x, 2] != 1.0 or offset[y, x, 0] != 0.0 or offset[y, x, 1] != 0.0 or offset[y, x, 2] != 0.0
     out = np.empty((height, width, 3), np.uint8)
+    mask = np.zeros((height, width), np.bool_)
+    rows = np.empty(4, np.int64)
+    cols = np.empty(4, np.int64)
+    weights = np.empty(4)
     for i in range(height):
-        si = i // stride
+        y0 = i // stride
+        fy = (i - y0 * stride) / stride
+        y1 = min(y0 + 1, h - 1)
         for j in range(width):
-            sj = j // stride
-            for c in range(3):
-                x = np.float64(decode_lut[image[i, j, c]]) * gain[si, sj, c] + offset[si, sj, c]
-                out[i, j, c] = encode_one(np.float32(x), lut, ambiguous, thresholds, bins)
-    return out
+            x0 = j // stride
+            fx = (j - x0 * stride) / stride
+            x1 = min(x0 + 1, w - 1)
+            if not (touched[y0, x0] or touched[y0, x1] or touched[y1, x0] or touched[y1, x1]):
+                out[i, j, 0], out[i, j, 1], out[i, j, 2] = image[i, j, 0], image[i, j, 1], image[i, j, 2]
+                continue
+            rows[0], cols[0], weights[0] = y0, x0, (1.0 - fy) * (1.0 - fx)
+            rows[1], cols[1], weights[1] = y0, x1, (1.0 - fy) * fx
+            rows[2], cols[2], weights[2] = y1, x0, fy * (1.0 - fx)
+            rows[3], cols[3], weights[3] = y1, x1, fy * fx
+            r = np.float64(range_map[i, j])
+            total = 0.0
+            best, best_k = np.inf, -1
+            for k in range(4):
+                c = np.float64(range_map[rows[k] * stride, cols[k] * stride])
+                rw = range_weight(c, r, sigma)
+                if np.isinf(c) == np.isinf(r):
+                    miss = 0.0 if np.isinf(r) else abs(c - r)
+                    if miss < best:
+                        best, best_k = miss, k
+                weights[k] *= rw
+                total += weights[k]
+            if total <= 1e-12:
+                for k in range(4):
+                    weights[k] = 1.0 if k == best_k else 0.0
+                total = 1.0 if best_k >= 0 else 0.0
+            e = 0.0
+            for k in range(4):
+                e += weights[k] * edited[rows[k], cols[k]]
+            mask[i, j] = total > 0.0 and e > 0.5 * total
+            for ch in range(3):
+                g, o = 1.0, 0.0
+                if total > 0.0:
+                    g, o = 0.0, 0.0
+                    for k in range(4):
+                        g += weights[k] * gain[rows[k], cols[k], ch]
+                        o += weights[k] * offset[rows[k], cols[k], ch]
+                    g /= total
+                    o /= total
+                x = np.float64(decode_lut[image[i, j, ch]]) * g + o
+                out[i, j, ch] = encode_one(np.float32(x), lut, ambiguous, thresholds, bins)
+    return out, mask
+
+
+__all__ = ["composite_guided_kernel", "composite_plain_kernel", "encode_one", "encode_srgb_kernel",
+           "guided_affine_edit_kernel", "range_weight"]

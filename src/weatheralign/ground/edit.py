@@ -19,7 +19,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.ndimage import gaussian_filter
 
-from weatheralign.camera.fog import affine_edit_u8, decode_srgb_u8
+from weatheralign.camera.fog import affine_edit_u8, decode_srgb_u8, range_guided_upsample
 from weatheralign.data.frame import LidarScan
 from weatheralign.ground.camera import CameraGeometry, snow_cover_layers, wet_road_layers
 from weatheralign.ground.snow import SnowCover, TireTracks, snow_coverage, snow_covered_ground, snow_depth
@@ -43,6 +43,9 @@ orientation is piecewise constant)."""
 REFLECTION_STRIDE = 1
 """The mirror image is traced on every this-many rows and columns of the working grid (`strided_reflection`): a
 puddle is a sharp mirror, and coarser blocks show as steps in its image."""
+
+WORK_STRIDE = 4
+"""The ground's camera layers are found on every this-many rows and columns (`edit_image`)."""
 
 SNOW_EDIT_MIN_COVERAGE = 0.5
 """A return or pixel counts as snow-covered (edited, for the agreement of the sensors) over this covered share."""
@@ -155,40 +158,47 @@ class EditedImage(NamedTuple):
 
 def edit_image(linear: F64, range_map: NDArray, camera: CameraGeometry, exact_range: bool,
                surfaces: ScanSurfaces, T_world_scan: F64, state: GroundState, sky: F64,
-               work_stride: int = 2) -> EditedImage:
+               work_stride: int = WORK_STRIDE) -> EditedImage:
     """The linear image (H, W, 3) of ``camera`` with ``state``'s ground over the pixels on the scan's ground plane
     and up-facing surfaces (``surfaces`` of the scan whose frame ``T_world_scan`` (4, 4) maps to the world);
     ``range_map`` (H, W) [m] (inf: sky) is exact (the synthetic world's) or a dense depth from that scan; ``sky``
     (3,) the sky's linear radiance. The ground's layers (`weatheralign.ground.camera.wet_road_layers`,
     `snow_cover_layers`) are found on every ``work_stride``-th row and column (their fields vary over decimetres,
-    their filters over tens of pixels) and applied to every pixel of the full image."""
+    their filters over tens of pixels) and brought to every pixel of the full image by range-guided bilinear
+    weights (`weatheralign.camera.fog.range_guided_upsample`: a layer found on the road does not bleed onto the car
+    before it)."""
     stride = max(int(work_stride), 1)
-    height, width = range_map.shape
-    small = CameraGeometry(np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ np.asarray(camera.K, dtype=np.float64),
-                           camera.T_world_cam)
-    gain, offset, edited = ground_layers(np.asarray(linear, dtype=np.float64)[::stride, ::stride],
-                                         np.asarray(range_map, dtype=np.float64)[::stride, ::stride], small,
-                                         exact_range, surfaces, T_world_scan, state, sky, stride)
+    gain, offset, edited = _coarse_layers(np.asarray(linear, dtype=np.float64)[::stride, ::stride], range_map, camera,
+                                          exact_range, surfaces, T_world_scan, state, sky, stride)
     if stride > 1:
-        gain, offset, edited = (np.repeat(np.repeat(a, stride, 0), stride, 1)[:height, :width]
-                                for a in (gain, offset, edited))
+        gain = range_guided_upsample(gain, range_map, stride, fill=1.0)
+        offset = range_guided_upsample(offset, range_map, stride)
+        edited = range_guided_upsample(edited.astype(np.float64), range_map, stride) > 0.5
     return EditedImage(np.asarray(linear, dtype=np.float64) * gain + offset, edited)
 
 
 def edit_image_u8(image: NDArray[np.uint8], range_map: NDArray, camera: CameraGeometry, exact_range: bool,
                   surfaces: ScanSurfaces, T_world_scan: F64, state: GroundState, sky: F64,
-                  work_stride: int = 2) -> tuple[NDArray[np.uint8], Mask]:
+                  work_stride: int = WORK_STRIDE) -> tuple[NDArray[np.uint8], Mask]:
     """`edit_image` of a uint8 sRGB ``image`` (H, W, 3), returned as uint8 sRGB with its edited pixels (H, W): the
-    layers applied and encoded in one compiled pass (`weatheralign.camera.fog.affine_edit_u8`)."""
+    layers brought to every pixel, applied and encoded in one compiled pass
+    (`weatheralign.camera.fog.affine_edit_u8`)."""
     stride = max(int(work_stride), 1)
-    height, width = range_map.shape
+    linear = decode_srgb_u8(np.asarray(image)[::stride, ::stride]).astype(np.float64)
+    gain, offset, edited = _coarse_layers(linear, range_map, camera, exact_range, surfaces, T_world_scan, state, sky,
+                                          stride)
+    return affine_edit_u8(image, gain, offset, edited, range_map, stride)
+
+
+def _coarse_layers(linear: F64, range_map: NDArray, camera: CameraGeometry, exact_range: bool,
+                   surfaces: ScanSurfaces, T_world_scan: F64, state: GroundState, sky: F64,
+                   stride: int) -> tuple[F64, F64, Mask]:
+    """`ground_layers` on every ``stride``-th row and column of the full-size ``range_map`` (``linear`` already
+    taken there), the camera's intrinsics scaled to that grid."""
     small = CameraGeometry(np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ np.asarray(camera.K, dtype=np.float64),
                            camera.T_world_cam)
-    linear = decode_srgb_u8(np.asarray(image)[::stride, ::stride]).astype(np.float64)
-    gain, offset, edited = ground_layers(linear, np.asarray(range_map, dtype=np.float64)[::stride, ::stride], small,
-                                         exact_range, surfaces, T_world_scan, state, sky, stride)
-    mask = np.repeat(np.repeat(edited, stride, 0), stride, 1)[:height, :width]
-    return affine_edit_u8(image, gain, offset, stride), mask
+    return ground_layers(linear, np.asarray(range_map, dtype=np.float64)[::stride, ::stride], small, exact_range,
+                         surfaces, T_world_scan, state, sky, stride)
 
 
 def odd_px(size: float) -> int:
@@ -230,5 +240,6 @@ def ground_layers(linear: F64, range_map: F64, camera: CameraGeometry, exact_ran
     return gain, offset, coverage > SNOW_EDIT_MIN_COVERAGE
 
 
-__all__ = ["EditedImage", "EditedScan", "GroundState", "SNOW_EDIT_MIN_COVERAGE", "ScanSurfaces", "edit_image",
+__all__ = ["EditedImage", "EditedScan", "GroundState", "SNOW_EDIT_MIN_COVERAGE", "ScanSurfaces", "WORK_STRIDE",
+           "edit_image",
            "edit_image_u8", "edit_scan", "ground_layers", "odd_px", "scan_surfaces"]
