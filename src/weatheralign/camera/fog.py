@@ -138,10 +138,12 @@ RANGE_SIGMA = 0.05
 def range_guided_weights_naive(range_map: NDArray, stride: int, sigma: float = RANGE_SIGMA
                                ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
     """How each pixel of ``range_map`` (H, W) [m] (inf: sky) reads values given on its every ``stride``-th row and
-    column: its 4 bilinear neighbours' (rows, cols) on the coarse grid (H, W, 4) and their weights (H, W, 4), the
-    bilinear weights times `weatheralign.camera.kernels.range_weight` (1 for sky to sky, 0 for sky to surface,
-    ``exp(-(dl / (sigma l))^2)`` else), normalised; where they all vanish, the neighbour of nearest ray length alone;
-    all 0 where no neighbour is sky for a sky pixel or surface for a surface pixel. The numpy oracle of
+    column: its 4 bilinear neighbours' (rows, cols) on the coarse grid (H, W, 4) and their weights (H, W, 4). Where the
+    pixel lies on the surface its neighbours span (its ray length within ``sigma`` of their bilinear interpolation: a
+    road seen at a grazing angle, whose ray length changes fast from row to row) the bilinear weights; across a depth
+    edge they are times `weatheralign.camera.kernels.range_weight` (1 for sky to sky, 0 for sky to surface, ``exp(-(dl /
+    (sigma l))^2)`` else), normalised; where they all vanish, the neighbour of nearest ray length alone; all 0 where no
+    neighbour is sky for a sky pixel or surface for a surface pixel. The numpy oracle of
     `weatheralign.camera.kernels.guided_affine_edit_kernel`."""
     rng = np.asarray(range_map, dtype=np.float64)
     height, width = rng.shape
@@ -155,11 +157,14 @@ def range_guided_weights_naive(range_map: NDArray, stride: int, sigma: float = R
     weights = np.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], axis=-1)
     coarse = rng[rows * stride, cols * stride]
     fine = rng[..., None]
+    with np.errstate(invalid="ignore"):
+        spanned = (weights * coarse).sum(axis=-1, keepdims=True)
+        smooth = np.isfinite(spanned) & np.isfinite(fine) & (np.abs(spanned - fine) <= sigma * fine)
     same_kind = np.isinf(coarse) == np.isinf(fine)
     with np.errstate(invalid="ignore"):
         miss = np.where(np.isinf(fine), 0.0, np.abs(coarse - fine))
         ratio = np.where(np.isinf(fine), 0.0, miss / (sigma * np.maximum(fine, 1e-6)))
-    weights = weights * np.where(same_kind, np.exp(-ratio**2), 0.0)
+    weights = weights * np.where(smooth, 1.0, np.where(same_kind, np.exp(-ratio**2), 0.0))
     total = weights.sum(axis=-1, keepdims=True)
     miss = np.where(same_kind, miss, np.inf)
     nearest = np.argmin(miss, axis=-1)  # first of equals, as the kernel

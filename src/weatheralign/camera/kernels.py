@@ -142,10 +142,10 @@ def guided_affine_edit_kernel(image: U8, gain: NDArray, offset: NDArray, edited:
                               stride: int, sigma: float, decode_lut: NDArray, lut: NDArray, ambiguous: NDArray,
                               thresholds: NDArray, bins: int) -> tuple[U8, NDArray]:
     """(H, W, 3) uint8 sRGB ``image`` edited in linear light as ``decode(image) * gain + offset`` and encoded back
-    exactly (`encode_one`), with ``gain``, ``offset`` (h, w, 3) and ``edited`` (h, w) float given on every
-    ``stride``-th row and column of ``range_map`` (H, W) [m] and brought to each pixel by range-guided bilinear
-    weights (`weatheralign.camera.fog.range_guided_weights_naive`); returns the image and the (H, W) pixels whose
-    interpolated ``edited`` exceeds 0.5. Pixels whose four samples change nothing are copied as they are (the
+    exactly (`encode_one`), with ``gain``, ``offset`` (h, w, 3) and ``edited`` (h, w) float given on every ``stride``-th
+    row and column of ``range_map`` (H, W) [m] and brought to each pixel by bilinear weights, guided by the ray lengths
+    across a depth edge (`weatheralign.camera.fog.range_guided_weights_naive`); returns the image and the (H, W) pixels
+    whose interpolated ``edited`` exceeds 0.5. Pixels whose four samples change nothing are copied as they are (the
     identity round-trips every code). One pass; nothing full-size allocated but the outputs."""
     height, width = image.shape[0], image.shape[1]
     h, w = gain.shape[0], gain.shape[1]
@@ -175,11 +175,15 @@ def guided_affine_edit_kernel(image: U8, gain: NDArray, offset: NDArray, edited:
             rows[2], cols[2], weights[2] = y1, x0, fy * (1.0 - fx)
             rows[3], cols[3], weights[3] = y1, x1, fy * fx
             r = np.float64(range_map[i, j])
+            spanned = 0.0  # the ray length the four samples' surface has here, bilinearly
+            for k in range(4):
+                spanned += weights[k] * np.float64(range_map[rows[k] * stride, cols[k] * stride])
+            smooth = np.isfinite(spanned) and np.isfinite(r) and abs(spanned - r) <= sigma * r
             total = 0.0
             best, best_k = np.inf, -1
             for k in range(4):
                 c = np.float64(range_map[rows[k] * stride, cols[k] * stride])
-                rw = range_weight(c, r, sigma)
+                rw = 1.0 if smooth else range_weight(c, r, sigma)
                 if np.isinf(c) == np.isinf(r):
                     miss = 0.0 if np.isinf(r) else abs(c - r)
                     if miss < best:
