@@ -464,7 +464,10 @@ class ReferencePrecipitationConfig(_Section):
     added 25 % of snow points at 64 sub-rays; `weatheralign.reference.lidar_particles_exact`); camera:
     ``camera_samples`` ray samples per pixel over an exposure of ``exposure_s``
     (`weatheralign.reference.camera_particles_exact`). Particle
-    reflectivity at 905 nm: ``snow_reflectivity``, ``rain_reflectivity`` (water's Fresnel reflectance)."""
+    reflectivity at 905 nm: ``snow_reflectivity``, ``rain_reflectivity`` (water's Fresnel reflectance).
+    The ground (``ground``: on): the rain split's road under a water film of a hidden mean depth drawn uniformly in
+    ``wet_film_depth_m``, the snow split's under lying snow of a hidden depth in ``snow_depth_m`` [m], sealed beside
+    the rates (`weatheralign.reference.synthetic.draw_ground_truth`), drawn on the true surfaces of the scene."""
 
     snow_rate_mm_h: tuple[float, float] = (1.2, 3.2)
     rain_rate_mm_h: tuple[float, float] = (25.0, 80.0)
@@ -477,10 +480,14 @@ class ReferencePrecipitationConfig(_Section):
     lidar_sub_rays: Annotated[int, Field(ge=4, le=4096)] = 256
     camera_samples: Annotated[int, Field(ge=1, le=256)] = 16
     exposure_s: Annotated[float, Field(ge=0.0, le=0.05)] = 0.006
+    ground: bool = True
+    wet_film_depth_m: tuple[float, float] = (0.0002, 0.0008)
+    snow_depth_m: tuple[float, float] = (0.02, 0.1)
 
     @model_validator(mode="after")
     def _check(self) -> ReferencePrecipitationConfig:
-        for name, lo_ok, hi_ok in (("snow_rate_mm_h", 0.0, 50.0), ("rain_rate_mm_h", 0.0, 500.0)):
+        for name, lo_ok, hi_ok in (("snow_rate_mm_h", 0.0, 50.0), ("rain_rate_mm_h", 0.0, 500.0),
+                                   ("wet_film_depth_m", 0.0, 0.01), ("snow_depth_m", 0.0, 1.0)):
             lo, hi = getattr(self, name)
             if not (lo_ok < lo < hi <= hi_ok):
                 raise ValueError(f"{name} = [{lo}, {hi}] must satisfy {lo_ok} < low < high <= {hi_ok}")
@@ -566,20 +573,24 @@ class CalibratePrecipitationConfig(_Section):
     """The `calibrate_precipitation` stage (ReDAM for snow and rain): per kind, the reference's clear scans through
     the fast simulator at each rate of ``snow_rates`` / ``rain_rates`` [mm/h] (increasing), the rate whose mean
     open-path echo rate matches the reference's weather split, and a frame-bootstrap interval (``num_bootstrap``
-    resamples at ``confidence``, ``seed``)."""
+    resamples at ``confidence``, ``seed``). The ground likewise: the clear scans' ground edited at each film depth
+    of ``wet_film_depths_m`` and each snow depth of ``snow_depths_m`` [m] (increasing), the depth whose ground
+    statistic (`weatheralign.calibrate.ground`) matches the weather split's."""
 
     seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
     snow_rates: tuple[Annotated[float, Field(gt=0.0, le=20.0)], ...] = (0.6, 1.8, 5.4)
     rain_rates: tuple[Annotated[float, Field(gt=0.0, le=300.0)], ...] = (15.0, 45.0, 135.0)
     num_bootstrap: Annotated[int, Field(ge=10, le=100_000)] = 1000
     confidence: Annotated[float, Field(gt=0.5, lt=1.0)] = 0.95
+    wet_film_depths_m: tuple[Annotated[float, Field(gt=0.0, le=0.01)], ...] = (0.0001, 0.0003, 0.0006, 0.0012)
+    snow_depths_m: tuple[Annotated[float, Field(gt=0.0, le=1.0)], ...] = (0.01, 0.04, 0.16)
 
     @model_validator(mode="after")
     def _increasing(self) -> CalibratePrecipitationConfig:
-        for name in ("snow_rates", "rain_rates"):
+        for name in ("snow_rates", "rain_rates", "wet_film_depths_m", "snow_depths_m"):
             rates = getattr(self, name)
             if len(rates) < 2 or any(b <= a for a, b in zip(rates, rates[1:])):
-                raise ValueError(f"{name} = {list(rates)}: expected two or more increasing rates")
+                raise ValueError(f"{name} = {list(rates)}: expected two or more increasing values")
         return self
 
 
