@@ -33,7 +33,8 @@ the synthetic world and as Koschmieder's law needs), ``inf`` for sky. Stages (`d
    the LiDAR frame, `above_fov_mask`) points above ``lidar_top_elevation_deg`` and has no LiDAR support nearby is
    sky (with an image: no point within reach on its own side of an image boundary, `lidar_support`); with an image,
    only where the image agrees (`image_sky`: bright, bluish or neutral, smooth, above the horizon, connected to the
-   top border, not continuing a LiDAR-hit surface) - and then also below the top
+   top border, not continuing a LiDAR-hit surface; or of that sky's colour at its height, as the sky between the
+   branches of a crown) - and then also below the top
    elevation where the LiDAR had no return (sky at the end of a street). Unsupported pixels above the field of view
    that the image shows as structure (facades above the top ring) keep the camera z of the highest known pixel of
    their column (a vertical surface continued upwards), with low confidence: "sky is far only where it really is
