@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from test_ground_edit import HEIGHT_M, street_scan
+from .test_ground_edit import HEIGHT_M, street_scan
 
 from weatheralign.calibrate.ground import (
     fit_depth,

@@ -681,8 +681,9 @@ def image_sky(image: NDArray, lidar_pixels: BoolA | None = None, allowed: BoolA 
     ``max_contact`` of its columns continues a LiDAR-hit surface (a pale facade above the top ring): not sky.
     Sky seen through a gap (between the branches of a crown, under a bridge) is neither smooth nor connected to the
     top border: bright pixels within ``patch_tol`` of the connected sky's colour at their height (`_sky_coloured`),
-    in regions of ``min_patch_px`` or more (at 1/``scale``) that do not continue a LiDAR-hit surface, are sky too. A
-    window reflects the sky far dimmer than the sky itself.
+    in regions of ``min_patch_px`` or more (at 1/``scale``) framed by texture (`_framed_by_texture`: foliage, not a
+    smooth facade with a pale patch) that do not continue a LiDAR-hit surface, are sky too. A window reflects the
+    sky far dimmer than the sky itself.
     Finally the skyline is sharpened at full resolution by colour (`_grow_sky`).
     """
     f = _as_float_rgb(image)
@@ -724,6 +725,7 @@ def image_sky(image: NDArray, lidar_pixels: BoolA | None = None, allowed: BoolA 
         m, gaps = cv2.connectedComponents(hue.astype(np.uint8), connectivity=4)
         if m > 1:
             keep = np.bincount(gaps.ravel(), minlength=m) >= min_patch_px
+            keep &= _framed_by_texture(gaps, m, mag, 2.0 * max_gradient)
             if cut.any():
                 keep &= ~_continues_a_surface(gaps, m, cut, max_contact)
             keep[0] = False
@@ -751,6 +753,17 @@ def _continues_a_surface(labels: NDArray, count: int, cut: BoolA, max_contact: f
     lv, lu = np.nonzero(labels > 0)
     span = np.bincount(np.unique(labels[lv, lu] * wl + lu) // wl, minlength=count)
     return contact[:count] > max_contact * np.maximum(span[:count], 1)
+
+
+def _framed_by_texture(labels: NDArray, count: int, gradient: F32, min_gradient: float, width: int = 2) -> BoolA:
+    """(count,) per region of ``labels`` (0: none): whether the ``width``-pixel frame around it is textured (mean
+    ``gradient`` over it above ``min_gradient``): foliage around a gap, not a smooth facade around a pale patch."""
+    kernel = np.ones((2 * width + 1, 2 * width + 1), np.uint8)
+    grown = cv2.dilate(labels.astype(np.float32), kernel).astype(np.int64)  # the largest label nearby
+    frame = (labels == 0) & (grown > 0)
+    total = np.bincount(grown[frame], weights=gradient[frame], minlength=count)[:count]
+    size = np.bincount(grown[frame], minlength=count)[:count]
+    return total > min_gradient * np.maximum(size, 1)
 
 
 def _sky_coloured(rgb: F32, sky: BoolA, tol: float) -> BoolA:
