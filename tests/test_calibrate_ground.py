@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from .test_ground_edit import HEIGHT_M, street_scan
 
 from weatheralign.calibrate.ground import (
     fit_depth,
@@ -13,6 +12,8 @@ from weatheralign.calibrate.ground import (
     snow_ground_height,
 )
 from weatheralign.calibrate.precipitation import _invert
+
+from .test_ground_edit import HEIGHT_M, street_scan
 
 
 def test_the_bare_ground_height_is_the_sensors() -> None:
