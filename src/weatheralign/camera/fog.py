@@ -187,17 +187,28 @@ def range_guided_upsample(values: NDArray, range_map: NDArray, stride: int, sigm
 
 
 def affine_edit_u8(image: U8, gain: NDArray, offset: NDArray, edited: NDArray, range_map: NDArray, stride: int = 1,
-                   sigma: float = RANGE_SIGMA) -> tuple[U8, NDArray[np.bool_]]:
+                   sigma: float = RANGE_SIGMA, alternative: tuple[NDArray, NDArray] | None = None,
+                   switch: NDArray | None = None) -> tuple[U8, NDArray[np.bool_]]:
     """``encode_srgb_u8(decode_srgb_u8(image) * G + O)`` for a uint8 sRGB ``image`` (H, W, 3), with ``gain`` and
     ``offset`` (ceil(H / stride), ceil(W / stride), 3) in linear light and ``edited`` (same h, w) given on every
     ``stride``-th row and column of ``range_map`` (H, W) [m] and brought to each pixel as G, O and E by
     `range_guided_upsample` (gain 1 and offset 0 where no neighbour counts), in one compiled pass
-    (`weatheralign.camera.kernels.guided_affine_edit_kernel`); returns the image and the pixels where E > 0.5."""
+    (`weatheralign.camera.kernels.guided_affine_edit_kernel`); returns the image and the pixels where E > 0.5.
+    With ``alternative`` layers (gain, offset) and a finite ``switch`` field (h, w), the pixels where the brought
+    ``switch`` exceeds 0 take the brought alternative instead (a boundary each pixel finds for itself)."""
+    if (alternative is None) != (switch is None):
+        raise ValueError("affine_edit_u8: give both alternative and switch, or neither")
+    empty = np.zeros((0, 0, 3))
+    alt_gain, alt_offset = alternative if alternative is not None else (empty, empty)
     return guided_affine_edit_kernel(np.ascontiguousarray(image, dtype=np.uint8),
                                      np.ascontiguousarray(gain, dtype=np.float64),
                                      np.ascontiguousarray(offset, dtype=np.float64),
                                      np.ascontiguousarray(edited, dtype=np.float64),
                                      np.ascontiguousarray(range_map, dtype=np.float64), int(stride), float(sigma),
+                                     np.ascontiguousarray(alt_gain, dtype=np.float64),
+                                     np.ascontiguousarray(alt_offset, dtype=np.float64),
+                                     np.ascontiguousarray(np.zeros((0, 0)) if switch is None else switch,
+                                                          dtype=np.float64),
                                      _DECODE_LUT, _ENCODE_LUT, _ENCODE_AMBIGUOUS, _ENCODE_THRESHOLDS, _ENC_BINS)
 
 
