@@ -111,9 +111,9 @@ def write_params_file(path: Path, updates: dict) -> Path:
             base[k] = merge(dict(base.get(k) or {}), v) if isinstance(v, dict) and isinstance(base.get(k), dict) else v
         return base
 
-    tree = yaml.safe_load((REPO / "params.yaml").read_text())
-    for section, key in SETUP_FILES:
-        tree[section][key] = str(REPO / tree[section][key])
-    tree = merge(tree, updates)
+    tree = merge(yaml.safe_load((REPO / "params.yaml").read_text()), updates)
+    for section, key in SETUP_FILES:  # a relative path (the repository's, or a dumped section's default): the repo's
+        if not Path(tree[section][key]).is_absolute():
+            tree[section][key] = str(REPO / tree[section][key])
     path.write_text(yaml.safe_dump(tree))
     return path
