@@ -407,3 +407,11 @@ def test_a_bad_value_is_blamed_on_where_it_was_given(tmp_path):
     ref = _rig(tmp_path, "intensity_max: 255 ", "intensity_max: 100 ", name="reference.yaml")
     with pytest.raises(ConfigError, match=rf"^{ref}: intensity_max = 100 is invalid: .*\(reference.intensity_max\)"):
         load_params(f, ["world.lidar.max_range_m=90"])
+
+
+def test_a_set_that_replaces_a_section_is_named_for_each_missing_setup_path(tmp_path):
+    """Both setup paths are checked with the --set overrides in view: replacing the reference section drops its
+    path, and the error names that --set, not the world's."""
+    f = _params_file(tmp_path)
+    with pytest.raises(ConfigError, match=r"^--set reference=\{seed: 1\}: reference.setup is missing"):
+        load_params(f, ["world.seed=3", "reference={seed: 1}"])

@@ -866,13 +866,12 @@ def _with_setup_files(params_file: Path, tree: dict[str, Any], given: dict[tuple
         if key not in node:
             by = [a for k, a in given.items() if (section, key)[:len(k)] == k]  # a --set that replaced the section
             raise ConfigError(f"{f'--set {by[-1]}' if by else params_file}: {section}.{key} is missing: the path of "
-                              f"the YAML file holding "
-                              f"{section}'s {', '.join(fields)} (the repository's "
+                              f"the YAML file holding {section}'s {', '.join(fields)} (the repository's "
                               f"{getattr(Params.model_fields[section].default, key)})")
-        path, given = _read_setup_file(params_file, section, key, node[key])
+        path, from_file = _read_setup_file(params_file, section, key, node[key])
         for field in fields:
             inline = _leaf_paths(node[field], (section, field)) if field in node else set()
-            node[field] = _under(given[field], node[field]) if field in node else given[field]
+            node[field] = _under(from_file[field], node[field]) if field in node else from_file[field]
             origins[(section, field)] = (str(path), inline)
     return origins
 
