@@ -108,21 +108,20 @@ def ground_figure(fits: dict[str, DepthFit], reference: dict[str, np.ndarray], s
     return fig
 
 
-HEADLINE = ("rate_mm_h", "rate_ci_low", "rate_ci_high", "open_path_echo_rate_reference", "beyond_grid")
-"""Per kind, the figures of reports/calibrate_precipitation/metrics.json (the rest, the statistic on the rate grid
-included, in details.json)."""
+HEADLINE = ("rate_mm_h",)
+"""Per kind, the figures of reports/calibrate_precipitation/metrics.json (the rest, intervals and the statistic on
+the rate grid included, in details.json and the MLflow child run of each kind)."""
 
 
-GROUND_HEADLINE = ("depth_m", "depth_ci_low", "depth_ci_high")
+GROUND_HEADLINE = ("depth_m",)
 """Per kind, the ground's figures of metrics.json (as ``ground_<name>``)."""
 
 
 def headline(details: dict) -> dict:
-    """Per calibrated kind its `HEADLINE` and `GROUND_HEADLINE` figures, and the stage's seconds."""
-    return {**{kind: {**{k: details[kind].get(k) for k in HEADLINE},
-                      **{f"ground_{k}": details[kind].get("ground", {}).get(k) for k in GROUND_HEADLINE}}
-               for kind in details["kinds"]},
-            "seconds": details.get("seconds")}
+    """Per calibrated kind its `HEADLINE` and `GROUND_HEADLINE` figures."""
+    return {kind: {**{k: details[kind].get(k) for k in HEADLINE},
+                   **{f"ground_{k}": details[kind].get("ground", {}).get(k) for k in GROUND_HEADLINE}}
+            for kind in details["kinds"]}
 
 
 @flow(name="calibrate_precipitation", log_prints=True)

@@ -29,16 +29,19 @@ from weatheralign.simulate.media import (
     resolve_media,
 )
 
+FOG_HEADLINE = ("fog_light", "fog_dense")
+"""The fog levels whose extinction reports/media/metrics.json gives (fog_snow's fog is fog_light's)."""
+
 
 def headline(details: dict) -> dict:
-    """reports/media/metrics.json: the precipitation rates in force, each fogged condition's extinction and
-    backscatter, each grounded condition's film or snow depth (the rest in details.json)."""
+    """reports/media/metrics.json: the weather in force, calibrated or from params: the precipitation rates and the
+    `FOG_HEADLINE` levels' extinction (the rest, backscatter and ground depths included, in details.json and the
+    MLflow child run of each condition)."""
     rates = details["precipitation_rates"] or {}
+    conditions = details["conditions"]
     return {"rate_mm_h": {k: v["rate_mm_h"] for k, v in rates.items()},
-            "fog": {name: {"alpha": c["fog_alpha"], "beta": c["fog_beta"]}
-                    for name, c in details["conditions"].items() if c["fog_alpha"] is not None},
-            "ground_depth_m": {name: c["ground_depth_m"] for name, c in details["conditions"].items()
-                               if c.get("ground_depth_m") is not None}}
+            "fog": {name: {"alpha": conditions[name]["fog_alpha"]} for name in FOG_HEADLINE
+                    if (conditions.get(name) or {}).get("fog_alpha") is not None}}
 
 
 def ground_source(kind: str, rates: PrecipitationRates | None) -> str:
