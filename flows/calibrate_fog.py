@@ -134,15 +134,14 @@ def reference_digest(ds: ReferenceDataset) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-HEADLINE = ("alpha", "alpha_ci_low", "alpha_ci_high", "beta", "mor", "ks", "camera_visibility_ratio", "kid",
-            "airlight_gain_median")
-"""Per fog level, the figures of reports/calibrate_fog/metrics.json (the rest in details.json)."""
+HEADLINE = ("alpha", "beta", "ks")
+"""Per fog level, the figures of reports/calibrate_fog/metrics.json: the tuned level and its fit (the rest,
+intervals and camera checks included, in details.json and the MLflow child run of each level)."""
 
 
 def headline(details: dict) -> dict:
-    """Per fog level its `HEADLINE` figures, and the stage's seconds."""
-    return {**{level: {k: details[level].get(k) for k in HEADLINE} for level in FOG_LEVELS if level in details},
-            "seconds": details.get("seconds")}
+    """Per fog level its `HEADLINE` figures."""
+    return {level: {k: details[level].get(k) for k in HEADLINE} for level in FOG_LEVELS if level in details}
 
 
 @flow(name="calibrate_fog", log_prints=True)

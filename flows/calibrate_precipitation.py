@@ -6,11 +6,15 @@ real snow and rain.
 (`simulate_particles`, the reference's LiDAR with its detector noise, one mapped task per grid rate of
 ``calibrate_precipitation.<kind>_rates``), measures the open-path echo rate of every scan
 (`weatheralign.calibrate.precipitation`), and finds the rate whose mean matches the reference split's, with a frame
-bootstrap interval. The camera side of the check (KID, visibility) is in the `verify` stage, which simulates the
+bootstrap interval. The ground likewise (`weatheralign.calibrate.ground`): the clear scans' ground wetted at each film
+depth of ``calibrate_precipitation.wet_film_depths_m`` and snowed over at each depth of ``snow_depths_m``, the depth
+whose ground statistic (the ground returns' median intensity; the LiDAR's height above the fitted ground) matches the
+rain / snow split's. The camera side of the check (KID, visibility) is in the `verify` stage, which simulates the
 reference frames at these rates.
 
-Writes ``<paths.data>/calibrate_precipitation/rates.json`` (``{snow|rain: {rate_mm_h, ci_low, ci_high}}``: what
-the media stage applies to the particle fields with ``simulate.precipitation_rates: calibrated``),
+Writes ``<paths.data>/calibrate_precipitation/rates.json`` (``{snow|rain: {rate_mm_h, ci_low, ci_high}}`` and
+``{ground: {snow|rain: {depth_m, ci_low, ci_high}}}``: what the media stage applies to the particle fields and the
+ground with ``simulate.precipitation_rates: calibrated``),
 ``reports/calibrate_precipitation/details.json`` (its headline in ``metrics.json``) and ``rates.png`` (the
 statistic against the rate, per kind, with the reference's mean and interval), also logged to MLflow. The synthetic
 reference's sealed truth is never read here.
@@ -29,9 +33,10 @@ from matplotlib.ticker import NullFormatter  # noqa: E402
 from prefect import flow  # noqa: E402
 
 from flows.common import gather, parse_stage_args, run_stage  # noqa: E402
-from tasks.calibrate import precipitation_statistics_task  # noqa: E402
+from tasks.calibrate import ground_statistics_task, precipitation_statistics_task  # noqa: E402
 from tasks.tracking import StageTracker  # noqa: E402
 from weatheralign import atomic  # noqa: E402
+from weatheralign.calibrate.ground import DepthFit, TunedAir, fit_depth, ground_statistic  # noqa: E402
 from weatheralign.calibrate.precipitation import RateFit, fit_rate, reference_statistics  # noqa: E402
 from weatheralign.config import Params  # noqa: E402
 from weatheralign.data.errors import DataFormatError  # noqa: E402
@@ -63,15 +68,60 @@ def rates_figure(fits: dict[str, RateFit], reference: dict[str, np.ndarray], sim
     return fig
 
 
-HEADLINE = ("rate_mm_h", "rate_ci_low", "rate_ci_high", "open_path_echo_rate_reference", "beyond_grid")
-"""Per kind, the figures of reports/calibrate_precipitation/metrics.json (the rest, the statistic on the rate grid
-included, in details.json)."""
+def fit_ground(ds, kind: str, rate_mm_h: float, lidar, params: Params) -> tuple[DepthFit, np.ndarray, np.ndarray]:
+    """The ground depth of ``kind``'s split: the clear scans' ground at every depth of the grid under the tuned
+    ``rate_mm_h`` (one mapped task per depth), the split's own statistic, `fit_depth`. Returns the fit, the
+    simulated (D, F) and reference (F,) statistics."""
+    cfg = params.calibrate_precipitation
+    grid = tuple(cfg.snow_depths_m if kind == "snow" else cfg.wet_film_depths_m)
+    particles = params.particles.model_copy(update={kind: getattr(params.particles, kind).model_copy(
+        update={"rate_mm_h": rate_mm_h})})
+    air = TunedAir(particles, lidar)
+    futures = [ground_statistics_task.submit(ds, kind, depth, air) for depth in grid]
+    simulated = np.stack(gather(futures, f"calibrate_precipitation {kind}: ground grid", params.run.show_progress))
+    reference = np.array([ground_statistic(ds.load_scan(i), kind) for i in ds.ids(kind)])
+    fit = fit_depth(reference, simulated, grid, kind, num_bootstrap=cfg.num_bootstrap, confidence=cfg.confidence,
+                    seed=cfg.seed)
+    return fit, simulated, reference
+
+
+def ground_figure(fits: dict[str, DepthFit], reference: dict[str, np.ndarray], simulated: dict[str, np.ndarray]):
+    """Per kind: the ground statistic of the clear scans edited at each grid depth (mean and 10-90 % of frames),
+    the weather split's mean with ± 2 standard errors, and the tuned depth with its interval."""
+    fig, axes = plt.subplots(1, len(fits), figsize=(5.2 * len(fits), 3.8), squeeze=False)
+    for ax, (kind, fit) in zip(axes[0], fits.items()):
+        depths_mm = 1000.0 * np.asarray(fit.depths_m)
+        sim = simulated[kind][:, np.all(np.isfinite(simulated[kind]), axis=0)]
+        ref = reference[kind][np.isfinite(reference[kind])]
+        ax.fill_between(depths_mm, np.percentile(sim, 10, axis=1), np.percentile(sim, 90, axis=1), color="tab:blue",
+                        alpha=0.2, label="clear scans edited, 10-90 % of frames")
+        ax.plot(depths_mm, sim.mean(axis=1), "o-", color="tab:blue", label="simulated mean")
+        se = ref.std(ddof=1) / np.sqrt(len(ref)) if len(ref) > 1 else 0.0
+        ax.axhspan(ref.mean() - 2 * se, ref.mean() + 2 * se, color="0.5", alpha=0.25)
+        ax.axhline(ref.mean(), color="black", lw=1.2, label=f"reference {kind} ({len(ref)} frames) ± 2 SE")
+        ax.axvline(1000 * fit.depth_m, color="tab:red", lw=1.5, label=f"tuned {1000 * fit.depth_m:.3g} mm")
+        ax.axvspan(1000 * fit.ci_low, 1000 * fit.ci_high, color="tab:red", alpha=0.12)
+        what = "snow depth" if kind == "snow" else "mean water-film depth"
+        ax.set(xlabel=f"{what} [mm]", ylabel=fit.statistic, title=f"{kind}: the ground")
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    return fig
+
+
+HEADLINE = ("rate_mm_h",)
+"""Per kind, the figures of reports/calibrate_precipitation/metrics.json (the rest, intervals and the statistic on
+the rate grid included, in details.json and the MLflow child run of each kind)."""
+
+
+GROUND_HEADLINE = ("depth_m",)
+"""Per kind, the ground's figures of metrics.json (as ``ground_<name>``)."""
 
 
 def headline(details: dict) -> dict:
-    """Per calibrated kind its `HEADLINE` figures, and the stage's seconds."""
-    return {**{kind: {k: details[kind].get(k) for k in HEADLINE} for kind in details["kinds"]},
-            "seconds": details.get("seconds")}
+    """Per calibrated kind its `HEADLINE` and `GROUND_HEADLINE` figures."""
+    return {kind: {**{k: details[kind].get(k) for k in HEADLINE},
+                   **{f"ground_{k}": details[kind].get("ground", {}).get(k) for k in GROUND_HEADLINE}}
+            for kind in details["kinds"]}
 
 
 @flow(name="calibrate_precipitation", log_prints=True)
@@ -93,6 +143,7 @@ def calibrate_precipitation_flow(params: Params) -> dict:
         metrics: dict = {"reference_root": str(ds.root), "reference_source": params.reference.source,
                          "kinds": kinds, "statistic": "isolated returns within 20 m per open beam"}
         rates, fits, reference, simulated = {}, {}, {}, {}
+        ground, ground_fits, ground_reference, ground_simulated = {}, {}, {}, {}
         for kind in kinds:
             t_kind = time.time()
             grid = tuple(cfg.snow_rates if kind == "snow" else cfg.rain_rates)
@@ -110,11 +161,20 @@ def calibrate_precipitation_flow(params: Params) -> dict:
                   f"(reference {fit.reference_mean:.4g} isolated echoes per open beam)"
                   + (f"; WARNING: outside the simulated grid {list(grid)}, widen calibrate_precipitation."
                      f"{kind}_rates" if fit.beyond_grid else ""))
+            ground_fits[kind], ground_simulated[kind], ground_reference[kind] = fit_ground(ds, kind, fit.rate_mm_h,
+                                                                                           lidar, params)
+            g = ground_fits[kind]
+            ground[kind] = {"depth_m": g.depth_m, "ci_low": g.ci_low, "ci_high": g.ci_high}
+            metrics[kind]["ground"] = g.metrics()
+            print(f"calibrate_precipitation {kind} ground: {1000 * g.depth_m:.3g} mm [{1000 * g.ci_low:.3g}, "
+                  f"{1000 * g.ci_high:.3g}] ({g.statistic}: reference {g.reference_mean:.4g})"
+                  + ("; WARNING: outside the simulated grid, widen its depths" if g.beyond_grid else ""))
         if not kinds:
             print(f"calibrate_precipitation: reference {ds.root} has no snow or rain split; the particles params' "
                   f"rates stay in force")
         atomic.write_json(params.paths.data / PRECIPITATION_RATES_FILE,
-                          {**rates, "reference_root": str(ds.root), "reference_source": params.reference.source},
+                          {**rates, "ground": ground, "reference_root": str(ds.root),
+                           "reference_source": params.reference.source},
                           indent=2)
         figure = tracker.reports / "rates.png"
         if fits:
@@ -126,6 +186,12 @@ def calibrate_precipitation_flow(params: Params) -> dict:
         fig.savefig(figure, dpi=100)
         plt.close(fig)
         tracker.log_artifact(figure, "figures")
+        if ground_fits:
+            figure = tracker.reports / "ground.png"
+            fig = ground_figure(ground_fits, ground_reference, ground_simulated)
+            fig.savefig(figure, dpi=100)
+            plt.close(fig)
+            tracker.log_artifact(figure, "figures")
         metrics["seconds"] = round(time.time() - t0, 2)
         tracker.finish(metrics, headline(metrics), logged={"seconds": metrics["seconds"]}, children={
             kind: ({"weather": kind, "severity": f"{rates[kind]['rate_mm_h']:.3g} mm/h"},

@@ -647,27 +647,17 @@ def summarise(evaluations: list[Evaluation], results: dict[str, dict[str, Any]],
     return models, differences
 
 
-def headline(details: dict[str, Any], conditions: list[str], finetuned: list[str]) -> dict[str, Any]:
-    """reports/detect/metrics.json: the pretrained model's clean mAP / NDS (with the mAP's interval) and its modality
-    ablation, its mAP on every weather copy, per condition the unaligned - aligned mAP difference (Table 2) and the
-    cost of the weather cameras alone (clean - clean LiDAR with the aligned copy's cameras), the finetuned models' mAP
-    on their weather's aligned copy (Table 3), and the stage's seconds; the rest in details.json."""
-    models, diff, ablation = details["models"], details["differences"], details["modality_ablation"]
+def headline(details: dict[str, Any], finetuned: list[str]) -> dict[str, Any]:
+    """reports/detect/metrics.json: the pretrained model's clean mAP and NDS, its mAP on every weather copy (Table 2's
+    aligned and unaligned columns) and the finetuned models' mAP on their weather's aligned copy (Table 3); the rest
+    (intervals, the modality ablation, the differences with their intervals) in details.json, the tables and MLflow."""
+    models = details["models"]
     clean = models["pretrained"][CLEAN]
-
-    def difference(name: str) -> float | None:  # None where the run did not measure it
-        return (diff.get(f"{name}:map") or {}).get("difference")
-
     return {
-        "clean": {"map": clean["map"], "map_ci_low": clean["map_ci"][0], "map_ci_high": clean["map_ci"][1],
-                  "nds": clean["nds"], **{f"{m}_map": (ablation.get(m) or {}).get("map")
-                                          for m in ("lidar_only", "camera_only", "shuffled_images")}},
+        "clean": {"map": clean["map"], "nds": clean["nds"]},
         "map": {evalset: m["map"] for evalset, m in models["pretrained"].items()
                 if evalset != CLEAN and not evalset.startswith(CAMERA_WEATHER_PREFIX)},
-        "unaligned_minus_aligned_map": {c: difference(f"pretrained:{c}:unaligned-aligned") for c in conditions},
-        "weather_cameras_cost_map": {c: difference(f"pretrained:{c}:clean-aligned_cameras") for c in conditions},
-        "finetuned_map": {c: models[f"finetuned-{c}"][f"{c}-aligned"]["map"] for c in finetuned},
-        "seconds": details["seconds"]}
+        "finetuned_map": {c: models[f"finetuned-{c}"][f"{c}-aligned"]["map"] for c in finetuned}}
 
 
 @flow(name="detect", log_prints=True)
@@ -725,8 +715,7 @@ def detect_flow(params: Params) -> dict:
         atomic.write_json(reports / "per_class_ap.json", per_class_rows(pre["per_class_ap"]), indent=1)
         for name in ("table_alignment.md", "table_finetune.md", "learning_curve.png", "predictions_bev.png"):
             tracker.log_artifact(reports / name, "detect")
-        tracker.finish(metrics, headline(metrics, [v.rsplit("-", 1)[0] for v in variants if v.endswith("-aligned")],
-                                         conditions), logged={k: v for k, v in metrics.items() if k in (
+        tracker.finish(metrics, headline(metrics, conditions), logged={k: v for k, v in metrics.items() if k in (
             "parameters", "val_samples", "train_samples", "sweeps", "seconds")}, children={
             key: difference_run(key, d) for key, d in differences.items()})
     return metrics

@@ -21,6 +21,7 @@ from weatheralign.conditions import CONDITIONS, condition_tags
 from weatheralign.config import Params
 from weatheralign.manifest import FIELDS_FILE, manifest_path, read_manifest
 from weatheralign.simulate.media import (
+    PrecipitationRates,
     configured_fog_levels,
     configured_precipitation_rates,
     load_fields,
@@ -28,14 +29,25 @@ from weatheralign.simulate.media import (
     resolve_media,
 )
 
+FOG_HEADLINE = ("fog_light", "fog_dense")
+"""The fog levels whose extinction reports/media/metrics.json gives (fog_snow's fog is fog_light's)."""
+
 
 def headline(details: dict) -> dict:
-    """reports/media/metrics.json: the precipitation rates in force and each fogged condition's extinction and
-    backscatter (the rest in details.json)."""
+    """reports/media/metrics.json: the weather in force, calibrated or from params: the precipitation rates and the
+    `FOG_HEADLINE` levels' extinction (the rest, backscatter and ground depths included, in details.json and the
+    MLflow child run of each condition)."""
     rates = details["precipitation_rates"] or {}
+    conditions = details["conditions"]
     return {"rate_mm_h": {k: v["rate_mm_h"] for k, v in rates.items()},
-            "fog": {name: {"alpha": c["fog_alpha"], "beta": c["fog_beta"]}
-                    for name, c in details["conditions"].items() if c["fog_alpha"] is not None}}
+            "fog": {name: {"alpha": conditions[name]["fog_alpha"]} for name in FOG_HEADLINE
+                    if (conditions.get(name) or {}).get("fog_alpha") is not None}}
+
+
+def ground_source(kind: str, rates: PrecipitationRates | None) -> str:
+    """Where the depth of a ``kind`` (``wet`` / ``snow``) ground came from: ``calibrated`` or ``params``."""
+    calibrated = rates is not None and ("rain" if kind == "wet" else "snow") in rates.ground_depth_m
+    return "calibrated" if calibrated else "params"
 
 
 @flow(name="media", log_prints=True)
@@ -57,10 +69,14 @@ def media_flow(params: Params) -> dict:
         for name, condition in CONDITIONS.items():
             media = resolve_media(condition, cfg, scenes, fog_levels, fields, rates)
             atomic.write_json(media_path(params.paths.data, name), media.to_dict(), indent=1)
+            ground = next(iter(media.ground.values())) if media.ground else None
             metrics["conditions"][name] = {
                 "fog_alpha": None if media.fog is None else media.fog["alpha"],
                 "fog_beta": None if media.fog is None else media.fog["beta"],
-                "fields": 0 if media.fields is None else len(media.fields)}
+                "fields": 0 if media.fields is None else len(media.fields),
+                "ground": None if ground is None else ground.kind,
+                "ground_depth_m": None if ground is None else ground.amount_m,
+                "ground_source": None if ground is None else ground_source(ground.kind, rates)}
         snow_rain = (params.particles.snow.rate_mm_h, params.particles.rain.rate_mm_h) if rates is None else \
             (rates.rate_mm_h["snow"], rates.rate_mm_h["rain"])
         tracker.finish(metrics, headline(metrics), logged={}, children={

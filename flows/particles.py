@@ -174,16 +174,14 @@ def particles_flow(params: Params) -> dict:
     return metrics
 
 
-HEADLINE = ("number_density_per_m3", "mean_diameter_mm", "extinction_per_m", "visibility_m", "max_abs_z_score",
-            "min_size_chi2_pvalue")
-"""Per precipitation, the figures of reports/particles/metrics.json (the rest, per-region checks included, in
-details.json)."""
+HEADLINE = ("number_density_per_m3", "extinction_per_m")
+"""Per precipitation, the figures of reports/particles/metrics.json (the rest, sizes and the per-region checks
+included, in details.json and the MLflow child run of each precipitation)."""
 
 
 def headline(details: dict) -> dict:
-    """The number of scenes and per precipitation its `HEADLINE` figures."""
-    return {"num_scenes": details["num_scenes"],
-            **{c: {k: details[c].get(k) for k in HEADLINE} for c in PRECIPITATION if c in details}}
+    """Per precipitation its `HEADLINE` figures."""
+    return {c: {k: details[c].get(k) for k in HEADLINE} for c in PRECIPITATION if c in details}
 
 
 def main(argv: list[str] | None = None) -> dict:

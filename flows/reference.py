@@ -94,15 +94,14 @@ def _root_for_report(root: Path) -> str:
 
 
 def headline(details: dict) -> dict:
-    """reports/reference/metrics.json: per split its frames, points and isolated returns per scan, and the weather's
-    returns per scan (the rest in details.json)."""
-    per_split = {split: {k: values.get(k) for k in ("frames", "points_per_scan", "isolated_per_scan")}
-                 for split, values in details["splits"].items()}
+    """reports/reference/metrics.json: per split the weather's returns per scan, those it has (the rest, frames,
+    points and isolated returns per split included, in details.json and the MLflow child run of each split)."""
+    per_split: dict = {}
     for key in ("fog_returns_per_scan", "particle_returns_per_scan"):
         for split, value in details.get(key, {}).items():
-            if split in per_split and value:
-                per_split[split][key] = value
-    return {"splits": per_split, "seconds": details.get("seconds")}
+            if split in details["splits"] and value:
+                per_split.setdefault(split, {})[key] = value
+    return {"splits": per_split}
 
 
 @flow(name="reference", log_prints=True)

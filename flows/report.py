@@ -147,6 +147,15 @@ def severity_figures(reports: Path) -> dict[str, str]:
             for p in sorted((reports / "severity").glob("*.png"))}
 
 
+HEADLINE = ("findings_total", "findings_exceeding_noise")
+"""The figures of reports/report/metrics.json (the figure count and the page's size in details.json and MLflow)."""
+
+
+def headline(details: dict) -> dict:
+    """The `HEADLINE` figures of the report's details."""
+    return {k: details[k] for k in HEADLINE}
+
+
 @flow(name="report", log_prints=True)
 def report_flow(params: Params) -> dict:
     """Write reports/summary.md, reports/summary.html and reports/report/{details,metrics}.json; returns the
@@ -167,7 +176,7 @@ def report_flow(params: Params) -> dict:
                "figures": len(figures), "html_bytes": len(page.encode())}
         tracker.log_artifact(reports / "summary.md")
         tracker.log_artifact(reports / "summary.html")
-        tracker.finish(out, {k: v for k, v in out.items() if k != "findings"})
+        tracker.finish(out, headline(out), logged={k: v for k, v in out.items() if k != "findings"})
     return out
 
 

@@ -27,7 +27,7 @@ from prefect import flow
 
 from flows.common import RunLabel, gather, parse_stage_args, run_stage, threads_per_task
 from tasks.simulate import simulate_chunk_task
-from tasks.tracking import StageTracker
+from tasks.tracking import StageTracker, numeric_leaves
 from weatheralign.conditions import ALIGNMENTS, condition_named, condition_tags, variant_name
 from weatheralign.config import Params
 from weatheralign.data.nuscenes import load_frame, open_nuscenes
@@ -104,15 +104,27 @@ def particle_metrics(media: ConditionMedia, aligned: bool) -> dict:
 
 
 PER_KEYFRAME = ("points_scattered", "points_clutter", "points_lost")
-"""Keyframe LiDAR point counts that reports/simulate/<variant>/metrics.json gives per keyframe."""
+"""Keyframe LiDAR point counts that the simulate run logs to MLflow per keyframe."""
+
+HEADLINE_PER_KEYFRAME = ("points_scattered", "points_lost")
+"""Of those, the ones reports/simulate/<condition>-aligned/metrics.json gives (the severity curves read them)."""
 
 
-def headline(details: dict) -> dict:
-    """reports/simulate/<variant>/metrics.json: the `PER_KEYFRAME` counts divided by the keyframes, and the 99th
-    percentile of the LiDAR particles' re-projection error [px] (the rest in details.json)."""
+def figures(details: dict) -> dict:
+    """The `PER_KEYFRAME` counts divided by the keyframes, and the 99th percentile of the LiDAR particles'
+    re-projection error [px] (logged to MLflow)."""
     n = details.get("num_samples") or 0
     return {**{f"{k}_per_keyframe": round(details[k] / n, 2) if n else None for k in PER_KEYFRAME},
             "reprojection_p99_px": details.get("reprojection_p99_px")}
+
+
+def headline(details: dict) -> dict:
+    """reports/simulate/<variant>/metrics.json, what the variant adds (the rest in details.json and MLflow): aligned,
+    the LiDAR's weather (`HEADLINE_PER_KEYFRAME`; the unaligned twin's LiDAR is the same); unaligned, how far the
+    cameras' particles lie from the LiDAR's (``reprojection_p99_px``, None without particles: no column)."""
+    shown = figures(details)
+    keys = [f"{k}_per_keyframe" for k in HEADLINE_PER_KEYFRAME] if details["aligned"] else ["reprojection_p99_px"]
+    return {k: shown[k] for k in keys}
 
 
 @flow(name="simulate", log_prints=True)
@@ -156,7 +168,7 @@ def simulate_flow(params: Params) -> dict:
             fig_path = tracker.reports / "side_by_side.png"
             side_by_side(src_root, out_root, world.version, jobs[0].sample_token, name, fig_path)
             tracker.log_artifact(fig_path, "figures")
-        tracker.finish(metrics, headline(metrics))
+        tracker.finish(metrics, headline(metrics), logged=numeric_leaves(figures(metrics)))
         write_manifest(handoff, DatasetManifest(display_path(out_root), world.version, "simulate", world.sensors,
                                                 dataset_digest(out_root, world.version), world.scenes))
     return metrics

@@ -7,6 +7,7 @@ import numpy as np
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
+from weatheralign.calibrate.ground import TunedAir, simulated_ground_statistics
 from weatheralign.calibrate.histograms import IntensityHistograms
 from weatheralign.calibrate.lidar import CellResult, FogFrames, evaluate_cell
 from weatheralign.calibrate.precipitation import simulated_statistics
@@ -36,6 +37,15 @@ def reference_camera(ds: ReferenceDataset, sample_id: str) -> tuple[np.ndarray, 
 def reference_camera_task(ds: ReferenceDataset, sample_id: str) -> tuple[np.ndarray, np.ndarray]:
     """`reference_camera` as a mapped task."""
     return reference_camera(ds, sample_id)
+
+
+@task(name="ground-depth", cache_policy=NO_CACHE, retries=0)
+def ground_statistics_task(ds: ReferenceDataset, kind: str, depth_m: float, air: TunedAir) -> np.ndarray:
+    """(F,) ground statistic of every clear reference scan under ``kind``'s ground at ``depth_m`` and the tuned
+    ``air`` (`weatheralign.calibrate.ground.simulated_ground_statistics`; the worker reads the scans itself)."""
+    ids = ds.ids("clear")
+    return simulated_ground_statistics([ds.load_scan(i) for i in ids], ids, kind, (depth_m,),
+                                       air.lidar.noise_floor, air)[0]
 
 
 @task(name="precipitation-rate", cache_policy=NO_CACHE, retries=0)

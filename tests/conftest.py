@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from weatheralign.config import Params, params_from_dict
+from weatheralign.config import SETUP_FILES, Params, params_from_dict
 from weatheralign.sensors import LidarModel
 from weatheralign.world.build import SampleResult
 from weatheralign.world.dataset import finalize, render_or_resume, sample_jobs
@@ -102,7 +102,8 @@ def make_lidar(**overrides: object) -> LidarModel:
 
 def write_params_file(path: Path, updates: dict) -> Path:
     """The repository's params.yaml with ``updates`` merged in (nested dicts merge key by key), written to ``path``:
-    a complete params file (the loader refuses files missing a section)."""
+    a complete params file (the loader refuses files missing a section) that names the repository's setup files
+    (configs/) by their absolute paths; ``updates`` may hold their keys too (they win over the files)."""
     import yaml
 
     def merge(base: dict, new: dict) -> dict:
@@ -111,5 +112,8 @@ def write_params_file(path: Path, updates: dict) -> Path:
         return base
 
     tree = merge(yaml.safe_load((REPO / "params.yaml").read_text()), updates)
+    for section, key in SETUP_FILES:  # a relative path (the repository's, or a dumped section's default): the repo's
+        if not Path(tree[section][key]).is_absolute():
+            tree[section][key] = str(REPO / tree[section][key])
     path.write_text(yaml.safe_dump(tree))
     return path

@@ -707,3 +707,35 @@ def test_a_level_triangle_spanning_a_depth_jump_is_not_ground():
 
     assert filled(44.0) == 0
     assert filled(20.0) > 100
+
+
+def test_sky_through_a_gap_in_a_crown_is_sky_a_window_reflecting_it_is_not():
+    """A 320 x 180 upright camera: sky (a vertical gradient) above the horizon, a dark textured crown (rows 10-80,
+    columns 40-160) with a 20 x 20 px gap through which the sky shows, and a pale facade (columns 200-320, rows
+    0-150) with a window reflecting the sky at a tenth of its brightness and one painted the sky's colour but
+    cut by the LiDAR's rings. The gap is not connected to the top border through sky; it is sky all the same. The
+    windows are not."""
+    from weatheralign.camera.depth import image_sky
+
+    W, H = 320, 180
+    rows = np.arange(H, dtype=np.float32)[:, None, None]
+    sky_colour = np.array([0.55, 0.7, 0.95], np.float32) + 0.1 * (rows / H) * np.array([1.0, 0.6, 0.0], np.float32)
+    image = np.broadcast_to(sky_colour, (H, W, 3)).copy()
+    image[150:] = 0.3  # road
+    rng = np.random.default_rng(0)
+    image[10:80, 40:160] = (0.1, 0.25, 0.08) + rng.uniform(0.0, 0.12, (70, 120, 1))  # foliage
+    image[80:150, 95:105] = (0.25, 0.2, 0.15)  # the trunk
+    image[35:55, 90:110] = sky_colour[35:55]  # the gap
+    image[:150, 200:] = (0.75, 0.74, 0.72)  # facade
+    image[30:50, 230:260] = 0.1 * sky_colour[30:50]  # a window reflecting the sky
+    image[80:100, 230:260] = sky_colour[80:100]  # a sky-coloured panel on the hit facade
+    lidar = np.zeros((H, W), bool)
+    lidar[60:150:8, 200::2] = True  # the facade's rings
+    lidar[100:150:8, 96:105:2] = True  # the trunk
+    lidar[152::8, ::2] = True  # the street
+    allowed = np.zeros((H, W), bool)
+    allowed[:150] = True
+    sky = image_sky(image, lidar, allowed)
+    assert sky[38:52, 93:107].all()  # the gap
+    assert sky[:, :30].mean() > 0.75 and not sky[12:30, 45:85].any()  # the sky beside the crown, not the foliage
+    assert not sky[30:50, 230:260].any() and not sky[80:100, 230:260].any()  # the windows

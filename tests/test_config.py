@@ -1,15 +1,27 @@
+import re
+import shutil
 from pathlib import Path
 
 import pytest
+import yaml
 
-from weatheralign.config import SECTIONS, ConfigError, apply_override, load_params, params_from_dict
+from weatheralign.config import (
+    SECTIONS,
+    SETUP_FILES,
+    ConfigError,
+    apply_override,
+    load_params,
+    params_from_dict,
+    params_tree,
+)
 
 from .conftest import REPO
 
 
 def _params_file(tmp_path: Path, old: str = "", new: str = "", name: str = "p.yaml", section: str = "") -> Path:
     """The repository's params.yaml (every section present, as `load_params` requires) with one text edit (the
-    first ``old`` of ``section`` when given, else the only one)."""
+    first ``old`` of ``section`` when given, else the only one), beside a copy of the setup files it names."""
+    shutil.copytree(REPO / "configs", tmp_path / "configs", dirs_exist_ok=True)
     text = (REPO / "params.yaml").read_text()
     if old:
         start = text.index(f"\n{section}:") if section else 0
@@ -98,11 +110,11 @@ def test_every_params_key_is_read_by_some_code() -> None:
     lie to the user). Keys read by name in a loop are listed with the place that reads them."""
     import re
 
-    import yaml
-
     repo = Path(__file__).resolve().parents[1]
-    dynamic = {"reference.split_files.clear", "reference.split_files.light", "reference.split_files.dense"}
-    # ^ read per level by weatheralign.reference.layout.split_files_of (getattr over LEVELS)
+    dynamic = {"reference.split_files.clear", "reference.split_files.light", "reference.split_files.dense",
+               "world.rig", "reference.setup"}
+    # ^ read per level by weatheralign.reference.layout.split_files_of (getattr over LEVELS); the setup files' paths
+    # by the loader (config.py) and by dvc.yaml's deps
 
     def leaves(d: dict, prefix: tuple = ()):
         for k, v in d.items():
@@ -110,7 +122,7 @@ def test_every_params_key_is_read_by_some_code() -> None:
 
     code = "\n".join(p.read_text() for d in ("src", "flows", "tasks") for p in (repo / d).rglob("*.py")
                      if p.name != "config.py")
-    tree = yaml.safe_load((repo / "params.yaml").read_text())
+    tree = params_tree(repo / "params.yaml")  # params.yaml and its setup files (configs/)
     unread = [".".join(k) for k in leaves(tree)
               if ".".join(k) not in dynamic and not re.search(r"\." + re.escape(k[-1]) + r"\b", code)]
     assert not unread, f"params keys no code reads: {unread}"
@@ -120,8 +132,6 @@ def test_every_params_key_is_read_by_some_code() -> None:
 
 
 def test_repository_params_has_every_section_and_loads():
-    import yaml
-
     tree = yaml.safe_load((REPO / "params.yaml").read_text())
     assert set(SECTIONS) <= set(tree), f"params.yaml lacks {sorted(set(SECTIONS) - set(tree))}"
     p = load_params(REPO / "params.yaml")
@@ -240,8 +250,11 @@ def test_errors_from_set_overrides_name_the_set(tmp_path):
                                   "less than or equal to 12",
         "run.dask_address=foo:8786": "--set run.dask_address=foo:8786: run.dask_address = 'foo:8786' is invalid: "
                                      "expected a Dask scheduler address",
-        "world={seed: -1}": "--set world={seed: -1}: world.seed = -1 is invalid: Input should be greater than or equal "
-                            "to 0",
+        "world={seed: -1}": "--set world={seed: -1}: world.rig is missing: the path of the YAML file holding world's "
+                            "lidar",  # the --set replaced the whole section, the setup file's path included
+        "world={seed: -1, rig: configs/world_rig.yaml}": "--set world={seed: -1, rig: configs/world_rig.yaml}: "
+                                                         "world.seed = -1 is invalid: Input should be greater than or "
+                                                         "equal to 0",
     }
     for override, expected in cases.items():
         with pytest.raises(ConfigError) as err:
@@ -253,8 +266,8 @@ def test_errors_from_set_overrides_name_the_set(tmp_path):
     with pytest.raises(ConfigError, match=rf"^{bad}: world.ego_speed_max = 30 is invalid"):
         load_params(bad, ["world.seed=3"])
     # a later --set of the whole section replaces an earlier --set of one of its keys
-    with pytest.raises(ConfigError, match=r"^--set world=\{seed: -1\}: world.seed = -1"):
-        load_params(f, ["world.seed=5", "world={seed: -1}"])
+    with pytest.raises(ConfigError, match=r"^--set world=\{seed: -1, rig: configs/world_rig.yaml\}: world.seed = -1"):
+        load_params(f, ["world.seed=5", "world={seed: -1, rig: configs/world_rig.yaml}"])
     # a check over a whole section names the --set keys involved
     with pytest.raises(ConfigError) as err:
         load_params(f, ["world.ego_speed_min=11", "world.ego_speed_max=6"])
@@ -287,3 +300,118 @@ def test_rain_appearance_names_the_presets(tmp_path):
     with pytest.raises(ConfigError, match=r"simulate.rain_appearance = 'rain_opaque_drops' is invalid: Input should "
                                           r"be 'rain' or 'rain_weather_edit'"):
         load_params(base, ["simulate.rain_appearance=rain_opaque_drops"])
+
+
+# --- the setup files params.yaml names (configs/): the same typed records, errors naming file, field and form ---
+
+def test_setup_files_fill_the_typed_records():
+    """The sensors and the reference's hidden truth come from configs/, not params.yaml, into the same records."""
+    raw = yaml.safe_load((REPO / "params.yaml").read_text())
+    for (section, key), fields in SETUP_FILES.items():
+        assert raw[section][key].startswith("configs/") and not set(fields) & set(raw[section]), (section, fields)
+    p = load_params(REPO / "params.yaml")
+    assert p.world.rig == Path("configs/world_rig.yaml") and p.reference.setup == Path("configs/reference.yaml")
+    assert p.world.lidar.firings_per_ring == 1085 and p.world.ego_body is not None
+    assert p.reference.lidar.firings_per_ring == 1800 and p.reference.alpha_dense == (0.03, 0.07)
+    assert p.reference.split_files.snow == "splits/snow.txt" and p.reference.intensity_max == 255.0
+    tree = params_tree(REPO / "params.yaml")
+    assert tree["world"]["camera"]["image_scale"] == 1.0 and tree["reference"]["precipitation"]["ground"] is True
+
+
+def test_params_yaml_and_set_override_a_setup_file_key(tmp_path):
+    """A key of a setup file given in params.yaml (what ``dvc exp run -S +world.camera.image_scale=0.5`` writes) or
+    by ``--set`` wins over the file, the file's other keys stay; ``--set world.rig=...`` reads another file."""
+    f = _params_file(tmp_path, "  rig: configs/world_rig.yaml", "  camera:\n    image_scale: 0.5\n"
+                                                                "  rig: configs/world_rig.yaml")
+    p = load_params(f, ["world.lidar.max_range_m=80"])
+    assert p.world.camera.image_scale == 0.5 and p.world.camera.jpeg_quality == 92
+    assert p.world.lidar.max_range_m == 80.0 and p.world.lidar.firings_per_ring == 1085
+    other = tmp_path / "configs" / "other_rig.yaml"
+    other.write_text((REPO / "configs" / "world_rig.yaml").read_text().replace("firings_per_ring: 1085",
+                                                                               "firings_per_ring: 2000"))
+    assert load_params(f, ["world.rig=configs/other_rig.yaml"]).world.lidar.firings_per_ring == 2000
+    assert load_params(f, [f"world.rig={other}"]).world.lidar.firings_per_ring == 2000  # absolute
+
+
+def _rig(tmp_path: Path, old: str, new: str, name: str = "world_rig.yaml") -> Path:
+    """The copied setup file ``name`` with one text edit."""
+    rig = tmp_path / "configs" / name
+    text = rig.read_text()
+    assert text.count(old) == 1, old
+    rig.write_text(text.replace(old, new))
+    return rig
+
+
+def test_a_missing_or_malformed_setup_file_names_the_file_the_field_and_the_form(tmp_path):
+    f = _params_file(tmp_path)
+    rig = tmp_path / "configs" / "world_rig.yaml"
+    holds = "a YAML file holding world's lidar, camera, ego_body, sensor_overrides (start from the repository's " \
+            "configs/world_rig.yaml)"
+    with pytest.raises(ConfigError) as err:
+        load_params(f, ["world.rig=configs/nope.yaml"])
+    assert str(err.value) == (f"{f}: world.rig = 'configs/nope.yaml': no such file {tmp_path}/configs/nope.yaml; "
+                              f"expected {holds}")
+    with pytest.raises(ConfigError, match=rf"^{f}: world.rig = 5 is invalid: expected the path of a YAML file"):
+        load_params(f, ["world.rig=5"])
+    no_key = _params_file(tmp_path, "  rig: configs/world_rig.yaml", "", name="no_key.yaml")
+    with pytest.raises(ConfigError, match=rf"^{no_key}: world.rig is missing: the path of the YAML file holding "
+                                          r"world's lidar, camera, ego_body, sensor_overrides"):
+        load_params(no_key)
+    original = rig.read_text()
+    for text, expected in (("", "expected a mapping of lidar, camera, ego_body, sensor_overrides, got an empty file"),
+                           ("- lidar\n", "expected a mapping of lidar, camera, ego_body, sensor_overrides, got a list"),
+                           ("lidar: [unclosed\n", "not valid YAML")):
+        rig.write_text(text)
+        with pytest.raises(ConfigError, match=rf"^{rig}.*{re.escape(expected)}"):
+            load_params(f)
+    rig.write_text(original)
+    _rig(tmp_path, "  max_range_m: 100.0\n", "  max_range_m: 100.0\n  max_range_m: 90.0\n")
+    with pytest.raises(ConfigError, match=rf"^{rig}: duplicate key lidar.max_range_m at line \d+"):
+        load_params(f)
+    rig.write_text(original)
+    _rig(tmp_path, "camera:\n", "kamera:\n")
+    with pytest.raises(ConfigError) as err:
+        load_params(f)
+    assert str(err.value) == (f"{rig}: unknown key kamera: the file world.rig names holds lidar, camera, ego_body, "
+                              f"sensor_overrides (check the spelling)")
+    rig.write_text(original + "seed: 3\n")
+    with pytest.raises(ConfigError, match=rf"^{rig}: unknown key seed: .*; world.seed belongs in params.yaml$"):
+        load_params(f)
+    rig.write_text(original.split("sensor_overrides:")[0])
+    with pytest.raises(ConfigError) as err:
+        load_params(f)
+    assert str(err.value) == (f"{rig}: missing sensor_overrides: the file world.rig names must hold lidar, camera, "
+                              f"ego_body, sensor_overrides (copy what is missing from the repository's "
+                              f"configs/world_rig.yaml)")
+    rig.write_text(original)
+    assert load_params(f).world.lidar.max_range_m == 100.0
+
+
+def test_a_bad_value_is_blamed_on_where_it_was_given(tmp_path):
+    """In a setup file: the file and the key in it (and the params key); given over it in params.yaml or by --set:
+    there."""
+    f = _params_file(tmp_path)
+    rig = _rig(tmp_path, "  max_range_m: 100.0\n", "  max_range_m: 500.0\n")
+    with pytest.raises(ConfigError) as err:
+        load_params(f)
+    assert str(err.value) == (f"{rig}: lidar.max_range_m = 500.0 is invalid: Input should be less than or equal to "
+                              f"300 (world.lidar.max_range_m)")
+    assert load_params(f, ["world.lidar.max_range_m=90"]).world.lidar.max_range_m == 90.0
+    with pytest.raises(ConfigError, match=r"^--set world.lidar.max_range_m=400: world.lidar.max_range_m = 400 is "
+                                          r"invalid"):
+        load_params(f, ["world.lidar.max_range_m=400"])
+    inline = _params_file(tmp_path, "  rig: configs/world_rig.yaml", "  lidar:\n    max_range_m: 600.0\n"
+                                                                     "  rig: configs/world_rig.yaml", name="in.yaml")
+    with pytest.raises(ConfigError, match=rf"^{inline}: world.lidar.max_range_m = 600.0 is invalid"):
+        load_params(inline)
+    ref = _rig(tmp_path, "intensity_max: 255 ", "intensity_max: 100 ", name="reference.yaml")
+    with pytest.raises(ConfigError, match=rf"^{ref}: intensity_max = 100 is invalid: .*\(reference.intensity_max\)"):
+        load_params(f, ["world.lidar.max_range_m=90"])
+
+
+def test_a_set_that_replaces_a_section_is_named_for_each_missing_setup_path(tmp_path):
+    """Both setup paths are checked with the --set overrides in view: replacing the reference section drops its
+    path, and the error names that --set, not the world's."""
+    f = _params_file(tmp_path)
+    with pytest.raises(ConfigError, match=r"^--set reference=\{seed: 1\}: reference.setup is missing"):
+        load_params(f, ["world.seed=3", "reference={seed: 1}"])

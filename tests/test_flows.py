@@ -62,8 +62,7 @@ def test_world_flow_thread_pool_and_dask_with_mlflow(tmp_path, prefect_server):
     assert metrics["samples_rendered_this_run"] == 4 and metrics["seconds_per_sample"] > 0
     assert metrics["dataroot"] == "data/world" and sum(metrics["class_counts"].values()) == metrics["num_annotations"]
     headline = json.loads((tmp_path / "reports" / "world" / "metrics.json").read_text())  # what DVC compares
-    assert headline == {k: metrics[k] for k in ("num_scenes", "num_samples", "num_sweeps", "num_annotations",
-                                                 "seconds_per_sample")}
+    assert headline == {k: metrics[k] for k in ("num_samples", "num_annotations")}
     assert (tmp_path / "reports" / "world" / "sample_bev.png").stat().st_size > 20_000
     assert (tmp_path / "reports" / "world" / "sample_cameras.jpg").stat().st_size > 20_000
     tables = sorted(p.name for p in (tmp_path / "data" / "world" / "v1.0-mini").glob("*.json"))

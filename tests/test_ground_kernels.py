@@ -4,6 +4,7 @@ screen-space reflection's march."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from weatheralign.ground.camera import (
     CameraGeometry,
@@ -113,3 +114,36 @@ def test_the_range_guided_edit_is_its_numpy_oracle_encoded() -> None:
     assert np.allclose(up_gain[29, 44], gain[7, 11])  # the road above the car reads the road's row only
     assert np.allclose(up_gain[19, 21], 0.75 * gain[4, 5] + 0.25 * gain[4, 6])  # the sky's edge reads the sky only
     assert any(np.allclose(up_gain[40, 10], gain[10, k]) for k in (2, 3))  # the pole: its nearest sample alone
+
+
+def test_the_range_guided_edit_switches_layers_where_the_brought_field_is_positive() -> None:
+    """A puddle's layers replace the film's where the smooth shoreline field, brought to the pixel, is > 0: the
+    boundary is found per pixel (a curve), not per coarse cell (steps)."""
+    from weatheralign.camera.fog import affine_edit_u8, decode_srgb_u8, encode_srgb_u8, range_guided_upsample
+
+    rng = np.random.default_rng(1)
+    height, width, stride = 57, 90, 4
+    range_map = 10.0 + rng.normal(0.0, 0.02, (height, width))
+    range_map[:12] = np.inf
+    range_map[30:45, 50:70] = 5.0
+    h, w = -(-height // stride), -(-width // stride)
+    gain, alt_gain = rng.uniform(0.5, 1.5, (2, h, w, 3))
+    offset, alt_offset = rng.uniform(0.0, 0.2, (2, h, w, 3))
+    rows, cols = np.mgrid[0:h, 0:w]
+    switch = (cols - 0.6 * rows - 5.33) / 10.0  # a slanted shoreline: a staircase on the coarse grid
+    edited = np.ones((h, w))
+    image = rng.integers(0, 256, (height, width, 3)).astype(np.uint8)
+    coded, mask = affine_edit_u8(image, gain, offset, edited, range_map, stride, alternative=(alt_gain, alt_offset),
+                                 switch=switch)
+    inside = (range_guided_upsample(switch, range_map, stride, fill=-1.0) > 0)[..., None]
+    up_gain = np.where(inside, range_guided_upsample(alt_gain, range_map, stride, fill=1.0),
+                       range_guided_upsample(gain, range_map, stride, fill=1.0))
+    up_offset = np.where(inside, range_guided_upsample(alt_offset, range_map, stride),
+                         range_guided_upsample(offset, range_map, stride))
+    expected = encode_srgb_u8((decode_srgb_u8(image) * up_gain + up_offset).astype(np.float32))
+    assert np.array_equal(coded, expected)
+    # on the road the boundary is the slanted line itself, found per pixel: s = (j - 0.6 i - 5.33 stride) / (10 stride)
+    for i in range(16, 28):
+        assert np.nonzero(inside[i, :, 0])[0].min() == int(np.floor(0.6 * i + 5.33 * stride)) + 1
+    with pytest.raises(ValueError, match="both alternative and switch"):
+        affine_edit_u8(image, gain, offset, edited, range_map, stride, switch=switch)

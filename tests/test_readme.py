@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-import yaml
+from weatheralign.config import params_tree
 
 REPO = Path(__file__).resolve().parents[1]
 README = (REPO / "README.md").read_text()
@@ -55,11 +55,13 @@ def test_commands_modules_and_make_targets_exist() -> None:
 
 
 def test_every_quoted_params_key_exists() -> None:
-    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    """Every ``section.key`` the README quotes is a key of params.yaml or of a setup file it names (configs/)."""
+    params = params_tree(REPO / "params.yaml")
     keys = [k.rstrip(".") for k in re.findall(r"`(?:-S )?((?:" + "|".join(params) + r")\.[\w.]+)", README)]
     assert len(keys) >= 10
     for key in keys:
         node = params
         for part in key.split("."):
-            assert isinstance(node, dict) and part in node, f"README quotes params key {key!r}, not in params.yaml"
+            assert isinstance(node, dict) and part in node, f"README quotes params key {key!r}, not in params.yaml " \
+                                                            f"or configs/"
             node = node[part]

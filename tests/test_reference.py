@@ -445,6 +445,8 @@ def test_synthetic_reference_layout_is_readable(tiny_reference):
 
 
 def test_sealed_truth_is_outside_the_root_and_off_grid(tiny_reference):
+    from weatheralign.reference.ground import draw_ground_truth
+
     params, _ = tiny_reference
     path = sealed_truth_path(params.paths.data)
     truth = json.loads(path.read_text())
@@ -453,8 +455,13 @@ def test_sealed_truth_is_outside_the_root_and_off_grid(tiny_reference):
     assert root not in path.parents
     assert not any(b"alpha" in data or b"rate_mm_h" in data for data in _files(root).values())
     cfg = params.reference
-    for level, (lo, hi) in (("snow", cfg.precipitation.snow_rate_mm_h), ("rain", cfg.precipitation.rain_rate_mm_h)):
-        assert set(truth[level]) == {"rate_mm_h"} and lo <= truth[level]["rate_mm_h"] <= hi
+    pc = cfg.precipitation
+    for level, (lo, hi), depth, (d_lo, d_hi) in (
+            ("snow", pc.snow_rate_mm_h, "snow_depth_m", pc.snow_depth_m),
+            ("rain", pc.rain_rate_mm_h, "film_depth_m", pc.wet_film_depth_m)):
+        assert set(truth[level]) == {"rate_mm_h", depth} and lo <= truth[level]["rate_mm_h"] <= hi
+        assert d_lo <= truth[level][depth] <= d_hi and draw_ground_truth(cfg)[level] == truth[level][depth]
+    assert not any(b"depth_m" in data for data in _files(root).values())
     assert draw_precipitation_truth(cfg)["snow"] == truth["snow"]["rate_mm_h"]
     for level, (lo, hi) in (("light", cfg.alpha_light), ("dense", cfg.alpha_dense)):
         alpha, beta = truth[level]["alpha"], truth[level]["beta"]

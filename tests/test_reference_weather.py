@@ -188,3 +188,30 @@ def test_fast_simulator_agrees_with_the_exact_process(kind, rate, reflectivity, 
                           sensor, detector, np.random.default_rng(0))
     hidden = kept_exact - int((first_only.source == TARGET).sum())
     assert hidden > (50 if kind == "snow" else 500)  # rain: 2 % of the targets, four times the tolerance above
+
+
+def test_the_ground_of_the_snow_and_rain_splits(weather_params):
+    """The rain split's road is wet (ground returns dimmer, the weakest lost), the snow split's raised by the hidden
+    depth and brighter; the camera changes on the ground, not in the sky."""
+    from weatheralign.reference.ground import draw_ground_truth
+
+    cfg = weather_params.reference
+    bare_cfg = cfg.model_copy(update={"precipitation": cfg.precipitation.model_copy(update={"ground": False})})
+    depth = draw_ground_truth(cfg)
+    for level in ("rain", "snow"):
+        spec = next(s for s in frame_specs(cfg) if s.level == level)
+        field = frame_field(spec, cfg)
+        grounded, bare = render_frame(spec, cfg, field), render_frame(spec, bare_cfg, field)
+        low = lambda f: f.points[(f.points[:, 2] < -1.5) & (np.linalg.norm(f.points[:, :2], axis=1) < 25.0)]  # noqa: E731
+        g, b = low(grounded), low(bare)
+        if level == "rain":
+            assert np.median(g[:, 3]) < 0.9 * np.median(b[:, 3])
+            assert len(g) <= len(b)
+        else:
+            lift = np.median(g[:, 2]) - np.median(b[:, 2])
+            assert abs(lift - depth["snow"]) < 0.3 * depth["snow"], (lift, depth["snow"])
+            assert np.median(g[:, 3]) > 2.0 * np.median(b[:, 3])
+        sky = np.isinf(grounded.range)
+        change = np.abs(grounded.image.astype(int) - bare.image.astype(int)).max(axis=-1)
+        # in the sky only the drops change, whose radiance is the mean of the scene they refract (the road's too)
+        assert np.mean(change[~sky] > 8) > 0.1 and np.mean(change[sky] > 8) < 0.01, level

@@ -79,10 +79,10 @@ def test_queued_severity_experiments_and_their_curve(tmp_path: Path) -> None:
     params = yaml.safe_load((REPO / "params.yaml").read_text())
     params["world"].update({"num_train_scenes": 1, "num_val_scenes": 1, "samples_per_scene": 2,
                             "sweeps_per_sample": 1})
-    params["world"]["camera"]["image_scale"] = 0.1
+    params["world"]["camera"] = {"image_scale": 0.1}  # over configs/world_rig.yaml's camera
     params["reference"].update({"frames_per_split": 2})
-    params["reference"]["lidar"]["firings_per_ring"] = 360
-    params["reference"]["camera"]["image_scale"] = 0.25  # the dense fog's camera check needs this much image
+    params["reference"]["lidar"] = {"firings_per_ring": 360}  # over configs/reference.yaml's
+    params["reference"]["camera"] = {"image_scale": 0.25}  # the dense fog's camera check needs this much image
     params["calibrate_fog"].update({"num_bootstrap": 20, "max_nelder_mead": 5, "fine_points": [3, 3],
                                     "camera_frames": 2})
     params["particles"].update({"validation_regions": 1, "validation_max_particles": 20000})

@@ -733,3 +733,22 @@ def test_estimated_depth_puts_the_ego_body_at_its_own_distance(world, tmp_path):
     exact_images = {ch: v.load_image() for ch, v in frame.cameras.items()}
     exact = sample_range_maps(nusc, frame, exact_images, body)
     np.testing.assert_array_equal(exact["CAM_BACK"], frame.cameras["CAM_BACK"].load_range().astype(np.float32))
+
+
+def test_calibrated_ground_depths_reach_the_media(tmp_path):
+    from weatheralign.config import ParticlesConfig, SimulateConfig
+    from weatheralign.data.errors import DataFormatError
+    from weatheralign.simulate.media import calibrated_precipitation_rates, resolve_ground
+
+    path = tmp_path / "rates.json"
+    path.write_text(json.dumps({"snow": {"rate_mm_h": 2.0}, "rain": {"rate_mm_h": 40.0},
+                                "ground": {"snow": {"depth_m": 0.07}}}))
+    rates = calibrated_precipitation_rates(path, ParticlesConfig())
+    assert rates.ground_depth_m == {"snow": 0.07}
+    cfg = SimulateConfig()
+    snow = resolve_ground(CONDITIONS["fog_snow"], cfg, ["s1"], rates.ground_depth_m)["s1"]
+    rain = resolve_ground(CONDITIONS["rain"], cfg, ["s1"], rates.ground_depth_m)["s1"]
+    assert snow.amount_m == 0.07 and rain.amount_m == cfg.wet_film_depth_m  # no rain ground calibrated: params
+    path.write_text(json.dumps({"snow": {"rate_mm_h": 2.0}, "ground": {"snow": {"depth_m": -1}}}))
+    with pytest.raises(DataFormatError, match=r"ground\.snow\.depth_m"):
+        calibrated_precipitation_rates(path, ParticlesConfig())

@@ -154,7 +154,7 @@ def _dvc(repo: Path, *args: str) -> subprocess.CompletedProcess:
 def _project_repo(repo: Path, params: dict) -> None:
     """A git + DVC project at ``repo``: the code, dvc.yaml and ``params`` (tracking and progress bars off)."""
     repo.mkdir()
-    for name in ("src", "flows", "tasks"):
+    for name in ("src", "flows", "tasks", "configs"):
         shutil.copytree(REPO / name, repo / name, ignore=shutil.ignore_patterns("__pycache__", "*.egg-info"))
     for name in ("dvc.yaml", ".dvcignore"):  # .dvcignore: numba's caches under __pycache__ are not code changes
         shutil.copy(REPO / name, repo / name)
@@ -176,7 +176,7 @@ def test_noop_rerun_leaves_downstream_up_to_date(tmp_path: Path) -> None:
     params = yaml.safe_load((REPO / "params.yaml").read_text())
     params["world"].update({"num_train_scenes": 1, "num_val_scenes": 1, "samples_per_scene": 2,
                             "sweeps_per_sample": 0})
-    params["world"]["camera"]["image_scale"] = 0.1
+    params["world"]["camera"] = {"image_scale": 0.1}  # over configs/world_rig.yaml's camera
     _project_repo(repo, params)
     run = _dvc(repo, "repro", "particles")
     assert run.returncode == 0, run.stdout[-2000:] + run.stderr[-3000:]
@@ -218,8 +218,7 @@ def test_your_own_dataset_through_dvc_repro_and_exp_run(tiny_world, tmp_path: Pa
     params = yaml.safe_load((REPO / "params.yaml").read_text())
     params["world"]["version"] = tiny_world.params.world.version
     params["reference"].update({"frames_per_split": 2})  # as the severity test: a small reference, quick calibrations
-    params["reference"]["lidar"]["firings_per_ring"] = 360
-    params["reference"]["camera"]["image_scale"] = 0.25
+    params["reference"].update({"lidar": {"firings_per_ring": 360}, "camera": {"image_scale": 0.25}})
     params["calibrate_fog"].update({"num_bootstrap": 20, "max_nelder_mead": 5, "fine_points": [3, 3],
                                     "camera_frames": 2})
     params["particles"].update({"validation_regions": 1, "validation_max_particles": 20000})

@@ -95,8 +95,8 @@ def test_verify_and_rate_calibration_on_an_stf_layout_tree_with_snow_and_rain(tm
     metrics = json.loads((reports / "verify" / "details.json").read_text())
     assert set(metrics["conditions"]) == {"fog_light", "fog_dense", "snow", "rain"}
     headline = json.loads((reports / "verify" / "metrics.json").read_text())  # what DVC compares
-    assert headline["control_p"] == metrics["control_p"]
-    assert headline["snow"]["ks"] == metrics["conditions"]["snow"]["ks"]
+    assert headline["control_detected"] == metrics["control_detected"]
+    assert headline["snow"] == {k: metrics["conditions"]["snow"][k] for k in ("mmd_difference", "mmd_difference_p")}
     confusion = json.loads((reports / "verify" / "confusion.json").read_text())  # the DVC confusion plot's data
     assert len(confusion) == metrics["classifier_held_out"]
     correct = sum(r["actual"] == r["predicted"] for r in confusion)
@@ -110,7 +110,8 @@ def test_verify_and_rate_calibration_on_an_stf_layout_tree_with_snow_and_rain(tm
         assert m["kid_backbone"] == "efficientnet_lite0"
         assert m["reprojection_mean_px"] is None  # no simulate stage ran in this tree
     assert metrics["severity"] == {"fog_levels": "params", "snow_rate_mm_h": 2.0, "rain_rate_mm_h": 50.0,
-                                   "rates": {"snow": "params", "rain": "params"}}
+                                   "rates": {"snow": "params", "rain": "params"},
+                                   "ground_depth_m": {"rain": 0.0005, "snow": 0.05}}  # simulate's ground params
     assert 0.0 <= metrics["classifier_accuracy"] <= 1.0 and len(metrics["classifier_confusion"]) == 4
     assert metrics["classifiers"] == 3 and len(metrics["classifier_accuracy_each"]) == 3  # the params' ensemble
     assert all(len(m["control_p_each_classifier"]) == 3 for m in metrics["conditions"].values())
@@ -133,4 +134,7 @@ def test_verify_and_rate_calibration_on_an_stf_layout_tree_with_snow_and_rain(tm
         assert abs(rates[kind]["rate_mm_h"] / truth - 1.0) < 0.3, rates
     tuned = json.loads((reports / "calibrate_precipitation" / "details.json").read_text())
     assert tuned["kinds"] == ["snow", "rain"] and not tuned["snow"]["beyond_grid"]
+    for kind, thinnest in (("snow", 0.01), ("rain", 0.0001)):  # the tree's weather has no ground: below the grid
+        assert rates["ground"][kind]["depth_m"] <= thinnest and tuned[kind]["ground"]["beyond_grid"], rates
+    assert (reports / "calibrate_precipitation" / "ground.png").is_file()
     assert (reports / "calibrate_precipitation" / "rates.png").is_file()

@@ -141,3 +141,18 @@ def test_displaced_particle_channels_move_only_the_particle_echoes(stf_reference
     assert ((moved != scene_only).any(axis=0) | (true != scene_only).any(axis=0))[changed].all()
     again = displaced_particle_channels(frame, snow, 255.0, (64, 120), step, seed=0)
     assert np.array_equal(again, moved)
+
+
+def test_ground_media_take_the_severity_depth_and_a_twin_for_unaligned_cameras() -> None:
+    grounded = replace(severity(), ground_depth_m={"rain": 0.0004, "snow": 0.06}, unaligned_rate_factor=2.0)
+    for name, kind, depth in (("rain", "wet", 0.0004), ("snow", "snow", 0.06), ("fog_snow", "snow", 0.06)):
+        aligned = scene_media(CONDITIONS[name], True, "rec_00001", grounded, seed=0).ground
+        assert aligned.kind == kind and aligned.amount_m == aligned.camera_amount_m == depth
+        assert aligned.camera_seed == aligned.seed
+        unaligned = scene_media(CONDITIONS[name], False, "rec_00001", grounded, seed=0).ground
+        assert unaligned.amount_m == depth and unaligned.seed == aligned.seed  # the LiDAR's ground either way
+        assert unaligned.camera_seed != aligned.seed and depth / 2 <= unaligned.camera_amount_m <= 2 * depth
+        other = scene_media(CONDITIONS[name], True, "rec_00002", grounded, seed=0).ground
+        assert other.seed != aligned.seed  # a field per frame
+    assert scene_media(CONDITIONS["fog_dense"], True, "rec_00001", grounded, seed=0).ground is None
+    assert scene_media(CONDITIONS["snow"], True, "rec_00001", severity(), seed=0).ground is None  # none given

@@ -1,14 +1,20 @@
 """Typed configuration: `params.yaml` validated into frozen pydantic models.
 
-`load_params(path, overrides)` is the only entry point. Errors name the offending key and the allowed form, e.g.
+`load_params(path, overrides)` is the only entry point. params.yaml holds the knobs one compares across experiments;
+the fixed setup lives in YAML files it names (`SETUP_FILES`): ``world.rig`` (the world's sensors) and
+``reference.setup`` (the reference's description, and for the synthetic reference its sensors and hidden truth).
+They are read into the same typed records (``params.world.lidar``, ``params.reference.precipitation``, ...) as if
+they stood in params.yaml; a key of theirs given in params.yaml itself (what ``dvc exp run -S +world.lidar.x=1``
+writes) or by ``--set`` overrides the file's value. Errors name the offending key and the allowed form, e.g.
 ``params.yaml: world.ego_speed_max = 30.0 is invalid: Input should be less than or equal to 12``; a value that came
 from a ``--set key=value`` override is blamed on it (``--set world.ego_speed_max=30: world.ego_speed_max = 30 is
-invalid: ...``).
+invalid: ...``); one in a setup file is blamed on that file (``configs/world_rig.yaml: lidar.max_range_m = 500.0
+is invalid: ... (world.lidar.max_range_m)``).
 
 The file loader is strict: the file must hold every section of `Params` (an empty file or a missing section is an
 error, not "all defaults"), a key given twice in one mapping is an error (plain YAML keeps the last one silently),
-and every float must be finite. `params_from_dict` (used by tests with partial dicts) fills missing sections and
-keys with their defaults.
+and every float must be finite; a setup file must hold exactly its keys. `params_from_dict` (used by tests with
+partial dicts) reads no setup file: it fills missing sections and keys with their defaults.
 """
 
 from __future__ import annotations
@@ -247,6 +253,7 @@ class WorldConfig(_Section):
     sweeps_per_sample: Annotated[int, Field(ge=0, le=9)] = 9
     ego_speed_min: Annotated[float, Field(ge=5.0, le=12.0)] = 5.0
     ego_speed_max: Annotated[float, Field(ge=5.0, le=12.0)] = 12.0
+    rig: Path = Path("configs/world_rig.yaml")  # the file `load_params` reads the four keys below from
     lidar: LidarConfig = LidarConfig()
     camera: CameraConfig = CameraConfig()
     ego_body: EgoBodyConfig | None = EgoBodyConfig()
@@ -256,7 +263,8 @@ class WorldConfig(_Section):
     def _check(self) -> WorldConfig:
         if self.source == "synthetic" and self.sensor_overrides.as_dict():
             raise ValueError(f"sensor_overrides {sorted(self.sensor_overrides.as_dict())} apply to real data only; "
-                             f"the synthetic world's sensor is world.lidar / world.camera")
+                             f"the synthetic world's sensor is world.lidar / world.camera (in the file world.rig "
+                             f"names: set sensor_overrides there to null)")
         if self.ego_speed_min > self.ego_speed_max:
             raise ValueError(
                 f"ego_speed_min ({self.ego_speed_min}) must not exceed ego_speed_max ({self.ego_speed_max})"
@@ -464,7 +472,10 @@ class ReferencePrecipitationConfig(_Section):
     added 25 % of snow points at 64 sub-rays; `weatheralign.reference.lidar_particles_exact`); camera:
     ``camera_samples`` ray samples per pixel over an exposure of ``exposure_s``
     (`weatheralign.reference.camera_particles_exact`). Particle
-    reflectivity at 905 nm: ``snow_reflectivity``, ``rain_reflectivity`` (water's Fresnel reflectance)."""
+    reflectivity at 905 nm: ``snow_reflectivity``, ``rain_reflectivity`` (water's Fresnel reflectance).
+    The ground (``ground``: on): the rain split's road under a water film of a hidden mean depth drawn uniformly in
+    ``wet_film_depth_m``, the snow split's under lying snow of a hidden depth in ``snow_depth_m`` [m], sealed beside
+    the rates (`weatheralign.reference.synthetic.draw_ground_truth`), drawn on the true surfaces of the scene."""
 
     snow_rate_mm_h: tuple[float, float] = (1.2, 3.2)
     rain_rate_mm_h: tuple[float, float] = (25.0, 80.0)
@@ -477,10 +488,14 @@ class ReferencePrecipitationConfig(_Section):
     lidar_sub_rays: Annotated[int, Field(ge=4, le=4096)] = 256
     camera_samples: Annotated[int, Field(ge=1, le=256)] = 16
     exposure_s: Annotated[float, Field(ge=0.0, le=0.05)] = 0.006
+    ground: bool = True
+    wet_film_depth_m: tuple[float, float] = (0.0002, 0.0008)
+    snow_depth_m: tuple[float, float] = (0.02, 0.1)
 
     @model_validator(mode="after")
     def _check(self) -> ReferencePrecipitationConfig:
-        for name, lo_ok, hi_ok in (("snow_rate_mm_h", 0.0, 50.0), ("rain_rate_mm_h", 0.0, 500.0)):
+        for name, lo_ok, hi_ok in (("snow_rate_mm_h", 0.0, 50.0), ("rain_rate_mm_h", 0.0, 500.0),
+                                   ("wet_film_depth_m", 0.0, 0.01), ("snow_depth_m", 0.0, 1.0)):
             lo, hi = getattr(self, name)
             if not (lo_ok < lo < hi <= hi_ok):
                 raise ValueError(f"{name} = [{lo}, {hi}] must satisfy {lo_ok} < low < high <= {hi_ok}")
@@ -500,10 +515,13 @@ class ReferenceConfig(_Section):
     (``precipitation``), written only to ``<paths.data>/reference/sealed_truth.json``. ``source: stf`` checks a real
     Seeing Through Fog root in place.
     ``intensity_max`` declares the reference's LiDAR intensity scale (255 or 1.0).
+    ``setup``: the file `load_params` reads every key but ``source``, ``stf_root``, ``seed`` and
+    ``frames_per_split`` from (`SETUP_FILES`).
     """
 
     source: Literal["synthetic", "stf"] = "synthetic"
     stf_root: Path | None = None
+    setup: Path = Path("configs/reference.yaml")
     split_files: ReferenceSplitFiles = ReferenceSplitFiles()
     intensity_max: Literal[1.0, 255.0] = 255.0
     seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 4049
@@ -538,7 +556,8 @@ class ReferenceConfig(_Section):
             raise ValueError("the synthetic reference is written on the 0..255 scale: intensity_max must be 255")
         if self.source == "synthetic" and self.sensor_overrides.as_dict():
             raise ValueError(f"sensor_overrides {sorted(self.sensor_overrides.as_dict())} apply to a real reference "
-                             f"only; the synthetic reference's sensor is reference.lidar")
+                             f"only; the synthetic reference's sensor is reference.lidar (in the file "
+                             f"reference.setup names: set sensor_overrides there to null)")
         return self
 
 
@@ -566,20 +585,24 @@ class CalibratePrecipitationConfig(_Section):
     """The `calibrate_precipitation` stage (ReDAM for snow and rain): per kind, the reference's clear scans through
     the fast simulator at each rate of ``snow_rates`` / ``rain_rates`` [mm/h] (increasing), the rate whose mean
     open-path echo rate matches the reference's weather split, and a frame-bootstrap interval (``num_bootstrap``
-    resamples at ``confidence``, ``seed``)."""
+    resamples at ``confidence``, ``seed``). The ground likewise: the clear scans' ground edited at each film depth
+    of ``wet_film_depths_m`` and each snow depth of ``snow_depths_m`` [m] (increasing), the depth whose ground
+    statistic (`weatheralign.calibrate.ground`) matches the weather split's."""
 
     seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
     snow_rates: tuple[Annotated[float, Field(gt=0.0, le=20.0)], ...] = (0.6, 1.8, 5.4)
     rain_rates: tuple[Annotated[float, Field(gt=0.0, le=300.0)], ...] = (15.0, 45.0, 135.0)
     num_bootstrap: Annotated[int, Field(ge=10, le=100_000)] = 1000
     confidence: Annotated[float, Field(gt=0.5, lt=1.0)] = 0.95
+    wet_film_depths_m: tuple[Annotated[float, Field(gt=0.0, le=0.01)], ...] = (0.0001, 0.0003, 0.0006, 0.0012)
+    snow_depths_m: tuple[Annotated[float, Field(gt=0.0, le=1.0)], ...] = (0.01, 0.04, 0.16)
 
     @model_validator(mode="after")
     def _increasing(self) -> CalibratePrecipitationConfig:
-        for name in ("snow_rates", "rain_rates"):
+        for name in ("snow_rates", "rain_rates", "wet_film_depths_m", "snow_depths_m"):
             rates = getattr(self, name)
             if len(rates) < 2 or any(b <= a for a, b in zip(rates, rates[1:])):
-                raise ValueError(f"{name} = {list(rates)}: expected two or more increasing rates")
+                raise ValueError(f"{name} = {list(rates)}: expected two or more increasing values")
         return self
 
 
@@ -708,10 +731,14 @@ def apply_override(tree: dict[str, Any], assignment: str) -> tuple[str, ...]:
 
 
 def _format_error(source: str, tree: dict[str, Any], err: ValidationError,
-                  overrides: dict[tuple[str, ...], str] | None = None) -> str:
+                  overrides: dict[tuple[str, ...], str] | None = None,
+                  setup: dict[tuple[str, ...], tuple[str, set[tuple[str, ...]]]] | None = None) -> str:
     """One line per error: ``<source>: <key> = <value> is invalid: <why>``; an error in a value that a ``--set``
-    override gave is blamed on that ``--set`` instead of the file."""
+    override gave is blamed on that ``--set`` instead of the file, one in a value a setup file gave on that file
+    (``setup``: per section key read from a file, e.g. ``("world", "lidar")``, the file and the key paths that
+    params.yaml or a ``--set`` gave inside it)."""
     overrides = overrides or {}
+    setup = setup or {}
     lines = []
     for item in err.errors():
         loc = tuple(item["loc"])
@@ -731,8 +758,12 @@ def _format_error(source: str, tree: dict[str, Any], err: ValidationError,
         shown = "" if isinstance(value, dict) else f" = {value!r}"
         # the override that gave this value: the longest --set key that is the error's key or one of its sections
         given_by = [k for k in overrides if loc[:len(k)] == k]
+        in_file = setup.get(loc[:2]) if len(loc) >= 2 else None
         if given_by:
             origin = f"--set {overrides[max(given_by, key=len)]}"
+        elif in_file and not any(k[:len(loc)] == loc or loc[:len(k)] == k for k in in_file[1]):
+            lines.append(f"{in_file[0]}: {_join_key(loc[1:])}{shown} is invalid: {msg} ({_join_key(loc)})")
+            continue
         else:
             origin = source
             # a check over a whole section (e.g. min <= max) may involve keys set on the command line
@@ -758,26 +789,125 @@ def params_from_dict(tree: dict[str, Any], source: str = "params") -> Params:
 SECTIONS: tuple[str, ...] = tuple(Params.model_fields)
 """The top-level sections every params file must hold."""
 
+SETUP_FILES: dict[tuple[str, str], tuple[str, ...]] = {
+    ("world", "rig"): ("lidar", "camera", "ego_body", "sensor_overrides"),
+    ("reference", "setup"): ("split_files", "intensity_max", "sensor_overrides", "alpha_light", "alpha_dense",
+                             "beta_factor", "lidar", "camera", "precipitation"),
+}
+"""Per (section, key) of params.yaml that names a YAML file (relative to the params file's folder, or absolute): the
+keys of that section the file holds, every one of them and no other. The fixed setup, not knobs compared across
+experiments: dvc.yaml declares the file a plain dependency of every stage that reads it (``${world.rig}``)."""
 
-def load_params(path: str | Path = "params.yaml", overrides: list[str] | tuple[str, ...] = ()) -> Params:
-    """Read a params YAML file, apply ``key=value`` overrides, validate.
 
-    The file must hold every section of `Params` (`SECTIONS`); overrides change keys, they cannot stand in for a
-    missing section. Keys inside a section may be left out (they take their defaults).
-
-    Raises:
-        ConfigError: missing, empty or unparsable file, a missing section, a duplicate key, a malformed ``--set``,
-            or a key with a value outside its allowed range (named as ``--set`` when an override gave it).
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"{path}: params file not found")
+def _read_yaml_file(path: Path) -> Any:
+    """`_strict_yaml` of a file; a ConfigError naming the file when it is not valid YAML or repeats a key."""
     try:
-        tree = _strict_yaml(path.read_text())
+        return _strict_yaml(path.read_text())
     except _DuplicateKeyError as err:
         raise ConfigError(f"{path}: {err}") from None
     except yaml.YAMLError as err:
         raise ConfigError(f"{path}: not valid YAML: {err}") from None
+
+
+def _leaf_paths(node: Any, prefix: tuple[str, ...]) -> set[tuple[str, ...]]:
+    if isinstance(node, dict) and node:
+        return set().union(*(_leaf_paths(v, prefix + (str(k),)) for k, v in node.items()))
+    return {prefix}
+
+
+def _under(base: Any, top: Any) -> Any:
+    """``top`` merged over ``base``: mappings key by key, anything else replaced by ``top``."""
+    if isinstance(base, dict) and isinstance(top, dict):
+        return {**base, **{k: _under(base.get(k), v) if k in base else v for k, v in top.items()}}
+    return top
+
+
+def _read_setup_file(params_file: Path, section: str, key: str, value: Any) -> tuple[Path, dict[str, Any]]:
+    """The file ``<section>.<key>`` of ``params_file`` names, parsed and checked to hold exactly its keys."""
+    fields = SETUP_FILES[(section, key)]
+    keys = ", ".join(fields)
+    default = Params.model_fields[section].default
+    template = getattr(default, key)
+    what = f"a YAML file holding {section}'s {keys} (start from the repository's {template})"
+    if not isinstance(value, str) or not value.strip():
+        raise ConfigError(f"{params_file}: {section}.{key} = {value!r} is invalid: expected the path of {what}")
+    path = Path(value).expanduser()
+    path = path if path.is_absolute() else params_file.parent / path
+    if not path.is_file():
+        raise ConfigError(f"{params_file}: {section}.{key} = {value!r}: no such file {path}; expected {what}")
+    tree = _read_yaml_file(path)
+    if not isinstance(tree, dict):
+        got = "an empty file" if tree is None else f"a {type(tree).__name__}"
+        raise ConfigError(f"{path} ({section}.{key}): expected a mapping of {keys}, got {got}")
+    unknown = [str(k) for k in tree if k not in fields]
+    if unknown:
+        elsewhere = [k for k in unknown if k in type(default).model_fields]
+        hint = f"; {', '.join(f'{section}.{k}' for k in elsewhere)} belong{'s' if len(elsewhere) == 1 else ''} in " \
+               f"params.yaml" if elsewhere else " (check the spelling)"
+        raise ConfigError(f"{path}: unknown key{'s' if len(unknown) > 1 else ''} {', '.join(unknown)}: the file "
+                          f"{section}.{key} names holds {keys}{hint}")
+    missing = [k for k in fields if k not in tree]
+    if missing:
+        raise ConfigError(f"{path}: missing {', '.join(missing)}: the file {section}.{key} names must hold {keys} "
+                          f"(copy what is missing from the repository's {template})")
+    return path, tree
+
+
+def _with_setup_files(params_file: Path, tree: dict[str, Any], given: dict[tuple[str, ...], str]
+                      ) -> dict[tuple[str, ...], tuple[str, set[tuple[str, ...]]]]:
+    """Merge every setup file (`SETUP_FILES`) into ``tree`` in place, under what the tree already gives (params.yaml's
+    own keys and ``--set`` overrides, ``given``, win). Returns, per section key the files gave (``("world",
+    "lidar")``), the file and the key paths inside it that the tree overrode (for `_format_error`)."""
+    origins: dict[tuple[str, ...], tuple[str, set[tuple[str, ...]]]] = {}
+    for (section, key), fields in SETUP_FILES.items():
+        node = tree.get(section)
+        if not isinstance(node, dict):
+            continue  # a section that is not a mapping: validation names it
+        if key not in node:
+            by = [a for k, a in given.items() if (section, key)[:len(k)] == k]  # a --set that replaced the section
+            raise ConfigError(f"{f'--set {by[-1]}' if by else params_file}: {section}.{key} is missing: the path of "
+                              f"the YAML file holding {section}'s {', '.join(fields)} (the repository's "
+                              f"{getattr(Params.model_fields[section].default, key)})")
+        path, from_file = _read_setup_file(params_file, section, key, node[key])
+        for field in fields:
+            inline = _leaf_paths(node[field], (section, field)) if field in node else set()
+            node[field] = _under(from_file[field], node[field]) if field in node else from_file[field]
+            origins[(section, field)] = (str(path), inline)
+    return origins
+
+
+def load_params(path: str | Path = "params.yaml", overrides: list[str] | tuple[str, ...] = ()) -> Params:
+    """Read a params YAML file and the setup files it names (`SETUP_FILES`), apply ``key=value`` overrides, validate.
+
+    The file must hold every section of `Params` (`SECTIONS`) and name every setup file; overrides change keys, they
+    cannot stand in for a missing section. Keys inside a section may be left out (they take their defaults); a key of
+    a setup file given in params.yaml or by ``--set`` overrides the file's value.
+
+    Raises:
+        ConfigError: missing, empty or unparsable file (params or setup), a missing section, a setup file that does
+            not hold exactly its keys, a duplicate key, a malformed ``--set``, or a key with a value outside its
+            allowed range (named as ``--set`` when an override gave it, as the setup file when that gave it).
+    """
+    path = Path(path)
+    tree, given, setup = _read_tree(path, overrides)
+    try:
+        return Params.model_validate(tree)
+    except ValidationError as err:
+        raise ConfigError(_format_error(str(path), tree, err, given, setup)) from None
+
+
+def params_tree(path: str | Path = "params.yaml", overrides: list[str] | tuple[str, ...] = ()) -> dict[str, Any]:
+    """What `load_params` validates, unvalidated: the params file with its setup files merged in and ``overrides``
+    applied (every key a user can set, at its path: ``world.lidar.max_range_m``)."""
+    return _read_tree(Path(path), overrides)[0]
+
+
+def _read_tree(path: Path, overrides: list[str] | tuple[str, ...]
+               ) -> tuple[dict[str, Any], dict[tuple[str, ...], str], dict[tuple[str, ...], Any]]:
+    """The merged tree, the ``--set`` overrides by key path, and the setup files' origins (`_with_setup_files`)."""
+    if not path.is_file():
+        raise ConfigError(f"{path}: params file not found")
+    tree = _read_yaml_file(path)
     if tree is None:
         raise ConfigError(f"{path}: the params file is empty; it must hold the sections {', '.join(SECTIONS)} "
                           f"(start from the repository's params.yaml)")
@@ -793,7 +923,4 @@ def load_params(path: str | Path = "params.yaml", overrides: list[str] | tuple[s
         key = apply_override(tree, assignment)
         given = {k: a for k, a in given.items() if k[:len(key)] != key}  # a later --set of a section replaces it
         given[key] = assignment
-    try:
-        return Params.model_validate(tree)
-    except ValidationError as err:
-        raise ConfigError(_format_error(str(path), tree, err, given)) from None
+    return tree, given, _with_setup_files(path, tree, given)

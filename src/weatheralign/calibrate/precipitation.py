@@ -81,18 +81,46 @@ EXTRAPOLATION = 2.0
 """A tuned rate is extrapolated at most this factor beyond the grid's ends (and flagged ``beyond_grid``)."""
 
 
-def _invert(mean_ref: float, means: F64, log_rates: F64) -> float:
-    """The rate whose interpolated mean statistic (log-log, extrapolated along the end segments, at most
-    `EXTRAPOLATION` beyond the grid) is ``mean_ref``."""
-    log_m = np.log(np.maximum(means, 1e-12))
-    order = np.argsort(log_m)
-    x, y = log_m[order], log_rates[order]
-    target = np.log(max(mean_ref, 1e-12))
+def _invert(mean_ref: float, means: F64, grid: F64, log_axes: bool = True) -> float:
+    """The grid value whose interpolated mean statistic is ``mean_ref``: on log-log axes (``log_axes``) or linear
+    ones, extrapolated along the end segments, at most `EXTRAPOLATION` times beyond the grid's ends."""
+    forward = np.log if log_axes else (lambda v: np.asarray(v, dtype=np.float64))
+    x_all = forward(np.maximum(means, 1e-12) if log_axes else means)
+    y_all = forward(grid)
+    order = np.argsort(x_all)
+    x, y = x_all[order], y_all[order]
+    target = float(forward(max(mean_ref, 1e-12) if log_axes else mean_ref))
     k = int(np.clip(np.searchsorted(x, target), 1, len(x) - 1))
     slope = (y[k] - y[k - 1]) / (x[k] - x[k - 1]) if x[k] > x[k - 1] else 0.0
-    limit = np.log(EXTRAPOLATION)
-    return float(np.exp(np.clip(y[k - 1] + slope * (target - x[k - 1]), log_rates[0] - limit,
-                                log_rates[-1] + limit)))
+    value = y[k - 1] + slope * (target - x[k - 1])
+    if log_axes:
+        limit = np.log(EXTRAPOLATION)
+        return float(np.exp(np.clip(value, y_all[0] - limit, y_all[-1] + limit)))
+    return float(np.clip(value, grid[0] / EXTRAPOLATION, grid[-1] * EXTRAPOLATION))
+
+
+def bootstrap_fit(reference: NDArray, simulated: NDArray, grid: Sequence[float], *, log_axes: bool = True,
+                  num_bootstrap: int = 1000, confidence: float = 0.95, seed: int = 0
+                  ) -> tuple[float, float, float, F64]:
+    """The grid value (``grid`` (R,) increasing, positive) at which the simulated mean statistic (``simulated``
+    (R, F)) equals the reference's mean (``reference`` (F_ref,)) by `_invert`, with a percentile interval over
+    ``num_bootstrap`` resamples of the reference frames and of the simulated frames (one draw of frame indices for
+    every grid value). Returns (estimate, low, high, simulated means (R,))."""
+    ref = np.asarray(reference, dtype=np.float64)
+    sim = np.asarray(simulated, dtype=np.float64)
+    values = np.asarray(grid, dtype=np.float64)
+    if sim.ndim != 2 or sim.shape[0] != len(values) or len(values) < 2 or len(ref) < 1:
+        raise ValueError(f"simulated must be (R, F) with R = {len(values)} >= 2 grid values, got {sim.shape}")
+    if not np.all(np.diff(values) > 0) or not values[0] > 0:
+        raise ValueError(f"the grid must be positive and increase, got {list(grid)}")
+    means = sim.mean(axis=1)
+    estimate = _invert(float(ref.mean()), means, values, log_axes)
+    rng = np.random.default_rng(seed)
+    boot = np.array([_invert(float(ref[rng.integers(0, len(ref), len(ref))].mean()),
+                             sim[:, rng.integers(0, sim.shape[1], sim.shape[1])].mean(axis=1), values, log_axes)
+                     for _ in range(num_bootstrap)])
+    tail = (1.0 - confidence) / 2.0
+    return estimate, float(np.quantile(boot, tail)), float(np.quantile(boot, 1.0 - tail)), means
 
 
 @dataclass(frozen=True)
@@ -122,26 +150,13 @@ class RateFit:
 def fit_rate(reference: NDArray, simulated: NDArray, rates: Sequence[float], *, num_bootstrap: int = 1000,
              confidence: float = 0.95, seed: int = 0) -> RateFit:
     """The rate at which the simulated mean statistic (``simulated`` (R, F) at ``rates`` (R,), increasing) equals the
-    reference's mean (``reference`` (F_ref,)), with a percentile interval over ``num_bootstrap`` resamples of the
-    reference frames and of the simulated frames (one draw of frame indices for all rates)."""
-    ref = np.asarray(reference, dtype=np.float64)
-    sim = np.asarray(simulated, dtype=np.float64)
-    log_rates = np.log(np.asarray(rates, dtype=np.float64))
-    if sim.ndim != 2 or sim.shape[0] != len(log_rates) or len(log_rates) < 2 or len(ref) < 1:
-        raise ValueError(f"simulated must be (R, F) with R = {len(log_rates)} >= 2 rates, got {sim.shape}")
-    if not np.all(np.diff(log_rates) > 0):
-        raise ValueError(f"rates must increase, got {list(rates)}")
-    means = sim.mean(axis=1)
-    estimate = _invert(float(ref.mean()), means, log_rates)
-    rng = np.random.default_rng(seed)
-    boot = np.array([_invert(float(ref[rng.integers(0, len(ref), len(ref))].mean()),
-                             sim[:, rng.integers(0, sim.shape[1], sim.shape[1])].mean(axis=1), log_rates)
-                     for _ in range(num_bootstrap)])
-    tail = (1.0 - confidence) / 2.0
-    low, high = float(np.quantile(boot, tail)), float(np.quantile(boot, 1.0 - tail))
-    return RateFit(estimate, low, high, float(ref.mean()), tuple(float(m) for m in means),
+    reference's mean (``reference`` (F_ref,)), interpolated on log-log axes, with a frame-bootstrap interval
+    (`bootstrap_fit`)."""
+    estimate, low, high, means = bootstrap_fit(reference, simulated, rates, num_bootstrap=num_bootstrap,
+                                               confidence=confidence, seed=seed)
+    return RateFit(estimate, low, high, float(np.mean(reference)), tuple(float(m) for m in means),
                    tuple(float(r) for r in rates))
 
 
-__all__ = ["EXTRAPOLATION", "RateFit", "fit_rate", "open_path_echo_rate", "reference_statistics",
+__all__ = ["EXTRAPOLATION", "RateFit", "bootstrap_fit", "fit_rate", "open_path_echo_rate", "reference_statistics",
            "simulated_statistics"]

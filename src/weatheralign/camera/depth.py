@@ -33,7 +33,8 @@ the synthetic world and as Koschmieder's law needs), ``inf`` for sky. Stages (`d
    the LiDAR frame, `above_fov_mask`) points above ``lidar_top_elevation_deg`` and has no LiDAR support nearby is
    sky (with an image: no point within reach on its own side of an image boundary, `lidar_support`); with an image,
    only where the image agrees (`image_sky`: bright, bluish or neutral, smooth, above the horizon, connected to the
-   top border, not continuing a LiDAR-hit surface) - and then also below the top
+   top border, not continuing a LiDAR-hit surface; or of that sky's colour at its height, as the sky between the
+   branches of a crown) - and then also below the top
    elevation where the LiDAR had no return (sky at the end of a street). Unsupported pixels above the field of view
    that the image shows as structure (facades above the top ring) keep the camera z of the highest known pixel of
    their column (a vertical surface continued upwards), with low confidence: "sky is far only where it really is
@@ -667,7 +668,7 @@ def refine_edges(inv_fill: F32, conf_inv: F32, todo: BoolA, image: NDArray, radi
 
 def image_sky(image: NDArray, lidar_pixels: BoolA | None = None, allowed: BoolA | None = None,
               point_gap_px: float = 8.0, scale: int = 4, max_gradient: float = 0.04, min_brightness: float = 0.75,
-              max_contact: float = 0.3) -> BoolA:
+              max_contact: float = 0.3, min_patch_px: int = 6, patch_tol: float = 0.05) -> BoolA:
     """(H, W) bool: pixels that look like sky: smooth (blurred largest per-channel gradient below ``max_gradient``
     per px at 1/``scale``), bright (max channel >= ``min_brightness`` x the 99th percentile of the upper third),
     bluish or neutral (blue >= red - 0.03) and connected (4-neighbourhood) to the image's top border through such
@@ -678,6 +679,11 @@ def image_sky(image: NDArray, lidar_pixels: BoolA | None = None, allowed: BoolA 
     region is cut along the LiDAR points (``lidar_pixels`` (H, W); each point extended sideways by its horizontal
     spacing ``point_gap_px`` so a ring becomes a line), and a region that meets those cuts over more than
     ``max_contact`` of its columns continues a LiDAR-hit surface (a pale facade above the top ring): not sky.
+    Sky seen through a gap (between the branches of a crown, under a bridge) is neither smooth nor connected to the
+    top border: bright pixels within ``patch_tol`` of the connected sky's colour at their height (`_sky_coloured`),
+    in regions of ``min_patch_px`` or more (at 1/``scale``) framed by texture (`_framed_by_texture`: foliage, not a
+    smooth facade with a pale patch) that do not continue a LiDAR-hit surface, are sky too. A window reflects the
+    sky far dimmer than the sky itself.
     Finally the skyline is sharpened at full resolution by colour (`_grow_sky`).
     """
     f = _as_float_rgb(image)
@@ -708,26 +714,70 @@ def image_sky(image: NDArray, lidar_pixels: BoolA | None = None, allowed: BoolA 
     if cut.any() and len(top_labels):
         # a region that continues smoothly into LiDAR-hit surface along much of its width (a pale facade above the
         # top ring) is that surface; real sky meets LiDAR points only at a few columns (a pale pole or wall edge)
-        hl, wl = like.shape
-        cv, cu = np.nonzero(cut)
-        keys = []
-        for dv, du in ((-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (-1, 1), (1, -1), (1, 1)):
-            nv, nu = cv + dv, cu + du
-            ok = (nv >= 0) & (nv < hl) & (nu >= 0) & (nu < wl)
-            touch = lab[nv[ok], nu[ok]]
-            keys.append(touch[touch > 0] * wl + cu[ok][touch > 0])  # every region beside a cut pixel touches it
-        contact = np.bincount(np.unique(np.concatenate(keys)) // wl, minlength=n)
-        lv, lu = np.nonzero(like)
-        span = np.bincount(np.unique(lab[lv, lu] * wl + lu) // wl, minlength=n)
-        solid = contact > max_contact * np.maximum(span, 1)
+        solid = _continues_a_surface(lab, n, cut, max_contact)
         top_labels = top_labels[~solid[top_labels]]
     sky = np.isin(lab, top_labels) & like
+    if sky.any():  # the sky through gaps: its colour at that height, bright, and not a LiDAR-hit surface
+        hue = (V >= min_brightness * ref) & (fs[..., 2] >= fs[..., 0] - 0.03) & ~cut & ~sky
+        if allowed is not None:
+            hue &= cv2.resize(allowed.astype(np.uint8), hue.shape[::-1], interpolation=cv2.INTER_NEAREST) > 0
+        hue &= _sky_coloured(fs, sky, patch_tol)
+        m, gaps = cv2.connectedComponents(hue.astype(np.uint8), connectivity=4)
+        if m > 1:
+            keep = np.bincount(gaps.ravel(), minlength=m) >= min_patch_px
+            keep &= _framed_by_texture(gaps, m, mag, 2.0 * max_gradient)
+            if cut.any():
+                keep &= ~_continues_a_surface(gaps, m, cut, max_contact)
+            keep[0] = False
+            sky |= keep[gaps]
     if s > 1:
         sky_full = cv2.resize(sky.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
         sky = _grow_sky(sky_full, sky, f, fs, grow_px=3 * s)
         if allowed is not None:
             sky &= allowed
     return sky
+
+
+def _continues_a_surface(labels: NDArray, count: int, cut: BoolA, max_contact: float) -> BoolA:
+    """(count,) per region of ``labels`` (0: none): whether it touches the LiDAR's ``cut`` (h, w) pixels (8-neighbours)
+    along more than ``max_contact`` of the columns it spans: it continues a LiDAR-hit surface."""
+    hl, wl = labels.shape
+    cv, cu = np.nonzero(cut)
+    keys = []
+    for dv, du in ((-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (-1, 1), (1, -1), (1, 1)):
+        nv, nu = cv + dv, cu + du
+        ok = (nv >= 0) & (nv < hl) & (nu >= 0) & (nu < wl)
+        touch = labels[nv[ok], nu[ok]]
+        keys.append(touch[touch > 0] * wl + cu[ok][touch > 0])  # every region beside a cut pixel touches it
+    contact = np.bincount(np.unique(np.concatenate(keys)) // wl, minlength=count)
+    lv, lu = np.nonzero(labels > 0)
+    span = np.bincount(np.unique(labels[lv, lu] * wl + lu) // wl, minlength=count)
+    return contact[:count] > max_contact * np.maximum(span[:count], 1)
+
+
+def _framed_by_texture(labels: NDArray, count: int, gradient: F32, min_gradient: float, width: int = 2) -> BoolA:
+    """(count,) per region of ``labels`` (0: none): whether the ``width``-pixel frame around it is textured (mean
+    ``gradient`` over it above ``min_gradient``): foliage around a gap, not a smooth facade around a pale patch."""
+    kernel = np.ones((2 * width + 1, 2 * width + 1), np.uint8)
+    grown = cv2.dilate(labels.astype(np.float32), kernel).astype(np.int64)  # the largest label nearby
+    frame = (labels == 0) & (grown > 0)
+    total = np.bincount(grown[frame], weights=gradient[frame], minlength=count)[:count]
+    size = np.bincount(grown[frame], minlength=count)[:count]
+    return total > min_gradient * np.maximum(size, 1)
+
+
+def _sky_coloured(rgb: F32, sky: BoolA, tol: float) -> BoolA:
+    """(h, w) pixels of ``rgb`` (h, w, 3) within ``tol`` (every channel) of the mean colour of the ``sky`` pixels in
+    the nearest row that has some (the sky's colour changes with height, little along a row)."""
+    h = sky.shape[0]
+    in_row = sky.sum(axis=1)
+    have = np.nonzero(in_row > 0)[0]
+    row_colour = np.stack([(rgb[..., c] * sky).sum(axis=1) for c in range(3)], axis=1) / np.maximum(in_row, 1)[:, None]
+    rows = np.arange(h)
+    after = np.clip(np.searchsorted(have, rows), 0, len(have) - 1)
+    before = np.clip(after - 1, 0, len(have) - 1)
+    nearest = np.where(np.abs(have[before] - rows) < np.abs(have[after] - rows), have[before], have[after])
+    return np.abs(rgb - row_colour[nearest][:, None, :]).max(axis=2) <= tol
 
 
 def _grow_sky(sky: BoolA, sky_small: BoolA, rgb: F32, rgb_small: F32, grow_px: int, tol: float = 0.04) -> BoolA:

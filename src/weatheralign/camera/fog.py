@@ -138,10 +138,12 @@ RANGE_SIGMA = 0.05
 def range_guided_weights_naive(range_map: NDArray, stride: int, sigma: float = RANGE_SIGMA
                                ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.float64]]:
     """How each pixel of ``range_map`` (H, W) [m] (inf: sky) reads values given on its every ``stride``-th row and
-    column: its 4 bilinear neighbours' (rows, cols) on the coarse grid (H, W, 4) and their weights (H, W, 4), the
-    bilinear weights times `weatheralign.camera.kernels.range_weight` (1 for sky to sky, 0 for sky to surface,
-    ``exp(-(dl / (sigma l))^2)`` else), normalised; where they all vanish, the neighbour of nearest ray length alone;
-    all 0 where no neighbour is sky for a sky pixel or surface for a surface pixel. The numpy oracle of
+    column: its 4 bilinear neighbours' (rows, cols) on the coarse grid (H, W, 4) and their weights (H, W, 4). Where the
+    pixel lies on the surface its neighbours span (its ray length within ``sigma`` of their bilinear interpolation: a
+    road seen at a grazing angle, whose ray length changes fast from row to row) the bilinear weights; across a depth
+    edge they are times `weatheralign.camera.kernels.range_weight` (1 for sky to sky, 0 for sky to surface, ``exp(-(dl /
+    (sigma l))^2)`` else), normalised; where they all vanish, the neighbour of nearest ray length alone; all 0 where no
+    neighbour is sky for a sky pixel or surface for a surface pixel. The numpy oracle of
     `weatheralign.camera.kernels.guided_affine_edit_kernel`."""
     rng = np.asarray(range_map, dtype=np.float64)
     height, width = rng.shape
@@ -155,11 +157,14 @@ def range_guided_weights_naive(range_map: NDArray, stride: int, sigma: float = R
     weights = np.stack([(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx], axis=-1)
     coarse = rng[rows * stride, cols * stride]
     fine = rng[..., None]
+    with np.errstate(invalid="ignore"):
+        spanned = (weights * coarse).sum(axis=-1, keepdims=True)
+        smooth = np.isfinite(spanned) & np.isfinite(fine) & (np.abs(spanned - fine) <= sigma * fine)
     same_kind = np.isinf(coarse) == np.isinf(fine)
     with np.errstate(invalid="ignore"):
         miss = np.where(np.isinf(fine), 0.0, np.abs(coarse - fine))
         ratio = np.where(np.isinf(fine), 0.0, miss / (sigma * np.maximum(fine, 1e-6)))
-    weights = weights * np.where(same_kind, np.exp(-ratio**2), 0.0)
+    weights = weights * np.where(smooth, 1.0, np.where(same_kind, np.exp(-ratio**2), 0.0))
     total = weights.sum(axis=-1, keepdims=True)
     miss = np.where(same_kind, miss, np.inf)
     nearest = np.argmin(miss, axis=-1)  # first of equals, as the kernel
@@ -182,17 +187,28 @@ def range_guided_upsample(values: NDArray, range_map: NDArray, stride: int, sigm
 
 
 def affine_edit_u8(image: U8, gain: NDArray, offset: NDArray, edited: NDArray, range_map: NDArray, stride: int = 1,
-                   sigma: float = RANGE_SIGMA) -> tuple[U8, NDArray[np.bool_]]:
+                   sigma: float = RANGE_SIGMA, alternative: tuple[NDArray, NDArray] | None = None,
+                   switch: NDArray | None = None) -> tuple[U8, NDArray[np.bool_]]:
     """``encode_srgb_u8(decode_srgb_u8(image) * G + O)`` for a uint8 sRGB ``image`` (H, W, 3), with ``gain`` and
     ``offset`` (ceil(H / stride), ceil(W / stride), 3) in linear light and ``edited`` (same h, w) given on every
     ``stride``-th row and column of ``range_map`` (H, W) [m] and brought to each pixel as G, O and E by
     `range_guided_upsample` (gain 1 and offset 0 where no neighbour counts), in one compiled pass
-    (`weatheralign.camera.kernels.guided_affine_edit_kernel`); returns the image and the pixels where E > 0.5."""
+    (`weatheralign.camera.kernels.guided_affine_edit_kernel`); returns the image and the pixels where E > 0.5.
+    With ``alternative`` layers (gain, offset) and a finite ``switch`` field (h, w), the pixels where the brought
+    ``switch`` exceeds 0 take the brought alternative instead (a boundary each pixel finds for itself)."""
+    if (alternative is None) != (switch is None):
+        raise ValueError("affine_edit_u8: give both alternative and switch, or neither")
+    empty = np.zeros((0, 0, 3))
+    alt_gain, alt_offset = alternative if alternative is not None else (empty, empty)
     return guided_affine_edit_kernel(np.ascontiguousarray(image, dtype=np.uint8),
                                      np.ascontiguousarray(gain, dtype=np.float64),
                                      np.ascontiguousarray(offset, dtype=np.float64),
                                      np.ascontiguousarray(edited, dtype=np.float64),
                                      np.ascontiguousarray(range_map, dtype=np.float64), int(stride), float(sigma),
+                                     np.ascontiguousarray(alt_gain, dtype=np.float64),
+                                     np.ascontiguousarray(alt_offset, dtype=np.float64),
+                                     np.ascontiguousarray(np.zeros((0, 0)) if switch is None else switch,
+                                                          dtype=np.float64),
                                      _DECODE_LUT, _ENCODE_LUT, _ENCODE_AMBIGUOUS, _ENCODE_THRESHOLDS, _ENC_BINS)
 
 

@@ -139,21 +139,28 @@ def range_weight(coarse: np.float64, fine: np.float64, sigma: float) -> np.float
 
 @numba.njit(cache=True, nogil=True)
 def guided_affine_edit_kernel(image: U8, gain: NDArray, offset: NDArray, edited: NDArray, range_map: NDArray,
-                              stride: int, sigma: float, decode_lut: NDArray, lut: NDArray, ambiguous: NDArray,
-                              thresholds: NDArray, bins: int) -> tuple[U8, NDArray]:
+                              stride: int, sigma: float, alt_gain: NDArray, alt_offset: NDArray, switch: NDArray,
+                              decode_lut: NDArray, lut: NDArray, ambiguous: NDArray, thresholds: NDArray,
+                              bins: int) -> tuple[U8, NDArray]:
     """(H, W, 3) uint8 sRGB ``image`` edited in linear light as ``decode(image) * gain + offset`` and encoded back
-    exactly (`encode_one`), with ``gain``, ``offset`` (h, w, 3) and ``edited`` (h, w) float given on every
-    ``stride``-th row and column of ``range_map`` (H, W) [m] and brought to each pixel by range-guided bilinear
-    weights (`weatheralign.camera.fog.range_guided_weights_naive`); returns the image and the (H, W) pixels whose
-    interpolated ``edited`` exceeds 0.5. Pixels whose four samples change nothing are copied as they are (the
-    identity round-trips every code). One pass; nothing full-size allocated but the outputs."""
+    exactly (`encode_one`), with ``gain``, ``offset`` (h, w, 3) and ``edited`` (h, w) float given on every ``stride``-th
+    row and column of ``range_map`` (H, W) [m] and brought to each pixel by bilinear weights, guided by the ray lengths
+    across a depth edge (`weatheralign.camera.fog.range_guided_weights_naive`); returns the image and the (H, W) pixels
+    whose interpolated ``edited`` exceeds 0.5. Where ``switch`` (h, w) is given (else (0, 0)), a pixel whose
+    interpolated ``switch`` exceeds 0 takes the interpolated ``alt_gain``, ``alt_offset`` (h, w, 3) instead. Pixels
+    whose four samples change nothing are copied as they are (the identity round-trips every code). One pass;
+    nothing full-size allocated but the outputs."""
     height, width = image.shape[0], image.shape[1]
     h, w = gain.shape[0], gain.shape[1]
+    switching = switch.shape[0] > 0
     touched = np.zeros((h, w), np.bool_)
     for y in range(h):
         for x in range(w):
             touched[y, x] = edited[y, x] != 0.0 or gain[y, x, 0] != 1.0 or gain[y, x, 1] != 1.0 or \
                 gain[y, x, 2] != 1.0 or offset[y, x, 0] != 0.0 or offset[y, x, 1] != 0.0 or offset[y, x, 2] != 0.0
+            if switching and not touched[y, x]:
+                touched[y, x] = alt_gain[y, x, 0] != 1.0 or alt_gain[y, x, 1] != 1.0 or alt_gain[y, x, 2] != 1.0 or \
+                    alt_offset[y, x, 0] != 0.0 or alt_offset[y, x, 1] != 0.0 or alt_offset[y, x, 2] != 0.0
     out = np.empty((height, width, 3), np.uint8)
     mask = np.zeros((height, width), np.bool_)
     rows = np.empty(4, np.int64)
@@ -175,11 +182,15 @@ def guided_affine_edit_kernel(image: U8, gain: NDArray, offset: NDArray, edited:
             rows[2], cols[2], weights[2] = y1, x0, fy * (1.0 - fx)
             rows[3], cols[3], weights[3] = y1, x1, fy * fx
             r = np.float64(range_map[i, j])
+            spanned = 0.0  # the ray length the four samples' surface has here, bilinearly
+            for k in range(4):
+                spanned += weights[k] * np.float64(range_map[rows[k] * stride, cols[k] * stride])
+            smooth = np.isfinite(spanned) and np.isfinite(r) and abs(spanned - r) <= sigma * r
             total = 0.0
             best, best_k = np.inf, -1
             for k in range(4):
                 c = np.float64(range_map[rows[k] * stride, cols[k] * stride])
-                rw = range_weight(c, r, sigma)
+                rw = 1.0 if smooth else range_weight(c, r, sigma)
                 if np.isinf(c) == np.isinf(r):
                     miss = 0.0 if np.isinf(r) else abs(c - r)
                     if miss < best:
@@ -194,13 +205,23 @@ def guided_affine_edit_kernel(image: U8, gain: NDArray, offset: NDArray, edited:
             for k in range(4):
                 e += weights[k] * edited[rows[k], cols[k]]
             mask[i, j] = total > 0.0 and e > 0.5 * total
+            alternative = False
+            if switching and total > 0.0:
+                s = 0.0
+                for k in range(4):
+                    s += weights[k] * switch[rows[k], cols[k]]
+                alternative = s > 0.0
             for ch in range(3):
                 g, o = 1.0, 0.0
                 if total > 0.0:
                     g, o = 0.0, 0.0
                     for k in range(4):
-                        g += weights[k] * gain[rows[k], cols[k], ch]
-                        o += weights[k] * offset[rows[k], cols[k], ch]
+                        if alternative:
+                            g += weights[k] * alt_gain[rows[k], cols[k], ch]
+                            o += weights[k] * alt_offset[rows[k], cols[k], ch]
+                        else:
+                            g += weights[k] * gain[rows[k], cols[k], ch]
+                            o += weights[k] * offset[rows[k], cols[k], ch]
                     g /= total
                     o /= total
                 x = np.float64(decode_lut[image[i, j, ch]]) * g + o

@@ -35,6 +35,7 @@ from the same depth field and surface normals as the LiDAR's):
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -174,36 +175,71 @@ def wet_road_layers(image: F64, range_map: F64, camera: CameraGeometry, ground_m
                     film_blur_px: tuple[int, int] = (31, 5), reflection_stride: int = 2) -> tuple[F64, F64]:
     """`wet_road_image` as ``(gain, offset)`` (H, W, 3): the wet image is ``image * gain + offset`` (gain 1 and
     offset 0 where nothing changes), so that layers found at a coarser resolution can edit the full image."""
+    return _wet_layers(image, range_map, camera, ground_mask, [water_depth_m], road, normal, sky, film_blur_px,
+                       reflection_stride)[0]
+
+
+class WetLayers(NamedTuple):
+    """A wet road's camera layers, each ``(gain, offset)`` (H, W, 3) of ``image * gain + offset``: under the film
+    everywhere, and under a puddle everywhere; a pixel takes the puddle's where
+    `weatheralign.ground.wet.puddle_margin` > 0 at its ground point."""
+
+    film: tuple[F64, F64]
+    puddle: tuple[F64, F64]
+
+
+def wet_road_layer_pair(image: F64, range_map: F64, camera: CameraGeometry, ground_mask: NDArray[np.bool_],
+                        film_depth_m: F64, road: WetRoad, normal: F64, sky: F64,
+                        film_blur_px: tuple[int, int] = (31, 5), reflection_stride: int = 2) -> WetLayers:
+    """`wet_road_layers` under the film of ``film_depth_m`` (H, W) [m] and under a puddle of ``road.puddle_depth_m``
+    on every ``ground_mask`` pixel, the mirror image traced once: layers found on a coarse grid then meet at the
+    shoreline each full-size pixel finds for itself, not at the coarse grid's steps."""
+    puddle = np.full(np.shape(range_map), road.puddle_depth_m)
+    film, deep = _wet_layers(image, range_map, camera, ground_mask, [film_depth_m, puddle], road, normal, sky,
+                             film_blur_px, reflection_stride)
+    return WetLayers(film, deep)
+
+
+def _wet_layers(image: F64, range_map: F64, camera: CameraGeometry, ground_mask: NDArray[np.bool_],
+                depths_m: list[F64], road: WetRoad, normal: F64, sky: F64, film_blur_px: tuple[int, int],
+                reflection_stride: int) -> list[tuple[F64, F64]]:
+    """``(gain, offset)`` (H, W, 3) of the road under each water depth field of ``depths_m`` ((H, W) [m] each), the
+    mirror image traced once for the pixels any of them wets."""
     image = np.asarray(image, dtype=np.float64)
-    gain, offset = np.ones_like(image), np.zeros_like(image)
-    share = np.where(ground_mask, wetted_share(water_depth_m, road.texture_depth_m), 0.0)
-    pixels = np.argwhere(share > 0)
+    shares = [np.where(ground_mask, wetted_share(depth, road.texture_depth_m), 0.0) for depth in depths_m]
+    pixels = np.argwhere(np.any(np.stack(shares) > 0, axis=0))
     if len(pixels) == 0:
-        return gain, offset
+        return [(np.ones_like(image), np.zeros_like(image)) for _ in depths_m]
+    rows, cols = pixels[:, 0], pixels[:, 1]
     n = road.refractive_index
-    rays = camera.rays_world(*range_map.shape)[pixels[:, 0], pixels[:, 1]]
+    rays = camera.rays_world(*range_map.shape)[rows, cols]
     theta_v = np.arccos(np.clip(np.abs(rays @ normal), 0.0, 1.0))
-    dry = image[pixels[:, 0], pixels[:, 1]]
+    dry = image[rows, cols]
     colour = dry / np.maximum(dry.mean(axis=1, keepdims=True), 1e-6)
     rho = np.clip(road.pavement_reflectivity * colour, 0.0, 0.95)
     r_e, r_i = hemispherical_reflectance(1.0, n), hemispherical_reflectance(n, 1.0)
     reflectance = fresnel_reflectance(theta_v, 1.0, n)[:, None]
     through_water = (1.0 - r_e) * (1.0 - reflectance) / (n**2 * (1.0 - rho * r_i))
-    reflected = strided_reflection(image, range_map, camera, pixels, rays, normal, sky, reflection_stride)
-    puddle = water_depth_m[pixels[:, 0], pixels[:, 1]] >= road.texture_depth_m
-    if max(film_blur_px) > 1 and not puddle.all():  # a film's broken surface: a mirror image smeared vertically
+    sharp = strided_reflection(image, range_map, camera, pixels, rays, normal, sky, reflection_stride)
+    puddles = [np.asarray(depth)[rows, cols] >= road.texture_depth_m for depth in depths_m]
+    soft = sharp
+    if max(film_blur_px) > 1 and not all(puddle.all() for puddle in puddles):
+        # a film's broken surface: a mirror image smeared vertically
         layer = np.zeros_like(image)
-        layer[pixels[:, 0], pixels[:, 1]] = reflected
+        layer[rows, cols] = sharp
         weight = np.zeros(range_map.shape)
-        weight[pixels[:, 0], pixels[:, 1]] = 1.0
+        weight[rows, cols] = 1.0
         blurred = uniform_filter(layer, size=(*film_blur_px, 1))
         norm = uniform_filter(weight, size=film_blur_px)[..., None]
-        soft = (blurred / np.maximum(norm, 1e-9))[pixels[:, 0], pixels[:, 1]]
-        reflected = np.where(puddle[:, None], reflected, soft)
-    c = share[pixels[:, 0], pixels[:, 1]][:, None]
-    gain[pixels[:, 0], pixels[:, 1]] = (1.0 - c) + c * through_water
-    offset[pixels[:, 0], pixels[:, 1]] = c * reflectance * reflected
-    return gain, offset
+        soft = (blurred / np.maximum(norm, 1e-9))[rows, cols]
+    out = []
+    for share, puddle in zip(shares, puddles, strict=True):
+        gain, offset = np.ones_like(image), np.zeros_like(image)
+        c = share[rows, cols][:, None]
+        gain[rows, cols] = (1.0 - c) + c * through_water
+        offset[rows, cols] = c * reflectance * np.where(puddle[:, None], sharp, soft)
+        out.append((gain, offset))
+    return out
 
 
 def snow_cover_image(image: F64, coverage: F64, points_world: F64, ground_mask: NDArray[np.bool_], cover: SnowCover,
@@ -248,4 +284,5 @@ def snow_cover_layers(image: F64, coverage: F64, points_world: F64, ground_mask:
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 / sRGB primaries, linear light
 
 __all__ = ["CameraGeometry", "LUMINANCE", "screen_space_reflection", "screen_space_reflection_naive",
-           "snow_cover_image", "snow_cover_layers", "strided_reflection", "wet_road_image", "wet_road_layers"]
+           "snow_cover_image", "snow_cover_layers", "strided_reflection", "WetLayers", "wet_road_image",
+           "wet_road_layer_pair", "wet_road_layers"]

@@ -21,7 +21,7 @@ from scipy.ndimage import gaussian_filter
 
 from weatheralign.camera.fog import affine_edit_u8, decode_srgb_u8, range_guided_upsample
 from weatheralign.data.frame import LidarScan
-from weatheralign.ground.camera import CameraGeometry, snow_cover_layers, wet_road_layers
+from weatheralign.ground.camera import CameraGeometry, snow_cover_layers, wet_road_layer_pair, wet_road_layers
 from weatheralign.ground.snow import SnowCover, TireTracks, snow_coverage, snow_covered_ground, snow_depth
 from weatheralign.ground.surfaces import (
     GroundPlane,
@@ -31,7 +31,7 @@ from weatheralign.ground.surfaces import (
     pixel_normals,
     point_normals,
 )
-from weatheralign.ground.wet import WetRoad, incidence_angle, water_depth, wet_ground
+from weatheralign.ground.wet import WetRoad, film_depth, incidence_angle, puddle_margin, water_depth, wet_ground
 
 F64 = NDArray[np.float64]
 Mask = NDArray[np.bool_]
@@ -156,25 +156,55 @@ class EditedImage(NamedTuple):
     edited: Mask  # (H, W) pixels on a wet or snow-covered surface
 
 
+class GroundLayers(NamedTuple):
+    """The ground's camera layers on one grid: the image becomes ``image * gain + offset`` (H, W, 3), its ``edited``
+    pixels (H, W) on a wet or snow-covered surface; with ``puddle`` layers (gain, offset), the pixels whose
+    ``shoreline`` (H, W, finite: `weatheralign.ground.wet.puddle_margin` on the ground, -1 off it) is > 0 take
+    those instead."""
+
+    gain: F64
+    offset: F64
+    edited: Mask
+    puddle: tuple[F64, F64] | None = None
+    shoreline: F64 | None = None
+
+    def combined(self) -> tuple[F64, F64]:
+        """(gain, offset) with the puddle's where the shoreline says so, on this grid."""
+        if self.puddle is None or self.shoreline is None:
+            return self.gain, self.offset
+        inside = (self.shoreline > 0)[..., None]
+        return np.where(inside, self.puddle[0], self.gain), np.where(inside, self.puddle[1], self.offset)
+
+
 def edit_image(linear: F64, range_map: NDArray, camera: CameraGeometry, exact_range: bool,
                surfaces: ScanSurfaces, T_world_scan: F64, state: GroundState, sky: F64,
                work_stride: int = WORK_STRIDE) -> EditedImage:
     """The linear image (H, W, 3) of ``camera`` with ``state``'s ground over the pixels on the scan's ground plane
     and up-facing surfaces (``surfaces`` of the scan whose frame ``T_world_scan`` (4, 4) maps to the world);
     ``range_map`` (H, W) [m] (inf: sky) is exact (the synthetic world's) or a dense depth from that scan; ``sky``
-    (3,) the sky's linear radiance. The ground's layers (`weatheralign.ground.camera.wet_road_layers`,
-    `snow_cover_layers`) are found on every ``work_stride``-th row and column (their fields vary over decimetres,
-    their filters over tens of pixels) and brought to every pixel of the full image by range-guided bilinear
-    weights (`weatheralign.camera.fog.range_guided_upsample`: a layer found on the road does not bleed onto the car
-    before it)."""
+    (3,) the sky's linear radiance. The ground's layers (`ground_layers`) are found on every ``work_stride``-th row
+    and column (their fields vary over decimetres, their filters over tens of pixels) and brought to every pixel of
+    the full image by range-guided bilinear weights (`weatheralign.camera.fog.range_guided_upsample`: a layer found
+    on the road does not bleed onto the car before it); a puddle's shoreline is found per pixel from the brought
+    smooth field, so it does not follow the coarse grid's steps."""
     stride = max(int(work_stride), 1)
-    gain, offset, edited = _coarse_layers(np.asarray(linear, dtype=np.float64)[::stride, ::stride], range_map, camera,
-                                          exact_range, surfaces, T_world_scan, state, sky, stride)
+    layers = _coarse_layers(np.asarray(linear, dtype=np.float64)[::stride, ::stride], range_map, camera, exact_range,
+                            surfaces, T_world_scan, state, sky, stride)
     if stride > 1:
-        gain = range_guided_upsample(gain, range_map, stride, fill=1.0)
-        offset = range_guided_upsample(offset, range_map, stride)
-        edited = range_guided_upsample(edited.astype(np.float64), range_map, stride) > 0.5
-    return EditedImage(np.asarray(linear, dtype=np.float64) * gain + offset, edited)
+        layers = _brought_to_every_pixel(layers, range_map, stride)
+    gain, offset = layers.combined()
+    return EditedImage(np.asarray(linear, dtype=np.float64) * gain + offset, layers.edited)
+
+
+def _brought_to_every_pixel(layers: GroundLayers, range_map: NDArray, stride: int) -> GroundLayers:
+    """``layers`` given on every ``stride``-th row and column of ``range_map`` (H, W), at every pixel
+    (`weatheralign.camera.fog.range_guided_upsample`)."""
+    def up(values: NDArray, fill: float = 0.0) -> F64:
+        return range_guided_upsample(values, range_map, stride, fill=fill)
+
+    return GroundLayers(up(layers.gain, 1.0), up(layers.offset), up(layers.edited.astype(np.float64)) > 0.5,
+                        None if layers.puddle is None else (up(layers.puddle[0], 1.0), up(layers.puddle[1])),
+                        None if layers.shoreline is None else up(layers.shoreline, -1.0))
 
 
 def edit_image_u8(image: NDArray[np.uint8], range_map: NDArray, camera: CameraGeometry, exact_range: bool,
@@ -185,14 +215,14 @@ def edit_image_u8(image: NDArray[np.uint8], range_map: NDArray, camera: CameraGe
     (`weatheralign.camera.fog.affine_edit_u8`)."""
     stride = max(int(work_stride), 1)
     linear = decode_srgb_u8(np.asarray(image)[::stride, ::stride]).astype(np.float64)
-    gain, offset, edited = _coarse_layers(linear, range_map, camera, exact_range, surfaces, T_world_scan, state, sky,
-                                          stride)
-    return affine_edit_u8(image, gain, offset, edited, range_map, stride)
+    layers = _coarse_layers(linear, range_map, camera, exact_range, surfaces, T_world_scan, state, sky, stride)
+    return affine_edit_u8(image, layers.gain, layers.offset, layers.edited, range_map, stride,
+                          alternative=layers.puddle, switch=layers.shoreline)
 
 
 def _coarse_layers(linear: F64, range_map: NDArray, camera: CameraGeometry, exact_range: bool,
                    surfaces: ScanSurfaces, T_world_scan: F64, state: GroundState, sky: F64,
-                   stride: int) -> tuple[F64, F64, Mask]:
+                   stride: int) -> GroundLayers:
     """`ground_layers` on every ``stride``-th row and column of the full-size ``range_map`` (``linear`` already
     taken there), the camera's intrinsics scaled to that grid."""
     small = CameraGeometry(np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ np.asarray(camera.K, dtype=np.float64),
@@ -207,20 +237,25 @@ def odd_px(size: float) -> int:
 
 
 def ground_layers(linear: F64, range_map: F64, camera: CameraGeometry, exact_range: bool, surfaces: ScanSurfaces,
-                  T_world_scan: F64, state: GroundState, sky: F64, stride: int = 1) -> tuple[F64, F64, Mask]:
-    """(gain, offset) (H, W, 3) and the edited pixels (H, W) of `edit_image` at the resolution of ``range_map``,
-    ``stride`` times coarser than the full image (its filters' windows scaled)."""
+                  T_world_scan: F64, state: GroundState, sky: F64, stride: int = 1) -> GroundLayers:
+    """The layers of `edit_image` at the resolution of ``range_map``, ``stride`` times coarser than the full image
+    (its filters' windows scaled); a wet road's puddles as layers of their own with their shoreline field."""
     finite = np.isfinite(range_map)
     pixels = pixel_normals(range_map, camera, smooth_px=odd_px(5 / stride))
     plane = surfaces.plane.transformed(T_world_scan)
     ground = finite & plane.contains(np.nan_to_num(pixels.points_world))
     if state.road is not None:
-        water = np.zeros(range_map.shape)
-        water[ground] = water_depth(pixels.points_world[ground][:, :2], state.road, state.seed)
-        gain, offset = wet_road_layers(linear, np.where(finite, range_map, np.inf), camera, ground, water, state.road,
-                                       np.asarray(plane.normal), sky, (odd_px(31 / stride), odd_px(5 / stride)),
-                                       REFLECTION_STRIDE)
-        return gain, offset, ground & (water > 0)
+        road, xy = state.road, pixels.points_world[ground][:, :2]
+        film = np.zeros(range_map.shape)
+        film[ground] = film_depth(xy, road, state.seed)
+        shoreline = np.full(range_map.shape, -1.0)
+        shoreline[ground] = puddle_margin(xy, road, state.seed)
+        args = (linear, np.where(finite, range_map, np.inf), camera, ground, film, road, np.asarray(plane.normal), sky,
+                (odd_px(31 / stride), odd_px(5 / stride)), REFLECTION_STRIDE)
+        if road.puddle_share == 0:
+            return GroundLayers(*wet_road_layers(*args), ground & (film > 0))
+        layers = wet_road_layer_pair(*args)
+        return GroundLayers(*layers.film, ground & ((film > 0) | (shoreline > 0)), layers.puddle, shoreline)
     if exact_range:
         cos_up = np.abs(np.nan_to_num(pixels.normals_world[..., 2]))
         known = np.isfinite(pixels.normals_world[..., 2])
@@ -237,9 +272,8 @@ def ground_layers(linear: F64, range_map: F64, camera: CameraGeometry, exact_ran
         coverage = gaussian_filter(coverage, DENSE_DEPTH_SOFTEN_PX / stride)
     gain, offset = snow_cover_layers(linear, coverage, pixels.points_world, ground, state.cover, sky, state.seed,
                                      shading_px=odd_px(31 / stride))
-    return gain, offset, coverage > SNOW_EDIT_MIN_COVERAGE
+    return GroundLayers(gain, offset, coverage > SNOW_EDIT_MIN_COVERAGE)
 
 
-__all__ = ["EditedImage", "EditedScan", "GroundState", "SNOW_EDIT_MIN_COVERAGE", "ScanSurfaces", "WORK_STRIDE",
-           "edit_image",
-           "edit_image_u8", "edit_scan", "ground_layers", "odd_px", "scan_surfaces"]
+__all__ = ["EditedImage", "EditedScan", "GroundLayers", "GroundState", "SNOW_EDIT_MIN_COVERAGE", "ScanSurfaces",
+           "WORK_STRIDE", "edit_image", "edit_image_u8", "edit_scan", "ground_layers", "odd_px", "scan_surfaces"]

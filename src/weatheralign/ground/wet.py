@@ -106,13 +106,25 @@ def fractal_noise_naive(xy: F64, cell_m: float, seed: int, octaves: int = 4) -> 
 
 def water_depth(xy_world: F64, road: WetRoad, seed: int) -> F64:
     """Water depth [m] at world positions (N, 2): a film ``film_depth_m * 2 u`` (``u`` fractal noise in [0, 1), so
-    ``film_depth_m`` on average) and, where a second, coarser noise exceeds its ``1 - puddle_share`` level,
-    puddles of ``puddle_depth_m``."""
-    film = road.film_depth_m * 2.0 * fractal_noise(xy_world, road.cell_m, seed)
+    ``film_depth_m`` on average) and, where a second, coarser noise exceeds its ``1 - puddle_share`` level
+    (`puddle_margin` > 0), puddles of ``puddle_depth_m``."""
+    film = film_depth(xy_world, road, seed)
     if road.puddle_share == 0:
         return film
-    puddles = fractal_noise(xy_world, 2.0 * road.cell_m, seed + 1)
-    return np.where(puddles > _puddle_level(road.puddle_share), road.puddle_depth_m, film)
+    return np.where(puddle_margin(xy_world, road, seed) > 0, road.puddle_depth_m, film)
+
+
+def film_depth(xy_world: F64, road: WetRoad, seed: int) -> F64:
+    """The film's depth [m] at world positions (N, 2), puddles aside (`water_depth`)."""
+    return road.film_depth_m * 2.0 * fractal_noise(xy_world, road.cell_m, seed)
+
+
+def puddle_margin(xy_world: F64, road: WetRoad, seed: int) -> F64:
+    """How far the puddle noise at world positions (N, 2) lies above its puddle level: a puddle where > 0 (-inf
+    everywhere without puddles). A smooth field, so its zero level is a smooth shoreline at any resolution."""
+    if road.puddle_share == 0:
+        return np.full(len(np.asarray(xy_world).reshape(-1, 2)), -np.inf)
+    return fractal_noise(xy_world, 2.0 * road.cell_m, seed + 1) - _puddle_level(road.puddle_share)
 
 
 @lru_cache(maxsize=32)
@@ -152,5 +164,5 @@ def wet_ground(intensity: F64, incidence: F64, depth_m: F64, road: WetRoad, nois
     return WetGroundEffect(np.where(lost, 0.0, new), lost, np.asarray(depth_m, dtype=np.float64), factor)
 
 
-__all__ = ["fractal_noise", "fractal_noise_naive", "incidence_angle", "value_noise", "value_noise_naive", "water_depth",
-           "wet_ground", "WetGroundEffect", "WetRoad", "wetted_share"]
+__all__ = ["film_depth", "fractal_noise", "fractal_noise_naive", "incidence_angle", "puddle_margin", "value_noise",
+           "value_noise_naive", "water_depth", "wet_ground", "WetGroundEffect", "WetRoad", "wetted_share"]

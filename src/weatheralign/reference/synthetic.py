@@ -21,6 +21,11 @@ Hidden snow and rain. One rate per split, drawn uniformly in ``precipitation.sno
 field of its own (`weatheralign.medium.field.ParticleField`, seed from ``reference.seed`` and the frame): the particle
 positions come from the medium, as in the real world, and both sensors see the same particles.
 
+Hidden ground. The rain split's road lies under a water film, the snow split's under lying snow with wheel tracks,
+at one hidden depth per split (`weatheralign.reference.ground`: drawn in ``precipitation.wet_film_depth_m`` /
+``snow_depth_m``, sealed as ``{rain: {film_depth_m}}``, ``{snow: {snow_depth_m}}``), on the scene's true surfaces,
+seen by the LiDAR and the camera before the particles.
+
 Sensors (one instant per frame: every beam at the frame time, STF has no per-point times; the camera integrates its
 exposure around it):
 - LiDAR: an HDL-64-like sensor (64 lasers at the `weatheralign.data.rings` HDL-64E elevations, ``firings_per_ring``
@@ -66,12 +71,15 @@ from weatheralign.config import ReferenceConfig
 from weatheralign.data.rings import HDL64E_ELEVATIONS_DEG
 from weatheralign.data.stf import CAMERA_CALIB_FILE, CAMERA_TF_FRAME, LIDAR_TF_FRAME, TF_TREE_FILE
 from weatheralign.geometry import camera_rotation_from_yaw, make_transform
+from weatheralign.ground.camera import CameraGeometry
+from weatheralign.ground.edit import edit_image
 from weatheralign.medium.distributions import RainSizeDistribution, SnowSizeDistribution
 from weatheralign.medium.field import ParticleField
 from weatheralign.medium.fog import LN20, PAPER_BETA_FACTORS
 from weatheralign.provenance import read_resume_record, stage_code_digest, write_resume_record
 from weatheralign.reference.camera_exact import encode_with_noise, fog_radiance
 from weatheralign.reference.camera_particles_exact import particle_image
+from weatheralign.reference.ground import draw_ground_truth, exact_surfaces, frame_ground_state, ground_hits
 from weatheralign.reference.layout import (
     CAMERA_FOLDER,
     FOG_LEVELS,
@@ -416,6 +424,12 @@ def render_frame(spec: FrameSpec, cfg: ReferenceConfig, medium: FogLevel | Parti
         surf = texture(layout, pos, hits.normal[hit], hits.material[hit], hits.albedo[hit], hits.reflectivity[hit])
         cos_inc = np.einsum("ij,ij->i", hits.normal[hit].astype(np.float64), dirs[hit])
         i0[hit] = lidar_intensity(surf.reflectivity, cos_inc, r_true[hit])
+    ground = frame_ground_state(spec.level, spec.index, cfg, T_global_lidar)
+    surfaces = None
+    if ground is not None and len(hit):  # the wet or snowy ground under the air's weather (module docstring)
+        surfaces = exact_surfaces(grid.directions[hit] * r_true[hit, None], hits.normal[hit], T_global_lidar)
+        r_true[hit], i0[hit] = ground_hits(grid.directions[hit] * r_true[hit, None], i0[hit], surfaces, ground,
+                                           spec.time, T_EGO_LIDAR, T_global_ego)
     sensor, detector = sensor_of(cfg)
     has_target = np.isfinite(r_true) & (i0 > 0.0)
     r_echo = np.where(has_target & (r_true < sensor.listen_end), r_true, np.inf)
@@ -444,6 +458,10 @@ def render_frame(spec: FrameSpec, cfg: ReferenceConfig, medium: FogLevel | Parti
     lit = sun_lit(caster, origin, pdirs, chits, spec.time, cfg.camera.shadows)
     J = camera_radiance(layout, origin, pdirs, chits.range, chits.normal, chits.material, chits.albedo,
                        chits.reflectivity, lit)
+    if surfaces is not None:
+        J = edit_image(J.reshape(cam.height, cam.width, 3), chits.range.reshape(cam.height, cam.width),
+                       CameraGeometry(cam.K, T_global_cam), True, surfaces, T_global_lidar, ground,
+                       np.asarray(layout.sky_horizon, dtype=np.float64), work_stride=1).linear.reshape(-1, 3)
     coverage = 0.0
     if particles:
         pc = cfg.precipitation
@@ -605,6 +623,11 @@ def finalize(cfg: ReferenceConfig, data: Path, records: list[FrameRecord]) -> di
     rates = {level: rate for level, rate in draw_precipitation_truth(cfg).items() if level in split_files}
     sealed: dict[str, dict] = {level: {"alpha": truth[level].alpha, "beta": truth[level].beta} for level in FOG_LEVELS}
     sealed.update({level: {"rate_mm_h": rate} for level, rate in rates.items()})
+    if cfg.precipitation.ground:
+        depth_key = {"rain": "film_depth_m", "snow": "snow_depth_m"}
+        for level, depth in draw_ground_truth(cfg).items():
+            if level in sealed:
+                sealed[level][depth_key[level]] = depth
     atomic.write_json(sealed_truth_path(data), sealed, indent=2)
     details: dict[str, dict] = {
         level: {"alpha": truth[level].alpha, "beta": truth[level].beta, "mor_m": truth[level].mor,

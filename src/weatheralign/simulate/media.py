@@ -96,10 +96,12 @@ def configured_fog_levels(cfg: SimulateConfig, data: Path) -> FogLevels:
 @dataclass(frozen=True)
 class PrecipitationRates:
     """The snow and rain rates [mm/h] of the particle fields and where each came from (``calibrated`` or
-    ``params``)."""
+    ``params``); the ground each leaves, where calibrated (``ground_depth_m``: ``rain`` the mean film depth,
+    ``snow`` the snow depth [m]; a kind absent keeps ``simulate.wet_film_depth_m`` / ``snow_depth_m``)."""
 
     rate_mm_h: dict[str, float]
     source: dict[str, str]
+    ground_depth_m: dict[str, float] = field(default_factory=dict)
 
 
 def params_precipitation_rates(particles: ParticlesConfig) -> PrecipitationRates:
@@ -108,9 +110,15 @@ def params_precipitation_rates(particles: ParticlesConfig) -> PrecipitationRates
                               {"snow": "params", "rain": "params"})
 
 
+def _positive(path: Path, where: str, value: object) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0.0:
+        raise DataFormatError(f"{path}: {where} = {value!r}; expected a positive number")
+    return float(value)
+
+
 def calibrated_precipitation_rates(path: Path, particles: ParticlesConfig) -> PrecipitationRates:
-    """The tuned rates in ``path`` (`PRECIPITATION_RATES_FILE`); a kind the file lacks (a reference without that
-    split) keeps its params rate, and its source says so.
+    """The tuned rates in ``path`` (`PRECIPITATION_RATES_FILE`) and the tuned ground depths (its ``ground`` entry);
+    a kind the file lacks (a reference without that split) keeps its params rate, and its source says so.
 
     Raises:
         DataFormatError: missing or unreadable file, or a rate that is not a positive number.
@@ -125,9 +133,12 @@ def calibrated_precipitation_rates(path: Path, particles: ParticlesConfig) -> Pr
             out.source[kind] = f"params (no {kind} split in the reference)"
             continue
         v = entry.get("rate_mm_h") if isinstance(entry, dict) else None
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v) or v <= 0.0:
-            raise DataFormatError(f"{path}: {kind}.rate_mm_h = {v!r}; expected a positive number")
-        out.rate_mm_h[kind], out.source[kind] = float(v), "calibrated"
+        out.rate_mm_h[kind], out.source[kind] = _positive(path, f"{kind}.rate_mm_h", v), "calibrated"
+    ground = tuned.get("ground") if isinstance(tuned, dict) else None
+    for kind, entry in (ground or {}).items():
+        if kind in ("snow", "rain"):
+            depth = entry.get("depth_m") if isinstance(entry, dict) else None
+            out.ground_depth_m[kind] = _positive(path, f"ground.{kind}.depth_m", depth)
     return out
 
 
@@ -350,17 +361,21 @@ def resolve_media(condition: Condition, cfg: SimulateConfig, scenes: list[str], 
                      for s in scenes}
         camera_rates = {s: ParticlePart.camera_rate(False, spec.rate_mm_h, cfg.unaligned_rate_factor, spec.seed)
                         for s, spec in per_scene.items()}
-        return ConditionMedia(condition.name, fog, per_scene, camera_rates, resolve_ground(condition, cfg, scenes))
-    return ConditionMedia(condition.name, fog, per_scene, ground=resolve_ground(condition, cfg, scenes))
+        return ConditionMedia(condition.name, fog, per_scene, camera_rates, resolve_ground(
+            condition, cfg, scenes, None if rates is None else rates.ground_depth_m))
+    return ConditionMedia(condition.name, fog, per_scene, ground=resolve_ground(
+        condition, cfg, scenes, None if rates is None else rates.ground_depth_m))
 
 
-def resolve_ground(condition: Condition, cfg: SimulateConfig, scenes: list[str]) -> dict[str, SceneGround] | None:
+def resolve_ground(condition: Condition, cfg: SimulateConfig, scenes: list[str],
+                   depths_m: dict[str, float] | None = None) -> dict[str, SceneGround] | None:
     """The ground of ``condition`` per scene as an unaligned copy sees it (None without one or with
-    ``simulate.ground`` off)."""
+    ``simulate.ground`` off): the film or snow depth of ``depths_m`` (``rain`` / ``snow``, the calibrated ones)
+    where it has one, else ``simulate.wet_film_depth_m`` / ``snow_depth_m``."""
     if condition.ground is None or not cfg.ground:
         return None
     wet = condition.ground.kind == "wet"
-    amount = cfg.wet_film_depth_m if wet else cfg.snow_depth_m
+    amount = (depths_m or {}).get("rain" if wet else "snow", cfg.wet_film_depth_m if wet else cfg.snow_depth_m)
     out = {}
     for scene in scenes:
         seed = ground_seed(cfg.ground_seed, condition.name, scene, camera=False)

@@ -17,14 +17,14 @@ the frame's time (0 for STF).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
 
 from weatheralign.calibrate.histograms import frame_counts
 from weatheralign.camera.fog import estimate_airlight
-from weatheralign.conditions import Condition, FogPart, ParticlePart
+from weatheralign.conditions import Condition, FogPart, GroundPart, ParticlePart
 from weatheralign.config import ParticlesConfig
 from weatheralign.data.frame import Frame
 from weatheralign.data.stf import CAMERA_CHANNEL
@@ -34,7 +34,7 @@ from weatheralign.medium.conditions import field_spec
 from weatheralign.reference import ReferenceDataset
 from weatheralign.reference.frames import reference_frame
 from weatheralign.sensors import CameraModel, LidarModel, SensorRig
-from weatheralign.simulate.media import FogLevels, SceneMedia
+from weatheralign.simulate.media import FogLevels, SceneGround, SceneMedia, ground_seed
 from weatheralign.simulate.observe import ObserveOptions, observe
 from weatheralign.verify.features import fused_input, lidar_image_channels
 
@@ -44,13 +44,19 @@ class Severity:
     """What a simulated condition is made of: the fog ``levels`` in use and the snow / rain rates [mm/h] (water
     equivalent) of the particle fields, with the field physics of ``particles`` (``particles.<kind>.rate_mm_h`` is
     replaced by the rate given here); ``unaligned_rate_factor``: the unaligned cameras' rate spread
-    (`ParticlePart.camera_rate`, ``simulate.unaligned_rate_factor``; 1: positions alone misaligned)."""
+    (`ParticlePart.camera_rate`, ``simulate.unaligned_rate_factor``; 1: positions alone misaligned); the ground of
+    each kind, its puddles' share and fields' seed (``simulate.wet_puddle_share``, ``ground_seed``)."""
 
     levels: FogLevels
     snow_rate_mm_h: float
     rain_rate_mm_h: float
     particles: ParticlesConfig
     unaligned_rate_factor: float = 1.0
+    ground_depth_m: dict[str, float] = field(default_factory=dict)
+    """The ground each kind leaves (``rain``: the mean film depth, ``snow``: the snow depth [m]); a kind absent
+    leaves none."""
+    wet_puddle_share: float = 0.08
+    ground_seed: int = 11
 
     def particles_at_rates(self) -> ParticlesConfig:
         """``particles`` with the snow and rain rates of this severity."""
@@ -114,7 +120,9 @@ def scene_media(condition: Condition, aligned: bool, sample_id: str, severity: S
     """The media of ``condition`` over the clear frame ``sample_id`` as `simulate` builds them for a scene: the fog
     at its level (unaligned cameras: `FogPart.camera_alpha` from ``seed``) with its airlight gain
     (`FogPart.airlight_gain`, both cameras), the particle field seeded from
-    (``severity.particles.seed``, kind, frame id) (unaligned cameras: its twin at `ParticlePart.camera_rate`)."""
+    (``severity.particles.seed``, kind, frame id) (unaligned cameras: its twin at `ParticlePart.camera_rate`), the
+    ground at ``severity``'s depth with fields seeded from the frame id (unaligned cameras: its twin,
+    `GroundPart.camera_amount`)."""
     kw: dict = {}
     if condition.fog is not None:
         levels = severity.levels
@@ -130,6 +138,15 @@ def scene_media(condition: Condition, aligned: bool, sample_id: str, severity: S
         if not aligned:
             kw["camera_rate_mm_h"] = ParticlePart.camera_rate(False, spec.rate_mm_h, severity.unaligned_rate_factor,
                                                               spec.seed)
+    if condition.ground is not None:
+        depth = severity.ground_depth_m.get("rain" if condition.ground.kind == "wet" else "snow")
+        if depth is not None:
+            lidar_seed = ground_seed(severity.ground_seed, condition.name, sample_id, camera=False)
+            camera_seed = lidar_seed if aligned else ground_seed(severity.ground_seed, condition.name, sample_id,
+                                                                 camera=True)
+            kw["ground"] = SceneGround(condition.ground.kind, depth, lidar_seed, GroundPart.camera_amount(
+                aligned, depth, severity.unaligned_rate_factor, lidar_seed), camera_seed,
+                severity.wet_puddle_share if condition.ground.kind == "wet" else 0.0)
     return SceneMedia(condition, aligned, sample_id, **kw)
 
 
