@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 import tempfile
 import time
 from dataclasses import dataclass
@@ -64,6 +65,7 @@ from weatheralign.detect.data import (  # noqa: E402
     derangement,
     load_cached_sample,
     scene_split,
+    stale_caches,
 )
 from weatheralign.detect.evaluate import ego_positions, ground_truth, resistance_ability, scene_blocks  # noqa: E402
 from weatheralign.detect.figures import (  # noqa: E402
@@ -194,6 +196,16 @@ class DetectRun:
             self.data_keys[key] = cache_path(self.roots[dataroot], self.version, self.tokens[split],
                                              self.out / "cache", self.cfg.image_size, self.params.simulate.sweeps).name
         return self.data_keys[key]
+
+    def prune_caches(self) -> list[Path]:
+        """Delete the cache folders of this stage's datasets that none of their splits is keyed by now
+        (`weatheralign.detect.data.stale_caches`: left by an earlier version of a weather copy or of the world, which
+        nothing reads again); returns them."""
+        current = {self.data_key(root, split) for root in self.roots for split in self.tokens}
+        stale = stale_caches(self.out / "cache", self.roots.values(), current)
+        for folder in stale:
+            shutil.rmtree(folder)
+        return stale
 
     def evalset_key(self, evalset: str) -> str:
         """The data keys an evaluation set is made from (its LiDAR's and its cameras' val caches)."""
@@ -715,6 +727,10 @@ def detect_flow(params: Params) -> dict:
         atomic.write_json(reports / "per_class_ap.json", per_class_rows(pre["per_class_ap"]), indent=1)
         for name in ("table_alignment.md", "table_finetune.md", "learning_curve.png", "predictions_bev.png"):
             tracker.log_artifact(reports / name, "detect")
+        pruned = run.prune_caches()
+        if pruned:
+            print(f"detect: removed {len(pruned)} caches of earlier versions of its datasets "
+                  f"({', '.join(p.name for p in pruned)})")
         tracker.finish(metrics, headline(metrics, conditions), logged={k: v for k, v in metrics.items() if k in (
             "parameters", "val_samples", "train_samples", "sweeps", "seconds")}, children={
             key: difference_run(key, d) for key, d in differences.items()})

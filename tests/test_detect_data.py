@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -400,3 +401,18 @@ def test_camera_sources_shuffled_images_and_weather_cameras(cache):
     assert torch.equal(same[2]["features_s8"], plain[2]["features_s8"])
     with pytest.raises(ValueError, match="sample indices"):
         D.DetectionDataset(folder, image_source=[0])
+
+
+def test_stale_caches_are_the_earlier_versions_of_the_stage_datasets_only(tmp_path: Path) -> None:
+    from weatheralign.detect.data import stale_caches
+
+    cache = tmp_path / "cache"
+    for name in ("rain-aligned-0123456789abcdef", "rain-aligned-00000000000000ff", "world-aaaaaaaaaaaaaaaa",
+                 "world-bbbbbbbbbbbbbbbb", "rain-aligned-notes", "mine-0123456789abcdef"):
+        (cache / name).mkdir(parents=True)
+    (cache / "rain-aligned-fedcba9876543210").write_text("a file, not a cache")
+    roots = [tmp_path / "simulate" / "rain-aligned", tmp_path / "world"]
+    current = {"rain-aligned-00000000000000ff", "world-aaaaaaaaaaaaaaaa"}
+    assert [p.name for p in stale_caches(cache, roots, current)] == ["rain-aligned-0123456789abcdef",
+                                                                    "world-bbbbbbbbbbbbbbbb"]
+    assert stale_caches(tmp_path / "absent", roots, current) == []

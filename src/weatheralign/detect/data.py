@@ -23,8 +23,9 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import re
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -350,6 +351,20 @@ def cache_path(dataroot: str | Path, version: str, sample_tokens: Sequence[str],
     nusc = open_nuscenes_cached(str(root), version, _tables_key(root, version))
     digest = _cache_digest(root, version, nusc, sample_tokens, tuple(image_size), sweeps)
     return Path(cache_dir) / f"{root.resolve().name}-{digest}"
+
+
+def stale_caches(cache_dir: str | Path, dataroots: Iterable[str | Path], current: Iterable[str]) -> list[Path]:
+    """The cache folders under ``cache_dir`` that `cache_path` made for one of ``dataroots`` (``<dataroot
+    name>-<16 hex digits>``) but whose name is not among ``current`` (the folder names of their splits as they are
+    now): caches of an earlier version of a dataset, which nothing reads again. Other folders are not listed."""
+    names = {Path(root).resolve().name for root in dataroots}
+    keep = set(current)
+    out = []
+    for folder in sorted(Path(cache_dir).glob("*-*")):
+        name, _, digest = folder.name.rpartition("-")
+        if folder.is_dir() and folder.name not in keep and name in names and re.fullmatch(r"[0-9a-f]{16}", digest):
+            out.append(folder)
+    return out
 
 
 def cache_sample(nusc: NuScenes, token: str, image_size: tuple[int, int], sweeps: int) -> tuple[dict, dict]:
@@ -755,4 +770,4 @@ __all__ = ["Augmentation", "CACHE_VERSION", "CAMERA_ORDER", "DEFAULT_IMAGE_SIZE"
            "boxes_to_global",
            "boxes_to_lidar", "build_cache", "cache_path", "cache_sample", "collate", "decode_camera",
            "load_cached_sample", "mixed_dataset", "points_in_boxes", "read_index", "resize_crop_params",
-           "scene_split", "seeded_generator"]
+           "scene_split", "seeded_generator", "stale_caches"]
