@@ -8,9 +8,12 @@ real snow and rain.
 (`weatheralign.calibrate.precipitation`), and finds the rate whose mean matches the reference split's, with a frame
 bootstrap interval. The ground likewise (`weatheralign.calibrate.ground`): the clear scans' ground wetted at each film
 depth of ``calibrate_precipitation.wet_film_depths_m`` and snowed over at each depth of ``snow_depths_m``, the depth
-whose ground statistic (the ground returns' median intensity; the LiDAR's height above the fitted ground) matches the
-rain / snow split's. The camera side of the check (KID, visibility) is in the `verify` stage, which simulates the
-reference frames at these rates.
+whose ground statistic (the ground returns' mean intensity; the LiDAR's height above the fitted ground) matches the
+rain / snow split's. The two fits meet in the open-path statistic (weak wet returns and snow-lifted ground change
+which echoes are isolated and which beams are open), so they go in turn: the ground under the particles params' rate,
+the rate grid over the clear scans carrying that ground (`grounded_scans`), the ground again under the tuned rate.
+The camera side of the check (KID, visibility) is in the `verify` stage, which simulates the reference frames at
+these rates.
 
 Writes ``<paths.data>/calibrate_precipitation/rates.json`` (``{snow|rain: {rate_mm_h, ci_low, ci_high}}`` and
 ``{ground: {snow|rain: {depth_m, ci_low, ci_high}}}``: what the media stage applies to the particle fields and the
@@ -44,15 +47,19 @@ from weatheralign.manifest import PRECIPITATION_RATES_FILE  # noqa: E402
 from weatheralign.reference import PRECIPITATION_LEVELS, configured_reference, reference_lidar_model  # noqa: E402
 
 
-def rates_figure(fits: dict[str, RateFit], reference: dict[str, np.ndarray], simulated: dict[str, np.ndarray]):
-    """Per kind: the simulated open-path echo rate (mean and per-frame spread) against the rate, the reference's mean
-    with its frame-bootstrap spread, and the tuned rate with its interval."""
+def rates_figure(fits: dict[str, RateFit], reference: dict[str, np.ndarray], simulated: dict[str, np.ndarray],
+                 ground_depths_m: dict[str, float]):
+    """Per kind: the simulated open-path echo rate (mean and per-frame spread; the clear scans carrying the ground of
+    ``ground_depths_m``) against the rate, the reference's mean with its frame-bootstrap spread, and the tuned rate
+    with its interval."""
     fig, axes = plt.subplots(1, len(fits), figsize=(5.2 * len(fits), 3.8), squeeze=False)
     for ax, (kind, fit) in zip(axes[0], fits.items()):
         rates, sim = np.asarray(fit.rates), simulated[kind]
         ax.fill_between(rates, np.percentile(sim, 10, axis=1), np.percentile(sim, 90, axis=1), color="tab:blue",
                         alpha=0.2, label="simulated, 10-90 % of frames")
-        ax.plot(rates, sim.mean(axis=1), "o-", color="tab:blue", label="simulated mean")
+        what = "snow" if kind == "snow" else "water film"
+        ax.plot(rates, sim.mean(axis=1), "o-", color="tab:blue",
+                label=f"simulated mean (ground: {1000 * ground_depths_m[kind]:.3g} mm {what})")
         ref = reference[kind]
         se = ref.std(ddof=1) / np.sqrt(len(ref)) if len(ref) > 1 else 0.0
         ax.axhspan(ref.mean() - 2 * se, ref.mean() + 2 * se, color="0.5", alpha=0.25)
@@ -146,8 +153,13 @@ def calibrate_precipitation_flow(params: Params) -> dict:
         ground, ground_fits, ground_reference, ground_simulated = {}, {}, {}, {}
         for kind in kinds:
             t_kind = time.time()
+            configured_rate = getattr(params.particles, kind).rate_mm_h
+            first, _, _ = fit_ground(ds, kind, configured_rate, lidar, params)
+            print(f"calibrate_precipitation {kind} ground, first pass under the configured {configured_rate:g} mm/h: "
+                  f"{1000 * first.depth_m:.3g} mm")
             grid = tuple(cfg.snow_rates if kind == "snow" else cfg.rain_rates)
-            futures = [precipitation_statistics_task.submit(ds, kind, rate, lidar, params.particles) for rate in grid]
+            futures = [precipitation_statistics_task.submit(ds, kind, rate, lidar, params.particles, first.depth_m)
+                       for rate in grid]
             simulated[kind] = np.stack(gather(futures, f"calibrate_precipitation {kind}: rate grid",
                                               params.run.show_progress))
             reference[kind] = reference_statistics([ds.load_scan(i) for i in ds.ids(kind)], lidar)
@@ -156,7 +168,7 @@ def calibrate_precipitation_flow(params: Params) -> dict:
             fits[kind] = fit
             rates[kind] = {"rate_mm_h": fit.rate_mm_h, "ci_low": fit.ci_low, "ci_high": fit.ci_high}
             metrics[kind] = {**fit.metrics(), "frames_reference": len(reference[kind]), "frames_clear": len(clear),
-                             "seconds": round(time.time() - t_kind, 2)}
+                             "rate_grid_ground_depth_m": first.depth_m}
             print(f"calibrate_precipitation {kind}: {fit.rate_mm_h:.3g} mm/h [{fit.ci_low:.3g}, {fit.ci_high:.3g}] "
                   f"(reference {fit.reference_mean:.4g} isolated echoes per open beam)"
                   + (f"; WARNING: outside the simulated grid {list(grid)}, widen calibrate_precipitation."
@@ -165,7 +177,9 @@ def calibrate_precipitation_flow(params: Params) -> dict:
                                                                                            lidar, params)
             g = ground_fits[kind]
             ground[kind] = {"depth_m": g.depth_m, "ci_low": g.ci_low, "ci_high": g.ci_high}
-            metrics[kind]["ground"] = g.metrics()
+            metrics[kind]["ground"] = {**g.metrics(), "first_pass_depth_m": first.depth_m,
+                                       "first_pass_rate_mm_h": configured_rate}
+            metrics[kind]["seconds"] = round(time.time() - t_kind, 2)
             print(f"calibrate_precipitation {kind} ground: {1000 * g.depth_m:.3g} mm [{1000 * g.ci_low:.3g}, "
                   f"{1000 * g.ci_high:.3g}] ({g.statistic}: reference {g.reference_mean:.4g})"
                   + ("; WARNING: outside the simulated grid, widen its depths" if g.beyond_grid else ""))
@@ -178,7 +192,8 @@ def calibrate_precipitation_flow(params: Params) -> dict:
                           indent=2)
         figure = tracker.reports / "rates.png"
         if fits:
-            fig = rates_figure(fits, reference, simulated)
+            fig = rates_figure(fits, reference, simulated,
+                               {kind: metrics[kind]["rate_grid_ground_depth_m"] for kind in fits})
         else:
             fig, ax = plt.subplots(figsize=(5, 2))
             ax.text(0.5, 0.5, "no snow or rain split in the reference", ha="center", va="center")

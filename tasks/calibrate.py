@@ -7,7 +7,7 @@ import numpy as np
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
-from weatheralign.calibrate.ground import TunedAir, simulated_ground_statistics
+from weatheralign.calibrate.ground import TunedAir, grounded_scans, simulated_ground_statistics
 from weatheralign.calibrate.histograms import IntensityHistograms
 from weatheralign.calibrate.lidar import CellResult, FogFrames, evaluate_cell
 from weatheralign.calibrate.precipitation import simulated_statistics
@@ -50,9 +50,10 @@ def ground_statistics_task(ds: ReferenceDataset, kind: str, depth_m: float, air:
 
 @task(name="precipitation-rate", cache_policy=NO_CACHE, retries=0)
 def precipitation_statistics_task(ds: ReferenceDataset, kind: str, rate_mm_h: float, lidar: LidarModel,
-                                  particles: ParticlesConfig) -> np.ndarray:
-    """(F,) open-path echo rate of every clear reference scan through ``kind`` at ``rate_mm_h`` (the worker reads
-    the scans itself; each frame's field is seeded from its id)."""
+                                  particles: ParticlesConfig, ground_depth_m: float) -> np.ndarray:
+    """(F,) open-path echo rate of every clear reference scan, its ground under ``kind``'s at ``ground_depth_m`` [m]
+    (`grounded_scans`), through ``kind`` at ``rate_mm_h`` (the worker reads the scans itself; each frame's fields are
+    seeded from its id)."""
     ids = ds.ids("clear")
-    scans = [ds.load_scan(i) for i in ids]
+    scans = grounded_scans([ds.load_scan(i) for i in ids], ids, kind, ground_depth_m, lidar.noise_floor)
     return simulated_statistics(scans, kind, (rate_mm_h,), lidar, particles, ids)[0]

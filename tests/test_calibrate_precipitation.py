@@ -1,13 +1,21 @@
 """Severity alignment for snow and rain (weatheralign.calibrate.precipitation): the open-path echo rate against a
-hand-counted scan, the rate fit against a known power law (estimate, interval coverage, errors), and the fast
-simulator's statistic rising with the rate on the shared real scan."""
+hand-counted scan, the rate fit against a known power law (estimate, interval coverage, errors), the fast
+simulator's statistic rising with the rate on the shared real scan, and the hidden rates of a small synthetic
+reference found back once the clear scans carry the splits' ground."""
 
 from __future__ import annotations
+
+import json
 
 import numpy as np
 import pytest
 
-from weatheralign.calibrate.precipitation import fit_rate, open_path_echo_rate, simulated_statistics
+from weatheralign.calibrate.precipitation import (
+    fit_rate,
+    open_path_echo_rate,
+    reference_statistics,
+    simulated_statistics,
+)
 from weatheralign.config import ParticlesConfig
 
 from .conftest import REPO
@@ -69,3 +77,43 @@ def test_the_simulated_statistic_rises_with_the_snow_rate_on_a_real_scan() -> No
     assert stats.shape == (2, 1) and 0.0 < stats[0, 0] < stats[1, 0]
     with pytest.raises(ValueError, match="kind"):
         simulated_statistics([scan], "hail", (1.0,), lidar, ParticlesConfig(), ["frame"])
+
+
+@pytest.fixture(scope="module")
+def grounded_reference(tmp_path_factory):
+    """A small synthetic reference (4 frames per split, 1000 firings per ring) whose snow and rain splits lie on their
+    hidden ground, and its sealed truth."""
+    from weatheralign.config import params_from_dict
+    from weatheralign.reference import configured_reference, reference_lidar_model
+    from weatheralign.reference.synthetic import finalize, frame_specs, render_or_resume, sealed_truth_path
+
+    data = tmp_path_factory.mktemp("grounded_reference")
+    params = params_from_dict({"paths": {"data": str(data)}, "tracking": {"enabled": False},
+                               "reference": {"frames_per_split": 4, "lidar": {"firings_per_ring": 1000},
+                                             "camera": {"image_scale": 0.1}}})
+    assert params.reference.precipitation.ground
+    cfg = params.reference
+    finalize(cfg, data, [render_or_resume(spec, cfg, data)[0] for spec in frame_specs(cfg)])
+    ds = configured_reference(params, ("clear", "snow", "rain"))
+    return params, ds, reference_lidar_model(params, ds), json.loads(sealed_truth_path(data).read_text())
+
+
+@pytest.mark.parametrize("kind, grid", [("rain", (15.0, 45.0, 135.0)), ("snow", (0.6, 1.8, 5.4))])
+def test_the_hidden_rate_is_found_when_the_clear_scans_carry_the_splits_ground(grounded_reference, kind,
+                                                                               grid) -> None:
+    """The reference's wet road and snow cover move the open-path statistic (weak wet returns near the floor look
+    isolated; lifted, brighter snow closes beams): a rate grid over bare clear scans misses the hidden rate by far, one
+    over the clear scans carrying the split's ground (the stage's task) finds it."""
+    from tasks.calibrate import precipitation_statistics_task
+
+    params, ds, lidar, truth = grounded_reference
+    hidden = truth[kind]["rate_mm_h"]
+    depth = truth[kind]["snow_depth_m" if kind == "snow" else "film_depth_m"]
+    reference = reference_statistics([ds.load_scan(i) for i in ds.ids(kind)], lidar)
+    clear = ds.ids("clear")
+    bare = simulated_statistics([ds.load_scan(i) for i in clear], kind, grid, lidar, params.particles, clear)
+    grounded = np.stack([precipitation_statistics_task.fn(ds, kind, rate, lidar, params.particles, depth)
+                         for rate in grid])
+    bare_error = fit_rate(reference, bare, grid, num_bootstrap=10).rate_mm_h / hidden - 1.0
+    error = fit_rate(reference, grounded, grid, num_bootstrap=10).rate_mm_h / hidden - 1.0
+    assert abs(error) < 0.3 and abs(bare_error) > 0.4, (error, bare_error)

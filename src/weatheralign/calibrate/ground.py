@@ -103,6 +103,16 @@ class TunedAir:
     lidar: LidarModel
 
 
+def grounded_scans(scans: Sequence[LidarScan], names: Sequence[str], kind: str, depth_m: float,
+                   noise_floor: float) -> list[LidarScan]:
+    """Each clear scan with the simulation's ground of ``kind`` at ``depth_m`` [m] (`edit_scan` on the scan's own
+    surfaces, returns under ``noise_floor`` (0..255) lost, the field seeded from the scan's name): what the weather
+    split's air falls onto, so the rate's statistic is measured over the ground the split has."""
+    return [edit_scan(scan, scan_surfaces(scan, off_ground=kind == "snow"),
+                      ground_state(kind, float(depth_m), ground_seed(name, kind), scan), noise_floor).scan
+            for scan, name in zip(scans, names)]
+
+
 def simulated_ground_statistics(scans: Sequence[LidarScan], names: Sequence[str], kind: str,
                                 depths_m: Sequence[float], noise_floor: float, air: TunedAir | None = None) -> F64:
     """(D, F) `ground_statistic` of each clear scan with the simulation's ground of ``kind`` at each depth [m]
@@ -170,4 +180,5 @@ def fit_depth(reference: NDArray, simulated: NDArray, depths_m: Sequence[float],
 
 
 __all__ = ["DepthFit", "GROUND_BAND_M", "GROUND_KINDS", "STATISTICS", "fit_depth", "ground_seed", "ground_state",
-           "TunedAir", "ground_statistic", "simulated_ground_statistics", "snow_ground_height", "wet_ground_intensity"]
+           "grounded_scans", "TunedAir", "ground_statistic", "simulated_ground_statistics", "snow_ground_height",
+           "wet_ground_intensity"]
