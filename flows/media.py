@@ -30,13 +30,14 @@ from weatheralign.simulate.media import (
 )
 
 FOG_HEADLINE = ("fog_light", "fog_dense")
-"""The fog levels whose extinction reports/media/metrics.json gives (fog_snow's fog is fog_light's)."""
+"""The fog levels whose extinction the headline gives (fog_snow's fog is fog_light's)."""
 
 
 def headline(details: dict) -> dict:
-    """reports/media/metrics.json: the weather in force, calibrated or from params: the precipitation rates and the
-    `FOG_HEADLINE` levels' extinction (the rest, backscatter and ground depths included, in details.json and the
-    MLflow child run of each condition)."""
+    """The weather in force, calibrated or from params: the precipitation rates and the `FOG_HEADLINE` levels'
+    extinction (the Prefect table artifact; the rest, backscatter and ground depths included, in details.json and the
+    MLflow child run of each condition). No DVC metrics: the calibrations' metrics or the params columns of
+    ``dvc exp show`` give the same figures."""
     rates = details["precipitation_rates"] or {}
     conditions = details["conditions"]
     return {"rate_mm_h": {k: v["rate_mm_h"] for k, v in rates.items()},
@@ -79,7 +80,7 @@ def media_flow(params: Params) -> dict:
                 "ground_source": None if ground is None else ground_source(ground.kind, rates)}
         snow_rain = (params.particles.snow.rate_mm_h, params.particles.rain.rate_mm_h) if rates is None else \
             (rates.rate_mm_h["snow"], rates.rate_mm_h["rain"])
-        tracker.finish(metrics, headline(metrics), logged={}, children={
+        tracker.finish(metrics, headline(metrics), logged={}, metrics_file=False, children={
             name: (condition_tags(name, None, *snow_rain), values) for name, values in metrics["conditions"].items()})
     return metrics
 

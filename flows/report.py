@@ -1,6 +1,6 @@
 """`report` stage: ``reports/summary.md`` and ``reports/summary.html`` (the same, one self-contained page).
 
-``python -m flows.report`` reads the stages' ``reports/<stage>/details.json`` (world, calibrate_fog, simulate,
+``python -m flows.report`` reads the stages' ``details.json`` (world, calibrate_fog, simulate_summary,
 detect), the detect stage's Tables 2 and 3, the reference's sealed truth where the reference is synthetic, the
 figures the stages drew, what each stage cost (wall time of its latest tracked MLflow run, disk of its outputs) and
 where each table came from (that MLflow run and its DVC experiment), and writes the summary (`weatheralign.report`).
@@ -23,8 +23,9 @@ from weatheralign.config import Params
 from weatheralign.data.errors import read_json_file
 from weatheralign.report import StageCost, StageSource, findings, markdown_to_html, summary_markdown
 
-STAGES_READ = ("world", "calibrate_fog", "simulate", "detect")
-"""Stages whose ``reports/<stage>/details.json`` the summary reads."""
+STAGES_READ = {"world": "world", "calibrate_fog": "calibrate_fog", "simulate": "simulate_summary", "detect": "detect"}
+"""Per stage whose figures the summary reads, the folder of its ``details.json`` under ``paths.reports`` (``simulate``:
+the summary of its ten variants)."""
 
 COST_STAGES: tuple[tuple[str, str | None], ...] = (
     ("world", "world"), ("reference", "reference"), ("calibrate_fog", None), ("calibrate_precipitation", None),
@@ -35,7 +36,7 @@ COST_STAGES: tuple[tuple[str, str | None], ...] = (
 FIGURES: tuple[tuple[str, str], ...] = (
     ("A world sample: LiDAR BEV with boxes", "world/sample_bev.png"),
     ("LiDAR intensity ECDFs: reference vs tuned simulation (dense fog)", "calibrate_fog/ecdf_dense.png"),
-    ("Every condition: LiDAR point labels and re-projection error", "simulate/summary.png"),
+    ("Every condition: LiDAR point labels and re-projection error", "simulate_summary/summary.png"),
     ("Snow, aligned: LiDAR BEV and CAM_FRONT", "simulate/snow-aligned/side_by_side.png"),
     ("Fog (dense), aligned: LiDAR BEV and CAM_FRONT", "simulate/fog_dense-aligned/side_by_side.png"),
     ("Fused features of real and simulated snow (verify)", "verify/embedding_snow.png"),
@@ -123,8 +124,9 @@ def run_costs(params: Params, runs: dict[tuple[str, str], Any]) -> list[StageCos
 def read_inputs(params: Params) -> tuple[dict[str, dict[str, Any]], dict[str, Any] | None, list[str]]:
     """The stages' figures, the sealed truth (None unless the reference is synthetic) and the detect tables."""
     reports = params.paths.reports
-    metrics = {s: read_json_file(reports / s / "details.json", f"run the stage {s} first (dvc repro {s})")
-               for s in STAGES_READ}
+    metrics = {s: read_json_file(reports / folder / "details.json",
+                                 f"run the stage {folder} first (dvc repro {folder})")
+               for s, folder in STAGES_READ.items()}
     truth_path = params.paths.data / "reference" / "sealed_truth.json"
     truth = read_json_file(truth_path, "") if truth_path.is_file() else None
     tables = [(reports / "detect" / name).read_text() for name in ("table_alignment.md", "table_finetune.md")

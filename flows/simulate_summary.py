@@ -1,10 +1,10 @@
 """`simulate_summary` stage: one table of every simulate condition, aligned vs unaligned side by side.
 
 ``python -m flows.simulate_summary`` reads ``reports/simulate/<condition>-<alignment>/details.json`` of every
-condition of the `simulate` matrix and writes ``reports/simulate/details.json`` (per condition: `SUMMARY_KEYS`;
-``metrics.json`` holds only the number of variants, theirs are the DVC metrics) and
-``reports/simulate/summary.png`` (LiDAR point labels per condition; aligned vs unaligned re-projection error), also
-logged to an MLflow child run. A condition without a metrics file is an error naming the stage to run.
+condition of the `simulate` matrix and writes ``reports/simulate_summary/details.json`` (per condition:
+`SUMMARY_KEYS`; no DVC metrics of its own: the variants' are) and ``reports/simulate_summary/summary.png`` (LiDAR
+point labels per condition; aligned vs unaligned re-projection error), also logged to an MLflow child run. A condition
+without a metrics file is an error naming the stage to run.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from weatheralign.data.errors import read_json_file  # noqa: E402
 SUMMARY_KEYS = ("dataroot", "points_unchanged", "points_attenuated", "points_scattered", "points_lost",
                 "points_clutter", "particles_rendered", "reprojection_mean_px", "reprojection_max_px",
                 "reprojection_p99_px", "reprojection_pairs", "seconds_per_sample", "num_samples")
-"""Keys copied per condition into ``reports/simulate/details.json``."""
+"""Keys copied per condition into ``reports/simulate_summary/details.json``."""
 
 
 def condition_names() -> list[str]:
@@ -82,8 +82,8 @@ def summary_figure(summary: dict[str, dict]) -> Figure:
 
 @flow(name="simulate_summary", log_prints=True)
 def simulate_summary_flow(params: Params) -> dict:
-    """Write reports/simulate/details.json and summary.png; returns the summary."""
-    with StageTracker(params, "simulate_summary", name="simulate") as tracker:
+    """Write reports/simulate_summary/details.json and summary.png; returns the summary."""
+    with StageTracker(params, "simulate_summary") as tracker:
         summary = collect(params.paths.reports, condition_names())
         fig = summary_figure(summary)
         fig_path = tracker.reports / "summary.png"
@@ -91,7 +91,7 @@ def simulate_summary_flow(params: Params) -> dict:
         plt.close(fig)
         tracker.log_artifact(fig_path, "figures")
         # the figures per condition are the simulate runs' own
-        tracker.finish(summary, {"variants": len(summary)}, logged={"conditions": len(summary)})
+        tracker.finish(summary, {"variants": len(summary)}, logged={"conditions": len(summary)}, metrics_file=False)
     return summary
 
 

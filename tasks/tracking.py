@@ -278,15 +278,17 @@ class StageTracker:
                 self.client.set_model_version_tag(registered_name, version, key, value)
 
     def finish(self, details: dict[str, Any], headline: dict[str, Any], logged: dict[str, float] | None = None,
-               children: dict[str, tuple[dict[str, str], dict[str, Any]]] | None = None) -> None:
-        """Write ``reports/<name>/details.json`` = ``details`` and ``reports/<name>/metrics.json`` = ``headline``
-        (checked by `check_headline`), and log to MLflow: ``logged`` (default: every numeric leaf of ``headline``)
-        on the stage run, and per entry ``label: (tags, values)`` of ``children`` a child run ``<name>/<label>``
-        with those tags and the numeric leaves of ``values`` (so a per-condition or per-level figure keeps one name
-        across runs)."""
+               children: dict[str, tuple[dict[str, str], dict[str, Any]]] | None = None,
+               metrics_file: bool = True) -> None:
+        """Write ``reports/<name>/details.json`` = ``details`` and, with ``metrics_file`` (the stage declares DVC
+        metrics), ``reports/<name>/metrics.json`` = ``headline`` (checked by `check_headline`; also the Prefect
+        table artifact), and log to MLflow: ``logged`` (default: every numeric leaf of ``headline``) on the stage
+        run, and per entry ``label: (tags, values)`` of ``children`` a child run ``<name>/<label>`` with those tags
+        and the numeric leaves of ``values`` (so a per-condition or per-level figure keeps one name across runs)."""
         check_headline(headline, self.name)
         atomic.write_json(self.reports / "details.json", details, indent=2)
-        atomic.write_json(self.reports / "metrics.json", headline, indent=2)
+        if metrics_file:
+            atomic.write_json(self.reports / "metrics.json", headline, indent=2)
         run_url = None if self.client is None else mlflow_run_url(self.experiment_id, self.run_id)
         publish_prefect_artifacts(self.name, headline, run_url)
         if self.client is None:
@@ -297,7 +299,7 @@ class StageTracker:
         numeric = numeric_leaves(headline) if logged is None else dict(logged)
         numeric["stage_seconds"] = time.time() - self._t0
         log_metrics(self.client, self.run_id, numeric)
-        for name in ("metrics.json", "details.json"):
+        for name in ("metrics.json", "details.json") if metrics_file else ("details.json",):
             self.client.log_artifact(self.run_id, str(self.reports / name))
 
     def child(self, name: str, tags: dict[str, str]) -> ChildRun:

@@ -234,12 +234,18 @@ def test_addresses_uris_and_devices_are_checked_by_form(tmp_path, key, good, bad
         with pytest.raises(ConfigError) as err:
             params_from_dict({section: {name: value}})
         assert str(err.value).startswith(f"params: {key} = {value!r} is invalid: {form}"), str(err.value)
-    # in the file: the file and the key are named
-    f = _params_file(tmp_path, f"{name}: {'null' if name != 'device' else 'cpu'}", f"{name}: {bad[0]}",
-                     section=section)
+    # in the file that holds it (params.yaml or the section's setup file): the file and the key are named
+    old, new = f"{name}: {'null' if name != 'device' else 'cpu'}", f"{name}: {bad[0]}"
+    setup = [k for (s, k), fields in SETUP_FILES.items() if s == section and name in fields]
+    f = _params_file(tmp_path, *(() if setup else (old, new)), section=section)
+    where, named = f, key
+    if setup:
+        where = tmp_path / load_params(f).model_dump()[section][setup[0]]
+        where.write_text(where.read_text().replace(old, new, 1))
+        named = name
     with pytest.raises(ConfigError) as err:
         load_params(f)
-    assert str(err.value).startswith(f"{f}: {key} = {bad[0]!r} is invalid: {form}"), str(err.value)
+    assert str(err.value).startswith(f"{where}: {named} = {bad[0]!r} is invalid: {form}"), str(err.value)
 
 
 def test_errors_from_set_overrides_name_the_set(tmp_path):

@@ -1,10 +1,10 @@
-"""The float32 <-> binary16 conversions (weatheralign.float16) against numpy's own, bit for bit."""
+"""The float32 <-> binary16 conversions (weatheralign.data.float16) against numpy's own, bit for bit."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from weatheralign.float16 import from_float16, to_float16
+from weatheralign.data.float16 import from_float16, to_float16
 
 
 def test_every_half_widens_to_numpys_float32_bits() -> None:

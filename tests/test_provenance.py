@@ -7,7 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from weatheralign.provenance import file_stamps, source_digest
+from weatheralign.config import params_from_dict
+from weatheralign.provenance import file_stamps, source_digest, stage_fingerprint, stage_params
 
 
 def _tree(root: Path) -> Path:
@@ -63,3 +64,22 @@ def test_resume_record_verifies_what_it_keeps(tmp_path: Path) -> None:
     assert read_resume_record(rec, "fp1", tmp_path) is None
     rec.write_text("{broken")
     assert read_resume_record(rec, "fp1", tmp_path) is None
+
+
+def test_a_stage_fingerprint_follows_its_declared_params_and_setup_files() -> None:
+    """What a resume record must match: the keys the stage declares in dvc.yaml (whole sections or dotted keys) and
+    every key of the setup files it declares as deps, and nothing else."""
+    keys = stage_params("detect")
+    assert "detect" in keys and "simulate.sweeps" in keys and "detect.batch_size" in keys  # a section, a key, a file's
+    assert all("." in k or k == "detect" for k in keys)
+    simulate = stage_params("simulate")
+    assert "simulate.jpeg_quality" in simulate and "simulate.rain_appearance" in simulate
+    base = params_from_dict({})
+    fingerprint = stage_fingerprint("simulate", base, "world")
+    for changed in ({"simulate": {"jpeg_quality": 80}}, {"simulate": {"rain_appearance": "rain_weather_edit"}},
+                    {"simulate": {"sweeps": 1}}):
+        assert stage_fingerprint("simulate", params_from_dict(changed), "world") != fingerprint, changed
+    assert stage_fingerprint("simulate", params_from_dict({"detect": {"lr": 0.1}}), "world") == fingerprint
+    assert stage_fingerprint("simulate", base, "another world") != fingerprint
+    assert stage_fingerprint("detect", params_from_dict({"detect": {"batch_size": 4}})) != stage_fingerprint(
+        "detect", base)

@@ -141,7 +141,7 @@ def test_report_stage_on_the_committed_reports(tmp_path: Path):
     from tests.conftest import tiny_params
 
     reports = tmp_path / "reports"
-    for stage in ("world", "calibrate_fog", "simulate", "detect"):
+    for stage in ("world", "calibrate_fog", "simulate", "simulate_summary", "detect"):
         shutil.copytree(REPORTS / stage, reports / stage)
     data = tmp_path / "data"
     (data / "reference").mkdir(parents=True)
@@ -191,7 +191,7 @@ def test_a_real_browser_renders_the_page_with_everything_embedded(tmp_path: Path
     import numpy as np
     from PIL import Image
 
-    figures = [p for p in (REPORTS / "detect" / "learning_curve.png", REPORTS / "simulate" / "summary.png")
+    figures = [p for p in (REPORTS / "detect" / "learning_curve.png", REPORTS / "simulate_summary" / "summary.png")
                if p.is_file()]
     if not figures:
         pytest.skip("no committed figures")

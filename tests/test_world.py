@@ -389,7 +389,7 @@ def test_one_pass_camera_equals_the_step_by_step_camera(tiny_world, layouts):
     """`render_camera` (rasterised depth, then one pass for directions, hits, shadows, noise and sRGB) gives the very
     bytes of the step-by-step functions (`pixel_directions`, `cast_camera`, `sun_lit`, `camera_noise`,
     `camera_pixels`), and its range map is stored as numpy's own float16."""
-    from weatheralign.float16 import to_float16
+    from weatheralign.data.float16 import to_float16
     from weatheralign.world.render import pixel_directions, render_camera, sun_lit
     from weatheralign.world.shading import camera_noise, camera_pixels, noise_key
 

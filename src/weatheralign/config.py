@@ -1,15 +1,17 @@
 """Typed configuration: `params.yaml` validated into frozen pydantic models.
 
 `load_params(path, overrides)` is the only entry point. params.yaml holds the knobs one compares across experiments;
-the fixed setup lives in YAML files it names (`SETUP_FILES`): ``world.rig`` (the world's sensors) and
-``reference.setup`` (the reference's description, and for the synthetic reference its sensors and hidden truth).
-They are read into the same typed records (``params.world.lidar``, ``params.reference.precipitation``, ...) as if
-they stood in params.yaml; a key of theirs given in params.yaml itself (what ``dvc exp run -S +world.lidar.x=1``
-writes) or by ``--set`` overrides the file's value. Errors name the offending key and the allowed form, e.g.
-``params.yaml: world.ego_speed_max = 30.0 is invalid: Input should be less than or equal to 12``; a value that came
-from a ``--set key=value`` override is blamed on it (``--set world.ego_speed_max=30: world.ego_speed_max = 30 is
-invalid: ...``); one in a setup file is blamed on that file (``configs/world_rig.yaml: lidar.max_range_m = 500.0
-is invalid: ... (world.lidar.max_range_m)``).
+the fixed setup lives in YAML files it names (`SETUP_FILES`): ``world.rig`` (the world's sensors), ``reference.setup``
+(the reference's description, and for the synthetic reference its sensors and hidden truth), ``simulate.setup`` (the
+literature fog levels, the image encoding), ``calibrate_fog.setup``, ``verify.setup`` and ``detect.setup`` (each
+stage's model, optimiser and statistical protocol, its torch device) and ``tracking.setup`` (where MLflow records).
+They are read into the same typed records (``params.world.lidar``, ``params.reference.precipitation``, ...) as if they
+stood in params.yaml; a key of theirs given in params.yaml itself (what ``dvc exp run -S +world.lidar.x=1`` writes) or
+by ``--set`` overrides the file's value. Errors name the offending key and the allowed form, e.g. ``params.yaml:
+world.ego_speed_max = 30.0 is invalid: Input should be less than or equal to 12``; a value that came from a ``--set
+key=value`` override is blamed on it (``--set world.ego_speed_max=30: world.ego_speed_max = 30 is invalid: ...``); one
+in a setup file is blamed on that file (``configs/world_rig.yaml: lidar.max_range_m = 500.0 is invalid: ...
+(world.lidar.max_range_m)``).
 
 The file loader is strict: the file must hold every section of `Params` (an empty file or a missing section is an
 error, not "all defaults"), a key given twice in one mapping is an error (plain YAML keeps the last one silently),
@@ -157,8 +159,10 @@ class RunConfig(_Section):
 
 
 class TrackingConfig(_Section):
-    """MLflow tracking: a local sqlite store inside the repository unless a URI is given."""
+    """MLflow tracking: a local sqlite store inside the repository unless a URI is given (the keys below come from the
+    file ``setup`` names, `SETUP_FILES`)."""
 
+    setup: Path = Path("configs/tracking.yaml")
     mlflow_uri: str | None = None
     experiment: str = "weatheralign"
     enabled: bool = True
@@ -363,6 +367,7 @@ class SimulateConfig(_Section):
     aligned: bool = True
     fog_levels: Literal["calibrated", "params"] = "calibrated"
     precipitation_rates: Literal["calibrated", "params"] = "calibrated"
+    setup: Path = Path("configs/simulate.yaml")  # the file `load_params` reads the literature fog and encoding from
     fog_alpha_light: Annotated[float, Field(gt=0.0, le=0.5)] = 0.01
     fog_alpha_dense: Annotated[float, Field(gt=0.0, le=0.5)] = 0.04
     fog_beta_mor: Annotated[float, Field(ge=0.0, le=1.0)] = 0.046
@@ -572,6 +577,7 @@ class CalibrateFogConfig(_Section):
     """
 
     seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
+    setup: Path = Path("configs/calibrate_fog.yaml")  # the file `load_params` reads the search and KID keys from
     fine_points: tuple[Annotated[int, Field(ge=2, le=41)], Annotated[int, Field(ge=2, le=41)]] = (7, 11)
     max_nelder_mead: Annotated[int, Field(ge=0, le=1000)] = 60
     num_bootstrap: Annotated[int, Field(ge=10, le=100_000)] = 1000
@@ -624,6 +630,7 @@ class VerifyConfig(_Section):
     """
 
     seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
+    setup: Path = Path("configs/verify.yaml")  # the file `load_params` reads every key below from
     image_hw: tuple[Annotated[int, Field(ge=16, le=1024)], Annotated[int, Field(ge=16, le=2048)]] = (128, 240)
     steps: Annotated[int, Field(ge=1, le=100_000)] = 600
     batch_size: Annotated[int, Field(ge=2, le=1024)] = 16
@@ -656,6 +663,7 @@ class DetectConfig(_Section):
     device: TorchDevice = "cpu"
     seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
     seeds: tuple[Annotated[int, Field(ge=0, le=2**31 - 1)], ...] = (0, 1, 2)
+    setup: Path = Path("configs/detect.yaml")  # the file `load_params` reads the model and protocol keys from
     image_size: tuple[Annotated[int, Field(ge=32, le=900, multiple_of=16)],
                       Annotated[int, Field(ge=32, le=1600, multiple_of=16)]] = (128, 352)
     bev_range_m: Annotated[float, Field(gt=10.0, le=100.0)] = 51.2
@@ -793,10 +801,23 @@ SETUP_FILES: dict[tuple[str, str], tuple[str, ...]] = {
     ("world", "rig"): ("lidar", "camera", "ego_body", "sensor_overrides"),
     ("reference", "setup"): ("split_files", "intensity_max", "sensor_overrides", "alpha_light", "alpha_dense",
                              "beta_factor", "lidar", "camera", "precipitation"),
+    ("calibrate_fog", "setup"): ("fine_points", "max_nelder_mead", "num_bootstrap", "confidence", "inception_path",
+                                 "device"),
+    ("verify", "setup"): ("image_hw", "steps", "batch_size", "lr", "held_out_fraction", "correspondence_weight",
+                          "embedding", "classifiers", "permutations", "resamples", "confidence", "exposure_s",
+                          "device"),
+    ("detect", "setup"): ("device", "image_size", "bev_range_m", "bev_cell_m", "batch_size", "finetune_lr",
+                          "weight_decay", "modality_dropout", "lidar_drop_share", "camera_only_loss",
+                          "depth_loss_weight", "scene_block", "mix_weather_fraction", "eval_every", "score_threshold",
+                          "max_detections", "num_bootstrap", "confidence"),
+    ("simulate", "setup"): ("fog_alpha_light", "fog_alpha_dense", "fog_beta_mor", "fog_beta_light", "fog_beta_dense",
+                            "jpeg_quality", "near_clip_m", "refine_transmission"),
+    ("tracking", "setup"): ("mlflow_uri", "experiment", "enabled"),
 }
 """Per (section, key) of params.yaml that names a YAML file (relative to the params file's folder, or absolute): the
 keys of that section the file holds, every one of them and no other. The fixed setup, not knobs compared across
-experiments: dvc.yaml declares the file a plain dependency of every stage that reads it (``${world.rig}``)."""
+experiments: dvc.yaml declares the file a plain dependency of every stage that reads it (``${world.rig}``; the
+tracking file of none, since where MLflow records changes no output)."""
 
 
 def _read_yaml_file(path: Path) -> Any:

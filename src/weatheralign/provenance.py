@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -81,15 +82,23 @@ def stage_code(stage: str, dvc_file: Path | None = None) -> list[str]:
 
 
 def stage_params(stage: str, dvc_file: Path | None = None) -> list[str]:
-    """The params keys ``stage`` declares in ``dvc.yaml`` (section names or dotted keys)."""
+    """The params keys ``stage`` depends on in ``dvc.yaml`` (section names or dotted keys): those it declares, and
+    every key of each setup file it declares as a dependency (``${detect.setup}``: ``detect.batch_size``, ...;
+    `weatheralign.config.SETUP_FILES`), since those values reach the stage as params."""
     import yaml
+
+    from weatheralign.config import SETUP_FILES
 
     path = Path(dvc_file) if dvc_file is not None else REPO_ROOT / "dvc.yaml"
     stage_def = yaml.safe_load(path.read_text())["stages"][stage]
-    out = []
+    out: list[str] = []
     for p in stage_def.get("params", []):
-        out.extend(p if isinstance(p, str) else [k for v in p.values() for k in v])
-    return [p if isinstance(p, str) else str(p) for p in out]
+        out.extend([p] if isinstance(p, str) else [str(k) for v in p.values() for k in v])
+    for dep in stage_def.get("deps", []):
+        named = re.fullmatch(r"\$\{\s*(\w+)\.(\w+)\s*\}", dep) if isinstance(dep, str) else None
+        if named and (named[1], named[2]) in SETUP_FILES:
+            out.extend(f"{named[1]}.{field}" for field in SETUP_FILES[(named[1], named[2])])
+    return out
 
 
 def stage_code_digest(stage: str) -> str:

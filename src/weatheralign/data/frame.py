@@ -14,7 +14,7 @@ from numpy.typing import NDArray
 from PIL import Image
 
 from weatheralign.data.errors import DataFormatError, require_file
-from weatheralign.float16 import from_float16
+from weatheralign.data.float16 import from_float16
 from weatheralign.geometry import apply, interpolate_poses, invert
 
 F64 = NDArray[np.float64]

@@ -18,9 +18,9 @@ def _num(value: Any, fmt: str = ".3f") -> str:
 
 
 def reprojection_table(simulate: dict[str, Any]) -> str:
-    """Per simulated variant (``reports/simulate/details.json``): the re-projection error of the particles the LiDAR
-    saw, projected into every camera that drew them [px], and what the weather did to the LiDAR points; the paper's
-    figures beside (snow and rain only: it has none for fog)."""
+    """Per simulated variant (``reports/simulate_summary/details.json``): the re-projection error of the particles the
+    LiDAR saw, projected into every camera that drew them [px], and what the weather did to the LiDAR points; the
+    paper's figures beside (snow and rain only: it has none for fog)."""
     lines = ["| variant | re-projection mean [px] | max [px] | pairs | points lost | points scattered | "
              "paper mean / max [px] |", "| --- | ---: | ---: | ---: | ---: | ---: | --- |"]
     for name, m in simulate.items():

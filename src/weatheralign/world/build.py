@@ -19,8 +19,8 @@ from PIL import Image
 
 from weatheralign import atomic
 from weatheralign.config import WorldConfig
+from weatheralign.data.float16 import to_float16
 from weatheralign.data.nuscenes import extras_relpath
-from weatheralign.float16 import to_float16
 from weatheralign.geometry import apply, invert, project, quaternion_wxyz
 from weatheralign.sensors import FiringPattern, ego_body_from_params, lidar_model_from_params
 from weatheralign.world.layout import Actor, SceneLayout, generate_layout
