@@ -25,6 +25,7 @@ reference's sealed truth is never read here.
 
 from __future__ import annotations
 
+import textwrap
 import time
 
 import matplotlib
@@ -109,7 +110,7 @@ def ground_figure(fits: dict[str, DepthFit], reference: dict[str, np.ndarray], s
         ax.axvline(1000 * fit.depth_m, color="tab:red", lw=1.5, label=f"tuned {1000 * fit.depth_m:.3g} mm")
         ax.axvspan(1000 * fit.ci_low, 1000 * fit.ci_high, color="tab:red", alpha=0.12)
         what = "snow depth" if kind == "snow" else "mean water-film depth"
-        ax.set(xlabel=f"{what} [mm]", ylabel=fit.statistic, title=f"{kind}: the ground")
+        ax.set(xlabel=f"{what} [mm]", ylabel=textwrap.fill(fit.statistic, 40), title=f"{kind}: the ground")
         ax.legend(fontsize=7)
     fig.tight_layout()
     return fig

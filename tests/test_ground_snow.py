@@ -86,3 +86,27 @@ def test_partly_covered_footprints_mix_the_intensities() -> None:
     effect = snow_covered_ground(np.array([[10.0, 0, -1.8]] * 3), np.zeros(3), np.array([0, 0, 1.0]),
                                  np.full(3, 30.0), np.full(3, 0.05), cover, coverage=np.array([0.0, 0.5, 1.0]))
     assert effect.intensity.tolist() == [30.0, 75.0, 120.0]
+
+
+def test_a_grazing_beam_enters_an_off_ground_layer_through_its_side() -> None:
+    """On the ground plane the return moves d / cos(theta) (however grazing the beam); off it, a beam that would run
+    more than the surface's edge run across the snow enters the layer through its side: run / sin(theta) nearer,
+    inside the layer, never past the sensor."""
+    cover = SnowCover(edge_run_m=0.5)
+    cos_theta = np.array([0.9, 0.2, 0.01, 1e-7])  # a roof (normal +z) hit from the side ever more grazingly
+    sin_theta = np.sqrt(1.0 - cos_theta**2)
+    hits = np.column_stack([10.0 * sin_theta, np.zeros(4), -10.0 * cos_theta])  # 10 m from the sensor
+    depth = np.full(4, 0.1)
+    plane = snow_covered_ground(hits, np.zeros(3), np.array([0, 0, 1.0]), np.full(4, 10.0), depth, cover)
+    np.testing.assert_allclose(10.0 - np.linalg.norm(plane.points[:3], axis=1), 0.1 / cos_theta[:3], rtol=1e-9)
+    roof = snow_covered_ground(hits, np.zeros(3), np.array([0, 0, 1.0]), np.full(4, 10.0), depth, cover,
+                               max_run_m=cover.edge_run_m)
+    moved = 10.0 - np.linalg.norm(roof.points, axis=1)
+    expected = np.minimum(0.1 / cos_theta, 0.5 / sin_theta)
+    np.testing.assert_allclose(moved, expected, rtol=1e-9)
+    assert moved[0] == pytest.approx(0.1 / 0.9) and moved[3] == pytest.approx(0.5)  # the top; the side
+    height = (roof.points - hits) @ np.array([0, 0, 1.0])
+    assert np.all(height <= 0.1 + 1e-12) and np.all(np.sum(roof.points * hits, axis=1) > 0)  # in the layer, ahead
+    np.testing.assert_allclose(np.cross(hits, roof.points), 0.0, atol=1e-9)  # on the same beams
+    with pytest.raises(ValueError, match="edge_run_m"):
+        SnowCover(edge_run_m=0.0)

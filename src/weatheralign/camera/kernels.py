@@ -137,6 +137,47 @@ def range_weight(coarse: np.float64, fine: np.float64, sigma: float) -> np.float
     return np.exp(-d * d)
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _bilinear(layer: NDArray, y0: int, x0: int, y1: int, x1: int, w0: np.float64, w1: np.float64, w2: np.float64,
+              w3: np.float64) -> np.float64:
+    """The weighted sum of ``layer`` (h, w) at the four coarse samples (y0, x0), (y0, x1), (y1, x0), (y1, x1), in
+    that order."""
+    return 0.0 + w0 * layer[y0, x0] + w1 * layer[y0, x1] + w2 * layer[y1, x0] + w3 * layer[y1, x1]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _bilinear_channel(layer: NDArray, ch: int, y0: int, x0: int, y1: int, x1: int, w0: np.float64, w1: np.float64,
+                      w2: np.float64, w3: np.float64) -> np.float64:
+    """`_bilinear` of channel ``ch`` of ``layer`` (h, w, C)."""
+    return 0.0 + w0 * layer[y0, x0, ch] + w1 * layer[y0, x1, ch] + w2 * layer[y1, x0, ch] + w3 * layer[y1, x1, ch]
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _edge_weights(w0: np.float64, w1: np.float64, w2: np.float64, w3: np.float64, c0: np.float64, c1: np.float64,
+                  c2: np.float64, c3: np.float64, r: np.float64, sigma: float
+                  ) -> tuple[np.float64, np.float64, np.float64, np.float64, np.float64]:
+    """The bilinear weights (w0..w3) of a pixel at ray length ``r`` [m] whose coarse samples lie at ``c0..c3`` [m],
+    off the surface they span: each times `range_weight`; where they all vanish, the sample of nearest ray length
+    alone (none: all 0). Returns the weights and their sum (`range_guided_weights_naive`, in the kernel's order)."""
+    r_inf = np.isinf(r)
+    best, best_k = np.inf, -1
+    for k, c in enumerate((c0, c1, c2, c3)):
+        if np.isinf(c) == r_inf:
+            miss = 0.0 if r_inf else abs(c - r)
+            if miss < best:
+                best, best_k = miss, k
+    w0 *= range_weight(c0, r, sigma)
+    w1 *= range_weight(c1, r, sigma)
+    w2 *= range_weight(c2, r, sigma)
+    w3 *= range_weight(c3, r, sigma)
+    total = 0.0 + w0 + w1 + w2 + w3
+    if total <= 1e-12:
+        w0, w1, w2, w3 = (1.0 if best_k == 0 else 0.0), (1.0 if best_k == 1 else 0.0), \
+            (1.0 if best_k == 2 else 0.0), (1.0 if best_k == 3 else 0.0)
+        total = 1.0 if best_k >= 0 else 0.0
+    return w0, w1, w2, w3, total
+
+
 @numba.njit(cache=True, nogil=True)
 def guided_affine_edit_kernel(image: U8, gain: NDArray, offset: NDArray, edited: NDArray, range_map: NDArray,
                               stride: int, sigma: float, alt_gain: NDArray, alt_offset: NDArray, switch: NDArray,
@@ -148,8 +189,8 @@ def guided_affine_edit_kernel(image: U8, gain: NDArray, offset: NDArray, edited:
     across a depth edge (`weatheralign.camera.fog.range_guided_weights_naive`); returns the image and the (H, W) pixels
     whose interpolated ``edited`` exceeds 0.5. Where ``switch`` (h, w) is given (else (0, 0)), a pixel whose
     interpolated ``switch`` exceeds 0 takes the interpolated ``alt_gain``, ``alt_offset`` (h, w, 3) instead. Pixels
-    whose four samples change nothing are copied as they are (the identity round-trips every code). One pass;
-    nothing full-size allocated but the outputs."""
+    whose four samples change nothing are copied as they are (the identity round-trips every code). One pass, the
+    per-pixel weights held in registers; nothing full-size allocated but the outputs."""
     height, width = image.shape[0], image.shape[1]
     h, w = gain.shape[0], gain.shape[1]
     switching = switch.shape[0] > 0
@@ -161,69 +202,49 @@ def guided_affine_edit_kernel(image: U8, gain: NDArray, offset: NDArray, edited:
             if switching and not touched[y, x]:
                 touched[y, x] = alt_gain[y, x, 0] != 1.0 or alt_gain[y, x, 1] != 1.0 or alt_gain[y, x, 2] != 1.0 or \
                     alt_offset[y, x, 0] != 0.0 or alt_offset[y, x, 1] != 0.0 or alt_offset[y, x, 2] != 0.0
+    col0 = np.empty(width, np.int64)  # per column: its coarse columns and its bilinear position between them
+    col1 = np.empty(width, np.int64)
+    frac = np.empty(width)
+    for j in range(width):
+        col0[j] = j // stride
+        col1[j] = min(col0[j] + 1, w - 1)
+        frac[j] = (j - col0[j] * stride) / stride
     out = np.empty((height, width, 3), np.uint8)
     mask = np.zeros((height, width), np.bool_)
-    rows = np.empty(4, np.int64)
-    cols = np.empty(4, np.int64)
-    weights = np.empty(4)
     for i in range(height):
         y0 = i // stride
         fy = (i - y0 * stride) / stride
         y1 = min(y0 + 1, h - 1)
         for j in range(width):
-            x0 = j // stride
-            fx = (j - x0 * stride) / stride
-            x1 = min(x0 + 1, w - 1)
+            x0, x1, fx = col0[j], col1[j], frac[j]
             if not (touched[y0, x0] or touched[y0, x1] or touched[y1, x0] or touched[y1, x1]):
                 out[i, j, 0], out[i, j, 1], out[i, j, 2] = image[i, j, 0], image[i, j, 1], image[i, j, 2]
                 continue
-            rows[0], cols[0], weights[0] = y0, x0, (1.0 - fy) * (1.0 - fx)
-            rows[1], cols[1], weights[1] = y0, x1, (1.0 - fy) * fx
-            rows[2], cols[2], weights[2] = y1, x0, fy * (1.0 - fx)
-            rows[3], cols[3], weights[3] = y1, x1, fy * fx
+            w0, w1 = (1.0 - fy) * (1.0 - fx), (1.0 - fy) * fx
+            w2, w3 = fy * (1.0 - fx), fy * fx
+            c0 = np.float64(range_map[y0 * stride, x0 * stride])
+            c1 = np.float64(range_map[y0 * stride, x1 * stride])
+            c2 = np.float64(range_map[y1 * stride, x0 * stride])
+            c3 = np.float64(range_map[y1 * stride, x1 * stride])
             r = np.float64(range_map[i, j])
-            spanned = 0.0  # the ray length the four samples' surface has here, bilinearly
-            for k in range(4):
-                spanned += weights[k] * np.float64(range_map[rows[k] * stride, cols[k] * stride])
-            smooth = np.isfinite(spanned) and np.isfinite(r) and abs(spanned - r) <= sigma * r
-            total = 0.0
-            best, best_k = np.inf, -1
-            for k in range(4):
-                c = np.float64(range_map[rows[k] * stride, cols[k] * stride])
-                rw = 1.0 if smooth else range_weight(c, r, sigma)
-                if np.isinf(c) == np.isinf(r):
-                    miss = 0.0 if np.isinf(r) else abs(c - r)
-                    if miss < best:
-                        best, best_k = miss, k
-                weights[k] *= rw
-                total += weights[k]
-            if total <= 1e-12:
-                for k in range(4):
-                    weights[k] = 1.0 if k == best_k else 0.0
-                total = 1.0 if best_k >= 0 else 0.0
-            e = 0.0
-            for k in range(4):
-                e += weights[k] * edited[rows[k], cols[k]]
+            spanned = 0.0 + w0 * c0 + w1 * c1 + w2 * c2 + w3 * c3  # the four samples' surface here, bilinearly
+            if np.isfinite(spanned) and np.isfinite(r) and abs(spanned - r) <= sigma * r:
+                total = 0.0 + w0 + w1 + w2 + w3
+            else:
+                w0, w1, w2, w3, total = _edge_weights(w0, w1, w2, w3, c0, c1, c2, c3, r, sigma)
+            e = _bilinear(edited, y0, x0, y1, x1, w0, w1, w2, w3)
             mask[i, j] = total > 0.0 and e > 0.5 * total
             alternative = False
             if switching and total > 0.0:
-                s = 0.0
-                for k in range(4):
-                    s += weights[k] * switch[rows[k], cols[k]]
-                alternative = s > 0.0
+                alternative = _bilinear(switch, y0, x0, y1, x1, w0, w1, w2, w3) > 0.0
             for ch in range(3):
                 g, o = 1.0, 0.0
-                if total > 0.0:
-                    g, o = 0.0, 0.0
-                    for k in range(4):
-                        if alternative:
-                            g += weights[k] * alt_gain[rows[k], cols[k], ch]
-                            o += weights[k] * alt_offset[rows[k], cols[k], ch]
-                        else:
-                            g += weights[k] * gain[rows[k], cols[k], ch]
-                            o += weights[k] * offset[rows[k], cols[k], ch]
-                    g /= total
-                    o /= total
+                if total > 0.0 and alternative:
+                    g = _bilinear_channel(alt_gain, ch, y0, x0, y1, x1, w0, w1, w2, w3) / total
+                    o = _bilinear_channel(alt_offset, ch, y0, x0, y1, x1, w0, w1, w2, w3) / total
+                elif total > 0.0:
+                    g = _bilinear_channel(gain, ch, y0, x0, y1, x1, w0, w1, w2, w3) / total
+                    o = _bilinear_channel(offset, ch, y0, x0, y1, x1, w0, w1, w2, w3) / total
                 x = np.float64(decode_lut[image[i, j, ch]]) * g + o
                 out[i, j, ch] = encode_one(np.float32(x), lut, ambiguous, thresholds, bins)
     return out, mask

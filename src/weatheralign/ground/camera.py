@@ -267,8 +267,9 @@ def snow_cover_layers(image: F64, coverage: F64, points_world: F64, ground_mask:
     weight = uniform_filter(snowy.astype(np.float64), shading_px)
     local = uniform_filter(np.where(snowy, luminance, 0.0), shading_px) / np.maximum(weight, 1e-9)
     rows, cols = pixels[:, 0], pixels[:, 1]
-    reference = max(float(np.percentile(local[rows, cols], 90)), 1e-6)
-    shading = 1.0 - shading_strength * (1.0 - np.clip(local[rows, cols] / reference, 0.2, 1.0))[:, None]
+    around = local[rows, cols]
+    reference = max(float(np.percentile(around, 90)), 1e-6)
+    shading = 1.0 - shading_strength * (1.0 - np.clip(around / reference, 0.2, 1.0))[:, None]
     sky = np.asarray(sky, dtype=np.float64)
     sky_luminance = max(float(sky @ LUMINANCE), 1e-6)
     tint = 0.75 + 0.25 * sky / sky_luminance

@@ -135,8 +135,10 @@ def edit_scan(scan: LidarScan, surfaces: ScanSurfaces, state: GroundState, noise
         level = snow_depth(surfaces.world[:, :2], state.cover, state.seed, state.tracks)
         coverage, depth = snow_coverage(level, surfaces.cos_up, state.cover)
         covered = coverage > 0.0
+        run = np.where(surfaces.on_ground[covered], np.inf, state.cover.edge_run_m)  # the plane has no near edge
         effect = snow_covered_ground(points[covered, :3].astype(np.float64), np.zeros(3), surfaces.normals[covered],
-                                     intensity[covered], depth[covered], state.cover, coverage=coverage[covered])
+                                     intensity[covered], depth[covered], state.cover, coverage=coverage[covered],
+                                     max_run_m=run)
         points[covered, :3] = effect.points.astype(np.float32)
         intensity[covered] = effect.intensity
         edited = coverage > SNOW_EDIT_MIN_COVERAGE

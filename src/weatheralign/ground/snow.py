@@ -32,7 +32,9 @@ F64 = NDArray[np.float64]
 @dataclass(frozen=True)
 class SnowCover:
     """Snow on the ground: ``depth_m`` on average, between ``(1 - variation)`` and ``(1 + variation)`` times it over
-    features about ``cell_m`` wide; its reflectivity and the bare pavement's at the LiDAR's wavelength."""
+    features about ``cell_m`` wide; its reflectivity and the bare pavement's at the LiDAR's wavelength. Off the ground
+    plane (a roof, a car top, a kerb) a beam runs at most ``edge_run_m`` over the snow before it reaches the surface's
+    edge (`snow_covered_ground`)."""
 
     depth_m: float = 0.05
     variation: float = 0.5
@@ -42,11 +44,12 @@ class SnowCover:
     visible_albedo: float = 0.85  # fresh snow in the visible (Warren 1982: 0.8-0.95)
     hiding_depth_m: float = 0.01  # the depth that hides all but 1/e of the surface under it
     max_slope_deg: float = 50.0  # steeper surfaces hold no snow
+    edge_run_m: float = 0.5  # an off-ground surface's extent towards the sensor: a car top's, a roof's half width
 
     def __post_init__(self) -> None:
-        if not self.depth_m > 0 or not self.cell_m > 0 or not self.hiding_depth_m > 0:
-            raise ValueError(f"SnowCover.depth_m, cell_m and hiding_depth_m must be > 0, got {self.depth_m}, "
-                             f"{self.cell_m}, {self.hiding_depth_m}")
+        if not self.depth_m > 0 or not self.cell_m > 0 or not self.hiding_depth_m > 0 or not self.edge_run_m > 0:
+            raise ValueError(f"SnowCover.depth_m, cell_m, hiding_depth_m and edge_run_m must be > 0, got "
+                             f"{self.depth_m}, {self.cell_m}, {self.hiding_depth_m}, {self.edge_run_m}")
         if not 0.0 < self.max_slope_deg < 90.0:
             raise ValueError(f"SnowCover.max_slope_deg must be in (0, 90), got {self.max_slope_deg}")
         if not 0.0 <= self.variation < 1.0:
@@ -146,19 +149,27 @@ def snow_coverage(depth_m: F64, cos_up: F64, cover: SnowCover) -> tuple[F64, F64
 
 
 def snow_covered_ground(points: F64, origins: F64, normals: F64, intensity: F64, depth_m: F64, cover: SnowCover,
-                        saturation: float = 255.0, coverage: F64 | None = None) -> SnowCoverEffect:
+                        saturation: float = 255.0, coverage: F64 | None = None,
+                        max_run_m: F64 | float = np.inf) -> SnowCoverEffect:
     """Returns (N, 3) seen from ``origins`` (N, 3) or (3,) on surfaces of unit ``normals`` (N, 3) or (3,), under
-    snow ``depth_m`` (N,) [m]: each moved along its beam onto the snow surface; over the ``coverage`` (N,) share of
-    its footprint (default all) the intensity scaled by ``snow_reflectivity / pavement_reflectivity``, clipped at
-    ``saturation``."""
+    snow ``depth_m`` (N,) [m]: each moved along its beam onto the snow, ``d / cos θ`` nearer (the top of a layer
+    ``d`` thick over the surface, ``θ`` the incidence), or, where that would take the beam more than ``max_run_m``
+    (N,) or scalar [m] across the surface (``d tan θ``: a grazing beam over a roof or a car top), through the layer's
+    side at that run: ``max_run_m / sin θ`` nearer, inside the layer (default: no edge, the ground plane). Over the
+    ``coverage`` (N,) share of its footprint (default all) the intensity scaled by ``snow_reflectivity /
+    pavement_reflectivity``, clipped at ``saturation``."""
     points = np.asarray(points, dtype=np.float64)
     rays = points - origins
     ranges = np.linalg.norm(rays, axis=-1, keepdims=True)
     directions = rays / ranges
     normals = np.broadcast_to(np.asarray(normals, dtype=np.float64), points.shape)
-    cos_incidence = np.abs(np.sum(directions * normals, axis=-1, keepdims=True))
-    depth = np.asarray(depth_m, dtype=np.float64)
-    moved = points - directions * (depth[:, None] / np.maximum(cos_incidence, 1e-6))
+    cos_incidence = np.clip(np.abs(np.sum(directions * normals, axis=-1, keepdims=True)), 1e-9, 1.0)
+    sin_incidence = np.sqrt(1.0 - cos_incidence**2)
+    depth = np.asarray(depth_m, dtype=np.float64)[:, None]
+    run = np.broadcast_to(np.asarray(max_run_m, dtype=np.float64), depth.shape[:1])[:, None]
+    with np.errstate(divide="ignore"):
+        through_side = np.where(sin_incidence > 0.0, run / sin_incidence, np.inf)
+    moved = points - directions * np.minimum(depth / cos_incidence, through_side)
     ratio = cover.snow_reflectivity / cover.pavement_reflectivity
     dry = np.asarray(intensity, dtype=np.float64)
     snowy = np.minimum(dry * ratio, saturation)

@@ -73,7 +73,9 @@ def fit_ground_plane(points: F64, min_drop_m: float = 1.0, tolerance_m: float = 
     normals = normals[valid] / length[valid, None]
     normals *= np.where(normals[:, 2] < 0, -1.0, 1.0)[:, None]
     offsets = -np.sum(normals * triples[valid, 0], axis=1)
-    inliers = (np.abs(scored @ normals.T + offsets) < tolerance_m).sum(axis=0)
+    distance = scored @ normals.T  # (sample, hypotheses), in place from here: no temporaries of its size
+    distance += offsets
+    inliers = np.count_nonzero(np.abs(distance, out=distance) < tolerance_m, axis=0)
     best = int(np.argmax(inliers))
     normal, offset = normals[best], float(offsets[best])
     for _ in range(2):  # least squares on the inliers: the plane through their centroid along their least variance
