@@ -27,6 +27,7 @@ from weatheralign.ground.surfaces import (
     GroundPlane,
     fit_ground_plane,
     median_over_neighbours,
+    nearest_neighbours,
     nearest_return_values,
     pixel_normals,
     point_normals,
@@ -96,8 +97,9 @@ def scan_surfaces(scan: LidarScan, tolerance_m: float = 0.2, off_ground: bool = 
     cos_up = np.zeros(len(xyz))
     cos_up[on_ground] = abs(float((T[:3, :3] @ np.asarray(plane.normal))[2]))
     if off_ground and len(off) >= 16:
-        normals[off] = point_normals(xyz[off], np.zeros(3))
-        cos_up[off] = median_over_neighbours(xyz[off], np.abs((normals[off] @ T[:3, :3].T)[:, 2]))
+        neighbours = nearest_neighbours(xyz[off])  # one search for the normals and their median
+        normals[off] = point_normals(xyz[off], np.zeros(3), neighbours)
+        cos_up[off] = median_over_neighbours(np.abs(normals[off] @ T[2, :3]), neighbours)
     else:
         normals[off] = xyz[off] / np.maximum(np.linalg.norm(xyz[off], axis=1, keepdims=True), 1e-9)
     return ScanSurfaces(plane, on_ground, normals, cos_up, xyz @ T[:3, :3].T + T[:3, 3])

@@ -1,5 +1,7 @@
-"""Compiled per-point kernels of the ground fields: the value and fractal noise that the water-depth and snow-depth
-fields and the snow's grain are made of, evaluated at every LiDAR return and every camera pixel.
+"""Compiled per-point kernels of the ground: the value and fractal noise that the water-depth and snow-depth fields
+and the snow's grain are made of, evaluated at every LiDAR return and every camera pixel; the surfaces they lie on
+(RANSAC's inlier counts, the returns' PCA normals and their neighbours' median, a range map's normals); the mirror
+image's march.
 
 `weatheralign.ground.wet.fractal_noise_naive` (numpy) defines the result; `fractal_noise_kernel` computes the same
 rule point by point (the same integer hash, the same operation order). Nothing here allocates per point; the kernels
@@ -85,6 +87,117 @@ def fractal_noise_kernel(xy: F64, cell_m: float, seed: int, octaves: int) -> F64
 
 
 
+
+
+@numba.njit(cache=True, nogil=True)
+def plane_inliers_kernel(points: F64, normals: F64, offsets: F64, tolerance_m: float) -> NDArray[np.int64]:
+    """(H,) per plane ``normals[h] . x + offsets[h] = 0`` (normals (H, 3), offsets (H,)) the number of ``points``
+    (S, 3) closer to it than ``tolerance_m`` (`weatheralign.ground.surfaces.plane_inliers_naive`)."""
+    counts = np.zeros(normals.shape[0], np.int64)
+    for h in range(normals.shape[0]):
+        nx, ny, nz, d = normals[h, 0], normals[h, 1], normals[h, 2], offsets[h]
+        count = 0
+        for i in range(points.shape[0]):
+            if abs(points[i, 0] * nx + points[i, 1] * ny + points[i, 2] * nz + d) < tolerance_m:
+                count += 1
+        counts[h] = count
+    return counts
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def smallest_eigenvector(a00: float, a01: float, a02: float, a11: float, a12: float,
+                         a22: float) -> tuple[float, float, float]:
+    """Unit eigenvector of the smallest eigenvalue of the symmetric 3x3 matrix ``[[a00, a01, a02], [., a11, a12],
+    [., ., a22]]``: the eigenvalue in closed form (the trigonometric solution of the characteristic cubic), the vector
+    the largest cross product of two rows of ``A - lambda I``; (0, 0, 1) where the matrix is a multiple of I, and a
+    vector across the largest row where the two smallest eigenvalues are equal (collinear points)."""
+    scale = max(abs(a00), abs(a01), abs(a02), abs(a11), abs(a12), abs(a22))
+    if scale <= 0.0:
+        return 0.0, 0.0, 1.0
+    a00, a01, a02, a11, a12, a22 = a00 / scale, a01 / scale, a02 / scale, a11 / scale, a12 / scale, a22 / scale
+    q = (a00 + a11 + a22) / 3.0
+    b00, b11, b22 = a00 - q, a11 - q, a22 - q
+    p1 = a01 * a01 + a02 * a02 + a12 * a12
+    p = np.sqrt((b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * p1) / 6.0)
+    if p <= 0.0:
+        return 0.0, 0.0, 1.0
+    det = b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)
+    r = min(max(det / (2.0 * p * p * p), -1.0), 1.0)
+    smallest = q + 2.0 * p * np.cos(np.arccos(r) / 3.0 + 2.0 * np.pi / 3.0)
+    r0 = (a00 - smallest, a01, a02)
+    r1 = (a01, a11 - smallest, a12)
+    r2 = (a02, a12, a22 - smallest)
+    best, bx, by, bz = -1.0, 0.0, 0.0, 1.0
+    for u, v in ((r0, r1), (r0, r2), (r1, r2)):
+        cx, cy, cz = u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]
+        n2 = cx * cx + cy * cy + cz * cz
+        if n2 > best:
+            best, bx, by, bz = n2, cx, cy, cz
+    if best <= 1e-24:  # a double smallest eigenvalue: any vector across the largest row
+        big, size = r0, r0[0] * r0[0] + r0[1] * r0[1] + r0[2] * r0[2]
+        for row in (r1, r2):
+            if row[0] * row[0] + row[1] * row[1] + row[2] * row[2] > size:
+                big, size = row, row[0] * row[0] + row[1] * row[1] + row[2] * row[2]
+        if abs(big[0]) > abs(big[2]):
+            bx, by, bz = -big[1], big[0], 0.0
+        else:
+            bx, by, bz = 0.0, -big[2], big[1]
+        best = bx * bx + by * by + bz * bz
+        if best <= 0.0:
+            return 0.0, 0.0, 1.0
+    norm = np.sqrt(best)
+    return bx / norm, by / norm, bz / norm
+
+
+@numba.njit(cache=True, nogil=True)
+def neighbour_normals_kernel(points: F64, index: NDArray[np.int64], origin: F64) -> F64:
+    """(N, 3) unit normals of ``points`` (N, 3): the direction of least variance of each point's neighbours
+    ``index`` (N, k) (their covariance about their mean, `smallest_eigenvector`), turned towards ``origin`` (3,)
+    (`weatheralign.ground.surfaces.point_normals_naive`'s rule)."""
+    n, k = index.shape
+    out = np.empty((n, 3))
+    for i in range(n):
+        mx = my = mz = 0.0
+        for m in range(k):
+            j = index[i, m]
+            mx += points[j, 0]
+            my += points[j, 1]
+            mz += points[j, 2]
+        mx, my, mz = mx / k, my / k, mz / k
+        sxx = sxy = sxz = syy = syz = szz = 0.0
+        for m in range(k):
+            j = index[i, m]
+            dx, dy, dz = points[j, 0] - mx, points[j, 1] - my, points[j, 2] - mz
+            sxx += dx * dx
+            sxy += dx * dy
+            sxz += dx * dz
+            syy += dy * dy
+            syz += dy * dz
+            szz += dz * dz
+        nx, ny, nz = smallest_eigenvector(sxx / k, sxy / k, sxz / k, syy / k, syz / k, szz / k)
+        if nx * (origin[0] - points[i, 0]) + ny * (origin[1] - points[i, 1]) + nz * (origin[2] - points[i, 2]) < 0:
+            nx, ny, nz = -nx, -ny, -nz
+        out[i, 0], out[i, 1], out[i, 2] = nx, ny, nz
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def neighbour_median_kernel(values: F64, index: NDArray[np.int64]) -> F64:
+    """(N,) the median of ``values`` over each row of ``index`` (N, k) (``np.median(values[index], axis=1)``, the
+    two middle values averaged for an even k)."""
+    n, k = index.shape
+    out = np.empty(n)
+    window = np.empty(k)
+    for i in range(n):
+        for m in range(k):  # insertion sort: k is small
+            v = values[index[i, m]]
+            slot = m
+            while slot > 0 and window[slot - 1] > v:
+                window[slot] = window[slot - 1]
+                slot -= 1
+            window[slot] = v
+        out[i] = window[k // 2] if k % 2 else (window[k // 2 - 1] + window[k // 2]) / 2.0
+    return out
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -239,5 +352,6 @@ def screen_space_reflection_kernel(image: F64, range_map: F64, K: F64, T_cam_wor
     return out
 
 
-__all__ = ["fractal_noise_kernel", "hash01", "pixel_normals_kernel", "reflect_index", "screen_space_reflection_kernel",
-           "tracks_factor_kernel", "value_noise_kernel", "value_noise_one"]
+__all__ = ["fractal_noise_kernel", "hash01", "neighbour_median_kernel", "neighbour_normals_kernel",
+           "pixel_normals_kernel", "plane_inliers_kernel", "reflect_index", "screen_space_reflection_kernel",
+           "smallest_eigenvector", "tracks_factor_kernel", "value_noise_kernel", "value_noise_one"]
