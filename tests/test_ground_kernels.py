@@ -17,6 +17,7 @@ from weatheralign.ground.surfaces import (
     nearest_neighbours,
     pixel_normals,
     pixel_normals_naive,
+    pixel_points,
     plane_inliers,
     plane_inliers_naive,
     point_normals,
@@ -58,7 +59,9 @@ def scene() -> tuple[np.ndarray, np.ndarray, CameraGeometry]:
 def test_pixel_normals_are_their_oracle() -> None:
     image, range_map, camera = scene()
     fast, slow = pixel_normals(range_map, camera), pixel_normals_naive(range_map, camera)
-    for a, b in ((fast.points_world, slow.points_world), (fast.normals_world, slow.normals_world)):
+    points = pixel_points(range_map, camera)
+    for a, b in ((fast.points_world, slow.points_world), (fast.normals_world, slow.normals_world),
+                 (points, slow.points_world)):
         np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
         np.testing.assert_allclose(a[~np.isnan(a)], b[~np.isnan(b)], atol=1e-9)
 

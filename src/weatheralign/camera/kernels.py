@@ -209,7 +209,7 @@ def guided_affine_edit_kernel(image: U8, gain: NDArray, offset: NDArray, edited:
         col0[j] = j // stride
         col1[j] = min(col0[j] + 1, w - 1)
         frac[j] = (j - col0[j] * stride) / stride
-    out = np.empty((height, width, 3), np.uint8)
+    out = image.copy()  # untouched pixels stay as they are
     mask = np.zeros((height, width), np.bool_)
     for i in range(height):
         y0 = i // stride
@@ -218,7 +218,6 @@ def guided_affine_edit_kernel(image: U8, gain: NDArray, offset: NDArray, edited:
         for j in range(width):
             x0, x1, fx = col0[j], col1[j], frac[j]
             if not (touched[y0, x0] or touched[y0, x1] or touched[y1, x0] or touched[y1, x1]):
-                out[i, j, 0], out[i, j, 1], out[i, j, 2] = image[i, j, 0], image[i, j, 1], image[i, j, 2]
                 continue
             w0, w1 = (1.0 - fy) * (1.0 - fx), (1.0 - fy) * fx
             w2, w3 = fy * (1.0 - fx), fy * fx

@@ -58,8 +58,14 @@ class CameraGeometry:
 
     def rays_world(self, height: int, width: int) -> F64:
         """(H, W, 3) unit ray directions in the world frame through the pixel centres."""
-        v, u = np.mgrid[0:height, 0:width].astype(np.float64)
-        cam = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(self.K).T
+        v, u = np.mgrid[0:height, 0:width]
+        return self.rays_at(np.column_stack([v.ravel(), u.ravel()])).reshape(height, width, 3)
+
+    def rays_at(self, pixels: NDArray[np.int64]) -> F64:
+        """(P, 3) unit ray directions in the world frame through the centres of ``pixels`` (P, 2) (row, col)."""
+        pixels = np.asarray(pixels)
+        uv1 = np.column_stack([pixels[:, 1], pixels[:, 0], np.ones(len(pixels))]).astype(np.float64)
+        cam = uv1 @ np.linalg.inv(self.K).T
         cam /= np.linalg.norm(cam, axis=-1, keepdims=True)
         return cam @ self.T_world_cam[:3, :3].T
 
@@ -206,13 +212,15 @@ def _wet_layers(image: F64, range_map: F64, camera: CameraGeometry, ground_mask:
     """``(gain, offset)`` (H, W, 3) of the road under each water depth field of ``depths_m`` ((H, W) [m] each), the
     mirror image traced once for the pixels any of them wets."""
     image = np.asarray(image, dtype=np.float64)
-    shares = [np.where(ground_mask, wetted_share(depth, road.texture_depth_m), 0.0) for depth in depths_m]
-    pixels = np.argwhere(np.any(np.stack(shares) > 0, axis=0))
+    ground = np.argwhere(ground_mask)  # only the ground's pixels are asked anything
+    shares = [wetted_share(np.asarray(depth)[ground[:, 0], ground[:, 1]], road.texture_depth_m) for depth in depths_m]
+    wet = np.any(np.stack(shares) > 0, axis=0)
+    pixels = ground[wet]
     if len(pixels) == 0:
         return [(np.ones_like(image), np.zeros_like(image)) for _ in depths_m]
     rows, cols = pixels[:, 0], pixels[:, 1]
     n = road.refractive_index
-    rays = camera.rays_world(*range_map.shape)[rows, cols]
+    rays = camera.rays_at(pixels)
     theta_v = np.arccos(np.clip(np.abs(rays @ normal), 0.0, 1.0))
     dry = image[rows, cols]
     colour = dry / np.maximum(dry.mean(axis=1, keepdims=True), 1e-6)
@@ -224,18 +232,21 @@ def _wet_layers(image: F64, range_map: F64, camera: CameraGeometry, ground_mask:
     puddles = [np.asarray(depth)[rows, cols] >= road.texture_depth_m for depth in depths_m]
     soft = sharp
     if max(film_blur_px) > 1 and not all(puddle.all() for puddle in puddles):
-        # a film's broken surface: a mirror image smeared vertically
-        layer = np.zeros_like(image)
-        layer[rows, cols] = sharp
-        weight = np.zeros(range_map.shape)
-        weight[rows, cols] = 1.0
+        # a film's broken surface: a mirror image smeared vertically, over the box around the wet pixels (a margin of
+        # a window of zeros: the filter's reflected border adds nothing there)
+        top, left = np.maximum(pixels.min(axis=0) - film_blur_px, 0)
+        bottom, right = np.minimum(pixels.max(axis=0) + film_blur_px + 1, range_map.shape)
+        layer = np.zeros((bottom - top, right - left, 3))
+        layer[rows - top, cols - left] = sharp
+        weight = np.zeros(layer.shape[:2])
+        weight[rows - top, cols - left] = 1.0
         blurred = uniform_filter(layer, size=(*film_blur_px, 1))
         norm = uniform_filter(weight, size=film_blur_px)[..., None]
-        soft = (blurred / np.maximum(norm, 1e-9))[rows, cols]
+        soft = (blurred / np.maximum(norm, 1e-9))[rows - top, cols - left]
     out = []
     for share, puddle in zip(shares, puddles, strict=True):
         gain, offset = np.ones_like(image), np.zeros_like(image)
-        c = share[rows, cols][:, None]
+        c = share[wet][:, None]
         gain[rows, cols] = (1.0 - c) + c * through_water
         offset[rows, cols] = c * reflectance * np.where(puddle[:, None], sharp, soft)
         out.append((gain, offset))

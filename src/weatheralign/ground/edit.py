@@ -30,6 +30,7 @@ from weatheralign.ground.surfaces import (
     nearest_neighbours,
     nearest_return_values,
     pixel_normals,
+    pixel_points,
     point_normals,
 )
 from weatheralign.ground.wet import WetRoad, film_depth, incidence_angle, puddle_margin, water_depth, wet_ground
@@ -231,7 +232,7 @@ def _coarse_layers(linear: F64, range_map: NDArray, camera: CameraGeometry, exac
     taken there), the camera's intrinsics scaled to that grid."""
     small = CameraGeometry(np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ np.asarray(camera.K, dtype=np.float64),
                            camera.T_world_cam)
-    return ground_layers(linear, np.asarray(range_map, dtype=np.float64)[::stride, ::stride], small, exact_range,
+    return ground_layers(linear, np.asarray(range_map)[::stride, ::stride].astype(np.float64), small, exact_range,
                          surfaces, T_world_scan, state, sky, stride)
 
 
@@ -245,11 +246,12 @@ def ground_layers(linear: F64, range_map: F64, camera: CameraGeometry, exact_ran
     """The layers of `edit_image` at the resolution of ``range_map``, ``stride`` times coarser than the full image
     (its filters' windows scaled); a wet road's puddles as layers of their own with their shoreline field."""
     finite = np.isfinite(range_map)
-    pixels = pixel_normals(range_map, camera, smooth_px=odd_px(5 / stride))
     plane = surfaces.plane.transformed(T_world_scan)
-    ground = finite & plane.contains(np.nan_to_num(pixels.points_world))
+    pixels = None if state.road is not None else pixel_normals(range_map, camera, smooth_px=odd_px(5 / stride))
+    points = pixel_points(range_map, camera) if pixels is None else pixels.points_world  # water needs no normals
+    ground = finite & plane.contains(np.nan_to_num(points))
     if state.road is not None:
-        road, xy = state.road, pixels.points_world[ground][:, :2]
+        road, xy = state.road, points[ground][:, :2]
         film = np.zeros(range_map.shape)
         film[ground] = film_depth(xy, road, state.seed)
         shoreline = np.full(range_map.shape, -1.0)

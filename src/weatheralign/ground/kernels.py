@@ -209,11 +209,10 @@ def reflect_index(k: np.int64, n: np.int64) -> np.int64:
 
 
 @numba.njit(cache=True, nogil=True)
-def pixel_normals_kernel(range_map: F64, K_inv: F64, R: F64, origin: F64, smooth_px: int,
-                         edge_ratio: float) -> tuple[F64, F64]:
-    """World points (H, W, 3) and unit normals (H, W, 3) of a camera's pixels from its range map
-    (`weatheralign.ground.surfaces.pixel_normals_naive`'s rule: points averaged over ``smooth_px`` x ``smooth_px``
-    finite pixels, normals from the central differences, nan at depth edges, on the border and for the sky)."""
+def pixel_points_kernel(range_map: F64, K_inv: F64, R: F64, origin: F64) -> tuple[F64, F64, NDArray[np.bool_]]:
+    """World points (H, W, 3) of a camera's pixels from its range map (H, W) [m] (0 along the ray for the sky), the
+    unit rays (H, W, 3) through the pixel centres and where the range is finite (H, W); ``K_inv`` (3, 3) the inverse
+    intrinsics, ``R`` (3, 3) and ``origin`` (3,) the camera's rotation and position in the world."""
     height, width = range_map.shape
     points = np.empty((height, width, 3))
     rays = np.empty((height, width, 3))
@@ -233,6 +232,17 @@ def pixel_normals_kernel(range_map: F64, K_inv: F64, R: F64, origin: F64, smooth
                 d = R[c, 0] * cx + R[c, 1] * cy + R[c, 2] * cz
                 rays[i, j, c] = d
                 points[i, j, c] = origin[c] + d * length
+    return points, rays, finite
+
+
+@numba.njit(cache=True, nogil=True)
+def pixel_normals_kernel(range_map: F64, K_inv: F64, R: F64, origin: F64, smooth_px: int,
+                         edge_ratio: float) -> tuple[F64, F64]:
+    """World points (H, W, 3) and unit normals (H, W, 3) of a camera's pixels from its range map
+    (`weatheralign.ground.surfaces.pixel_normals_naive`'s rule: points averaged over ``smooth_px`` x ``smooth_px``
+    finite pixels, normals from the central differences, nan at depth edges, on the border and for the sky)."""
+    height, width = range_map.shape
+    points, rays, finite = pixel_points_kernel(range_map, K_inv, R, origin)
     half = smooth_px // 2
     rows = np.zeros((height, width, 4))  # the horizontal box sums of (x, y, z) * finite and finite
     for i in range(height):
@@ -353,5 +363,6 @@ def screen_space_reflection_kernel(image: F64, range_map: F64, K: F64, T_cam_wor
 
 
 __all__ = ["fractal_noise_kernel", "hash01", "neighbour_median_kernel", "neighbour_normals_kernel",
-           "pixel_normals_kernel", "plane_inliers_kernel", "reflect_index", "screen_space_reflection_kernel",
-           "smallest_eigenvector", "tracks_factor_kernel", "value_noise_kernel", "value_noise_one"]
+           "pixel_normals_kernel", "pixel_points_kernel", "plane_inliers_kernel", "reflect_index",
+           "screen_space_reflection_kernel", "smallest_eigenvector", "tracks_factor_kernel", "value_noise_kernel",
+           "value_noise_one"]

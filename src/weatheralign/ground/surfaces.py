@@ -26,6 +26,7 @@ from weatheralign.ground.kernels import (
     neighbour_median_kernel,
     neighbour_normals_kernel,
     pixel_normals_kernel,
+    pixel_points_kernel,
     plane_inliers_kernel,
 )
 
@@ -161,6 +162,16 @@ def pixel_normals(range_map: F64, camera: CameraGeometry, smooth_px: int = 5, ed
     return PixelSurfaces(points, normals)
 
 
+def pixel_points(range_map: F64, camera: CameraGeometry) -> F64:
+    """(H, W, 3) world position [m] of each pixel's surface from a camera's range map (H, W) [m]; nan for the sky
+    (`pixel_normals`' points, without the normals)."""
+    points, _, finite = pixel_points_kernel(np.ascontiguousarray(range_map, dtype=np.float64), np.linalg.inv(camera.K),
+                                            np.ascontiguousarray(camera.T_world_cam[:3, :3]),
+                                            np.ascontiguousarray(camera.T_world_cam[:3, 3]))
+    points[~finite] = np.nan
+    return points
+
+
 def pixel_normals_naive(range_map: F64, camera: CameraGeometry, smooth_px: int = 5, edge_ratio: float = 0.05
                         ) -> PixelSurfaces:
     """World points and normals of a camera's pixels from its range map (H, W) [m] (inf: sky): the points averaged
@@ -251,5 +262,5 @@ def mask_agreement(points_world: F64, edited: Mask, camera: CameraGeometry, came
 
 
 __all__ = ["fit_ground_plane", "GroundPlane", "mask_agreement", "MaskAgreement", "median_over_neighbours",
-           "nearest_neighbours", "nearest_return_values", "pixel_normals", "pixel_normals_naive", "PixelSurfaces",
-           "plane_inliers", "plane_inliers_naive", "point_normals", "point_normals_naive"]
+           "nearest_neighbours", "nearest_return_values", "pixel_normals", "pixel_normals_naive", "pixel_points",
+           "PixelSurfaces", "plane_inliers", "plane_inliers_naive", "point_normals", "point_normals_naive"]
