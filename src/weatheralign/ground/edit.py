@@ -22,7 +22,7 @@ from scipy.ndimage import gaussian_filter
 from weatheralign.camera.fog import affine_edit_u8, decode_srgb_u8, range_guided_upsample
 from weatheralign.data.frame import LidarScan
 from weatheralign.ground.camera import CameraGeometry, snow_cover_layers, wet_road_layer_pair, wet_road_layers
-from weatheralign.ground.snow import SnowCover, TireTracks, snow_coverage, snow_covered_ground, snow_depth
+from weatheralign.ground.snow import SnowCover, TireTracks, snow_covered_ground, surface_snow
 from weatheralign.ground.surfaces import (
     GroundPlane,
     fit_ground_plane,
@@ -135,8 +135,7 @@ def edit_scan(scan: LidarScan, surfaces: ScanSurfaces, state: GroundState, noise
         changed = ground.copy()
         changed[ground] = effect.factor != 1.0
     else:
-        level = snow_depth(surfaces.world[:, :2], state.cover, state.seed, state.tracks)
-        coverage, depth = snow_coverage(level, surfaces.cos_up, state.cover)
+        coverage, depth = surface_snow(surfaces.world[:, :2], surfaces.cos_up, state.cover, state.seed, state.tracks)
         covered = coverage > 0.0
         run = np.where(surfaces.on_ground[covered], np.inf, state.cover.edge_run_m)  # the plane has no near edge
         effect = snow_covered_ground(points[covered, :3].astype(np.float64), np.zeros(3), surfaces.normals[covered],
@@ -271,9 +270,9 @@ def ground_layers(linear: F64, range_map: F64, camera: CameraGeometry, exact_ran
         cos_up, known = np.nan_to_num(near), np.isfinite(near)
     cos_up = np.where(ground, plane.normal[2], cos_up)
     known |= ground
-    level = np.zeros(range_map.shape)
-    level[known] = snow_depth(pixels.points_world[known][:, :2], state.cover, state.seed, state.tracks)
-    coverage = np.where(known, snow_coverage(level, cos_up, state.cover)[0], 0.0)
+    coverage = np.zeros(range_map.shape)
+    coverage[known] = surface_snow(pixels.points_world[known][:, :2], cos_up[known], state.cover, state.seed,
+                                   state.tracks)[0]
     if not exact_range:  # the nearest return's orientation is constant over each return's cell: soften the edges
         coverage = gaussian_filter(coverage, DENSE_DEPTH_SOFTEN_PX / stride)
     gain, offset = snow_cover_layers(linear, coverage, pixels.points_world, ground, state.cover, sky, state.seed,
