@@ -249,16 +249,18 @@ def mask_agreement(points_world: F64, edited: Mask, camera: CameraGeometry, came
         shown[seen] = np.asarray(range_map)[row[seen], col[seen]]
         seen &= np.abs(length - shown) <= np.maximum(visible_tolerance * shown, 0.3)
     index = np.nonzero(seen)[0]
-    index = index[np.argsort(-length[index], kind="stable")]  # nearest last: it wins the pixel
-    label = np.full((height, width), -1, dtype=np.int8)
-    label[row[index], col[index]] = edited[index]
-    hit = label >= 0
-    lidar = hit & (label == 1)
-    cam = hit & camera_mask
+    pixel = row[index] * width + col[index]
+    order = np.lexsort((-index, length[index], pixel))  # by pixel, the nearest (the last of equals) first: it wins
+    pixel, index = pixel[order], index[order]
+    first = np.ones(len(pixel), dtype=bool)
+    first[1:] = pixel[1:] != pixel[:-1]
+    pixel, index = pixel[first], index[first]  # the pixels some return projects to, once each
+    lidar = np.asarray(edited, dtype=bool)[index]
+    cam = np.asarray(camera_mask, dtype=bool).reshape(-1)[pixel]
     union = int(np.count_nonzero(lidar | cam))
     both = int(np.count_nonzero(lidar & cam))
     return MaskAgreement(both / union if union else 1.0, both / max(int(lidar.sum()), 1),
-                         both / max(int(cam.sum()), 1), int(hit.sum()))
+                         both / max(int(cam.sum()), 1), len(pixel))
 
 
 __all__ = ["fit_ground_plane", "GroundPlane", "mask_agreement", "MaskAgreement", "median_over_neighbours",
