@@ -72,7 +72,10 @@ class CameraGeometry:
     def project(self, points_world: F64) -> tuple[F64, F64, F64]:
         """Pixel coordinates (u, v) and ray length [m] of world points (..., 3); the depth is negative behind."""
         T_cam_world = np.linalg.inv(self.T_world_cam)
-        cam = points_world @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+        return self.project_camera(points_world @ T_cam_world[:3, :3].T + T_cam_world[:3, 3])
+
+    def project_camera(self, cam: F64) -> tuple[F64, F64, F64]:
+        """`project` of points (..., 3) given in the camera's own frame."""
         z = cam[..., 2]
         safe = np.where(z > 1e-6, z, 1e-6)
         uv = cam @ self.K.T
@@ -83,16 +86,24 @@ def screen_space_reflection(image: F64, range_map: F64, camera: CameraGeometry, 
                             rays: F64, normal: F64, sky: F64, max_distance_m: float = 80.0, steps: int = 64,
                             thickness_m: float = 1.5, start_m: float = 0.5) -> F64:
     """`screen_space_reflection_naive`'s march, compiled (`weatheralign.ground.kernels`)."""
-    origin = camera.T_world_cam[:3, 3]
-    ground = origin + rays * range_map[pixels[:, 0], pixels[:, 1], None]
-    normal = np.asarray(normal, dtype=np.float64)
-    mirrored = rays - 2.0 * (rays @ normal)[:, None] * normal
+    start, step = mirrored_rays(range_map, camera, pixels, rays, np.asarray(normal, dtype=np.float64))
     distances = start_m * (max_distance_m / start_m) ** (np.arange(steps) / (steps - 1))
     return screen_space_reflection_kernel(
         np.ascontiguousarray(image, dtype=np.float64), np.ascontiguousarray(range_map, dtype=np.float64),
-        np.ascontiguousarray(camera.K, dtype=np.float64), np.linalg.inv(camera.T_world_cam),
-        np.ascontiguousarray(ground), np.ascontiguousarray(mirrored), np.asarray(sky, dtype=np.float64),
-        distances, float(thickness_m), SSR_BISECTIONS)
+        np.ascontiguousarray(camera.K, dtype=np.float64), np.ascontiguousarray(start), np.ascontiguousarray(step),
+        np.asarray(sky, dtype=np.float64), distances, float(thickness_m), SSR_BISECTIONS)
+
+
+def mirrored_rays(range_map: F64, camera: CameraGeometry, pixels: NDArray[np.int64], rays: F64,
+                  normal: F64) -> tuple[F64, F64]:
+    """The mirrored rays of ground ``pixels`` (P, 2) whose camera rays are ``rays`` (P, 3) (world frame) off a
+    surface of unit ``normal`` (3,), in the camera's frame: (their starts on the ground (P, 3) [m], their unit
+    directions (P, 3)), so that a point along one is ``start + step * distance``."""
+    origin = camera.T_world_cam[:3, 3]
+    ground = origin + rays * range_map[pixels[:, 0], pixels[:, 1], None]
+    mirrored = rays - 2.0 * (rays @ normal)[:, None] * normal
+    T_cam_world = np.linalg.inv(camera.T_world_cam)
+    return ground @ T_cam_world[:3, :3].T + T_cam_world[:3, 3], mirrored @ T_cam_world[:3, :3].T
 
 
 SSR_BISECTIONS = 8
@@ -109,16 +120,14 @@ def screen_space_reflection_naive(image: F64, range_map: F64, camera: CameraGeom
     behind the surface the camera sees at its pixel (by less than ``thickness_m``) takes that pixel's radiance; a ray
     that leaves the image or passes every surface sees ``sky`` (3,)."""
     height, width = range_map.shape
-    origin = camera.T_world_cam[:3, 3]
-    ground = origin + rays * range_map[pixels[:, 0], pixels[:, 1], None]
-    mirrored = rays - 2.0 * (rays @ normal)[:, None] * normal
+    start, step = mirrored_rays(range_map, camera, pixels, rays, np.asarray(normal, dtype=np.float64))
     out = np.tile(np.asarray(sky, dtype=np.float64), (len(pixels), 1))
     pending = np.ones(len(pixels), dtype=bool)
     distances = start_m * (max_distance_m / start_m) ** (np.arange(steps) / (steps - 1))
 
     def look(index: NDArray[np.int64], distance: F64) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray, NDArray]:
         """For rays ``index`` at ``distance``: (inside the image, behind the seen surface, row, col)."""
-        u, v, length = camera.project(ground[index] + mirrored[index] * distance[:, None])
+        u, v, length = camera.project_camera(start[index] + step[index] * distance[:, None])
         col, row = np.rint(u).astype(np.int64), np.rint(v).astype(np.int64)
         inside = (length > 0) & (col >= 0) & (col < width) & (row >= 0) & (row < height)
         seen = range_map[np.where(inside, row, 0), np.where(inside, col, 0)]
@@ -295,6 +304,6 @@ def snow_cover_layers(image: F64, coverage: F64, points_world: F64, ground_mask:
 
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 / sRGB primaries, linear light
 
-__all__ = ["CameraGeometry", "LUMINANCE", "screen_space_reflection", "screen_space_reflection_naive",
+__all__ = ["CameraGeometry", "LUMINANCE", "mirrored_rays", "screen_space_reflection", "screen_space_reflection_naive",
            "snow_cover_image", "snow_cover_layers", "strided_reflection", "WetLayers", "wet_road_image",
            "wet_road_layer_pair", "wet_road_layers"]

@@ -302,15 +302,11 @@ def pixel_normals_kernel(range_map: F64, K_inv: F64, R: F64, origin: F64, smooth
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _look(px: np.float64, py: np.float64, pz: np.float64, T: tuple, K: tuple, range_map: F64,
+def _look(cx: np.float64, cy: np.float64, cz: np.float64, K: tuple, range_map: F64,
           thickness_m: float) -> tuple[bool, bool, np.int64, np.int64]:
-    """A world point seen by the camera: (inside the image, behind the surface its pixel shows by less than
-    ``thickness_m``, row, col) (`weatheralign.ground.camera.screen_space_reflection_naive`'s ``look``); ``T`` the
-    top three rows of T_cam_world and ``K`` the top two rows of the intrinsics, row-major as scalars (held in
-    registers over the march)."""
-    cx = T[0] * px + T[1] * py + T[2] * pz + T[3]
-    cy = T[4] * px + T[5] * py + T[6] * pz + T[7]
-    cz = T[8] * px + T[9] * py + T[10] * pz + T[11]
+    """A point (camera frame) seen by the camera: (inside the image, behind the surface its pixel shows by less than
+    ``thickness_m``, row, col) (`weatheralign.ground.camera.screen_space_reflection_naive`'s ``look``); ``K`` the
+    top two rows of the intrinsics, row-major as scalars (held in registers over the march)."""
     if cz <= 1e-6:
         return False, False, np.int64(0), np.int64(0)
     u = (K[0] * cx + K[1] * cy + K[2] * cz) / cz
@@ -325,37 +321,33 @@ def _look(px: np.float64, py: np.float64, pz: np.float64, T: tuple, K: tuple, ra
 
 
 @numba.njit(cache=True, nogil=True)
-def screen_space_reflection_kernel(image: F64, range_map: F64, K: F64, T_cam_world: F64, ground: F64,
-                                   mirrored: F64, sky: F64, distances: F64, thickness_m: float,
-                                   bisections: int) -> F64:
-    """(P, 3) radiance along the mirrored rays ``mirrored`` (P, 3) from the ground points ``ground`` (P, 3)
-    (`weatheralign.ground.camera.screen_space_reflection_naive`'s march: the first step behind a surface, bisected
-    ``bisections`` times; the sky once a ray leaves the image or passes every surface)."""
-    T = (T_cam_world[0, 0], T_cam_world[0, 1], T_cam_world[0, 2], T_cam_world[0, 3],
-         T_cam_world[1, 0], T_cam_world[1, 1], T_cam_world[1, 2], T_cam_world[1, 3],
-         T_cam_world[2, 0], T_cam_world[2, 1], T_cam_world[2, 2], T_cam_world[2, 3])
+def screen_space_reflection_kernel(image: F64, range_map: F64, K: F64, start: F64, step: F64, sky: F64,
+                                   distances: F64, thickness_m: float, bisections: int) -> F64:
+    """(P, 3) radiance along the mirrored rays from ``start`` (P, 3) along ``step`` (P, 3), both in the camera's
+    frame (`weatheralign.ground.camera.mirrored_rays`; `screen_space_reflection_naive`'s march: the first step
+    behind a surface, bisected ``bisections`` times; the sky once a ray leaves the image or passes every surface)."""
     Kr = (K[0, 0], K[0, 1], K[0, 2], K[1, 0], K[1, 1], K[1, 2])
-    out = np.empty((ground.shape[0], 3))
-    for p in range(ground.shape[0]):
+    out = np.empty((start.shape[0], 3))
+    for p in range(start.shape[0]):
         out[p, 0], out[p, 1], out[p, 2] = sky[0], sky[1], sky[2]
-        gx, gy, gz = ground[p, 0], ground[p, 1], ground[p, 2]
-        mx, my, mz = mirrored[p, 0], mirrored[p, 1], mirrored[p, 2]
+        sx, sy, sz = start[p, 0], start[p, 1], start[p, 2]
+        mx, my, mz = step[p, 0], step[p, 1], step[p, 2]
         previous = 0.0
-        for step in range(distances.shape[0]):
-            distance = distances[step]
-            inside, hit, row, col = _look(gx + mx * distance, gy + my * distance, gz + mz * distance, T, Kr,
-                                          range_map, thickness_m)
+        for k in range(distances.shape[0]):
+            distance = distances[k]
+            inside, hit, row, col = _look(sx + mx * distance, sy + my * distance, sz + mz * distance, Kr, range_map,
+                                          thickness_m)
             if not inside:
                 break
             if hit:
                 low, high = previous, distance
                 for _ in range(bisections):
                     middle = 0.5 * (low + high)
-                    if _look(gx + mx * middle, gy + my * middle, gz + mz * middle, T, Kr, range_map, thickness_m)[1]:
+                    if _look(sx + mx * middle, sy + my * middle, sz + mz * middle, Kr, range_map, thickness_m)[1]:
                         high = middle
                     else:
                         low = middle
-                _, _, row, col = _look(gx + mx * high, gy + my * high, gz + mz * high, T, Kr, range_map, thickness_m)
+                _, _, row, col = _look(sx + mx * high, sy + my * high, sz + mz * high, Kr, range_map, thickness_m)
                 out[p, 0], out[p, 1], out[p, 2] = image[row, col, 0], image[row, col, 1], image[row, col, 2]
                 break
             previous = distance
