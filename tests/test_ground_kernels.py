@@ -58,12 +58,14 @@ def scene() -> tuple[np.ndarray, np.ndarray, CameraGeometry]:
 
 def test_pixel_normals_are_their_oracle() -> None:
     image, range_map, camera = scene()
-    fast, slow = pixel_normals(range_map, camera), pixel_normals_naive(range_map, camera)
     points = pixel_points(range_map, camera)
-    for a, b in ((fast.points_world, slow.points_world), (fast.normals_world, slow.normals_world),
-                 (points, slow.points_world)):
-        np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
-        np.testing.assert_allclose(a[~np.isnan(a)], b[~np.isnan(b)], atol=1e-9)
+    for smooth_px in (5, 1):  # 1: the working grid's window, no averaging
+        fast = pixel_normals(range_map, camera, smooth_px=smooth_px)
+        slow = pixel_normals_naive(range_map, camera, smooth_px=smooth_px)
+        for a, b in ((fast.points_world, slow.points_world), (fast.normals_world, slow.normals_world),
+                     (points, slow.points_world)):
+            np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
+            np.testing.assert_allclose(a[~np.isnan(a)], b[~np.isnan(b)], atol=1e-9)
 
 
 def test_the_reflection_march_is_its_oracle_and_strides_share_it() -> None:

@@ -236,13 +236,10 @@ def pixel_points_kernel(range_map: F64, K_inv: F64, R: F64, origin: F64) -> tupl
 
 
 @numba.njit(cache=True, nogil=True)
-def pixel_normals_kernel(range_map: F64, K_inv: F64, R: F64, origin: F64, smooth_px: int,
-                         edge_ratio: float) -> tuple[F64, F64]:
-    """World points (H, W, 3) and unit normals (H, W, 3) of a camera's pixels from its range map
-    (`weatheralign.ground.surfaces.pixel_normals_naive`'s rule: points averaged over ``smooth_px`` x ``smooth_px``
-    finite pixels, normals from the central differences, nan at depth edges, on the border and for the sky)."""
-    height, width = range_map.shape
-    points, rays, finite = pixel_points_kernel(range_map, K_inv, R, origin)
+def _box_mean(points: F64, finite: NDArray[np.bool_], smooth_px: int) -> tuple[F64, F64]:
+    """The mean (H, W, 3) of the finite ``points`` (H, W, 3) over ``smooth_px`` x ``smooth_px`` (scipy's reflected
+    border) and the finite share of that window (H, W)."""
+    height, width = finite.shape
     half = smooth_px // 2
     rows = np.zeros((height, width, 4))  # the horizontal box sums of (x, y, z) * finite and finite
     for i in range(height):
@@ -269,6 +266,28 @@ def pixel_normals_kernel(range_map: F64, K_inv: F64, R: F64, origin: F64, smooth
             smooth[i, j, 0] = sx / scale
             smooth[i, j, 1] = sy / scale
             smooth[i, j, 2] = sz / scale
+    return smooth, weight
+
+
+@numba.njit(cache=True, nogil=True)
+def pixel_normals_kernel(range_map: F64, K_inv: F64, R: F64, origin: F64, smooth_px: int,
+                         edge_ratio: float) -> tuple[F64, F64]:
+    """World points (H, W, 3) and unit normals (H, W, 3) of a camera's pixels from its range map
+    (`weatheralign.ground.surfaces.pixel_normals_naive`'s rule: points averaged over ``smooth_px`` x ``smooth_px``
+    finite pixels, normals from the central differences, nan at depth edges, on the border and for the sky)."""
+    height, width = range_map.shape
+    points, rays, finite = pixel_points_kernel(range_map, K_inv, R, origin)
+    if smooth_px <= 1:  # no averaging: the points themselves (0 for the sky), each its own weight
+        smooth = np.zeros((height, width, 3))
+        weight = np.zeros((height, width))
+        for i in range(height):
+            for j in range(width):
+                if finite[i, j]:
+                    for c in range(3):
+                        smooth[i, j, c] = points[i, j, c]
+                    weight[i, j] = 1.0
+    else:
+        smooth, weight = _box_mean(points, finite, smooth_px)
     normals = np.full((height, width, 3), np.nan)
     for i in range(1, height - 1):
         for j in range(1, width - 1):

@@ -192,7 +192,7 @@ def pixel_normals_naive(range_map: F64, camera: CameraGeometry, smooth_px: int =
     length = np.linalg.norm(normals, axis=-1, keepdims=True)
     normals = normals / np.maximum(length, 1e-12)
     normals *= np.where(np.sum(normals * rays, axis=-1, keepdims=True) > 0, -1.0, 1.0)
-    r = np.where(finite, range_map, np.nan)
+    r = np.asarray(range_map, dtype=np.float64)  # a sky neighbour (inf) is a jump
     jump = np.zeros(range_map.shape, dtype=bool)
     with np.errstate(invalid="ignore"):
         jump[:, 1:-1] |= np.abs(r[:, 2:] - r[:, :-2]) > edge_ratio * r[:, 1:-1]
