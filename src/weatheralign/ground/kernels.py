@@ -93,13 +93,13 @@ def fractal_noise_kernel(xy: F64, cell_m: float, seed: int, octaves: int) -> F64
 def plane_inliers_kernel(points: F64, normals: F64, offsets: F64, tolerance_m: float) -> NDArray[np.int64]:
     """(H,) per plane ``normals[h] . x + offsets[h] = 0`` (normals (H, 3), offsets (H,)) the number of ``points``
     (S, 3) closer to it than ``tolerance_m`` (`weatheralign.ground.surfaces.plane_inliers_naive`)."""
+    x, y, z = points[:, 0].copy(), points[:, 1].copy(), points[:, 2].copy()  # contiguous: the loop vectorises
     counts = np.zeros(normals.shape[0], np.int64)
     for h in range(normals.shape[0]):
         nx, ny, nz, d = normals[h, 0], normals[h, 1], normals[h, 2], offsets[h]
         count = 0
-        for i in range(points.shape[0]):
-            if abs(points[i, 0] * nx + points[i, 1] * ny + points[i, 2] * nz + d) < tolerance_m:
-                count += 1
+        for i in range(x.shape[0]):
+            count += abs(x[i] * nx + y[i] * ny + z[i] * nz + d) < tolerance_m
         counts[h] = count
     return counts
 
