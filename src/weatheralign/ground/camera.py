@@ -64,10 +64,12 @@ class CameraGeometry:
     def rays_at(self, pixels: NDArray[np.int64]) -> F64:
         """(P, 3) unit ray directions in the world frame through the centres of ``pixels`` (P, 2) (row, col)."""
         pixels = np.asarray(pixels)
-        uv1 = np.column_stack([pixels[:, 1], pixels[:, 0], np.ones(len(pixels))]).astype(np.float64)
-        cam = uv1 @ np.linalg.inv(self.K).T
-        cam /= np.linalg.norm(cam, axis=-1, keepdims=True)
-        return cam @ self.T_world_cam[:3, :3].T
+        u, v = pixels[:, 1].astype(np.float64), pixels[:, 0].astype(np.float64)
+        K_inv, R = np.linalg.inv(self.K), self.T_world_cam[:3, :3]
+        x, y, z = (K_inv[k, 0] * u + K_inv[k, 1] * v + K_inv[k, 2] for k in range(3))  # coordinate by coordinate
+        length = np.sqrt(x * x + y * y + z * z)
+        x, y, z = x / length, y / length, z / length
+        return np.column_stack([R[k, 0] * x + R[k, 1] * y + R[k, 2] * z for k in range(3)])
 
     def project(self, points_world: F64) -> tuple[F64, F64, F64]:
         """Pixel coordinates (u, v) and ray length [m] of world points (..., 3); the depth is negative behind."""
@@ -245,19 +247,20 @@ def _wet_layers(image: F64, range_map: F64, camera: CameraGeometry, ground_mask:
         # a window of zeros: the filter's reflected border adds nothing there)
         top, left = np.maximum(pixels.min(axis=0) - film_blur_px, 0)
         bottom, right = np.minimum(pixels.max(axis=0) + film_blur_px + 1, range_map.shape)
+        box = (rows - top, cols - left)
         layer = np.zeros((bottom - top, right - left, 3))
-        layer[rows - top, cols - left] = sharp
+        layer[box] = sharp
         weight = np.zeros(layer.shape[:2])
-        weight[rows - top, cols - left] = 1.0
-        blurred = uniform_filter(layer, size=(*film_blur_px, 1))
-        norm = uniform_filter(weight, size=film_blur_px)[..., None]
-        soft = (blurred / np.maximum(norm, 1e-9))[rows - top, cols - left]
+        weight[box] = 1.0
+        norm = uniform_filter(weight, size=film_blur_px)[box]
+        soft = uniform_filter(layer, size=(*film_blur_px, 1))[box] / np.maximum(norm, 1e-9)[:, None]
+    flat = rows * image.shape[1] + cols  # rows of the (H * W, 3) views of the layers
     out = []
     for share, puddle in zip(shares, puddles, strict=True):
         gain, offset = np.ones_like(image), np.zeros_like(image)
         c = share[wet][:, None]
-        gain[rows, cols] = (1.0 - c) + c * through_water
-        offset[rows, cols] = c * reflectance * np.where(puddle[:, None], sharp, soft)
+        gain.reshape(-1, 3)[flat] = (1.0 - c) + c * through_water
+        offset.reshape(-1, 3)[flat] = c * reflectance * np.where(puddle[:, None], sharp, soft)
         out.append((gain, offset))
     return out
 
