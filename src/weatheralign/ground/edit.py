@@ -248,7 +248,7 @@ def ground_layers(linear: F64, range_map: F64, camera: CameraGeometry, exact_ran
     plane = surfaces.plane.transformed(T_world_scan)
     pixels = None if state.road is not None else pixel_normals(range_map, camera, smooth_px=odd_px(5 / stride))
     points = pixel_points(range_map, camera) if pixels is None else pixels.points_world  # water needs no normals
-    ground = finite & plane.contains(np.nan_to_num(points))
+    ground = finite & plane.contains(points)  # the sky's nan points are on no plane
     if state.road is not None:
         road, xy = state.road, points[ground][:, :2]
         film = np.zeros(range_map.shape)
