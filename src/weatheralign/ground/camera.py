@@ -282,15 +282,13 @@ def snow_cover_layers(image: F64, coverage: F64, points_world: F64, ground_mask:
     """`snow_cover_image` as ``(gain, offset)`` (H, W, 3): the snowy image is ``image * gain + offset``."""
     image = np.asarray(image, dtype=np.float64)
     gain, offset = np.ones_like(image), np.zeros_like(image)
-    pixels = np.argwhere(coverage > 0)
+    snowy = coverage > 0
+    pixels = np.argwhere(snowy)
     if len(pixels) == 0:
         return gain, offset
-    luminance = image @ LUMINANCE
-    snowy = coverage > 0
-    weight = uniform_filter(snowy.astype(np.float64), shading_px)
-    local = uniform_filter(np.where(snowy, luminance, 0.0), shading_px) / np.maximum(weight, 1e-9)
     rows, cols = pixels[:, 0], pixels[:, 1]
-    around = local[rows, cols]
+    weight = uniform_filter(snowy.astype(np.float64), shading_px)[rows, cols]
+    around = uniform_filter(np.where(snowy, image @ LUMINANCE, 0.0), shading_px)[rows, cols] / np.maximum(weight, 1e-9)
     reference = max(float(np.percentile(around, 90)), 1e-6)
     shading = 1.0 - shading_strength * (1.0 - np.clip(around / reference, 0.2, 1.0))[:, None]
     sky = np.asarray(sky, dtype=np.float64)
@@ -300,8 +298,9 @@ def snow_cover_layers(image: F64, coverage: F64, points_world: F64, ground_mask:
     snow = cover.visible_albedo * sky_luminance * tint * shading * g[:, None]
     melt = float(wet_albedo(cover.pavement_reflectivity) / cover.pavement_reflectivity)
     c = coverage[rows, cols][:, None]
-    gain[rows, cols] = (1.0 - c) * np.where(ground_mask[rows, cols, None], melt, 1.0)
-    offset[rows, cols] = c * snow
+    flat = rows * image.shape[1] + cols  # rows of the (H * W, 3) views of the layers
+    gain.reshape(-1, 3)[flat] = (1.0 - c) * np.where(ground_mask[rows, cols, None], melt, 1.0)
+    offset.reshape(-1, 3)[flat] = c * snow
     return gain, offset
 
 
