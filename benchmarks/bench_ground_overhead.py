@@ -11,7 +11,8 @@ that is emptied between calls, outside the timing) with the scene's media as the
 ground on) and the same media without their ground (off). The two alternate within every round, their order swapped
 from round to round, after one untimed warm-up call of each (numba's compiled code loaded), so that a machine shared
 with other work slows both alike. Reported per variant: CPU seconds (``time.process_time``, every thread of this
-process) and wall seconds per sample, on and off, and the overhead ``on / off - 1`` of each against the target
+process) and wall seconds per sample, on and off, and the overhead ``on / off - 1`` (CPU: the median over the rounds
+of each round's ratio, as the machine's speed drifts from round to round) against the target
 `TARGET_OVERHEAD`; CPU is the figure to read on a busy machine, wall the one a run waits for. Results are merged into
 ``reports/benchmarks/ground_overhead.json`` (one entry per variant).
 """
@@ -66,7 +67,7 @@ def timed_sample(nusc: Any, job: Any, ground: bool, world: Any, scratch: Path, s
 
 def measure(variant: str, samples: int, rounds: int, scratch: Path, sweeps: int) -> dict[str, Any]:
     """The entry of one variant: per-sample CPU and wall seconds with the ground on and off (means over the samples,
-    medians over the rounds) and their overheads."""
+    medians over the rounds) and the overheads; the CPU overhead is the median of the rounds' own on / off ratios."""
     from weatheralign.data.nuscenes import open_nuscenes
     from weatheralign.manifest import manifest_path, read_manifest
 
@@ -76,22 +77,22 @@ def measure(variant: str, samples: int, rounds: int, scratch: Path, sweeps: int)
     jobs = sample_jobs(nusc, variant, samples)
     for ground in (True, False):  # warm-up: compiled kernels loaded, caches filled
         timed_sample(nusc, jobs[0], ground, world, scratch, sweeps)
-    per_round: dict[bool, list[tuple[float, float]]] = {True: [], False: []}
+    rounds_of: dict[bool, list[tuple[float, float]]] = {True: [], False: []}
     for k in range(rounds):
         for ground in ((False, True) if k % 2 == 0 else (True, False)):
             times = [timed_sample(nusc, job, ground, world, scratch, sweeps) for job in jobs]
-            per_round[ground].append((statistics.fmean(t[0] for t in times), statistics.fmean(t[1] for t in times)))
+            rounds_of[ground].append((statistics.fmean(t[0] for t in times), statistics.fmean(t[1] for t in times)))
     shutil.rmtree(scratch, ignore_errors=True)
-    cpu = {g: statistics.median(r[0] for r in per_round[g]) for g in per_round}
-    wall = {g: statistics.median(r[1] for r in per_round[g]) for g in per_round}
-    overhead = cpu[True] / cpu[False] - 1.0
+    cpu = {g: statistics.median(r[0] for r in rounds_of[g]) for g in rounds_of}
+    wall = {g: statistics.median(r[1] for r in rounds_of[g]) for g in rounds_of}
+    per_round = [on[0] / off[0] - 1.0 for on, off in zip(rounds_of[True], rounds_of[False])]
+    overhead = statistics.median(per_round)  # each round's pair ran back to back: robust to the machine's drift
     return {"workload": f"ground_overhead_{variant}", "variant": variant, "samples": len(jobs), "rounds": rounds,
             "sweeps": sweeps, "sample_tokens": [j.sample_token for j in jobs],
             "cpu_s_per_sample_ground_off": round(cpu[False], 4), "cpu_s_per_sample_ground_on": round(cpu[True], 4),
             "wall_s_per_sample_ground_off": round(wall[False], 4), "wall_s_per_sample_ground_on": round(wall[True], 4),
             "cpu_overhead": round(overhead, 4), "wall_overhead": round(wall[True] / wall[False] - 1.0, 4),
-            "cpu_overhead_per_round": [round(on[0] / off[0] - 1.0, 4)
-                                       for on, off in zip(per_round[True], per_round[False])],
+            "cpu_overhead_per_round": [round(x, 4) for x in per_round],
             "target_overhead": TARGET_OVERHEAD, "meets_target": overhead <= TARGET_OVERHEAD,
             "load_average_1min": round(os.getloadavg()[0], 2), "cpu_count": os.cpu_count()}
 
