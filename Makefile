@@ -51,9 +51,11 @@ browser:
 	  || echo "[test] chromium could not be installed: the browser test will be skipped"; \
 	fi
 
-# the fast tier: everything but the tests marked slow
+# the fast tier: everything but the tests marked slow, on TEST_WORKERS processes (pytest-xdist; one file's tests stay
+# on one worker, so a module's fixture is built once); TEST_WORKERS=0 runs them in this process
+TEST_WORKERS ?= 2
 test: setup browser lint
-	$(PY) -m pytest -q -m "not slow" $(PYTEST_ARGS)
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile -m "not slow" $(PYTEST_ARGS)
 
 # the fast tier and the end-to-end tier: whole stages through dvc repro / exp run, trainings, the pipeline flow
 test-all: setup browser lint
