@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from weatheralign.camera.overcast import Overcast
 from weatheralign.conditions import CONDITIONS, Condition, FogPart, GroundPart, ParticlePart
 from weatheralign.config import ParticlesConfig, SimulateConfig
 from weatheralign.data.errors import DataFormatError, read_json_file
@@ -102,6 +103,8 @@ class PrecipitationRates:
     rate_mm_h: dict[str, float]
     source: dict[str, str]
     ground_depth_m: dict[str, float] = field(default_factory=dict)
+    overcast: dict[str, Overcast] = field(default_factory=dict)
+    """Per split (``snow`` / ``rain``) the calibrated overcast light; a split absent keeps ``simulate.overcast_*``."""
 
 
 def params_precipitation_rates(particles: ParticlesConfig) -> PrecipitationRates:
@@ -139,6 +142,15 @@ def calibrated_precipitation_rates(path: Path, particles: ParticlesConfig) -> Pr
         if kind in ("snow", "rain"):
             depth = entry.get("depth_m") if isinstance(entry, dict) else None
             out.ground_depth_m[kind] = _positive(path, f"ground.{kind}.depth_m", depth)
+    for kind, entry in (tuned.get("overcast") or {} if isinstance(tuned, dict) else {}).items():
+        if kind in ("snow", "rain"):
+            entry = entry if isinstance(entry, dict) else {}
+            try:
+                out.overcast[kind] = Overcast(*(_positive(path, f"overcast.{kind}.{key}", entry.get(key))
+                                                for key in ("sun_transmittance", "zenith_luminance",
+                                                            "diffuse_gain")))
+            except ValueError as exc:
+                raise DataFormatError(f"{path}: overcast.{kind}: {exc}") from None
     return out
 
 
@@ -214,6 +226,8 @@ class SceneMedia:
         airlight_gain: the fog's airlight over the scene's clear-sky airlight (`FogPart.airlight_gain`; 1 without
             fog).
         ground: the scene's ground (`SceneGround`) or None (the air alone).
+        overcast: the light the cameras see the scene under (`weatheralign.camera.overcast.Overcast`), or None (the
+            clear day's).
     """
 
     condition: Condition
@@ -226,6 +240,7 @@ class SceneMedia:
     camera_rate_mm_h: float | None = None
     airlight_gain: float = 1.0
     ground: SceneGround | None = None
+    overcast: Overcast | None = None
 
     @property
     def has_particles(self) -> bool:
@@ -255,6 +270,7 @@ class ConditionMedia:
         camera_rate_unaligned: ``{scene: rate [mm/h]}`` the unaligned cameras' rate (with ``fields``).
         ground: ``{scene: SceneGround}`` as the unaligned copy sees it (the aligned copy's cameras see the LiDAR's
             ground), or None.
+        overcast: the overcast light of every scene (`Overcast.to_dict`; aligned and unaligned alike), or None.
     """
 
     condition: str
@@ -262,6 +278,7 @@ class ConditionMedia:
     fields: dict[str, FieldSpec] | None
     camera_rate_unaligned: dict[str, float] | None = None
     ground: dict[str, SceneGround] | None = None
+    overcast: dict[str, float] | None = None
 
     def for_scene(self, scene: str, aligned: bool, rain_appearance: str = "rain") -> SceneMedia:
         """`SceneMedia` of ``scene``.
@@ -294,6 +311,8 @@ class ConditionMedia:
                                       f"stage")
             g = self.ground[scene]
             kw["ground"] = g if not aligned else replace(g, camera_amount_m=g.amount_m, camera_seed=g.seed)
+        if self.overcast is not None:
+            kw["overcast"] = Overcast(**self.overcast)
         return SceneMedia(condition, aligned, scene, **kw)
 
     def rates(self, particles: ParticlesConfig) -> tuple[float, float]:
@@ -310,7 +329,8 @@ class ConditionMedia:
                 "fields": None if self.fields is None else {k: v.to_dict() for k, v in sorted(self.fields.items())},
                 "camera_rate_unaligned": None if self.camera_rate_unaligned is None
                 else dict(sorted(self.camera_rate_unaligned.items())),
-                "ground": None if self.ground is None else {k: v.to_dict() for k, v in sorted(self.ground.items())}}
+                "ground": None if self.ground is None else {k: v.to_dict() for k, v in sorted(self.ground.items())},
+                "overcast": self.overcast}
 
     @staticmethod
     def from_dict(d: dict[str, Any], where: str = "media") -> ConditionMedia:
@@ -322,7 +342,10 @@ class ConditionMedia:
             rates = None if rates is None else {k: float(v) for k, v in rates.items()}
             ground = d.get("ground")
             ground = None if ground is None else {k: SceneGround(**v) for k, v in ground.items()}
-            return ConditionMedia(d["condition"], d["fog"], fields, rates, ground)
+            overcast = d.get("overcast")
+            if overcast is not None:
+                overcast = Overcast(**overcast).to_dict()
+            return ConditionMedia(d["condition"], d["fog"], fields, rates, ground, overcast)
         except (KeyError, TypeError, ValueError) as exc:
             raise DataFormatError(f"{where}: not a valid media file ({exc})") from None
 
@@ -362,9 +385,24 @@ def resolve_media(condition: Condition, cfg: SimulateConfig, scenes: list[str], 
         camera_rates = {s: ParticlePart.camera_rate(False, spec.rate_mm_h, cfg.unaligned_rate_factor, spec.seed)
                         for s, spec in per_scene.items()}
         return ConditionMedia(condition.name, fog, per_scene, camera_rates, resolve_ground(
-            condition, cfg, scenes, None if rates is None else rates.ground_depth_m))
+            condition, cfg, scenes, None if rates is None else rates.ground_depth_m),
+            resolve_overcast(condition, cfg, rates))
     return ConditionMedia(condition.name, fog, per_scene, ground=resolve_ground(
-        condition, cfg, scenes, None if rates is None else rates.ground_depth_m))
+        condition, cfg, scenes, None if rates is None else rates.ground_depth_m),
+        overcast=resolve_overcast(condition, cfg, rates))
+
+
+def resolve_overcast(condition: Condition, cfg: SimulateConfig, rates: PrecipitationRates | None = None
+                     ) -> dict[str, float] | None:
+    """The light of ``condition`` (`Overcast.to_dict`; None without a `SkyPart` or with ``simulate.overcast``
+    off): the calibrated light of its split where ``rates`` has one, else ``simulate.overcast_*``."""
+    if condition.sky is None or not cfg.overcast:
+        return None
+    calibrated = (rates.overcast if rates is not None else {}).get(condition.sky.split)
+    if calibrated is not None:
+        return calibrated.to_dict()
+    return Overcast(cfg.overcast_sun_transmittance, cfg.overcast_zenith_luminance, cfg.overcast_diffuse_gain
+                    ).to_dict()
 
 
 def resolve_ground(condition: Condition, cfg: SimulateConfig, scenes: list[str],

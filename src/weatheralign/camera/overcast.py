@@ -1,0 +1,306 @@
+"""The overcast light of snowfall and rain on any clear image (``docs/physics.md`` section 4.3).
+
+Weather-edit's first stage is a background edit: a snowy scene is whitish, a rainy one cloudy. Physically, snow and
+rain fall from a cloud deck that hides the sun: the scene is lit by a grey overcast sky instead of a blue sky and the
+sun. This module turns a clear image into that light, for synthetic and real images alike:
+
+- **Sky**: the CIE standard overcast sky (Moon & Spencer 1942; CIE S 011/E:2003 type 1),
+  ``L(γ) = L_z (1 + 2 sin γ) / 3`` at elevation γ, neutral grey; ``L_z`` the zenith luminance in the image's linear
+  units (`Overcast.zenith_luminance`). The sky pixels (ray length inf: the project's rig-consistent sky,
+  `weatheralign.camera.depth.camera_range_map`) become it.
+- **Surfaces**: a clear pixel is lit by the clear sky and, where the sun reaches it, by the sun:
+  ``E = E_d (c_sky + s m c_sun)``, with ``s = DIRECT_TO_DIFFUSE`` the clear day's direct-to-diffuse ratio, ``m`` in
+  [0, 1] the pixel's lit share (sun visibility times its cosine relative to the lit level), ``c_sky`` / ``c_sun`` the
+  two lights' colours at unit luminance. Under the cloud the sky light becomes grey and ``diffuse_gain`` (``Q``)
+  times as strong, the sun keeps ``sun_transmittance`` (``T``) of its beam: ``E' = E_d (Q + T s m c_sun)``. The
+  albedo is untouched, so each channel is multiplied by ``E'_c / E_c``: shadows and lit areas come together (their
+  ratio drops from ``1 + s`` to ``1 + T s / Q``), the blue of the shadows and the warmth of the sunlit areas go
+  neutral, the surface's texture stays.
+- **The lit share** ``m`` comes from the image: the base layer of the log-luminance (He's guided filter, edge-aware,
+  the same filter the fog uses; the detail layer, the texture, is never changed) against its local upper envelope
+  (the lit level nearby): a base ``1 + s`` times darker than the envelope is in full shadow (``m = 0``), one at the
+  envelope fully lit (``m = 1``). A dark surface in the sun reads as partly shadowed: it is lifted by at most
+  ``(1 + s) / (1 + T s / Q)`` relative to its lit neighbours, the limit of telling albedo from light in one image.
+
+All arithmetic is vectorised numpy on float32 images (the guided filter on OpenCV box filters);
+`relight_naive` is the per-pixel oracle of `relight`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from weatheralign.camera.fog import decode_srgb_u8, encode_srgb_u8, guided_filter, linear_to_srgb
+
+F32 = NDArray[np.float32]
+F64 = NDArray[np.float64]
+U8 = NDArray[np.uint8]
+
+REC709 = (0.2126, 0.7152, 0.0722)
+"""Luminance weights of linear sRGB (Rec. 709 primaries)."""
+
+DIRECT_TO_DIFFUSE = 4.0
+"""``s``: the clear day's direct over diffuse irradiance on a sunlit surface. Under a cloudless sky the diffuse share
+of the global horizontal irradiance is 0.15-0.25 (Erbs, Klein & Duffie 1982, clearness index above 0.75): s = 4 at
+0.2. The world's own shading has 3.5 for a level surface under a sun 40° high."""
+
+SUN_COLOUR = (1.0, 0.96, 0.9)
+"""The direct sun's colour in linear sRGB (as `weatheralign.world.shading`: a sun 25-60° high, about 5500 K)."""
+
+GROUND_ALBEDO = 0.15
+"""The ground's albedo for the light it reflects onto surfaces that face down (asphalt 0.05-0.2, concrete 0.3)."""
+
+HORIZONTAL_FACTOR = 7.0 / 9.0
+"""Horizontal irradiance of the CIE overcast sky over π L_z: ``∫ L(γ) sin γ dω / (π L_z) = 7/9``."""
+
+MIN_SKY_PIXELS = 50
+"""Fewer sky pixels than this give no clear-sky colour (the light is taken as neutral)."""
+
+BASE_RADIUS_FRACTION = 0.025
+"""The base layer's guided-filter radius as a share of the image width (24 px at 960 px)."""
+
+BASE_EPS = 0.1
+"""The guided filter's ε on the log-luminance: a step of 0.3 in log (a factor 1.35) is an edge; a sun shadow's
+edge (a factor 1 + s = 5) is kept, most texture goes to the detail layer."""
+
+ENVELOPE_FRACTION = 1.0
+"""The lit level's neighbourhood: a window of this share of the image width (a building's shadow can cover half the
+street, so every pixel's window reaches half an image width to each side)."""
+
+LOG_FLOOR = 1e-4
+"""Linear luminance floor before the logarithm."""
+
+
+@dataclass(frozen=True)
+class Overcast:
+    """The overcast light: ``sun_transmittance`` T (the share of the direct sun's beam the cloud lets through, 0..1),
+    ``zenith_luminance`` L_z (the overcast sky's zenith luminance in the image's linear units, the camera's exposure
+    of the clear image), ``diffuse_gain`` Q (the overcast sky's irradiance over the clear sky's, in those units)."""
+
+    sun_transmittance: float
+    zenith_luminance: float
+    diffuse_gain: float
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.sun_transmittance <= 1.0:
+            raise ValueError(f"sun_transmittance = {self.sun_transmittance}; expected 0..1")
+        if not self.zenith_luminance > 0.0 or not self.diffuse_gain > 0.0:
+            raise ValueError(f"zenith_luminance = {self.zenith_luminance}, diffuse_gain = {self.diffuse_gain}; "
+                             f"expected positive numbers")
+
+    def horizon_linear(self) -> F64:
+        """(3,) the overcast sky at the horizon, ``L_z / 3`` grey, linear: the light fog and unresolved particles
+        scatter towards the camera (the airlight under the cloud)."""
+        return np.full(3, self.zenith_luminance / 3.0)
+
+    def horizon_srgb(self) -> F64:
+        """(3,) `horizon_linear` sRGB-encoded (clipped to 1), as `weatheralign.camera.fog` takes airlights."""
+        return linear_to_srgb(self.horizon_linear())
+
+    def to_dict(self) -> dict[str, float]:
+        return {"sun_transmittance": self.sun_transmittance, "zenith_luminance": self.zenith_luminance,
+                "diffuse_gain": self.diffuse_gain}
+
+
+# ------------------------------------------------------------------------------------------------ the overcast sky
+
+
+def overcast_sky_luminance(sin_elevation: NDArray, zenith_luminance: float) -> F64:
+    """CIE standard overcast sky ``L_z (1 + 2 sin γ) / 3`` at ``sin_elevation`` (any shape; clipped at the
+    horizon: below it the sky's horizon value)."""
+    return zenith_luminance * (1.0 + 2.0 * np.clip(np.asarray(sin_elevation, dtype=np.float64), 0.0, 1.0)) / 3.0
+
+
+def _sky_irradiance_table(size: int = 201, n_theta: int = 256, n_phi: int = 512) -> F64:
+    """(size,) irradiance of the CIE overcast sky of unit zenith luminance on a surface whose normal has vertical
+    component ``n_z = linspace(-1, 1, size)``, over π: midpoint quadrature over the upper hemisphere."""
+    theta = (np.arange(n_theta) + 0.5) * (0.5 * np.pi / n_theta)  # from the zenith
+    phi = (np.arange(n_phi) + 0.5) * (2.0 * np.pi / n_phi)
+    st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]
+    weight = (1.0 + 2.0 * ct) / 3.0 * st * (0.5 * np.pi / n_theta) * (2.0 * np.pi / n_phi)  # L dω
+    out = np.empty(size)
+    for k, nz in enumerate(np.linspace(-1.0, 1.0, size)):
+        nx = np.sqrt(max(0.0, 1.0 - nz * nz))
+        cos_inc = nx * st * np.cos(phi)[None, :] + nz * ct
+        out[k] = float(np.sum(weight * np.maximum(cos_inc, 0.0))) / np.pi
+    out.flags.writeable = False
+    return out
+
+
+SKY_IRRADIANCE_TABLE = _sky_irradiance_table()
+"""`_sky_irradiance_table`: 7/9 at n_z = 1, 0.308 on a vertical surface (the CIE sky's vertical over horizontal
+illuminance, 0.396), 0 facing down."""
+
+
+def irradiance_factor(n_z: NDArray, ground_albedo: float = GROUND_ALBEDO) -> F64:
+    """Irradiance over π L_z of a surface of unit normal vertical component ``n_z`` (any shape) under the CIE
+    overcast sky: the sky it sees (`SKY_IRRADIANCE_TABLE`) plus the level ground's reflection, a Lambertian plane of
+    ``ground_albedo`` lit by the horizontal ``7/9 π L_z``, over the share ``(1 - n_z) / 2`` of its view."""
+    nz = np.clip(np.asarray(n_z, dtype=np.float64), -1.0, 1.0)
+    sky = np.interp(nz, np.linspace(-1.0, 1.0, len(SKY_IRRADIANCE_TABLE)), SKY_IRRADIANCE_TABLE)
+    return sky + ground_albedo * HORIZONTAL_FACTOR * (1.0 - nz) / 2.0
+
+
+def pixel_sin_elevation(K: NDArray, width: int, height: int, up_cam: NDArray) -> F32:
+    """(H, W) sine of the elevation of each pixel-centre ray of the pinhole ``K`` (3, 3), ``up_cam`` (3,) the unit
+    up direction in the camera frame (OpenCV axes)."""
+    Kf = np.asarray(K, dtype=np.float64)
+    u = (np.arange(width) - Kf[0, 2]) / Kf[0, 0]
+    v = (np.arange(height) - Kf[1, 2]) / Kf[1, 1]
+    up = np.asarray(up_cam, dtype=np.float64)
+    dot = up[0] * u[None, :] + up[1] * v[:, None] + up[2]
+    norm = np.sqrt(u[None, :] ** 2 + v[:, None] ** 2 + 1.0)
+    return (dot / norm).astype(np.float32)
+
+
+def up_in_camera(T_global_cam: NDArray) -> F64:
+    """(3,) the global up direction (z) in the camera frame of ``T_global_cam`` (4, 4)."""
+    return np.asarray(T_global_cam, dtype=np.float64)[2, :3].copy()
+
+
+# ------------------------------------------------------------------------------------------------ the light
+
+
+def luminance(linear: NDArray) -> F32:
+    """(H, W) Rec. 709 luminance of linear RGB (H, W, 3)."""
+    x = np.asarray(linear, dtype=np.float32)
+    return (REC709[0] * x[..., 0] + REC709[1] * x[..., 1] + REC709[2] * x[..., 2]).astype(np.float32)
+
+
+def unit_colour(rgb: NDArray) -> F64:
+    """(3,) ``rgb`` scaled to unit Rec. 709 luminance."""
+    c = np.asarray(rgb, dtype=np.float64)
+    return c / max(float(np.dot(REC709, c)), 1e-9)
+
+
+def clear_sky_colour(linear: NDArray, sky: NDArray) -> F64:
+    """(3,) the clear sky's light colour at unit luminance: the per-channel median of the unsaturated sky pixels
+    (``sky`` (H, W) bool) of ``linear`` (H, W, 3); neutral with fewer than `MIN_SKY_PIXELS` of them."""
+    px = np.asarray(linear, dtype=np.float64)[np.asarray(sky, dtype=bool)]
+    px = px[px.max(axis=1) < 0.98] if len(px) else px
+    if len(px) < MIN_SKY_PIXELS:
+        return np.ones(3)
+    return unit_colour(np.median(px, axis=0))
+
+
+def log_base(log_y: NDArray, radius: int, eps: float = BASE_EPS) -> F32:
+    """(H, W) base layer of the log-luminance ``log_y`` (H, W): self-guided He filter of ``radius`` [px] and ``eps``
+    (computed at half resolution on images of 64 px and more)."""
+    ly = np.asarray(log_y, dtype=np.float32)
+    return guided_filter(ly, ly, radius, eps, subsample=2 if min(ly.shape) >= 64 else 1)
+
+
+def lit_share(base: NDArray, valid: NDArray, window: int, direct_to_diffuse: float = DIRECT_TO_DIFFUSE) -> F32:
+    """(H, W) lit share ``m`` in [0, 1] of each pixel: its base log-luminance ``base`` (H, W) against the upper
+    envelope over ``window`` px of the ``valid`` (H, W) pixels (surfaces, not sky): ``exp(base - envelope) =
+    (1 + s m) / (1 + s)``. The envelope is the maximum of a 1/8-size copy (area-averaged, so a lone bright pixel does
+    not set it) over the window, smoothed by a box a quarter of its size and brought back bilinearly."""
+    b = np.asarray(base, dtype=np.float32)
+    ok = np.asarray(valid, dtype=bool)
+    h, w = b.shape
+    if not ok.any():
+        return np.zeros((h, w), np.float32)
+    f = max(1, min(h, w) // 64, 8 if min(h, w) >= 256 else 1)
+    small = (max(1, w // f), max(1, h // f))
+    floor = float(b[ok].min())
+    filled = np.where(ok, b, floor).astype(np.float32)
+    weight = cv2.resize(ok.astype(np.float32), small, interpolation=cv2.INTER_AREA)
+    mean = cv2.resize(filled * ok, small, interpolation=cv2.INTER_AREA) / np.maximum(weight, 1e-6)
+    mean = np.where(weight > 0.25, mean, floor).astype(np.float32)
+    k = max(3, int(round(window / f)) | 1)
+    env = cv2.dilate(mean, np.ones((k, k), np.uint8))
+    soft = max(3, (k // 4) | 1)
+    env = cv2.blur(env, (soft, soft), borderType=cv2.BORDER_REFLECT)
+    env = np.maximum(cv2.resize(env, (w, h), interpolation=cv2.INTER_LINEAR), b)
+    s = float(direct_to_diffuse)
+    m = (np.exp(b - env) * (1.0 + s) - 1.0) / s
+    return np.where(ok, np.clip(m, 0.0, 1.0), 0.0).astype(np.float32)
+
+
+def relight_gain(m: NDArray, overcast: Overcast, sky_colour: NDArray,
+                 direct_to_diffuse: float = DIRECT_TO_DIFFUSE) -> F32:
+    """(H, W, 3) per-channel gain ``E'_c / E_c = (Q + T s m c_sun) / (c_sky + s m c_sun)`` of lit share ``m``
+    (H, W) (module docstring; ``sky_colour`` (3,) the clear sky's light colour at unit luminance)."""
+    s = float(direct_to_diffuse)
+    sun = unit_colour(SUN_COLOUR).astype(np.float32)
+    sky = np.asarray(sky_colour, dtype=np.float32)
+    sm = (s * np.asarray(m, dtype=np.float32))[..., None] * sun
+    return ((np.float32(overcast.diffuse_gain) + np.float32(overcast.sun_transmittance) * sm) / (sky + sm)
+            ).astype(np.float32)
+
+
+def relight(linear: NDArray, sky: NDArray, sin_elevation: NDArray, m: NDArray, overcast: Overcast,
+            sky_colour: NDArray) -> F32:
+    """(H, W, 3) float32 linear image under ``overcast``: the ``sky`` (H, W) pixels the CIE overcast sky at their
+    ``sin_elevation`` (H, W), the others ``linear`` (H, W, 3) times `relight_gain` of their lit share ``m``."""
+    lin = np.asarray(linear, dtype=np.float32)
+    out = lin * relight_gain(m, overcast, sky_colour)
+    grey = overcast_sky_luminance(sin_elevation, overcast.zenith_luminance).astype(np.float32)
+    return np.where(np.asarray(sky, dtype=bool)[..., None], grey[..., None], out).astype(np.float32)
+
+
+def relight_naive(linear: NDArray, sky: NDArray, sin_elevation: NDArray, m: NDArray, overcast: Overcast,
+                  sky_colour: NDArray) -> F64:
+    """`relight` pixel by pixel in float64: the oracle of the vectorised form."""
+    s, t, q = DIRECT_TO_DIFFUSE, overcast.sun_transmittance, overcast.diffuse_gain
+    sun = unit_colour(SUN_COLOUR)
+    h, w = np.asarray(sky).shape
+    out = np.empty((h, w, 3))
+    for v in range(h):
+        for u in range(w):
+            if sky[v, u]:
+                out[v, u] = overcast.zenith_luminance * (1.0 + 2.0 * min(max(float(sin_elevation[v, u]), 0.0), 1.0)
+                                                         ) / 3.0
+                continue
+            for c in range(3):
+                direct = s * float(m[v, u]) * sun[c]
+                out[v, u, c] = float(linear[v, u, c]) * (q + t * direct) / (float(sky_colour[c]) + direct)
+    return out
+
+
+@dataclass(frozen=True, eq=False)
+class LightLayers:
+    """What `light_layers` finds in a clear image: ``linear`` (H, W, 3) float32, ``sky`` (H, W) bool,
+    ``sin_elevation`` (H, W), ``base`` (H, W) log-luminance base layer, ``lit`` (H, W) lit share, ``sky_colour`` (3,)
+    the clear sky's light colour at unit luminance."""
+
+    linear: F32
+    sky: NDArray[np.bool_]
+    sin_elevation: F32
+    base: F32
+    lit: F32
+    sky_colour: F64
+
+
+def light_layers(image: U8, range_map: NDArray, K: NDArray, T_global_cam: NDArray) -> LightLayers:
+    """The layers of a clear ``image`` (H, W, 3) uint8 sRGB with ray lengths ``range_map`` (H, W) [m] (inf = sky)
+    seen by the pinhole ``K`` (3, 3) posed at ``T_global_cam`` (4, 4; global z up)."""
+    lin = decode_srgb_u8(np.asarray(image, dtype=np.uint8))
+    h, w = lin.shape[:2]
+    sky = ~np.isfinite(np.asarray(range_map))
+    sin_el = pixel_sin_elevation(K, w, h, up_in_camera(T_global_cam))
+    log_y = np.log(np.maximum(luminance(lin), LOG_FLOOR)).astype(np.float32)
+    base = log_base(log_y, max(2, int(round(BASE_RADIUS_FRACTION * w))))
+    lit = lit_share(base, ~sky, max(3, int(round(ENVELOPE_FRACTION * w))))
+    return LightLayers(lin, sky, sin_el, base, lit, clear_sky_colour(lin, sky))
+
+
+def overcast_linear(layers: LightLayers, overcast: Overcast) -> F32:
+    """(H, W, 3) float32 linear image of `light_layers` under ``overcast`` (`relight`)."""
+    return relight(layers.linear, layers.sky, layers.sin_elevation, layers.lit, overcast, layers.sky_colour)
+
+
+def overcast_image(image: U8, range_map: NDArray, K: NDArray, T_global_cam: NDArray, overcast: Overcast) -> U8:
+    """(H, W, 3) uint8 sRGB: the clear ``image`` (arguments as `light_layers`) under ``overcast``."""
+    return encode_srgb_u8(overcast_linear(light_layers(image, range_map, K, T_global_cam), overcast))
+
+
+__all__ = ["BASE_EPS", "BASE_RADIUS_FRACTION", "DIRECT_TO_DIFFUSE", "ENVELOPE_FRACTION", "GROUND_ALBEDO",
+           "HORIZONTAL_FACTOR", "REC709", "SKY_IRRADIANCE_TABLE", "SUN_COLOUR", "LightLayers", "Overcast",
+           "clear_sky_colour", "irradiance_factor", "light_layers", "lit_share", "log_base", "luminance",
+           "overcast_image", "overcast_linear", "overcast_sky_luminance", "pixel_sin_elevation", "relight",
+           "relight_gain", "relight_naive", "unit_colour", "up_in_camera"]
