@@ -81,6 +81,34 @@ def test_a_sun_shadow_is_lifted_the_light_goes_neutral_and_the_sky_grey() -> Non
         Overcast(1.5, 1.0, 1.0)
 
 
+def test_a_metering_camera_keeps_its_exposure_and_a_clouded_frame_its_surfaces() -> None:
+    from weatheralign.camera.overcast import (
+        Exposure,
+        cloud_share,
+        metered_log_luminance,
+        metering_mask,
+        overcast_linear,
+    )
+
+    image, ranges, K, T = _street()
+    layers = light_layers(image, ranges, K, T)
+    assert cloud_share(layers.sky_colour) == 0.0 and layers.direct_to_diffuse == DIRECT_TO_DIFFUSE
+    sky = Overcast(0.1, 1.5, 3.0, zenith_over_surface=4.0)
+    out, zenith = overcast_linear(layers, sky, Exposure.AUTO)
+    meter = metering_mask(layers.sky, layers.sin_elevation)
+    assert metered_log_luminance(out, meter) == pytest.approx(metered_log_luminance(layers.linear, meter), abs=1e-4)
+    assert zenith == pytest.approx(4.0 * np.exp(metered_log_luminance(out, meter, 90.0)), rel=1e-4)
+    np.testing.assert_allclose(out[:12, :, 1], overcast_sky_luminance(layers.sin_elevation[:12], zenith), rtol=1e-5)
+    # the same street shot under cloud: a neutral sky, no sun in it: its surfaces keep their relative light
+    lin = decode_srgb_u8(image)
+    lin[:12] = 0.4
+    grey = light_layers(encode_srgb_u8(lin), ranges, K, T)
+    assert cloud_share(grey.sky_colour) == 1.0 and grey.direct_to_diffuse == 0.0
+    out, _ = overcast_linear(grey, sky, Exposure.AUTO)
+    ratio = luminance(out)[12:] / np.maximum(luminance(grey.linear)[12:], 1e-6)
+    assert ratio.max() / ratio.min() < 1.01
+
+
 def test_snow_rain_and_fog_snow_carry_the_light_calibrated_or_configured() -> None:
     from weatheralign.conditions import CONDITIONS
     from weatheralign.config import SimulateConfig
@@ -91,7 +119,7 @@ def test_snow_rain_and_fog_snow_carry_the_light_calibrated_or_configured() -> No
     assert resolve_overcast(CONDITIONS["fog_light"], cfg) is None
     configured = resolve_overcast(CONDITIONS["rain"], cfg)
     assert configured == Overcast(cfg.overcast_sun_transmittance, cfg.overcast_zenith_luminance,
-                                  cfg.overcast_diffuse_gain).to_dict()
+                                  cfg.overcast_diffuse_gain, cfg.overcast_zenith_over_surface).to_dict()
     tuned = PrecipitationRates({"snow": 2.0, "rain": 40.0}, {}, overcast={"snow": Overcast(0.1, 2.2, 3.3)})
     assert resolve_overcast(CONDITIONS["fog_snow"], cfg, tuned) == Overcast(0.1, 2.2, 3.3).to_dict()
     assert resolve_overcast(CONDITIONS["rain"], cfg, tuned) == configured  # no rain light calibrated
@@ -145,8 +173,9 @@ def test_the_hidden_zenith_luminance_is_recovered(overcast_reference, kind) -> N
     assert fit.zenith_ci[0] <= fit.zenith_luminance <= fit.zenith_ci[1]
 
 
-@pytest.mark.xfail(reason="unfinished: the base-layer spread does not identify the sun's transmittance (the lit "
-                          "share mistakes dark albedo for shadow); the fit runs to the grid's end", strict=False)
+@pytest.mark.xfail(reason="unfinished: the road's sun contrast is dominated by the weather's own ground (snow hides "
+                          "the lane markings: T runs to 0; the wet road mirrors: T runs to the grid's end)",
+                   strict=False)
 @pytest.mark.parametrize("kind", ["snow", "rain"])
 def test_the_hidden_sun_transmittance_is_recovered(overcast_reference, kind) -> None:
     from weatheralign.calibrate.overcast import fit_overcast

@@ -364,7 +364,9 @@ class SimulateConfig(_Section):
     (`weatheralign.camera.overcast`): the calibrate_precipitation stage's recovered light of the reference's split
     with ``precipitation_rates: calibrated``, else ``overcast_sun_transmittance`` (the sun's share left),
     ``overcast_zenith_luminance`` (the CIE overcast sky's zenith, linear image units) and ``overcast_diffuse_gain``
-    (the overcast sky's irradiance over the clear sky's); the same for aligned and unaligned cameras.
+    (the overcast sky's irradiance over the clear sky's) at the synthetic world's fixed exposure, and for real
+    cameras, which meter, ``overcast_zenith_over_surface`` (the sky's zenith over the metered surfaces' 90th
+    percentile); the same for aligned and unaligned cameras.
     The sensors (noise floor, divergence, exposure, ...) are the dataset's (its manifest), not simulate params.
     """
 
@@ -395,6 +397,7 @@ class SimulateConfig(_Section):
     overcast_sun_transmittance: Annotated[float, Field(ge=0.0, le=1.0)] = 0.12
     overcast_zenith_luminance: Annotated[float, Field(gt=0.0, le=10.0)] = 2.0
     overcast_diffuse_gain: Annotated[float, Field(gt=0.0, le=20.0)] = 3.0
+    overcast_zenith_over_surface: Annotated[float, Field(gt=0.0, le=100.0)] = 4.5
 
     @field_validator("aligned", mode="before")
     @classmethod
@@ -830,7 +833,8 @@ SETUP_FILES: dict[tuple[str, str], tuple[str, ...]] = {
                           "max_detections", "num_bootstrap", "confidence"),
     ("simulate", "setup"): ("fog_alpha_light", "fog_alpha_dense", "fog_beta_mor", "fog_beta_light", "fog_beta_dense",
                             "jpeg_quality", "near_clip_m", "refine_transmission", "overcast",
-                            "overcast_sun_transmittance", "overcast_zenith_luminance", "overcast_diffuse_gain"),
+                            "overcast_sun_transmittance", "overcast_zenith_luminance", "overcast_diffuse_gain",
+                            "overcast_zenith_over_surface"),
     ("tracking", "setup"): ("mlflow_uri", "experiment", "enabled"),
 }
 """Per (section, key) of params.yaml that names a YAML file (relative to the params file's folder, or absolute): the

@@ -21,6 +21,17 @@ sun. This module turns a clear image into that light, for synthetic and real ima
   (the lit level nearby): a base ``1 + s`` times darker than the envelope is in full shadow (``m = 0``), one at the
   envelope fully lit (``m = 1``). A dark surface in the sun reads as partly shadowed: it is lifted by at most
   ``(1 + s) / (1 + T s / Q)`` relative to its lit neighbours, the limit of telling albedo from light in one image.
+- **The clear image's own sun**: ``s`` is the clear day's only where the image's sky is a cloudless one. A cloudless
+  sky is blue (Rayleigh scattering, ``λ^-4``), a cloud deck neutral (droplets scatter all wavelengths alike): the
+  image's sky colour gives the share of the sky that is cloud (`cloud_share`), and the image's own direct-to-diffuse
+  ratio is ``s (1 - cloud share)`` (`image_direct_to_diffuse`): a frame shot under cloud (the shared Seeing Through
+  Fog frame) has no sun to take away and its surfaces keep their relative light.
+- **Exposure**: ``Q`` and ``L_z`` are in the clear image's linear units, known for the synthetic world (whose fixed
+  exposure the reference shares: `Exposure.FIXED`). A real camera meters: its auto-exposure keeps the median
+  log-luminance of what it meters (`Exposure.AUTO`: the surfaces above the horizon, which the ground edit leaves
+  alone, `metering_mask`), and its sky is then ``zenith_over_surface`` (``ζ``, the overcast sky's zenith luminance
+  over the metered surfaces' 90th percentile, calibrated on the reference's weather frames) times that percentile
+  (`auto_expose`).
 
 All arithmetic is vectorised numpy on float32 images (the guided filter on OpenCV box filters);
 `relight_naive` is the per-pixel oracle of `relight`.
@@ -29,12 +40,13 @@ All arithmetic is vectorised numpy on float32 images (the guided filter on OpenC
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from weatheralign.camera.fog import decode_srgb_u8, encode_srgb_u8, guided_filter, linear_to_srgb
+from weatheralign.camera.fog import decode_srgb_u8, encode_srgb_u8, guided_filter
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -74,6 +86,28 @@ street, so every pixel's window reaches half an image width to each side)."""
 LOG_FLOOR = 1e-4
 """Linear luminance floor before the logarithm."""
 
+CLEAR_SKY_BLUE_RED = 1.3
+"""Blue over red (linear sRGB) of the least blue cloudless sky: a hazy horizon (the world's clear horizon
+``(0.62, 0.7, 0.8)`` has 1.29, its zenith 3.4; Rayleigh's ``λ^-4`` gives 3.6 from 610 to 465 nm). A sky as blue or
+bluer has no cloud in it; a neutral one (1.0) is all cloud."""
+
+ZENITH_OVER_SURFACE = 4.5
+"""``ζ``'s default: the overcast zenith luminance over the metered surfaces' `BRIGHT_PERCENTILE` luminance. Those
+surfaces are mostly vertical (irradiance 0.308 of ``π L_z`` from the sky, 0.03 from the ground,
+`irradiance_factor`); their bright tenth are light walls and car paint of albedo about 0.6: ``0.22 L_z``."""
+
+BRIGHT_PERCENTILE = 90.0
+"""The metered surfaces' percentile the sky's zenith is tied to: light walls and paint, whose albedo varies less
+between scenes than the median's (a street of trees is darker than one of houses)."""
+
+
+class Exposure(StrEnum):
+    """How the camera exposes the overcast scene: ``fixed`` (the clear image's exposure: the synthetic world's
+    camera, the reference's) or ``auto`` (the camera meters: a real camera)."""
+
+    FIXED = "fixed"
+    AUTO = "auto"
+
 
 @dataclass(frozen=True)
 class Overcast:
@@ -84,26 +118,19 @@ class Overcast:
     sun_transmittance: float
     zenith_luminance: float
     diffuse_gain: float
+    zenith_over_surface: float = ZENITH_OVER_SURFACE
+    """``ζ``: with `Exposure.AUTO`, the sky's zenith luminance over the metered surfaces' `BRIGHT_PERCENTILE`."""
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.sun_transmittance <= 1.0:
             raise ValueError(f"sun_transmittance = {self.sun_transmittance}; expected 0..1")
-        if not self.zenith_luminance > 0.0 or not self.diffuse_gain > 0.0:
-            raise ValueError(f"zenith_luminance = {self.zenith_luminance}, diffuse_gain = {self.diffuse_gain}; "
-                             f"expected positive numbers")
-
-    def horizon_linear(self) -> F64:
-        """(3,) the overcast sky at the horizon, ``L_z / 3`` grey, linear: the light fog and unresolved particles
-        scatter towards the camera (the airlight under the cloud)."""
-        return np.full(3, self.zenith_luminance / 3.0)
-
-    def horizon_srgb(self) -> F64:
-        """(3,) `horizon_linear` sRGB-encoded (clipped to 1), as `weatheralign.camera.fog` takes airlights."""
-        return linear_to_srgb(self.horizon_linear())
+        if not (self.zenith_luminance > 0.0 and self.diffuse_gain > 0.0 and self.zenith_over_surface > 0.0):
+            raise ValueError(f"zenith_luminance = {self.zenith_luminance}, diffuse_gain = {self.diffuse_gain}, "
+                             f"zenith_over_surface = {self.zenith_over_surface}; expected positive numbers")
 
     def to_dict(self) -> dict[str, float]:
         return {"sun_transmittance": self.sun_transmittance, "zenith_luminance": self.zenith_luminance,
-                "diffuse_gain": self.diffuse_gain}
+                "diffuse_gain": self.diffuse_gain, "zenith_over_surface": self.zenith_over_surface}
 
 
 # ------------------------------------------------------------------------------------------------ the overcast sky
@@ -234,19 +261,20 @@ def relight_gain(m: NDArray, overcast: Overcast, sky_colour: NDArray,
 
 
 def relight(linear: NDArray, sky: NDArray, sin_elevation: NDArray, m: NDArray, overcast: Overcast,
-            sky_colour: NDArray) -> F32:
-    """(H, W, 3) float32 linear image under ``overcast``: the ``sky`` (H, W) pixels the CIE overcast sky at their
-    ``sin_elevation`` (H, W), the others ``linear`` (H, W, 3) times `relight_gain` of their lit share ``m``."""
+            sky_colour: NDArray, direct_to_diffuse: float = DIRECT_TO_DIFFUSE) -> F32:
+    """(H, W, 3) float32 linear image under ``overcast`` at the clear image's exposure: the ``sky`` (H, W) pixels the
+    CIE overcast sky at their ``sin_elevation`` (H, W), the others ``linear`` (H, W, 3) times `relight_gain` of their
+    lit share ``m`` (H, W) and the image's ``direct_to_diffuse``."""
     lin = np.asarray(linear, dtype=np.float32)
-    out = lin * relight_gain(m, overcast, sky_colour)
+    out = lin * relight_gain(m, overcast, sky_colour, direct_to_diffuse)
     grey = overcast_sky_luminance(sin_elevation, overcast.zenith_luminance).astype(np.float32)
     return np.where(np.asarray(sky, dtype=bool)[..., None], grey[..., None], out).astype(np.float32)
 
 
 def relight_naive(linear: NDArray, sky: NDArray, sin_elevation: NDArray, m: NDArray, overcast: Overcast,
-                  sky_colour: NDArray) -> F64:
+                  sky_colour: NDArray, direct_to_diffuse: float = DIRECT_TO_DIFFUSE) -> F64:
     """`relight` pixel by pixel in float64: the oracle of the vectorised form."""
-    s, t, q = DIRECT_TO_DIFFUSE, overcast.sun_transmittance, overcast.diffuse_gain
+    s, t, q = float(direct_to_diffuse), overcast.sun_transmittance, overcast.diffuse_gain
     sun = unit_colour(SUN_COLOUR)
     h, w = np.asarray(sky).shape
     out = np.empty((h, w, 3))
@@ -262,11 +290,61 @@ def relight_naive(linear: NDArray, sky: NDArray, sin_elevation: NDArray, m: NDAr
     return out
 
 
+def cloud_share(sky_colour: NDArray) -> float:
+    """The share of the image's sky that is cloud, from its light colour ``sky_colour`` (3,): 0 at a blue over red
+    of `CLEAR_SKY_BLUE_RED` or more (cloudless), 1 at a neutral sky, linear between."""
+    c = np.asarray(sky_colour, dtype=np.float64)
+    ratio = float(c[2] / max(c[0], 1e-9))
+    return float(np.clip((CLEAR_SKY_BLUE_RED - ratio) / (CLEAR_SKY_BLUE_RED - 1.0), 0.0, 1.0))
+
+
+def image_direct_to_diffuse(sky_colour: NDArray, sky_pixels: int,
+                            direct_to_diffuse: float = DIRECT_TO_DIFFUSE) -> float:
+    """The clear image's own direct-to-diffuse ratio: ``direct_to_diffuse (1 - cloud_share)`` of its ``sky_colour``
+    (3,); the clear day's without `MIN_SKY_PIXELS` ``sky_pixels`` (no sky to tell)."""
+    if sky_pixels < MIN_SKY_PIXELS:
+        return float(direct_to_diffuse)
+    return float(direct_to_diffuse) * (1.0 - cloud_share(sky_colour))
+
+
+def metering_mask(sky: NDArray, sin_elevation: NDArray) -> NDArray[np.bool_]:
+    """(H, W) what the camera meters: the surfaces (not ``sky`` (H, W)) above the horizon (``sin_elevation`` (H, W)
+    above 0); all surfaces where fewer than `MIN_SKY_PIXELS` are above it."""
+    surf = ~np.asarray(sky, dtype=bool)
+    above = surf & (np.asarray(sin_elevation) > 0.0)
+    return above if int(above.sum()) >= MIN_SKY_PIXELS else surf
+
+
+def metered_log_luminance(linear: NDArray, meter: NDArray, percentile: float = 50.0) -> float:
+    """``percentile`` (the median by default) of the log-luminance of ``linear`` (H, W, 3) over the ``meter``
+    (H, W) pixels (0 without any)."""
+    m = np.asarray(meter, dtype=bool)
+    if not m.any():
+        return 0.0
+    return float(np.percentile(np.log(np.maximum(luminance(linear)[m], LOG_FLOOR)), percentile))
+
+
+def auto_expose(clear: NDArray, relit: NDArray, sky: NDArray, sin_elevation: NDArray,
+                zenith_over_surface: float) -> tuple[F32, float]:
+    """The relit surfaces ``relit`` (H, W, 3) re-exposed so their metered median log-luminance is the ``clear``
+    (H, W, 3) image's (`metering_mask`), the ``sky`` (H, W) the CIE overcast sky of zenith ``zenith_over_surface``
+    times the re-exposed metered surfaces' `BRIGHT_PERCENTILE` luminance; (the image float32, that zenith)."""
+    meter = metering_mask(sky, sin_elevation)
+    shift = metered_log_luminance(clear, meter) - metered_log_luminance(relit, meter)
+    k = np.float32(np.exp(shift))
+    zenith = float(zenith_over_surface) * float(np.exp(metered_log_luminance(relit, meter, BRIGHT_PERCENTILE)
+                                                       + shift))
+    grey = overcast_sky_luminance(sin_elevation, zenith).astype(np.float32)
+    out = np.where(np.asarray(sky, dtype=bool)[..., None], grey[..., None], np.asarray(relit, np.float32) * k)
+    return out.astype(np.float32), zenith
+
+
 @dataclass(frozen=True, eq=False)
 class LightLayers:
     """What `light_layers` finds in a clear image: ``linear`` (H, W, 3) float32, ``sky`` (H, W) bool,
     ``sin_elevation`` (H, W), ``base`` (H, W) log-luminance base layer, ``lit`` (H, W) lit share, ``sky_colour`` (3,)
-    the clear sky's light colour at unit luminance."""
+    the clear sky's light colour at unit luminance, ``direct_to_diffuse`` the image's own
+    (`image_direct_to_diffuse`)."""
 
     linear: F32
     sky: NDArray[np.bool_]
@@ -274,6 +352,7 @@ class LightLayers:
     base: F32
     lit: F32
     sky_colour: F64
+    direct_to_diffuse: float = DIRECT_TO_DIFFUSE
 
 
 def light_layers(image: U8, range_map: NDArray, K: NDArray, T_global_cam: NDArray) -> LightLayers:
@@ -285,22 +364,42 @@ def light_layers(image: U8, range_map: NDArray, K: NDArray, T_global_cam: NDArra
     sin_el = pixel_sin_elevation(K, w, h, up_in_camera(T_global_cam))
     log_y = np.log(np.maximum(luminance(lin), LOG_FLOOR)).astype(np.float32)
     base = log_base(log_y, max(2, int(round(BASE_RADIUS_FRACTION * w))))
-    lit = lit_share(base, ~sky, max(3, int(round(ENVELOPE_FRACTION * w))))
-    return LightLayers(lin, sky, sin_el, base, lit, clear_sky_colour(lin, sky))
+    colour = clear_sky_colour(lin, sky)
+    s = image_direct_to_diffuse(colour, int(sky.sum()))
+    lit = lit_share(base, ~sky, max(3, int(round(ENVELOPE_FRACTION * w))), max(s, 1e-3))
+    return LightLayers(lin, sky, sin_el, base, lit, colour, s)
 
 
-def overcast_linear(layers: LightLayers, overcast: Overcast) -> F32:
-    """(H, W, 3) float32 linear image of `light_layers` under ``overcast`` (`relight`)."""
-    return relight(layers.linear, layers.sky, layers.sin_elevation, layers.lit, overcast, layers.sky_colour)
+def overcast_linear(layers: LightLayers, overcast: Overcast, exposure: Exposure = Exposure.FIXED
+                    ) -> tuple[F32, float]:
+    """(H, W, 3) float32 linear image of `light_layers` under ``overcast`` (`relight`; `auto_expose` with
+    `Exposure.AUTO`) and its sky's zenith luminance in that image's units."""
+    relit = relight(layers.linear, layers.sky, layers.sin_elevation, layers.lit, overcast, layers.sky_colour,
+                    layers.direct_to_diffuse)
+    if Exposure(exposure) is Exposure.FIXED:
+        return relit, overcast.zenith_luminance
+    return auto_expose(layers.linear, relit, layers.sky, layers.sin_elevation, overcast.zenith_over_surface)
 
 
-def overcast_image(image: U8, range_map: NDArray, K: NDArray, T_global_cam: NDArray, overcast: Overcast) -> U8:
-    """(H, W, 3) uint8 sRGB: the clear ``image`` (arguments as `light_layers`) under ``overcast``."""
-    return encode_srgb_u8(overcast_linear(light_layers(image, range_map, K, T_global_cam), overcast))
+def overcast_edit(image: U8, range_map: NDArray, K: NDArray, T_global_cam: NDArray, overcast: Overcast,
+                  exposure: Exposure = Exposure.FIXED) -> tuple[U8, F64]:
+    """(H, W, 3) uint8 sRGB: the clear ``image`` (arguments as `light_layers`) under ``overcast`` exposed by
+    ``exposure``; and (3,) its overcast horizon ``L_z / 3`` grey, linear in its units (the airlight under the
+    cloud)."""
+    lin, zenith = overcast_linear(light_layers(image, range_map, K, T_global_cam), overcast, exposure)
+    return encode_srgb_u8(lin), np.full(3, zenith / 3.0)
 
 
-__all__ = ["BASE_EPS", "BASE_RADIUS_FRACTION", "DIRECT_TO_DIFFUSE", "ENVELOPE_FRACTION", "GROUND_ALBEDO",
-           "HORIZONTAL_FACTOR", "REC709", "SKY_IRRADIANCE_TABLE", "SUN_COLOUR", "LightLayers", "Overcast",
-           "clear_sky_colour", "irradiance_factor", "light_layers", "lit_share", "log_base", "luminance",
-           "overcast_image", "overcast_linear", "overcast_sky_luminance", "pixel_sin_elevation", "relight",
-           "relight_gain", "relight_naive", "unit_colour", "up_in_camera"]
+def overcast_image(image: U8, range_map: NDArray, K: NDArray, T_global_cam: NDArray, overcast: Overcast,
+                   exposure: Exposure = Exposure.FIXED) -> U8:
+    """(H, W, 3) uint8 sRGB: the clear ``image`` under ``overcast`` (`overcast_edit`)."""
+    return overcast_edit(image, range_map, K, T_global_cam, overcast, exposure)[0]
+
+
+__all__ = ["BASE_EPS", "BASE_RADIUS_FRACTION", "BRIGHT_PERCENTILE", "CLEAR_SKY_BLUE_RED", "DIRECT_TO_DIFFUSE",
+           "ENVELOPE_FRACTION", "GROUND_ALBEDO", "HORIZONTAL_FACTOR", "REC709", "SKY_IRRADIANCE_TABLE", "SUN_COLOUR",
+           "ZENITH_OVER_SURFACE", "Exposure", "LightLayers", "Overcast", "auto_expose", "clear_sky_colour",
+           "cloud_share", "image_direct_to_diffuse", "irradiance_factor", "light_layers", "lit_share", "log_base",
+           "luminance", "metered_log_luminance", "metering_mask", "overcast_edit", "overcast_image",
+           "overcast_linear", "overcast_sky_luminance", "pixel_sin_elevation", "relight", "relight_gain",
+           "relight_naive", "unit_colour", "up_in_camera"]

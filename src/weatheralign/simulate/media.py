@@ -146,9 +146,9 @@ def calibrated_precipitation_rates(path: Path, particles: ParticlesConfig) -> Pr
         if kind in ("snow", "rain"):
             entry = entry if isinstance(entry, dict) else {}
             try:
+                keys = ("sun_transmittance", "zenith_luminance", "diffuse_gain", "zenith_over_surface")
                 out.overcast[kind] = Overcast(*(_positive(path, f"overcast.{kind}.{key}", entry.get(key))
-                                                for key in ("sun_transmittance", "zenith_luminance",
-                                                            "diffuse_gain")))
+                                                for key in keys if key in entry or key != keys[-1]))
             except ValueError as exc:
                 raise DataFormatError(f"{path}: overcast.{kind}: {exc}") from None
     return out
@@ -401,8 +401,8 @@ def resolve_overcast(condition: Condition, cfg: SimulateConfig, rates: Precipita
     calibrated = (rates.overcast if rates is not None else {}).get(condition.sky.split)
     if calibrated is not None:
         return calibrated.to_dict()
-    return Overcast(cfg.overcast_sun_transmittance, cfg.overcast_zenith_luminance, cfg.overcast_diffuse_gain
-                    ).to_dict()
+    return Overcast(cfg.overcast_sun_transmittance, cfg.overcast_zenith_luminance, cfg.overcast_diffuse_gain,
+                    cfg.overcast_zenith_over_surface).to_dict()
 
 
 def resolve_ground(condition: Condition, cfg: SimulateConfig, scenes: list[str],

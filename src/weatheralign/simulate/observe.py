@@ -31,9 +31,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from weatheralign.camera.fog import composite_image, encode_srgb_u8, fog_airlight, srgb_to_linear
+from weatheralign.camera.fog import composite_image, encode_srgb_u8, fog_airlight, linear_to_srgb, srgb_to_linear
 from weatheralign.camera.fog import transmission as fog_transmission
-from weatheralign.camera.overcast import overcast_image
+from weatheralign.camera.overcast import Exposure, overcast_edit
 from weatheralign.camera.splat import (
     APPEARANCES,
     focal_px,
@@ -254,10 +254,13 @@ def observe_camera(image: NDArray[np.uint8], range_map: NDArray[np.float32], vie
     fld = media.camera_field()
     ground_mask = None
     relit = media.overcast is not None
+    horizon = None
     if relit:  # the background edit first: the scene under the cloud, whose grey horizon the air then scatters
-        image = overcast_image(image, range_map, np.asarray(view.K, dtype=np.float64), view.T_global_cam,
-                               media.overcast)
-        airlight = media.overcast.horizon_srgb()
+        # the synthetic world's camera (exact range map) has the reference's fixed exposure; a real one meters
+        exposure = Exposure.FIXED if view.range_path is not None else Exposure.AUTO
+        image, horizon = overcast_edit(image, range_map, np.asarray(view.K, dtype=np.float64), view.T_global_cam,
+                                       media.overcast, exposure)
+        airlight = linear_to_srgb(np.minimum(horizon, 1.0))
     if ground is not None:  # the wet or snowy ground under the clear air, lit by the scene's clear sky
         image, ground_mask = edit_image_u8(image, range_map, CameraGeometry(
             np.asarray(view.K, dtype=np.float64), view.T_global_cam), view.range_path is not None, ground.surfaces,
@@ -272,7 +275,7 @@ def observe_camera(image: NDArray[np.uint8], range_map: NDArray[np.float32], vie
         profile = unresolved_extinction_profile(fld, focal_px(view.K), look, near_clip=near)
         t_particles = profile.transmission(range_map)
         t = t_particles if t is None else t * t_particles
-    a_lin = media.overcast.horizon_linear() if relit else fog_airlight(airlight, media.airlight_gain)
+    a_lin = horizon if horizon is not None else fog_airlight(airlight, media.airlight_gain)
     refine = options.refine_transmission and view.range_path is None  # exact depth needs no edge-aware smoothing
     if fld is None:
         return CameraWeather(composite_image(image, t, a_lin, refine), None, 0, ground_mask)
