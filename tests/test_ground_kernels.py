@@ -1,5 +1,5 @@
-"""The ground's compiled kernels against their numpy oracles: the noise fields, a range map's normals, the
-screen-space reflection's march."""
+"""The ground's compiled kernels against their numpy oracles: the noise fields, a range map's normals, the LiDAR
+returns' normals and their neighbours' median, RANSAC's inlier counts, the screen-space reflection's march."""
 
 from __future__ import annotations
 
@@ -12,7 +12,17 @@ from weatheralign.ground.camera import (
     screen_space_reflection_naive,
     strided_reflection,
 )
-from weatheralign.ground.surfaces import pixel_normals, pixel_normals_naive
+from weatheralign.ground.surfaces import (
+    median_over_neighbours,
+    nearest_neighbours,
+    pixel_normals,
+    pixel_normals_naive,
+    pixel_points,
+    plane_inliers,
+    plane_inliers_naive,
+    point_normals,
+    point_normals_naive,
+)
 from weatheralign.ground.wet import fractal_noise, fractal_noise_naive
 
 
@@ -48,10 +58,14 @@ def scene() -> tuple[np.ndarray, np.ndarray, CameraGeometry]:
 
 def test_pixel_normals_are_their_oracle() -> None:
     image, range_map, camera = scene()
-    fast, slow = pixel_normals(range_map, camera), pixel_normals_naive(range_map, camera)
-    for a, b in ((fast.points_world, slow.points_world), (fast.normals_world, slow.normals_world)):
-        np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
-        np.testing.assert_allclose(a[~np.isnan(a)], b[~np.isnan(b)], atol=1e-9)
+    points = pixel_points(range_map, camera)
+    for smooth_px in (5, 1):  # 1: the working grid's window, no averaging
+        fast = pixel_normals(range_map, camera, smooth_px=smooth_px)
+        slow = pixel_normals_naive(range_map, camera, smooth_px=smooth_px)
+        for a, b in ((fast.points_world, slow.points_world), (fast.normals_world, slow.normals_world),
+                     (points, slow.points_world)):
+            np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
+            np.testing.assert_allclose(a[~np.isnan(a)], b[~np.isnan(b)], atol=1e-9)
 
 
 def test_the_reflection_march_is_its_oracle_and_strides_share_it() -> None:
@@ -147,3 +161,43 @@ def test_the_range_guided_edit_switches_layers_where_the_brought_field_is_positi
         assert np.nonzero(inside[i, :, 0])[0].min() == int(np.floor(0.6 * i + 5.33 * stride)) + 1
     with pytest.raises(ValueError, match="both alternative and switch"):
         affine_edit_u8(image, gain, offset, edited, range_map, stride, switch=switch)
+
+
+def test_point_normals_and_the_neighbour_median_are_their_oracles() -> None:
+    """A road, a facade, a sphere and a line of returns (collinear neighbours: no plane): the neighbours are a k-d
+    tree's, the compiled PCA normals numpy's eigenvectors up to rounding, the median numpy's bit for bit."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(4)
+    road = np.column_stack([rng.uniform(-20, 20, (3000, 2)), rng.normal(-1.8, 0.02, 3000)])
+    facade = np.column_stack([np.full(1000, 9.0), rng.uniform(-10, 10, 1000), rng.uniform(-1.8, 3, 1000)])
+    sphere = rng.normal(0, 1, (1000, 3))
+    sphere = sphere / np.linalg.norm(sphere, axis=1, keepdims=True) + [4.0, 4.0, 0.0]
+    line = np.column_stack([np.linspace(-5, 5, 200), np.full(200, -6.0), np.full(200, 2.0)])
+    points = np.concatenate([road, facade, sphere, line])
+    neighbours = nearest_neighbours(points)
+    distance, _ = cKDTree(points).query(points, k=16)  # the line's equal spacing ties: compare distances
+    found = np.sort(np.linalg.norm(points[neighbours] - points[:, None], axis=2), axis=1)
+    np.testing.assert_allclose(found, distance, atol=1e-12)
+    fast = point_normals(points, np.zeros(3), neighbours)
+    slow = point_normals_naive(points, np.zeros(3), neighbours)
+    np.testing.assert_allclose(np.linalg.norm(fast, axis=1), 1.0, atol=1e-12)
+    planar = slice(0, len(points) - len(line))
+    np.testing.assert_allclose(np.sum(fast[planar] * slow[planar], axis=1), 1.0, atol=1e-9)
+    across = fast[-len(line):] @ np.array([1.0, 0, 0])  # the line's: any direction across it
+    np.testing.assert_allclose(across, 0.0, atol=1e-6)
+    values = rng.uniform(size=len(points))
+    assert np.array_equal(median_over_neighbours(values, neighbours), np.median(values[neighbours], axis=1))
+    odd = neighbours[:, :15]
+    assert np.array_equal(median_over_neighbours(values, odd), np.median(values[odd], axis=1))
+
+
+def test_plane_inliers_are_their_oracle() -> None:
+    rng = np.random.default_rng(6)
+    points = np.column_stack([rng.uniform(-30, 30, (4096, 2)), rng.normal(-1.8, 0.1, 4096)])
+    normals = rng.normal(0, 1, (512, 3)) * [0.05, 0.05, 1.0]
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    offsets = rng.uniform(1.5, 2.1, 512)
+    fast, slow = plane_inliers(points, normals, offsets, 0.2), plane_inliers_naive(points, normals, offsets, 0.2)
+    assert np.abs(fast - slow).max() <= 1  # a point exactly at the tolerance may round either way
+    assert np.argmax(fast) == np.argmax(slow) and slow.max() > 1000

@@ -110,3 +110,17 @@ def test_a_grazing_beam_enters_an_off_ground_layer_through_its_side() -> None:
     np.testing.assert_allclose(np.cross(hits, roof.points), 0.0, atol=1e-9)  # on the same beams
     with pytest.raises(ValueError, match="edge_run_m"):
         SnowCover(edge_run_m=0.0)
+
+
+def test_the_depth_field_asked_only_where_snow_can_lie_changes_nothing() -> None:
+    from weatheralign.ground.snow import surface_snow
+
+    rng = np.random.default_rng(2)
+    xy = rng.uniform(-40, 40, (5000, 2))
+    cos_up = rng.uniform(0.0, 1.0, 5000)
+    cover, tracks = SnowCover(), TireTracks(direction=(1.0, 0.2), origin=(3.0, -1.0))
+    expected = snow_coverage(snow_depth(xy, cover, 5, tracks), cos_up, cover)
+    found = surface_snow(xy, cos_up, cover, 5, tracks)
+    for a, b in zip(found, expected, strict=True):
+        assert np.array_equal(a, b)
+    assert (found[0] == 0).any() and (found[0] > 0).any()

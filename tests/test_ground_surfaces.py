@@ -13,6 +13,7 @@ from weatheralign.ground.surfaces import (
     fit_ground_plane,
     mask_agreement,
     median_over_neighbours,
+    nearest_neighbours,
     nearest_return_values,
     pixel_normals,
     point_normals,
@@ -54,11 +55,12 @@ def test_a_cloud_without_low_returns_is_refused() -> None:
 
 def test_point_normals_face_the_sensor_and_stray_values_are_outvoted() -> None:
     points, normal, _ = tilted_ground()
-    normals = point_normals(points, np.zeros(3))
+    neighbours = nearest_neighbours(points)
+    normals = point_normals(points, np.zeros(3), neighbours)
     assert np.median(normals[:4000] @ normal) > 0.99  # the road's, turned up towards the sensor
     assert np.median(normals[4000:] @ np.array([-1.0, 0, 0])) > 0.95  # the facade's, turned back to the sensor
     values = np.where(np.arange(len(points)) == 7, 5.0, 1.0)
-    assert median_over_neighbours(points, values)[7] == 1.0
+    assert median_over_neighbours(values, neighbours)[7] == 1.0
 
 
 def test_pixel_normals_of_an_exact_range_map() -> None:

@@ -204,12 +204,18 @@ def affine_edit_u8(image: U8, gain: NDArray, offset: NDArray, edited: NDArray, r
                                      np.ascontiguousarray(gain, dtype=np.float64),
                                      np.ascontiguousarray(offset, dtype=np.float64),
                                      np.ascontiguousarray(edited, dtype=np.float64),
-                                     np.ascontiguousarray(range_map, dtype=np.float64), int(stride), float(sigma),
+                                     _float_map(range_map), int(stride), float(sigma),
                                      np.ascontiguousarray(alt_gain, dtype=np.float64),
                                      np.ascontiguousarray(alt_offset, dtype=np.float64),
                                      np.ascontiguousarray(np.zeros((0, 0)) if switch is None else switch,
                                                           dtype=np.float64),
                                      _DECODE_LUT, _ENCODE_LUT, _ENCODE_AMBIGUOUS, _ENCODE_THRESHOLDS, _ENC_BINS)
+
+
+def _float_map(values: NDArray) -> NDArray[np.floating]:
+    """``values`` as a contiguous float32 or float64 array, not copied where it already is one."""
+    a = np.asarray(values)
+    return np.ascontiguousarray(a if a.dtype in (np.float32, np.float64) else a.astype(np.float64))
 
 
 def _as_srgb_float(image: NDArray, what: str = "image") -> F32:

@@ -138,18 +138,17 @@ def range_weight(coarse: np.float64, fine: np.float64, sigma: float) -> np.float
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _bilinear(layer: NDArray, y0: int, x0: int, y1: int, x1: int, w0: np.float64, w1: np.float64, w2: np.float64,
-              w3: np.float64) -> np.float64:
-    """The weighted sum of ``layer`` (h, w) at the four coarse samples (y0, x0), (y0, x1), (y1, x0), (y1, x1), in
-    that order."""
-    return 0.0 + w0 * layer[y0, x0] + w1 * layer[y0, x1] + w2 * layer[y1, x0] + w3 * layer[y1, x1]
+def _bilinear(corners: NDArray, w0: np.float64, w1: np.float64, w2: np.float64, w3: np.float64) -> np.float64:
+    """The weighted sum of a coarse cell's four samples ``corners`` (4,): (y0, x0), (y0, x1), (y1, x0), (y1, x1),
+    in the order of `range_guided_weights_naive`."""
+    return 0.0 + w0 * corners[0] + w1 * corners[1] + w2 * corners[2] + w3 * corners[3]
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _bilinear_channel(layer: NDArray, ch: int, y0: int, x0: int, y1: int, x1: int, w0: np.float64, w1: np.float64,
-                      w2: np.float64, w3: np.float64) -> np.float64:
-    """`_bilinear` of channel ``ch`` of ``layer`` (h, w, C)."""
-    return 0.0 + w0 * layer[y0, x0, ch] + w1 * layer[y0, x1, ch] + w2 * layer[y1, x0, ch] + w3 * layer[y1, x1, ch]
+def _bilinear_channel(corners: NDArray, ch: int, w0: np.float64, w1: np.float64, w2: np.float64,
+                      w3: np.float64) -> np.float64:
+    """`_bilinear` of channel ``ch`` of a cell's four samples ``corners`` (4, C)."""
+    return 0.0 + w0 * corners[0, ch] + w1 * corners[1, ch] + w2 * corners[2, ch] + w3 * corners[3, ch]
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -189,8 +188,8 @@ def guided_affine_edit_kernel(image: U8, gain: NDArray, offset: NDArray, edited:
     across a depth edge (`weatheralign.camera.fog.range_guided_weights_naive`); returns the image and the (H, W) pixels
     whose interpolated ``edited`` exceeds 0.5. Where ``switch`` (h, w) is given (else (0, 0)), a pixel whose
     interpolated ``switch`` exceeds 0 takes the interpolated ``alt_gain``, ``alt_offset`` (h, w, 3) instead. Pixels
-    whose four samples change nothing are copied as they are (the identity round-trips every code). One pass, the
-    per-pixel weights held in registers; nothing full-size allocated but the outputs."""
+    whose four samples change nothing are copied as they are (the identity round-trips every code). One pass, coarse
+    cell by cell (its four samples read once for its pixels); nothing full-size allocated but the outputs."""
     height, width = image.shape[0], image.shape[1]
     h, w = gain.shape[0], gain.shape[1]
     switching = switch.shape[0] > 0
@@ -202,51 +201,54 @@ def guided_affine_edit_kernel(image: U8, gain: NDArray, offset: NDArray, edited:
             if switching and not touched[y, x]:
                 touched[y, x] = alt_gain[y, x, 0] != 1.0 or alt_gain[y, x, 1] != 1.0 or alt_gain[y, x, 2] != 1.0 or \
                     alt_offset[y, x, 0] != 0.0 or alt_offset[y, x, 1] != 0.0 or alt_offset[y, x, 2] != 0.0
-    col0 = np.empty(width, np.int64)  # per column: its coarse columns and its bilinear position between them
-    col1 = np.empty(width, np.int64)
-    frac = np.empty(width)
-    for j in range(width):
-        col0[j] = j // stride
-        col1[j] = min(col0[j] + 1, w - 1)
-        frac[j] = (j - col0[j] * stride) / stride
-    out = np.empty((height, width, 3), np.uint8)
+    out = image.copy()  # untouched pixels stay as they are
     mask = np.zeros((height, width), np.bool_)
-    for i in range(height):
-        y0 = i // stride
-        fy = (i - y0 * stride) / stride
+    corner_gain, corner_offset = np.empty((4, 3)), np.empty((4, 3))  # one coarse cell's four samples
+    corner_alt_gain, corner_alt_offset = np.empty((4, 3)), np.empty((4, 3))
+    corner_edited, corner_switch, corner_range = np.empty(4), np.zeros(4), np.empty(4)
+    for y0 in range(h):  # cell by cell: its four samples read once for its stride x stride pixels
         y1 = min(y0 + 1, h - 1)
-        for j in range(width):
-            x0, x1, fx = col0[j], col1[j], frac[j]
+        for x0 in range(w):
+            x1 = min(x0 + 1, w - 1)
             if not (touched[y0, x0] or touched[y0, x1] or touched[y1, x0] or touched[y1, x1]):
-                out[i, j, 0], out[i, j, 1], out[i, j, 2] = image[i, j, 0], image[i, j, 1], image[i, j, 2]
                 continue
-            w0, w1 = (1.0 - fy) * (1.0 - fx), (1.0 - fy) * fx
-            w2, w3 = fy * (1.0 - fx), fy * fx
-            c0 = np.float64(range_map[y0 * stride, x0 * stride])
-            c1 = np.float64(range_map[y0 * stride, x1 * stride])
-            c2 = np.float64(range_map[y1 * stride, x0 * stride])
-            c3 = np.float64(range_map[y1 * stride, x1 * stride])
-            r = np.float64(range_map[i, j])
-            spanned = 0.0 + w0 * c0 + w1 * c1 + w2 * c2 + w3 * c3  # the four samples' surface here, bilinearly
-            if np.isfinite(spanned) and np.isfinite(r) and abs(spanned - r) <= sigma * r:
-                total = 0.0 + w0 + w1 + w2 + w3
-            else:
-                w0, w1, w2, w3, total = _edge_weights(w0, w1, w2, w3, c0, c1, c2, c3, r, sigma)
-            e = _bilinear(edited, y0, x0, y1, x1, w0, w1, w2, w3)
-            mask[i, j] = total > 0.0 and e > 0.5 * total
-            alternative = False
-            if switching and total > 0.0:
-                alternative = _bilinear(switch, y0, x0, y1, x1, w0, w1, w2, w3) > 0.0
-            for ch in range(3):
-                g, o = 1.0, 0.0
-                if total > 0.0 and alternative:
-                    g = _bilinear_channel(alt_gain, ch, y0, x0, y1, x1, w0, w1, w2, w3) / total
-                    o = _bilinear_channel(alt_offset, ch, y0, x0, y1, x1, w0, w1, w2, w3) / total
-                elif total > 0.0:
-                    g = _bilinear_channel(gain, ch, y0, x0, y1, x1, w0, w1, w2, w3) / total
-                    o = _bilinear_channel(offset, ch, y0, x0, y1, x1, w0, w1, w2, w3) / total
-                x = np.float64(decode_lut[image[i, j, ch]]) * g + o
-                out[i, j, ch] = encode_one(np.float32(x), lut, ambiguous, thresholds, bins)
+            for k in range(4):
+                yy, xx = (y0 if k < 2 else y1), (x0 if k % 2 == 0 else x1)
+                for ch in range(3):
+                    corner_gain[k, ch], corner_offset[k, ch] = gain[yy, xx, ch], offset[yy, xx, ch]
+                    if switching:
+                        corner_alt_gain[k, ch], corner_alt_offset[k, ch] = alt_gain[yy, xx, ch], alt_offset[yy, xx, ch]
+                corner_edited[k] = edited[yy, xx]
+                if switching:
+                    corner_switch[k] = switch[yy, xx]
+                corner_range[k] = np.float64(range_map[yy * stride, xx * stride])
+            c0, c1, c2, c3 = corner_range[0], corner_range[1], corner_range[2], corner_range[3]
+            for i in range(y0 * stride, min((y0 + 1) * stride, height)):
+                fy = (i - y0 * stride) / stride
+                for j in range(x0 * stride, min((x0 + 1) * stride, width)):
+                    fx = (j - x0 * stride) / stride
+                    w0, w1 = (1.0 - fy) * (1.0 - fx), (1.0 - fy) * fx
+                    w2, w3 = fy * (1.0 - fx), fy * fx
+                    r = np.float64(range_map[i, j])
+                    spanned = 0.0 + w0 * c0 + w1 * c1 + w2 * c2 + w3 * c3  # the samples' surface here, bilinearly
+                    if np.isfinite(spanned) and np.isfinite(r) and abs(spanned - r) <= sigma * r:
+                        total = 0.0 + w0 + w1 + w2 + w3
+                    else:
+                        w0, w1, w2, w3, total = _edge_weights(w0, w1, w2, w3, c0, c1, c2, c3, r, sigma)
+                    if total <= 0.0:  # no sample counts: gain 1, offset 0, the pixel as it is
+                        continue
+                    e = _bilinear(corner_edited, w0, w1, w2, w3)
+                    mask[i, j] = e > 0.5 * total
+                    alternative = switching and _bilinear(corner_switch, w0, w1, w2, w3) > 0.0
+                    for ch in range(3):  # (no array variable chosen per pixel: numba would count its references)
+                        if alternative:
+                            g = _bilinear_channel(corner_alt_gain, ch, w0, w1, w2, w3) / total
+                            o = _bilinear_channel(corner_alt_offset, ch, w0, w1, w2, w3) / total
+                        else:
+                            g = _bilinear_channel(corner_gain, ch, w0, w1, w2, w3) / total
+                            o = _bilinear_channel(corner_offset, ch, w0, w1, w2, w3) / total
+                        x = np.float64(decode_lut[image[i, j, ch]]) * g + o
+                        out[i, j, ch] = encode_one(np.float32(x), lut, ambiguous, thresholds, bins)
     return out, mask
 
 

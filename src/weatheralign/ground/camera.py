@@ -58,15 +58,26 @@ class CameraGeometry:
 
     def rays_world(self, height: int, width: int) -> F64:
         """(H, W, 3) unit ray directions in the world frame through the pixel centres."""
-        v, u = np.mgrid[0:height, 0:width].astype(np.float64)
-        cam = np.stack([u, v, np.ones_like(u)], axis=-1) @ np.linalg.inv(self.K).T
-        cam /= np.linalg.norm(cam, axis=-1, keepdims=True)
-        return cam @ self.T_world_cam[:3, :3].T
+        v, u = np.mgrid[0:height, 0:width]
+        return self.rays_at(np.column_stack([v.ravel(), u.ravel()])).reshape(height, width, 3)
+
+    def rays_at(self, pixels: NDArray[np.int64]) -> F64:
+        """(P, 3) unit ray directions in the world frame through the centres of ``pixels`` (P, 2) (row, col)."""
+        pixels = np.asarray(pixels)
+        u, v = pixels[:, 1].astype(np.float64), pixels[:, 0].astype(np.float64)
+        K_inv, R = np.linalg.inv(self.K), self.T_world_cam[:3, :3]
+        x, y, z = (K_inv[k, 0] * u + K_inv[k, 1] * v + K_inv[k, 2] for k in range(3))  # coordinate by coordinate
+        length = np.sqrt(x * x + y * y + z * z)
+        x, y, z = x / length, y / length, z / length
+        return np.column_stack([R[k, 0] * x + R[k, 1] * y + R[k, 2] * z for k in range(3)])
 
     def project(self, points_world: F64) -> tuple[F64, F64, F64]:
         """Pixel coordinates (u, v) and ray length [m] of world points (..., 3); the depth is negative behind."""
         T_cam_world = np.linalg.inv(self.T_world_cam)
-        cam = points_world @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+        return self.project_camera(points_world @ T_cam_world[:3, :3].T + T_cam_world[:3, 3])
+
+    def project_camera(self, cam: F64) -> tuple[F64, F64, F64]:
+        """`project` of points (..., 3) given in the camera's own frame."""
         z = cam[..., 2]
         safe = np.where(z > 1e-6, z, 1e-6)
         uv = cam @ self.K.T
@@ -77,16 +88,24 @@ def screen_space_reflection(image: F64, range_map: F64, camera: CameraGeometry, 
                             rays: F64, normal: F64, sky: F64, max_distance_m: float = 80.0, steps: int = 64,
                             thickness_m: float = 1.5, start_m: float = 0.5) -> F64:
     """`screen_space_reflection_naive`'s march, compiled (`weatheralign.ground.kernels`)."""
-    origin = camera.T_world_cam[:3, 3]
-    ground = origin + rays * range_map[pixels[:, 0], pixels[:, 1], None]
-    normal = np.asarray(normal, dtype=np.float64)
-    mirrored = rays - 2.0 * (rays @ normal)[:, None] * normal
+    start, step = mirrored_rays(range_map, camera, pixels, rays, np.asarray(normal, dtype=np.float64))
     distances = start_m * (max_distance_m / start_m) ** (np.arange(steps) / (steps - 1))
     return screen_space_reflection_kernel(
         np.ascontiguousarray(image, dtype=np.float64), np.ascontiguousarray(range_map, dtype=np.float64),
-        np.ascontiguousarray(camera.K, dtype=np.float64), np.linalg.inv(camera.T_world_cam),
-        np.ascontiguousarray(ground), np.ascontiguousarray(mirrored), np.asarray(sky, dtype=np.float64),
-        distances, float(thickness_m), SSR_BISECTIONS)
+        np.ascontiguousarray(camera.K, dtype=np.float64), np.ascontiguousarray(start), np.ascontiguousarray(step),
+        np.asarray(sky, dtype=np.float64), distances, float(thickness_m), SSR_BISECTIONS)
+
+
+def mirrored_rays(range_map: F64, camera: CameraGeometry, pixels: NDArray[np.int64], rays: F64,
+                  normal: F64) -> tuple[F64, F64]:
+    """The mirrored rays of ground ``pixels`` (P, 2) whose camera rays are ``rays`` (P, 3) (world frame) off a
+    surface of unit ``normal`` (3,), in the camera's frame: (their starts on the ground (P, 3) [m], their unit
+    directions (P, 3)), so that a point along one is ``start + step * distance``."""
+    origin = camera.T_world_cam[:3, 3]
+    ground = origin + rays * range_map[pixels[:, 0], pixels[:, 1], None]
+    mirrored = rays - 2.0 * (rays @ normal)[:, None] * normal
+    T_cam_world = np.linalg.inv(camera.T_world_cam)
+    return ground @ T_cam_world[:3, :3].T + T_cam_world[:3, 3], mirrored @ T_cam_world[:3, :3].T
 
 
 SSR_BISECTIONS = 8
@@ -103,16 +122,14 @@ def screen_space_reflection_naive(image: F64, range_map: F64, camera: CameraGeom
     behind the surface the camera sees at its pixel (by less than ``thickness_m``) takes that pixel's radiance; a ray
     that leaves the image or passes every surface sees ``sky`` (3,)."""
     height, width = range_map.shape
-    origin = camera.T_world_cam[:3, 3]
-    ground = origin + rays * range_map[pixels[:, 0], pixels[:, 1], None]
-    mirrored = rays - 2.0 * (rays @ normal)[:, None] * normal
+    start, step = mirrored_rays(range_map, camera, pixels, rays, np.asarray(normal, dtype=np.float64))
     out = np.tile(np.asarray(sky, dtype=np.float64), (len(pixels), 1))
     pending = np.ones(len(pixels), dtype=bool)
     distances = start_m * (max_distance_m / start_m) ** (np.arange(steps) / (steps - 1))
 
     def look(index: NDArray[np.int64], distance: F64) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray, NDArray]:
         """For rays ``index`` at ``distance``: (inside the image, behind the seen surface, row, col)."""
-        u, v, length = camera.project(ground[index] + mirrored[index] * distance[:, None])
+        u, v, length = camera.project_camera(start[index] + step[index] * distance[:, None])
         col, row = np.rint(u).astype(np.int64), np.rint(v).astype(np.int64)
         inside = (length > 0) & (col >= 0) & (col < width) & (row >= 0) & (row < height)
         seen = range_map[np.where(inside, row, 0), np.where(inside, col, 0)]
@@ -206,13 +223,15 @@ def _wet_layers(image: F64, range_map: F64, camera: CameraGeometry, ground_mask:
     """``(gain, offset)`` (H, W, 3) of the road under each water depth field of ``depths_m`` ((H, W) [m] each), the
     mirror image traced once for the pixels any of them wets."""
     image = np.asarray(image, dtype=np.float64)
-    shares = [np.where(ground_mask, wetted_share(depth, road.texture_depth_m), 0.0) for depth in depths_m]
-    pixels = np.argwhere(np.any(np.stack(shares) > 0, axis=0))
+    ground = np.argwhere(ground_mask)  # only the ground's pixels are asked anything
+    shares = [wetted_share(np.asarray(depth)[ground[:, 0], ground[:, 1]], road.texture_depth_m) for depth in depths_m]
+    wet = np.any(np.stack(shares) > 0, axis=0)
+    pixels = ground[wet]
     if len(pixels) == 0:
         return [(np.ones_like(image), np.zeros_like(image)) for _ in depths_m]
     rows, cols = pixels[:, 0], pixels[:, 1]
     n = road.refractive_index
-    rays = camera.rays_world(*range_map.shape)[rows, cols]
+    rays = camera.rays_at(pixels)
     theta_v = np.arccos(np.clip(np.abs(rays @ normal), 0.0, 1.0))
     dry = image[rows, cols]
     colour = dry / np.maximum(dry.mean(axis=1, keepdims=True), 1e-6)
@@ -224,20 +243,24 @@ def _wet_layers(image: F64, range_map: F64, camera: CameraGeometry, ground_mask:
     puddles = [np.asarray(depth)[rows, cols] >= road.texture_depth_m for depth in depths_m]
     soft = sharp
     if max(film_blur_px) > 1 and not all(puddle.all() for puddle in puddles):
-        # a film's broken surface: a mirror image smeared vertically
-        layer = np.zeros_like(image)
-        layer[rows, cols] = sharp
-        weight = np.zeros(range_map.shape)
-        weight[rows, cols] = 1.0
-        blurred = uniform_filter(layer, size=(*film_blur_px, 1))
-        norm = uniform_filter(weight, size=film_blur_px)[..., None]
-        soft = (blurred / np.maximum(norm, 1e-9))[rows, cols]
+        # a film's broken surface: a mirror image smeared vertically, over the box around the wet pixels (a margin of
+        # a window of zeros: the filter's reflected border adds nothing there)
+        top, left = np.maximum(pixels.min(axis=0) - film_blur_px, 0)
+        bottom, right = np.minimum(pixels.max(axis=0) + film_blur_px + 1, range_map.shape)
+        box = (rows - top, cols - left)
+        layer = np.zeros((bottom - top, right - left, 3))
+        layer[box] = sharp
+        weight = np.zeros(layer.shape[:2])
+        weight[box] = 1.0
+        norm = uniform_filter(weight, size=film_blur_px)[box]
+        soft = uniform_filter(layer, size=(*film_blur_px, 1))[box] / np.maximum(norm, 1e-9)[:, None]
+    flat = rows * image.shape[1] + cols  # rows of the (H * W, 3) views of the layers
     out = []
     for share, puddle in zip(shares, puddles, strict=True):
         gain, offset = np.ones_like(image), np.zeros_like(image)
-        c = share[rows, cols][:, None]
-        gain[rows, cols] = (1.0 - c) + c * through_water
-        offset[rows, cols] = c * reflectance * np.where(puddle[:, None], sharp, soft)
+        c = share[wet][:, None]
+        gain.reshape(-1, 3)[flat] = (1.0 - c) + c * through_water
+        offset.reshape(-1, 3)[flat] = c * reflectance * np.where(puddle[:, None], sharp, soft)
         out.append((gain, offset))
     return out
 
@@ -259,15 +282,13 @@ def snow_cover_layers(image: F64, coverage: F64, points_world: F64, ground_mask:
     """`snow_cover_image` as ``(gain, offset)`` (H, W, 3): the snowy image is ``image * gain + offset``."""
     image = np.asarray(image, dtype=np.float64)
     gain, offset = np.ones_like(image), np.zeros_like(image)
-    pixels = np.argwhere(coverage > 0)
+    snowy = coverage > 0
+    pixels = np.argwhere(snowy)
     if len(pixels) == 0:
         return gain, offset
-    luminance = image @ LUMINANCE
-    snowy = coverage > 0
-    weight = uniform_filter(snowy.astype(np.float64), shading_px)
-    local = uniform_filter(np.where(snowy, luminance, 0.0), shading_px) / np.maximum(weight, 1e-9)
     rows, cols = pixels[:, 0], pixels[:, 1]
-    around = local[rows, cols]
+    weight = uniform_filter(snowy.astype(np.float64), shading_px)[rows, cols]
+    around = uniform_filter(np.where(snowy, image @ LUMINANCE, 0.0), shading_px)[rows, cols] / np.maximum(weight, 1e-9)
     reference = max(float(np.percentile(around, 90)), 1e-6)
     shading = 1.0 - shading_strength * (1.0 - np.clip(around / reference, 0.2, 1.0))[:, None]
     sky = np.asarray(sky, dtype=np.float64)
@@ -277,13 +298,14 @@ def snow_cover_layers(image: F64, coverage: F64, points_world: F64, ground_mask:
     snow = cover.visible_albedo * sky_luminance * tint * shading * g[:, None]
     melt = float(wet_albedo(cover.pavement_reflectivity) / cover.pavement_reflectivity)
     c = coverage[rows, cols][:, None]
-    gain[rows, cols] = (1.0 - c) * np.where(ground_mask[rows, cols, None], melt, 1.0)
-    offset[rows, cols] = c * snow
+    flat = rows * image.shape[1] + cols  # rows of the (H * W, 3) views of the layers
+    gain.reshape(-1, 3)[flat] = (1.0 - c) * np.where(ground_mask[rows, cols, None], melt, 1.0)
+    offset.reshape(-1, 3)[flat] = c * snow
     return gain, offset
 
 
 LUMINANCE = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 / sRGB primaries, linear light
 
-__all__ = ["CameraGeometry", "LUMINANCE", "screen_space_reflection", "screen_space_reflection_naive",
+__all__ = ["CameraGeometry", "LUMINANCE", "mirrored_rays", "screen_space_reflection", "screen_space_reflection_naive",
            "snow_cover_image", "snow_cover_layers", "strided_reflection", "WetLayers", "wet_road_image",
            "wet_road_layer_pair", "wet_road_layers"]

@@ -22,13 +22,15 @@ from scipy.ndimage import gaussian_filter
 from weatheralign.camera.fog import affine_edit_u8, decode_srgb_u8, range_guided_upsample
 from weatheralign.data.frame import LidarScan
 from weatheralign.ground.camera import CameraGeometry, snow_cover_layers, wet_road_layer_pair, wet_road_layers
-from weatheralign.ground.snow import SnowCover, TireTracks, snow_coverage, snow_covered_ground, snow_depth
+from weatheralign.ground.snow import SnowCover, TireTracks, snow_covered_ground, surface_snow
 from weatheralign.ground.surfaces import (
     GroundPlane,
     fit_ground_plane,
     median_over_neighbours,
+    nearest_neighbours,
     nearest_return_values,
     pixel_normals,
+    pixel_points,
     point_normals,
 )
 from weatheralign.ground.wet import WetRoad, film_depth, incidence_angle, puddle_margin, water_depth, wet_ground
@@ -96,8 +98,9 @@ def scan_surfaces(scan: LidarScan, tolerance_m: float = 0.2, off_ground: bool = 
     cos_up = np.zeros(len(xyz))
     cos_up[on_ground] = abs(float((T[:3, :3] @ np.asarray(plane.normal))[2]))
     if off_ground and len(off) >= 16:
-        normals[off] = point_normals(xyz[off], np.zeros(3))
-        cos_up[off] = median_over_neighbours(xyz[off], np.abs((normals[off] @ T[:3, :3].T)[:, 2]))
+        neighbours = nearest_neighbours(xyz[off])  # one search for the normals and their median
+        normals[off] = point_normals(xyz[off], np.zeros(3), neighbours)
+        cos_up[off] = median_over_neighbours(np.abs(normals[off] @ T[2, :3]), neighbours)
     else:
         normals[off] = xyz[off] / np.maximum(np.linalg.norm(xyz[off], axis=1, keepdims=True), 1e-9)
     return ScanSurfaces(plane, on_ground, normals, cos_up, xyz @ T[:3, :3].T + T[:3, 3])
@@ -132,8 +135,7 @@ def edit_scan(scan: LidarScan, surfaces: ScanSurfaces, state: GroundState, noise
         changed = ground.copy()
         changed[ground] = effect.factor != 1.0
     else:
-        level = snow_depth(surfaces.world[:, :2], state.cover, state.seed, state.tracks)
-        coverage, depth = snow_coverage(level, surfaces.cos_up, state.cover)
+        coverage, depth = surface_snow(surfaces.world[:, :2], surfaces.cos_up, state.cover, state.seed, state.tracks)
         covered = coverage > 0.0
         run = np.where(surfaces.on_ground[covered], np.inf, state.cover.edge_run_m)  # the plane has no near edge
         effect = snow_covered_ground(points[covered, :3].astype(np.float64), np.zeros(3), surfaces.normals[covered],
@@ -229,7 +231,7 @@ def _coarse_layers(linear: F64, range_map: NDArray, camera: CameraGeometry, exac
     taken there), the camera's intrinsics scaled to that grid."""
     small = CameraGeometry(np.diag([1.0 / stride, 1.0 / stride, 1.0]) @ np.asarray(camera.K, dtype=np.float64),
                            camera.T_world_cam)
-    return ground_layers(linear, np.asarray(range_map, dtype=np.float64)[::stride, ::stride], small, exact_range,
+    return ground_layers(linear, np.asarray(range_map)[::stride, ::stride].astype(np.float64), small, exact_range,
                          surfaces, T_world_scan, state, sky, stride)
 
 
@@ -243,11 +245,12 @@ def ground_layers(linear: F64, range_map: F64, camera: CameraGeometry, exact_ran
     """The layers of `edit_image` at the resolution of ``range_map``, ``stride`` times coarser than the full image
     (its filters' windows scaled); a wet road's puddles as layers of their own with their shoreline field."""
     finite = np.isfinite(range_map)
-    pixels = pixel_normals(range_map, camera, smooth_px=odd_px(5 / stride))
     plane = surfaces.plane.transformed(T_world_scan)
-    ground = finite & plane.contains(np.nan_to_num(pixels.points_world))
+    pixels = None if state.road is not None else pixel_normals(range_map, camera, smooth_px=odd_px(5 / stride))
+    points = pixel_points(range_map, camera) if pixels is None else pixels.points_world  # water needs no normals
+    ground = finite & plane.contains(points)  # the sky's nan points are on no plane
     if state.road is not None:
-        road, xy = state.road, pixels.points_world[ground][:, :2]
+        road, xy = state.road, points[ground][:, :2]
         film = np.zeros(range_map.shape)
         film[ground] = film_depth(xy, road, state.seed)
         shoreline = np.full(range_map.shape, -1.0)
@@ -267,9 +270,9 @@ def ground_layers(linear: F64, range_map: F64, camera: CameraGeometry, exact_ran
         cos_up, known = np.nan_to_num(near), np.isfinite(near)
     cos_up = np.where(ground, plane.normal[2], cos_up)
     known |= ground
-    level = np.zeros(range_map.shape)
-    level[known] = snow_depth(pixels.points_world[known][:, :2], state.cover, state.seed, state.tracks)
-    coverage = np.where(known, snow_coverage(level, cos_up, state.cover)[0], 0.0)
+    coverage = np.zeros(range_map.shape)
+    coverage[known] = surface_snow(pixels.points_world[known][:, :2], cos_up[known], state.cover, state.seed,
+                                   state.tracks)[0]
     if not exact_range:  # the nearest return's orientation is constant over each return's cell: soften the edges
         coverage = gaussian_filter(coverage, DENSE_DEPTH_SOFTEN_PX / stride)
     gain, offset = snow_cover_layers(linear, coverage, pixels.points_world, ground, state.cover, sky, state.seed,

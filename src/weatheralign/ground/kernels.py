@@ -1,5 +1,7 @@
-"""Compiled per-point kernels of the ground fields: the value and fractal noise that the water-depth and snow-depth
-fields and the snow's grain are made of, evaluated at every LiDAR return and every camera pixel.
+"""Compiled per-point kernels of the ground: the value and fractal noise that the water-depth and snow-depth fields
+and the snow's grain are made of, evaluated at every LiDAR return and every camera pixel; the surfaces they lie on
+(RANSAC's inlier counts, the returns' PCA normals and their neighbours' median, a range map's normals); the mirror
+image's march.
 
 `weatheralign.ground.wet.fractal_noise_naive` (numpy) defines the result; `fractal_noise_kernel` computes the same
 rule point by point (the same integer hash, the same operation order). Nothing here allocates per point; the kernels
@@ -87,6 +89,117 @@ def fractal_noise_kernel(xy: F64, cell_m: float, seed: int, octaves: int) -> F64
 
 
 
+@numba.njit(cache=True, nogil=True)
+def plane_inliers_kernel(points: F64, normals: F64, offsets: F64, tolerance_m: float) -> NDArray[np.int64]:
+    """(H,) per plane ``normals[h] . x + offsets[h] = 0`` (normals (H, 3), offsets (H,)) the number of ``points``
+    (S, 3) closer to it than ``tolerance_m`` (`weatheralign.ground.surfaces.plane_inliers_naive`)."""
+    x, y, z = points[:, 0].copy(), points[:, 1].copy(), points[:, 2].copy()  # contiguous: the loop vectorises
+    counts = np.zeros(normals.shape[0], np.int64)
+    for h in range(normals.shape[0]):
+        nx, ny, nz, d = normals[h, 0], normals[h, 1], normals[h, 2], offsets[h]
+        count = 0
+        for i in range(x.shape[0]):
+            count += abs(x[i] * nx + y[i] * ny + z[i] * nz + d) < tolerance_m
+        counts[h] = count
+    return counts
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def smallest_eigenvector(a00: float, a01: float, a02: float, a11: float, a12: float,
+                         a22: float) -> tuple[float, float, float]:
+    """Unit eigenvector of the smallest eigenvalue of the symmetric 3x3 matrix ``[[a00, a01, a02], [., a11, a12],
+    [., ., a22]]``: the eigenvalue in closed form (the trigonometric solution of the characteristic cubic), the vector
+    the largest cross product of two rows of ``A - lambda I``; (0, 0, 1) where the matrix is a multiple of I, and a
+    vector across the largest row where the two smallest eigenvalues are equal (collinear points)."""
+    scale = max(abs(a00), abs(a01), abs(a02), abs(a11), abs(a12), abs(a22))
+    if scale <= 0.0:
+        return 0.0, 0.0, 1.0
+    a00, a01, a02, a11, a12, a22 = a00 / scale, a01 / scale, a02 / scale, a11 / scale, a12 / scale, a22 / scale
+    q = (a00 + a11 + a22) / 3.0
+    b00, b11, b22 = a00 - q, a11 - q, a22 - q
+    p1 = a01 * a01 + a02 * a02 + a12 * a12
+    p = np.sqrt((b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * p1) / 6.0)
+    if p <= 0.0:
+        return 0.0, 0.0, 1.0
+    det = b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)
+    r = min(max(det / (2.0 * p * p * p), -1.0), 1.0)
+    smallest = q + 2.0 * p * np.cos(np.arccos(r) / 3.0 + 2.0 * np.pi / 3.0)
+    r0 = (a00 - smallest, a01, a02)
+    r1 = (a01, a11 - smallest, a12)
+    r2 = (a02, a12, a22 - smallest)
+    best, bx, by, bz = -1.0, 0.0, 0.0, 1.0
+    for u, v in ((r0, r1), (r0, r2), (r1, r2)):
+        cx, cy, cz = u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]
+        n2 = cx * cx + cy * cy + cz * cz
+        if n2 > best:
+            best, bx, by, bz = n2, cx, cy, cz
+    if best <= 1e-24:  # a double smallest eigenvalue: any vector across the largest row
+        big, size = r0, r0[0] * r0[0] + r0[1] * r0[1] + r0[2] * r0[2]
+        for row in (r1, r2):
+            if row[0] * row[0] + row[1] * row[1] + row[2] * row[2] > size:
+                big, size = row, row[0] * row[0] + row[1] * row[1] + row[2] * row[2]
+        if abs(big[0]) > abs(big[2]):
+            bx, by, bz = -big[1], big[0], 0.0
+        else:
+            bx, by, bz = 0.0, -big[2], big[1]
+        best = bx * bx + by * by + bz * bz
+        if best <= 0.0:
+            return 0.0, 0.0, 1.0
+    norm = np.sqrt(best)
+    return bx / norm, by / norm, bz / norm
+
+
+@numba.njit(cache=True, nogil=True)
+def neighbour_normals_kernel(points: F64, index: NDArray[np.int64], origin: F64) -> F64:
+    """(N, 3) unit normals of ``points`` (N, 3): the direction of least variance of each point's neighbours
+    ``index`` (N, k) (their covariance about their mean, `smallest_eigenvector`), turned towards ``origin`` (3,)
+    (`weatheralign.ground.surfaces.point_normals_naive`'s rule)."""
+    n, k = index.shape
+    out = np.empty((n, 3))
+    for i in range(n):
+        mx = my = mz = 0.0
+        for m in range(k):
+            j = index[i, m]
+            mx += points[j, 0]
+            my += points[j, 1]
+            mz += points[j, 2]
+        mx, my, mz = mx / k, my / k, mz / k
+        sxx = sxy = sxz = syy = syz = szz = 0.0
+        for m in range(k):
+            j = index[i, m]
+            dx, dy, dz = points[j, 0] - mx, points[j, 1] - my, points[j, 2] - mz
+            sxx += dx * dx
+            sxy += dx * dy
+            sxz += dx * dz
+            syy += dy * dy
+            syz += dy * dz
+            szz += dz * dz
+        nx, ny, nz = smallest_eigenvector(sxx / k, sxy / k, sxz / k, syy / k, syz / k, szz / k)
+        if nx * (origin[0] - points[i, 0]) + ny * (origin[1] - points[i, 1]) + nz * (origin[2] - points[i, 2]) < 0:
+            nx, ny, nz = -nx, -ny, -nz
+        out[i, 0], out[i, 1], out[i, 2] = nx, ny, nz
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def neighbour_median_kernel(values: F64, index: NDArray[np.int64]) -> F64:
+    """(N,) the median of ``values`` over each row of ``index`` (N, k) (``np.median(values[index], axis=1)``, the
+    two middle values averaged for an even k)."""
+    n, k = index.shape
+    out = np.empty(n)
+    window = np.empty(k)
+    for i in range(n):
+        for m in range(k):  # insertion sort: k is small
+            v = values[index[i, m]]
+            slot = m
+            while slot > 0 and window[slot - 1] > v:
+                window[slot] = window[slot - 1]
+                slot -= 1
+            window[slot] = v
+        out[i] = window[k // 2] if k % 2 else (window[k // 2 - 1] + window[k // 2]) / 2.0
+    return out
+
+
 @numba.njit(cache=True, nogil=True, inline="always")
 def reflect_index(k: np.int64, n: np.int64) -> np.int64:
     """``k`` folded into ``0..n-1`` as scipy.ndimage's ``reflect`` mode does (``d c b a | a b c d | d c b a``)."""
@@ -96,11 +209,10 @@ def reflect_index(k: np.int64, n: np.int64) -> np.int64:
 
 
 @numba.njit(cache=True, nogil=True)
-def pixel_normals_kernel(range_map: F64, K_inv: F64, R: F64, origin: F64, smooth_px: int,
-                         edge_ratio: float) -> tuple[F64, F64]:
-    """World points (H, W, 3) and unit normals (H, W, 3) of a camera's pixels from its range map
-    (`weatheralign.ground.surfaces.pixel_normals_naive`'s rule: points averaged over ``smooth_px`` x ``smooth_px``
-    finite pixels, normals from the central differences, nan at depth edges, on the border and for the sky)."""
+def pixel_points_kernel(range_map: F64, K_inv: F64, R: F64, origin: F64) -> tuple[F64, F64, NDArray[np.bool_]]:
+    """World points (H, W, 3) of a camera's pixels from its range map (H, W) [m] (0 along the ray for the sky), the
+    unit rays (H, W, 3) through the pixel centres and where the range is finite (H, W); ``K_inv`` (3, 3) the inverse
+    intrinsics, ``R`` (3, 3) and ``origin`` (3,) the camera's rotation and position in the world."""
     height, width = range_map.shape
     points = np.empty((height, width, 3))
     rays = np.empty((height, width, 3))
@@ -120,6 +232,14 @@ def pixel_normals_kernel(range_map: F64, K_inv: F64, R: F64, origin: F64, smooth
                 d = R[c, 0] * cx + R[c, 1] * cy + R[c, 2] * cz
                 rays[i, j, c] = d
                 points[i, j, c] = origin[c] + d * length
+    return points, rays, finite
+
+
+@numba.njit(cache=True, nogil=True)
+def _box_mean(points: F64, finite: NDArray[np.bool_], smooth_px: int) -> tuple[F64, F64]:
+    """The mean (H, W, 3) of the finite ``points`` (H, W, 3) over ``smooth_px`` x ``smooth_px`` (scipy's reflected
+    border) and the finite share of that window (H, W)."""
+    height, width = finite.shape
     half = smooth_px // 2
     rows = np.zeros((height, width, 4))  # the horizontal box sums of (x, y, z) * finite and finite
     for i in range(height):
@@ -146,6 +266,28 @@ def pixel_normals_kernel(range_map: F64, K_inv: F64, R: F64, origin: F64, smooth
             smooth[i, j, 0] = sx / scale
             smooth[i, j, 1] = sy / scale
             smooth[i, j, 2] = sz / scale
+    return smooth, weight
+
+
+@numba.njit(cache=True, nogil=True)
+def pixel_normals_kernel(range_map: F64, K_inv: F64, R: F64, origin: F64, smooth_px: int,
+                         edge_ratio: float) -> tuple[F64, F64]:
+    """World points (H, W, 3) and unit normals (H, W, 3) of a camera's pixels from its range map
+    (`weatheralign.ground.surfaces.pixel_normals_naive`'s rule: points averaged over ``smooth_px`` x ``smooth_px``
+    finite pixels, normals from the central differences, nan at depth edges, on the border and for the sky)."""
+    height, width = range_map.shape
+    points, rays, finite = pixel_points_kernel(range_map, K_inv, R, origin)
+    if smooth_px <= 1:  # no averaging: the points themselves (0 for the sky), each its own weight
+        smooth = np.zeros((height, width, 3))
+        weight = np.zeros((height, width))
+        for i in range(height):
+            for j in range(width):
+                if finite[i, j]:
+                    for c in range(3):
+                        smooth[i, j, c] = points[i, j, c]
+                    weight[i, j] = 1.0
+    else:
+        smooth, weight = _box_mean(points, finite, smooth_px)
     normals = np.full((height, width, 3), np.nan)
     for i in range(1, height - 1):
         for j in range(1, width - 1):
@@ -179,15 +321,11 @@ def pixel_normals_kernel(range_map: F64, K_inv: F64, R: F64, origin: F64, smooth
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _look(px: np.float64, py: np.float64, pz: np.float64, T: tuple, K: tuple, range_map: F64,
+def _look(cx: np.float64, cy: np.float64, cz: np.float64, K: tuple, range_map: F64,
           thickness_m: float) -> tuple[bool, bool, np.int64, np.int64]:
-    """A world point seen by the camera: (inside the image, behind the surface its pixel shows by less than
-    ``thickness_m``, row, col) (`weatheralign.ground.camera.screen_space_reflection_naive`'s ``look``); ``T`` the
-    top three rows of T_cam_world and ``K`` the top two rows of the intrinsics, row-major as scalars (held in
-    registers over the march)."""
-    cx = T[0] * px + T[1] * py + T[2] * pz + T[3]
-    cy = T[4] * px + T[5] * py + T[6] * pz + T[7]
-    cz = T[8] * px + T[9] * py + T[10] * pz + T[11]
+    """A point (camera frame) seen by the camera: (inside the image, behind the surface its pixel shows by less than
+    ``thickness_m``, row, col) (`weatheralign.ground.camera.screen_space_reflection_naive`'s ``look``); ``K`` the
+    top two rows of the intrinsics, row-major as scalars (held in registers over the march)."""
     if cz <= 1e-6:
         return False, False, np.int64(0), np.int64(0)
     u = (K[0] * cx + K[1] * cy + K[2] * cz) / cz
@@ -202,42 +340,40 @@ def _look(px: np.float64, py: np.float64, pz: np.float64, T: tuple, K: tuple, ra
 
 
 @numba.njit(cache=True, nogil=True)
-def screen_space_reflection_kernel(image: F64, range_map: F64, K: F64, T_cam_world: F64, ground: F64,
-                                   mirrored: F64, sky: F64, distances: F64, thickness_m: float,
-                                   bisections: int) -> F64:
-    """(P, 3) radiance along the mirrored rays ``mirrored`` (P, 3) from the ground points ``ground`` (P, 3)
-    (`weatheralign.ground.camera.screen_space_reflection_naive`'s march: the first step behind a surface, bisected
-    ``bisections`` times; the sky once a ray leaves the image or passes every surface)."""
-    T = (T_cam_world[0, 0], T_cam_world[0, 1], T_cam_world[0, 2], T_cam_world[0, 3],
-         T_cam_world[1, 0], T_cam_world[1, 1], T_cam_world[1, 2], T_cam_world[1, 3],
-         T_cam_world[2, 0], T_cam_world[2, 1], T_cam_world[2, 2], T_cam_world[2, 3])
+def screen_space_reflection_kernel(image: F64, range_map: F64, K: F64, start: F64, step: F64, sky: F64,
+                                   distances: F64, thickness_m: float, bisections: int) -> F64:
+    """(P, 3) radiance along the mirrored rays from ``start`` (P, 3) along ``step`` (P, 3), both in the camera's
+    frame (`weatheralign.ground.camera.mirrored_rays`; `screen_space_reflection_naive`'s march: the first step
+    behind a surface, bisected ``bisections`` times; the sky once a ray leaves the image or passes every surface)."""
     Kr = (K[0, 0], K[0, 1], K[0, 2], K[1, 0], K[1, 1], K[1, 2])
-    out = np.empty((ground.shape[0], 3))
-    for p in range(ground.shape[0]):
+    out = np.empty((start.shape[0], 3))
+    for p in range(start.shape[0]):
         out[p, 0], out[p, 1], out[p, 2] = sky[0], sky[1], sky[2]
-        gx, gy, gz = ground[p, 0], ground[p, 1], ground[p, 2]
-        mx, my, mz = mirrored[p, 0], mirrored[p, 1], mirrored[p, 2]
+        sx, sy, sz = start[p, 0], start[p, 1], start[p, 2]
+        mx, my, mz = step[p, 0], step[p, 1], step[p, 2]
         previous = 0.0
-        for step in range(distances.shape[0]):
-            distance = distances[step]
-            inside, hit, row, col = _look(gx + mx * distance, gy + my * distance, gz + mz * distance, T, Kr,
-                                          range_map, thickness_m)
+        for k in range(distances.shape[0]):
+            distance = distances[k]
+            inside, hit, row, col = _look(sx + mx * distance, sy + my * distance, sz + mz * distance, Kr, range_map,
+                                          thickness_m)
             if not inside:
                 break
             if hit:
                 low, high = previous, distance
                 for _ in range(bisections):
                     middle = 0.5 * (low + high)
-                    if _look(gx + mx * middle, gy + my * middle, gz + mz * middle, T, Kr, range_map, thickness_m)[1]:
+                    if _look(sx + mx * middle, sy + my * middle, sz + mz * middle, Kr, range_map, thickness_m)[1]:
                         high = middle
                     else:
                         low = middle
-                _, _, row, col = _look(gx + mx * high, gy + my * high, gz + mz * high, T, Kr, range_map, thickness_m)
+                _, _, row, col = _look(sx + mx * high, sy + my * high, sz + mz * high, Kr, range_map, thickness_m)
                 out[p, 0], out[p, 1], out[p, 2] = image[row, col, 0], image[row, col, 1], image[row, col, 2]
                 break
             previous = distance
     return out
 
 
-__all__ = ["fractal_noise_kernel", "hash01", "pixel_normals_kernel", "reflect_index", "screen_space_reflection_kernel",
-           "tracks_factor_kernel", "value_noise_kernel", "value_noise_one"]
+__all__ = ["fractal_noise_kernel", "hash01", "neighbour_median_kernel", "neighbour_normals_kernel",
+           "pixel_normals_kernel", "pixel_points_kernel", "plane_inliers_kernel", "reflect_index",
+           "screen_space_reflection_kernel", "smallest_eigenvector", "tracks_factor_kernel", "value_noise_kernel",
+           "value_noise_one"]

@@ -148,6 +148,18 @@ def snow_coverage(depth_m: F64, cos_up: F64, cover: SnowCover) -> tuple[F64, F64
     return weight * (1.0 - np.exp(-depth / cover.hiding_depth_m)), depth
 
 
+def surface_snow(xy_world: F64, cos_up: F64, cover: SnowCover, seed: int, tracks: TireTracks | None = None
+                 ) -> tuple[F64, F64]:
+    """`snow_coverage` (covered share, depth [m]) of `snow_depth` at world positions (N, 2) on surfaces whose normals
+    make ``cos_up`` (N,) with the vertical, the depth field asked only where the surface is level enough to hold
+    snow (elsewhere both are 0 whatever the field says)."""
+    cos_up = np.asarray(cos_up, dtype=np.float64)
+    holds = cos_up > np.cos(np.radians(cover.max_slope_deg))
+    level = np.zeros(len(cos_up))
+    level[holds] = snow_depth(np.asarray(xy_world, dtype=np.float64).reshape(-1, 2)[holds], cover, seed, tracks)
+    return snow_coverage(level, cos_up, cover)
+
+
 def snow_covered_ground(points: F64, origins: F64, normals: F64, intensity: F64, depth_m: F64, cover: SnowCover,
                         saturation: float = 255.0, coverage: F64 | None = None,
                         max_run_m: F64 | float = np.inf) -> SnowCoverEffect:
@@ -177,4 +189,5 @@ def snow_covered_ground(points: F64, origins: F64, normals: F64, intensity: F64,
     return SnowCoverEffect(moved, new, depth)
 
 
-__all__ = ["snow_coverage", "snow_covered_ground", "snow_depth", "SnowCover", "SnowCoverEffect", "TireTracks"]
+__all__ = ["snow_coverage", "snow_covered_ground", "snow_depth", "SnowCover", "SnowCoverEffect", "surface_snow",
+           "TireTracks"]

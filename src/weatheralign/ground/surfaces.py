@@ -22,7 +22,13 @@ from numpy.typing import NDArray
 from scipy.ndimage import uniform_filter
 
 from weatheralign.ground.camera import CameraGeometry
-from weatheralign.ground.kernels import pixel_normals_kernel
+from weatheralign.ground.kernels import (
+    neighbour_median_kernel,
+    neighbour_normals_kernel,
+    pixel_normals_kernel,
+    pixel_points_kernel,
+    plane_inliers_kernel,
+)
 
 F64 = NDArray[np.float64]
 Mask = NDArray[np.bool_]
@@ -73,42 +79,69 @@ def fit_ground_plane(points: F64, min_drop_m: float = 1.0, tolerance_m: float = 
     normals = normals[valid] / length[valid, None]
     normals *= np.where(normals[:, 2] < 0, -1.0, 1.0)[:, None]
     offsets = -np.sum(normals * triples[valid, 0], axis=1)
-    distance = scored @ normals.T  # (sample, hypotheses), in place from here: no temporaries of its size
-    distance += offsets
-    inliers = np.count_nonzero(np.abs(distance, out=distance) < tolerance_m, axis=0)
-    best = int(np.argmax(inliers))
+    best = int(np.argmax(plane_inliers(scored, normals, offsets, tolerance_m)))
     normal, offset = normals[best], float(offsets[best])
     for _ in range(2):  # least squares on the inliers: the plane through their centroid along their least variance
         near = low[np.abs(low @ normal + offset) < tolerance_m]
         if len(near) < 3:
             break
         centre = near.mean(axis=0)
-        refined = np.linalg.svd(near - centre, full_matrices=False)[2][-1]
+        around = near - centre
+        refined = np.linalg.eigh(around.T @ around)[1][:, 0]  # the scatter's least eigenvector
         normal = refined if refined[2] >= 0 else -refined
         offset = float(-normal @ centre)
     return GroundPlane((float(normal[0]), float(normal[1]), float(normal[2])), offset, tolerance_m)
 
 
-def point_normals(points: F64, origin: F64, neighbours: int = 16) -> F64:
-    """(N, 3) unit normals of LiDAR returns (N, 3) from their ``neighbours`` nearest returns (open3d's PCA), turned
-    towards the sensor at ``origin`` (3,)."""
+def nearest_neighbours(points: F64, neighbours: int = 16) -> NDArray[np.int64]:
+    """(N, k) the rows of each of ``points``' (N, 3) ``neighbours`` nearest points (k = min(neighbours, N)), itself
+    included, in any order among equals (open3d's nanoflann search): one search for the normals and the median over
+    the same neighbours."""
     import open3d as o3d
 
-    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points, dtype=np.float64)))
-    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=neighbours))
-    normals = np.asarray(cloud.normals)
+    cloud = o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float64))
+    search = o3d.core.nns.NearestNeighborSearch(cloud)
+    search.knn_index()
+    index, _ = search.knn_search(cloud, min(int(neighbours), len(points)))
+    return np.ascontiguousarray(index.numpy(), dtype=np.int64)
+
+
+def plane_inliers(points: F64, normals: F64, offsets: F64, tolerance_m: float) -> NDArray[np.int64]:
+    """`plane_inliers_naive`, compiled (`weatheralign.ground.kernels.plane_inliers_kernel`)."""
+    return plane_inliers_kernel(np.ascontiguousarray(points, dtype=np.float64),
+                                np.ascontiguousarray(normals, dtype=np.float64),
+                                np.ascontiguousarray(offsets, dtype=np.float64), float(tolerance_m))
+
+
+def plane_inliers_naive(points: F64, normals: F64, offsets: F64, tolerance_m: float) -> NDArray[np.int64]:
+    """(H,) per plane ``normals[h] . x + offsets[h] = 0`` (normals (H, 3) unit, offsets (H,)) the number of
+    ``points`` (S, 3) closer to it than ``tolerance_m`` [m]."""
+    return np.count_nonzero(np.abs(points @ normals.T + offsets) < tolerance_m, axis=0)
+
+
+def point_normals(points: F64, origin: F64, index: NDArray[np.int64]) -> F64:
+    """`point_normals_naive`, compiled (`weatheralign.ground.kernels.neighbour_normals_kernel`)."""
+    return neighbour_normals_kernel(np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(index),
+                                    np.asarray(origin, dtype=np.float64))
+
+
+def point_normals_naive(points: F64, origin: F64, index: NDArray[np.int64]) -> F64:
+    """(N, 3) unit normals of LiDAR returns (N, 3) from their neighbours ``index`` (N, k) (`nearest_neighbours`):
+    the eigenvector of the least eigenvalue of their covariance (PCA), turned towards the sensor at ``origin`` (3,)."""
+    points = np.asarray(points, dtype=np.float64)
+    around = points[index] - points[index].mean(axis=1, keepdims=True)
+    covariance = np.einsum("nki,nkj->nij", around, around) / index.shape[1]
+    normals = np.linalg.eigh(covariance)[1][:, :, 0]
     facing = np.sum(normals * (np.asarray(origin) - points), axis=1) < 0
     normals[facing] *= -1.0
     return normals
 
 
-def median_over_neighbours(points: F64, values: F64, neighbours: int = 16) -> F64:
-    """(N,) the median of ``values`` (N,) over each point's ``neighbours`` nearest points (N, 3) (itself included):
-    a lone odd normal among its neighbours' is outvoted."""
-    from scipy.spatial import cKDTree
-
-    _, index = cKDTree(np.asarray(points, dtype=np.float64)).query(points, k=neighbours)
-    return np.median(np.asarray(values, dtype=np.float64)[index], axis=1)
+def median_over_neighbours(values: F64, index: NDArray[np.int64]) -> F64:
+    """(N,) the median of ``values`` (N,) over each point's neighbours ``index`` (N, k) (`nearest_neighbours`, itself
+    included): a lone odd normal among its neighbours' is outvoted (`neighbour_median_kernel`, compiled
+    ``np.median(values[index], axis=1)``)."""
+    return neighbour_median_kernel(np.ascontiguousarray(values, dtype=np.float64), np.ascontiguousarray(index))
 
 
 class PixelSurfaces(NamedTuple):
@@ -127,6 +160,16 @@ def pixel_normals(range_map: F64, camera: CameraGeometry, smooth_px: int = 5, ed
                                            np.ascontiguousarray(camera.T_world_cam[:3, 3]), int(smooth_px),
                                            float(edge_ratio))
     return PixelSurfaces(points, normals)
+
+
+def pixel_points(range_map: F64, camera: CameraGeometry) -> F64:
+    """(H, W, 3) world position [m] of each pixel's surface from a camera's range map (H, W) [m]; nan for the sky
+    (`pixel_normals`' points, without the normals)."""
+    points, _, finite = pixel_points_kernel(np.ascontiguousarray(range_map, dtype=np.float64), np.linalg.inv(camera.K),
+                                            np.ascontiguousarray(camera.T_world_cam[:3, :3]),
+                                            np.ascontiguousarray(camera.T_world_cam[:3, 3]))
+    points[~finite] = np.nan
+    return points
 
 
 def pixel_normals_naive(range_map: F64, camera: CameraGeometry, smooth_px: int = 5, edge_ratio: float = 0.05
@@ -149,7 +192,7 @@ def pixel_normals_naive(range_map: F64, camera: CameraGeometry, smooth_px: int =
     length = np.linalg.norm(normals, axis=-1, keepdims=True)
     normals = normals / np.maximum(length, 1e-12)
     normals *= np.where(np.sum(normals * rays, axis=-1, keepdims=True) > 0, -1.0, 1.0)
-    r = np.where(finite, range_map, np.nan)
+    r = np.asarray(range_map, dtype=np.float64)  # a sky neighbour (inf) is a jump
     jump = np.zeros(range_map.shape, dtype=bool)
     with np.errstate(invalid="ignore"):
         jump[:, 1:-1] |= np.abs(r[:, 2:] - r[:, :-2]) > edge_ratio * r[:, 1:-1]
@@ -206,18 +249,20 @@ def mask_agreement(points_world: F64, edited: Mask, camera: CameraGeometry, came
         shown[seen] = np.asarray(range_map)[row[seen], col[seen]]
         seen &= np.abs(length - shown) <= np.maximum(visible_tolerance * shown, 0.3)
     index = np.nonzero(seen)[0]
-    index = index[np.argsort(-length[index], kind="stable")]  # nearest last: it wins the pixel
-    label = np.full((height, width), -1, dtype=np.int8)
-    label[row[index], col[index]] = edited[index]
-    hit = label >= 0
-    lidar = hit & (label == 1)
-    cam = hit & camera_mask
+    pixel = row[index] * width + col[index]
+    order = np.lexsort((-index, length[index], pixel))  # by pixel, the nearest (the last of equals) first: it wins
+    pixel, index = pixel[order], index[order]
+    first = np.ones(len(pixel), dtype=bool)
+    first[1:] = pixel[1:] != pixel[:-1]
+    pixel, index = pixel[first], index[first]  # the pixels some return projects to, once each
+    lidar = np.asarray(edited, dtype=bool)[index]
+    cam = np.asarray(camera_mask, dtype=bool).reshape(-1)[pixel]
     union = int(np.count_nonzero(lidar | cam))
     both = int(np.count_nonzero(lidar & cam))
     return MaskAgreement(both / union if union else 1.0, both / max(int(lidar.sum()), 1),
-                         both / max(int(cam.sum()), 1), int(hit.sum()))
+                         both / max(int(cam.sum()), 1), len(pixel))
 
 
 __all__ = ["fit_ground_plane", "GroundPlane", "mask_agreement", "MaskAgreement", "median_over_neighbours",
-           "nearest_return_values",
-           "pixel_normals", "pixel_normals_naive", "PixelSurfaces", "point_normals"]
+           "nearest_neighbours", "nearest_return_values", "pixel_normals", "pixel_normals_naive", "pixel_points",
+           "PixelSurfaces", "plane_inliers", "plane_inliers_naive", "point_normals", "point_normals_naive"]
