@@ -112,7 +112,7 @@ def test_a_metering_camera_keeps_its_exposure_and_a_clouded_frame_its_surfaces()
 def test_snow_rain_and_fog_snow_carry_the_light_calibrated_or_configured() -> None:
     from weatheralign.conditions import CONDITIONS
     from weatheralign.config import SimulateConfig
-    from weatheralign.simulate.media import ConditionMedia, PrecipitationRates, resolve_overcast
+    from weatheralign.simulate.media import CalibratedLight, ConditionMedia, PrecipitationRates, resolve_overcast
 
     cfg = SimulateConfig()
     assert [n for n, c in CONDITIONS.items() if c.sky is not None] == ["snow", "rain", "fog_snow"]
@@ -120,7 +120,8 @@ def test_snow_rain_and_fog_snow_carry_the_light_calibrated_or_configured() -> No
     configured = resolve_overcast(CONDITIONS["rain"], cfg)
     assert configured == Overcast(cfg.overcast_sun_transmittance, cfg.overcast_zenith_luminance,
                                   cfg.overcast_diffuse_gain, cfg.overcast_zenith_over_surface).to_dict()
-    tuned = PrecipitationRates({"snow": 2.0, "rain": 40.0}, {}, overcast={"snow": Overcast(0.1, 2.2, 3.3)})
+    tuned = PrecipitationRates({"snow": 2.0, "rain": 40.0}, {},
+                               overcast={"snow": CalibratedLight.of(Overcast(0.1, 2.2, 3.3))})
     assert resolve_overcast(CONDITIONS["fog_snow"], cfg, tuned) == Overcast(0.1, 2.2, 3.3).to_dict()
     assert resolve_overcast(CONDITIONS["rain"], cfg, tuned) == configured  # no rain light calibrated
     assert resolve_overcast(CONDITIONS["snow"], cfg.model_copy(update={"overcast": False}), tuned) is None
@@ -134,8 +135,8 @@ def test_snow_rain_and_fog_snow_carry_the_light_calibrated_or_configured() -> No
 
 @pytest.fixture(scope="module")
 def overcast_reference(tmp_path_factory):
-    """A small synthetic reference (4 frames per split, 0.2 of STF's image size, a coarse LiDAR: only its cameras
-    are read) and its sealed truth."""
+    """The smallest synthetic reference that shows the light: its clear, snow and rain splits only (no fog frames),
+    4 frames each at 0.15 of STF's image size, the coarsest LiDAR (only the cameras are read); its sealed truth."""
     import json
 
     from weatheralign.config import params_from_dict
@@ -144,43 +145,82 @@ def overcast_reference(tmp_path_factory):
 
     data = tmp_path_factory.mktemp("overcast_reference")
     params = params_from_dict({"paths": {"data": str(data)}, "tracking": {"enabled": False},
-                               "reference": {"frames_per_split": 4, "lidar": {"firings_per_ring": 300},
-                                             "camera": {"image_scale": 0.2},
-                                             "precipitation": {"lidar_sub_rays": 8, "camera_samples": 4}}})
+                               "reference": {"frames_per_split": 4, "lidar": {"firings_per_ring": 90},
+                                             "camera": {"image_scale": 0.15},
+                                             "precipitation": {"lidar_sub_rays": 4, "camera_samples": 2}}})
     cfg = params.reference
-    finalize(cfg, data, [render_or_resume(spec, cfg, data)[0] for spec in frame_specs(cfg)])
+    specs = [spec for spec in frame_specs(cfg) if spec.level in ("clear", "snow", "rain")]
+    finalize(cfg, data, [render_or_resume(spec, cfg, data)[0] for spec in specs])
     return configured_reference(params, ("clear", "snow", "rain")), json.loads(sealed_truth_path(data).read_text())
 
 
 def _light(ds, sample_id: str):
-    from weatheralign.calibrate.overcast import frame_light
-    from weatheralign.reference.frames import reference_frame
+    from tasks.calibrate import overcast_light_task
 
-    frame, image, ranges = reference_frame(ds, sample_id)
-    view = next(iter(frame.cameras.values()))
-    return frame_light(image, ranges, view.K, view.T_ego_cam, view.T_global_cam)
+    return overcast_light_task.fn(ds, sample_id)
 
 
-@pytest.mark.parametrize("kind", ["snow", "rain"])
-def test_the_hidden_zenith_luminance_is_recovered(overcast_reference, kind) -> None:
+@pytest.fixture(scope="module")
+def overcast_fits(overcast_reference):
+    """``{snow|rain: OvercastFit}`` of the small reference, and its sealed truth."""
     from weatheralign.calibrate.overcast import fit_overcast
 
     ds, truth = overcast_reference
-    fit = fit_overcast([_light(ds, i) for i in ds.ids("clear")], [_light(ds, i) for i in ds.ids(kind)],
-                       num_bootstrap=20)
+    clear = [_light(ds, i) for i in ds.ids("clear")]
+    return {kind: fit_overcast(clear, [_light(ds, i) for i in ds.ids(kind)], num_bootstrap=50)
+            for kind in ("snow", "rain")}, truth
+
+
+@pytest.mark.parametrize("kind", ["snow", "rain"])
+def test_the_hidden_zenith_luminance_is_recovered(overcast_fits, kind) -> None:
+    fits, truth = overcast_fits
+    fit = fits[kind]
     hidden = truth[kind]["zenith_luminance"]
-    assert abs(fit.zenith_luminance / hidden - 1.0) < 0.25, (fit.zenith_luminance, hidden)
+    assert abs(fit.zenith_luminance / hidden - 1.0) < 0.1, (fit.zenith_luminance, hidden)
     assert fit.zenith_ci[0] <= fit.zenith_luminance <= fit.zenith_ci[1]
+    assert fit.frames == 4 and 1.0 < fit.zenith_over_surface < 10.0
 
 
-@pytest.mark.xfail(reason="unfinished: the road's sun contrast is dominated by the weather's own ground (snow hides "
-                          "the lane markings: T runs to 0; the wet road mirrors: T runs to the grid's end)",
-                   strict=False)
+def test_the_diffuse_gain_falls_as_the_sun_it_leaves_rises(overcast_fits) -> None:
+    # more of the sun on the lit facades leaves less of their brightness to the diffuse light
+    fits, _ = overcast_fits
+    for fit in fits.values():
+        q = np.asarray(fit.diffuse_gains)
+        assert np.all(np.diff(q) < 0.0) and q[-1] < q[0]
+        assert np.all(np.asarray(fit.gain_ci_low) <= q) and np.all(q <= np.asarray(fit.gain_ci_high))
+        assert fit.diffuse_gain(0.5 * (fit.sun_grid[1] + fit.sun_grid[2])) == pytest.approx(0.5 * (q[1] + q[2]))
+
+
+def test_the_media_read_the_fit_with_the_params_sun(overcast_fits, tmp_path) -> None:
+    import json
+
+    from weatheralign.conditions import CONDITIONS
+    from weatheralign.config import ParticlesConfig, SimulateConfig
+    from weatheralign.data.errors import DataFormatError
+    from weatheralign.simulate.media import calibrated_precipitation_rates, resolve_overcast
+
+    fits, _ = overcast_fits
+    path = tmp_path / "rates.json"
+    path.write_text(json.dumps({"snow": {"rate_mm_h": 2.0}, "overcast": {"snow": fits["snow"].rates_entry()}}))
+    rates = calibrated_precipitation_rates(path, ParticlesConfig())
+    cfg = SimulateConfig()
+    light = Overcast(**resolve_overcast(CONDITIONS["snow"], cfg, rates))
+    assert light.sun_transmittance == cfg.overcast_sun_transmittance  # not identified: the params' T
+    assert light.zenith_luminance == fits["snow"].zenith_luminance
+    assert light.diffuse_gain == pytest.approx(fits["snow"].diffuse_gain(cfg.overcast_sun_transmittance))
+    assert resolve_overcast(CONDITIONS["rain"], cfg, rates) == resolve_overcast(CONDITIONS["rain"], cfg)
+    broken = {**fits["snow"].rates_entry(), "diffuse_gain_by_sun": [1.0]}
+    path.write_text(json.dumps({"overcast": {"snow": broken}}))
+    with pytest.raises(DataFormatError, match="sun_grid"):
+        calibrated_precipitation_rates(path, ParticlesConfig())
+
+
+@pytest.mark.xfail(reason="not identified: T needs each weather pixel's sun visibility, which one image of a "
+                          "different scene does not give (docs/physics.md 4.3: the statistics tried and their "
+                          "numbers); the fit reports Q over T and the simulation takes T from its params",
+                   strict=True)
 @pytest.mark.parametrize("kind", ["snow", "rain"])
-def test_the_hidden_sun_transmittance_is_recovered(overcast_reference, kind) -> None:
-    from weatheralign.calibrate.overcast import fit_overcast
-
-    ds, truth = overcast_reference
-    fit = fit_overcast([_light(ds, i) for i in ds.ids("clear")], [_light(ds, i) for i in ds.ids(kind)],
-                       num_bootstrap=5)
-    assert abs(fit.sun_transmittance / truth[kind]["sun_transmittance"] - 1.0) < 0.25
+def test_the_hidden_sun_transmittance_is_recovered(overcast_fits, kind) -> None:
+    fits, truth = overcast_fits
+    recovered = fits[kind].rates_entry()["sun_transmittance"]
+    assert recovered is not None and abs(recovered / truth[kind]["sun_transmittance"] - 1.0) < 0.25

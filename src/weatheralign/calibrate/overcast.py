@@ -1,10 +1,13 @@
-"""ReDAM for the overcast light of snow and rain: the sky's zenith luminance, the cloud's sun transmittance and the
-overcast's diffuse gain of `weatheralign.camera.overcast` recovered from a reference's clear and weather images
-(``docs/physics.md`` section 4.3).
+"""ReDAM for the overcast light of snow and rain: the sky's zenith luminance, the metering camera's sky-over-surface
+ratio and the overcast's diffuse gain of `weatheralign.camera.overcast` recovered from a reference's clear and weather
+images (``docs/physics.md`` section 4.3). The cloud's sun transmittance ``T`` is **not identified** by these images
+(physics 4.3 gives the statistics tried and what they measured): the fit reports the diffuse gain as a curve over
+``T`` and the simulation takes ``T`` from its params.
 
-Per frame (`frame_light`): the images' light on the pixels the weather's other edits leave alone: surfaces within
+Per frame (`frame_light`): the light on the pixels the weather's other edits leave alone: surfaces within
 `SURFACE_RANGE_M` whose normal is within 60° of horizontal (facades, sides of cars and poles: no lying snow, no wet
-road, little veil) at least `MIN_HEIGHT_M` above the ego's ground plane; and the sky pixels.
+road, little veil) at least `MIN_HEIGHT_M` above the ground (the 10th percentile height of the level pixels within
+`GROUND_RANGE_M`); and the sky pixels.
 
 - ``L_z``: each weather frame's sky gives ``3 Y / (1 + 2 sin γ)`` (the CIE overcast sky inverted at each pixel's
   elevation), its median is the frame's estimate; the split's is the mean over frames. In falling snow the far sky is
@@ -13,14 +16,12 @@ road, little veil) at least `MIN_HEIGHT_M` above the ego's ground plane; and the
 - ``ζ`` (the sky's zenith over the metered surfaces' bright percentile, what a metering camera's sky keeps): each
   weather frame's ``L_z`` estimate over the 90th percentile luminance of its surfaces above the horizon
   (`weatheralign.camera.overcast.metering_mask`), averaged over frames.
-- ``T`` and ``Q``: the clear frames through the operator's light at (T, Q) (`simulated_light`: the lit share ``m``
-  of each clear pixel, its luminance times ``(Q + T s m) / (1 + s m)``) against the weather frames: the mean over
-  frames of the surfaces' median log-luminance (how bright; facades and sides, as above) and of the **road's sun
-  contrast**, the 95th minus the 5th percentile of the base layer of log-luminance over the level ground within
-  `ROAD_RANGE_M` (one material: its albedo cancels, what is left is the light, sunlit over shadowed:
-  ``log(1 + s)`` on a clear day, ``log(1 + T s / Q)`` under the cloud where the road has shadows). For each T of a
-  grid, Q matches the brightness; T then matches the road contrast (`fit_overcast`). Frame bootstrap of both sides
-  for the intervals.
+- ``Q(T)``: simulate and compare. The clear frames through the operator's light at (T, Q) (each facade pixel's
+  log-luminance raised by the log of its gain ``(Q + T s m) / (1 + s m)``, ``m`` its lit share) against the weather
+  frames: the mean over frames of the facades' median log-luminance. Per T of `SUN_GRID` the Q that matches
+  (`diffuse_gain_curve`: each frame's brightness tabulated on `GAIN_GRID`, the frames' mean interpolated).
+
+Intervals: percentile frame bootstrap of both sides (`fit_overcast`).
 """
 
 from __future__ import annotations
@@ -35,7 +36,6 @@ from weatheralign.camera.overcast import (
     BRIGHT_PERCENTILE,
     DIRECT_TO_DIFFUSE,
     LOG_FLOOR,
-    Overcast,
     light_layers,
     luminance,
     metered_log_luminance,
@@ -50,44 +50,41 @@ SURFACE_RANGE_M = 40.0
 """Surfaces farther than this [m] are left out (the precipitation's veil grows with distance)."""
 
 MIN_HEIGHT_M = 0.3
-"""Surfaces lower than this above the ego's ground plane [m] are left out (the wet or snowy ground)."""
+"""Surfaces lower than this above the ground [m] are left out (the wet or snowy ground)."""
 
 MAX_NORMAL_Z = 0.5
 """Surfaces whose normal's vertical component exceeds this are left out (snow lies on them)."""
 
-ROAD_RANGE_M = 30.0
-"""Road pixels farther than this [m] are left out (the veil, and too few pixels per metre to resolve a shadow)."""
+GROUND_RANGE_M = 30.0
+"""The ground's height is read from the level pixels within this range [m]."""
 
-MAX_ROAD_HEIGHT_M = 0.15
-"""Road pixels are level surfaces (normal within 25° of vertical) lower than this above the ego's ground [m]."""
-
-MIN_ROAD_NORMAL_Z = 0.9
-"""The road's normals' least vertical component."""
-
-ROAD_PERCENTILES = (5.0, 95.0)
-"""The shadowed and the sunlit road: percentiles of the road's base log-luminance (a road shaded over a twentieth of
-its pixels shows its shadows)."""
+MIN_GROUND_NORMAL_Z = 0.9
+"""Level pixels: normal within 25° of vertical."""
 
 MIN_PIXELS = 50
 """A frame with fewer sky (surface) pixels gives no sky (surface) statistic."""
 
-SUN_GRID: tuple[float, ...] = tuple(float(t) for t in np.linspace(0.0, 0.6, 61))
-"""The sun transmittances T the fit evaluates."""
+MAX_SURFACE_PIXELS = 4000
+"""A frame's surface pixels are thinned to at most this many (every k-th in raster order): the median of 4000
+samples is within about 2 % of the image's (its standard error ``1.25 σ / sqrt(n)`` at σ = 0.5 in log)."""
+
+SUN_GRID: tuple[float, ...] = tuple(round(0.05 * k, 2) for k in range(11))
+"""The sun transmittances T over which the diffuse gain Q(T) is reported (0 to 0.5)."""
+
+GAIN_GRID: F64 = np.exp(np.linspace(-2.0, 3.0, 201))
+"""The diffuse gains Q on which each clear frame's simulated brightness is tabulated (e^-2 to e^3, 2.5 % steps)."""
 
 
 @dataclass(frozen=True, eq=False)
 class FrameLight:
     """One frame's light: ``zenith`` (its sky's L_z estimate, nan without sky), ``metered_bright`` (the 90th percentile
-    log-luminance of its metered surfaces), over its facade pixels ``log_y`` (P,) the log-luminance and ``lit`` (P,)
-    the lit share, over its road pixels ``road_base`` (R,) the base layer and ``road_lit`` (R,) the lit share;
-    ``direct_to_diffuse`` the image's own."""
+    log-luminance of its metered surfaces), over its facade pixels (thinned to `MAX_SURFACE_PIXELS`) ``log_y`` (P,)
+    the log-luminance and ``lit`` (P,) the lit share; ``direct_to_diffuse`` the image's own."""
 
     zenith: float
     metered_bright: float
     log_y: F64
     lit: F64
-    road_base: F64
-    road_lit: F64
     direct_to_diffuse: float = DIRECT_TO_DIFFUSE
 
     @property
@@ -96,45 +93,23 @@ class FrameLight:
         return float(np.median(self.log_y)) if len(self.log_y) >= MIN_PIXELS else np.nan
 
     @property
-    def road_contrast(self) -> float:
-        """The road's sun contrast: `ROAD_PERCENTILES` spread of its base log-luminance (nan with too few)."""
-        if len(self.road_base) < MIN_PIXELS:
-            return np.nan
-        lo, hi = np.percentile(self.road_base, ROAD_PERCENTILES)
-        return float(hi - lo)
-
-    @property
     def zenith_over_surface(self) -> float:
         """``ζ``: the sky's zenith luminance over the metered surfaces' bright percentile (nan without sky)."""
         return float(self.zenith / np.exp(self.metered_bright))
 
 
 def surface_mask(range_map: NDArray, K: NDArray, T_ego_cam: NDArray) -> NDArray[np.bool_]:
-    """(H, W) the facade pixels the brightness reads (module docstring), from the ray lengths ``range_map`` (H, W)
-    [m] of the pinhole ``K`` (3, 3) mounted at ``T_ego_cam`` (4, 4; the ego frame's origin on the ground, z up)."""
-    return _masks(range_map, K, T_ego_cam)[0]
-
-
-def road_mask(range_map: NDArray, K: NDArray, T_ego_cam: NDArray) -> NDArray[np.bool_]:
-    """(H, W) the level ground within `ROAD_RANGE_M` (arguments as `surface_mask`)."""
-    return _masks(range_map, K, T_ego_cam)[1]
-
-
-def _masks(range_map: NDArray, K: NDArray, T_ego_cam: NDArray) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
-    """(facade, road) masks (H, W): heights above the ground, the 10th percentile height of the level pixels within
-    `ROAD_RANGE_M` (the ego frame's origin need not lie on the ground)."""
+    """(H, W) the facade pixels (module docstring) of the ray lengths ``range_map`` (H, W) [m] (inf = sky) of the
+    pinhole ``K`` (3, 3) mounted at ``T_ego_cam`` (4, 4; ego z up; its origin need not lie on the ground)."""
     rng = np.asarray(range_map, dtype=np.float64)
     surf = pixel_normals(rng, CameraGeometry(np.asarray(K, dtype=np.float64), np.asarray(T_ego_cam, dtype=np.float64)))
     z = surf.points_world[..., 2]
     nz = np.abs(surf.normals_world[..., 2])
     with np.errstate(invalid="ignore"):
         finite = np.isfinite(rng)
-        level = finite & (rng <= ROAD_RANGE_M) & (nz >= MIN_ROAD_NORMAL_Z)
+        level = finite & (rng <= GROUND_RANGE_M) & (nz >= MIN_GROUND_NORMAL_Z)
         ground = float(np.nanpercentile(z[level], 10.0)) if int(level.sum()) >= MIN_PIXELS else 0.0
-        height = z - ground
-        facade = finite & (rng <= SURFACE_RANGE_M) & (height >= MIN_HEIGHT_M) & (nz <= MAX_NORMAL_Z)
-        road = level & (np.abs(height) <= MAX_ROAD_HEIGHT_M)
-    return facade, road
+        return finite & (rng <= SURFACE_RANGE_M) & (z - ground >= MIN_HEIGHT_M) & (nz <= MAX_NORMAL_Z)
 
 
 def frame_light(image: NDArray, range_map: NDArray, K: NDArray, T_ego_cam: NDArray,
@@ -148,90 +123,87 @@ def frame_light(image: NDArray, range_map: NDArray, K: NDArray, T_ego_cam: NDArr
     if int(sky.sum()) >= MIN_PIXELS:
         zenith = float(np.median(3.0 * y[sky] / (1.0 + 2.0 * np.clip(layers.sin_elevation[sky], 0.0, 1.0))))
     bright = metered_log_luminance(layers.linear, metering_mask(layers.sky, layers.sin_elevation), BRIGHT_PERCENTILE)
-    facade, road = _masks(range_map, K, T_ego_cam)
-    log_y = np.log(np.maximum(y[facade], LOG_FLOOR)).astype(np.float64)
-    return FrameLight(zenith, bright, log_y, layers.lit[facade].astype(np.float64),
-                      layers.base[road].astype(np.float64), layers.lit[road].astype(np.float64),
-                      layers.direct_to_diffuse)
+    facade = np.flatnonzero(surface_mask(range_map, K, T_ego_cam))
+    facade = facade[:: max(1, -(-len(facade) // MAX_SURFACE_PIXELS))]
+    log_y = np.log(np.maximum(y.ravel()[facade], LOG_FLOOR)).astype(np.float64)
+    return FrameLight(zenith, bright, log_y, layers.lit.ravel()[facade].astype(np.float64), layers.direct_to_diffuse)
 
 
-def _log_gain(lit: F64, sun_transmittance: float, diffuse_gain: float, direct_to_diffuse: float) -> F64:
-    s = direct_to_diffuse
-    return np.log((diffuse_gain + sun_transmittance * s * lit) / (1.0 + s * lit))
+def log_gain(lit: NDArray, sun_transmittance: float, diffuse_gain: NDArray, direct_to_diffuse: float) -> F64:
+    """Log of the operator's luminance gain ``(Q + T s m) / (1 + s m)`` of lit shares ``lit`` (P,) at the diffuse
+    gains ``diffuse_gain`` (G,): (G, P)."""
+    s = float(direct_to_diffuse)
+    m = np.asarray(lit, dtype=np.float64)[None, :]
+    q = np.asarray(diffuse_gain, dtype=np.float64).reshape(-1, 1)
+    return np.log((q + sun_transmittance * s * m) / (1.0 + s * m))
 
 
-def simulated_light(frames: Sequence[FrameLight], sun_transmittance: float, diffuse_gain: float
-                    ) -> tuple[F64, F64]:
-    """(F,) brightness and (F,) road contrast of the clear ``frames`` under the operator's light at
-    (``sun_transmittance``, ``diffuse_gain``): each pixel's log-luminance and base layer raised by the log of its
-    luminance gain ``(Q + T s m) / (1 + s m)`` (the base layer moves with the smooth gain)."""
-    bright, contrast = np.full(len(frames), np.nan), np.full(len(frames), np.nan)
+def simulated_brightness(frames: Sequence[FrameLight], sun_transmittance: float) -> F64:
+    """(F, len(GAIN_GRID)) each clear frame's facade brightness (median log-luminance) under the operator's light at
+    ``sun_transmittance`` and every Q of `GAIN_GRID` (rows of nan for frames with too few facade pixels)."""
+    out = np.full((len(frames), len(GAIN_GRID)), np.nan)
     for f, fr in enumerate(frames):
-        s = fr.direct_to_diffuse
-        moved = FrameLight(fr.zenith, fr.metered_bright, fr.log_y + _log_gain(fr.lit, sun_transmittance,
-                                                                             diffuse_gain, s), fr.lit,
-                           fr.road_base + _log_gain(fr.road_lit, sun_transmittance, diffuse_gain, s), fr.road_lit, s)
-        bright[f], contrast[f] = moved.brightness, moved.road_contrast
-    return bright, contrast
+        if len(fr.log_y) >= MIN_PIXELS:
+            moved = fr.log_y[None, :] + log_gain(fr.lit, sun_transmittance, GAIN_GRID, fr.direct_to_diffuse)
+            out[f] = np.median(moved, axis=1)
+    return out
 
 
-def _diffuse_gain_for(frames: Sequence[FrameLight], sun_transmittance: float, target: float) -> float:
-    """The Q at which the clear frames' mean brightness under (``sun_transmittance``, Q) is ``target``
-    (bisection on log Q in [e^-4, e^4]: the brightness rises with Q)."""
-    lo, hi = -4.0, 4.0
-    for _ in range(40):
-        mid = 0.5 * (lo + hi)
-        if np.nanmean(simulated_light(frames, sun_transmittance, float(np.exp(mid)))[0]) < target:
-            lo = mid
-        else:
-            hi = mid
-    return float(np.exp(0.5 * (lo + hi)))
-
-
-def _fit_point(clear: Sequence[FrameLight], weather: Sequence[FrameLight]) -> tuple[float, float, float, float]:
-    """(L_z, T, Q, ζ) of one (re)sample of frames."""
-    zenith = float(np.nanmean([fr.zenith for fr in weather]))
-    zeta = float(np.nanmean([fr.zenith_over_surface for fr in weather]))
-    target_bright = float(np.nanmean([fr.brightness for fr in weather]))
-    target_contrast = float(np.nanmean([fr.road_contrast for fr in weather]))
-    gains = [_diffuse_gain_for(clear, t, target_bright) for t in SUN_GRID]
-    contrasts = np.array([np.nanmean(simulated_light(clear, t, q)[1]) for t, q in zip(SUN_GRID, gains)])
-    grid = np.asarray(SUN_GRID)
-    order = np.argsort(contrasts)
-    t = float(np.interp(target_contrast, contrasts[order], grid[order]))
-    return zenith, t, float(np.interp(t, grid, gains)), zeta
+def gain_for(table: F64, target: float) -> float:
+    """The Q at which the mean over frames of ``table`` (F, len(GAIN_GRID)) (`simulated_brightness`: rising with Q)
+    is ``target``, log-linearly interpolated (clamped to the grid's ends; nan without a frame)."""
+    curve = np.nanmean(table, axis=0) if np.isfinite(table).any() else np.full(len(GAIN_GRID), np.nan)
+    if not np.isfinite(curve).all() or not np.isfinite(target):
+        return np.nan
+    return float(np.exp(np.interp(target, curve, np.log(GAIN_GRID))))
 
 
 @dataclass(frozen=True)
 class OvercastFit:
-    """The recovered overcast of one weather split with frame-bootstrap intervals ``(low, high)``; the reference's
-    statistics."""
+    """The recovered overcast of one weather split with frame-bootstrap intervals ``(low, high)``: the zenith
+    luminance L_z, ζ, and the diffuse gain Q at each sun transmittance of ``sun_grid`` (T itself is not identified);
+    the reference's facade brightness and frame count."""
 
     zenith_luminance: float
-    sun_transmittance: float
-    diffuse_gain: float
     zenith_ci: tuple[float, float]
-    sun_ci: tuple[float, float]
-    gain_ci: tuple[float, float]
+    zenith_over_surface: float
+    zeta_ci: tuple[float, float]
+    sun_grid: tuple[float, ...]
+    diffuse_gains: tuple[float, ...]
+    gain_ci_low: tuple[float, ...]
+    gain_ci_high: tuple[float, ...]
     reference_brightness: float
-    reference_road_contrast: float
     frames: int
-    zenith_over_surface: float = np.nan
-    zeta_ci: tuple[float, float] = (np.nan, np.nan)
 
-    def overcast(self) -> Overcast:
-        """The operator's light (`weatheralign.camera.overcast.Overcast`) of this fit."""
-        return Overcast(float(np.clip(self.sun_transmittance, 0.0, 1.0)), self.zenith_luminance, self.diffuse_gain,
-                        self.zenith_over_surface)
+    def diffuse_gain(self, sun_transmittance: float) -> float:
+        """Q at ``sun_transmittance`` (interpolated on ``sun_grid``, clamped to its ends)."""
+        return float(np.interp(sun_transmittance, self.sun_grid, self.diffuse_gains))
 
-    def metrics(self) -> dict[str, float | int]:
+    def rates_entry(self) -> dict[str, object]:
+        """The split's entry of ``rates.json["overcast"]`` (read by `weatheralign.simulate.media`):
+        ``sun_transmittance`` null (not identified: the simulation's params give it, Q then read off the curve)."""
         return {"zenith_luminance": self.zenith_luminance, "zenith_ci_low": self.zenith_ci[0],
-                "zenith_ci_high": self.zenith_ci[1], "sun_transmittance": self.sun_transmittance,
-                "sun_ci_low": self.sun_ci[0], "sun_ci_high": self.sun_ci[1], "diffuse_gain": self.diffuse_gain,
-                "gain_ci_low": self.gain_ci[0], "gain_ci_high": self.gain_ci[1],
-                "zenith_over_surface": self.zenith_over_surface, "zeta_ci_low": self.zeta_ci[0],
-                "zeta_ci_high": self.zeta_ci[1], "reference_brightness": self.reference_brightness,
-                "reference_road_contrast": self.reference_road_contrast, "frames": self.frames}
+                "zenith_ci_high": self.zenith_ci[1], "zenith_over_surface": self.zenith_over_surface,
+                "zeta_ci_low": self.zeta_ci[0], "zeta_ci_high": self.zeta_ci[1], "sun_transmittance": None,
+                "sun_ci_low": None, "sun_ci_high": None, "sun_grid": list(self.sun_grid),
+                "diffuse_gain_by_sun": list(self.diffuse_gains), "gain_ci_low": list(self.gain_ci_low),
+                "gain_ci_high": list(self.gain_ci_high)}
+
+    def metrics(self) -> dict[str, object]:
+        return {**self.rates_entry(), "reference_brightness": self.reference_brightness, "frames": self.frames}
+
+
+def _point(tables: Sequence[F64], weather: Sequence[FrameLight], clear_idx: NDArray, weather_idx: NDArray) -> F64:
+    """(2 + len(SUN_GRID),) L_z, ζ and Q at every T of `SUN_GRID` of one (re)sample of frames (``tables`` the clear
+    frames' `simulated_brightness` per T)."""
+    w = [weather[i] for i in weather_idx]
+    with np.errstate(invalid="ignore"):
+        zenith = float(np.nanmean([fr.zenith for fr in w])) if any(np.isfinite(fr.zenith) for fr in w) else np.nan
+        zetas = [fr.zenith_over_surface for fr in w if np.isfinite(fr.zenith)]
+        target = [fr.brightness for fr in w if np.isfinite(fr.brightness)]
+    zeta = float(np.mean(zetas)) if zetas else np.nan
+    goal = float(np.mean(target)) if target else np.nan
+    return np.array([zenith, zeta, *(gain_for(t[clear_idx], goal) for t in tables)])
 
 
 def fit_overcast(clear: Sequence[FrameLight], weather: Sequence[FrameLight], *, num_bootstrap: int = 200,
@@ -246,25 +218,22 @@ def fit_overcast(clear: Sequence[FrameLight], weather: Sequence[FrameLight], *, 
         raise ValueError(f"fit_overcast: {len(clear)} clear and {len(weather)} weather frames; need both")
     if all(np.isnan(fr.zenith) for fr in weather):
         raise ValueError("fit_overcast: no weather frame shows unsaturated sky; the zenith luminance is unknown")
-    estimate = _fit_point(clear, weather)
+    tables = [simulated_brightness(clear, t) for t in SUN_GRID]
+    nc, nw = len(clear), len(weather)
+    estimate = _point(tables, weather, np.arange(nc), np.arange(nw))
     rng = np.random.default_rng(seed)
-    boot = []
-    for _ in range(num_bootstrap):
-        c = [clear[i] for i in rng.integers(0, len(clear), len(clear))]
-        w = [weather[i] for i in rng.integers(0, len(weather), len(weather))]
-        if not all(np.isnan(fr.zenith) for fr in w):
-            boot.append(_fit_point(c, w))
+    boot = np.array([_point(tables, weather, rng.integers(0, nc, nc), rng.integers(0, nw, nw))
+                     for _ in range(num_bootstrap)]) if num_bootstrap > 0 else estimate[None, :]
     tail = (1.0 - confidence) / 2.0
-    b = np.asarray(boot) if boot else np.asarray([estimate])
+    with np.errstate(invalid="ignore"):
+        low, high = np.nanquantile(boot, tail, axis=0), np.nanquantile(boot, 1.0 - tail, axis=0)
+    brightness = [fr.brightness for fr in weather if np.isfinite(fr.brightness)]
+    return OvercastFit(float(estimate[0]), (float(low[0]), float(high[0])), float(estimate[1]),
+                       (float(low[1]), float(high[1])), SUN_GRID, tuple(float(q) for q in estimate[2:]),
+                       tuple(float(q) for q in low[2:]), tuple(float(q) for q in high[2:]),
+                       float(np.mean(brightness)) if brightness else np.nan, nw)
 
-    def ci(k: int) -> tuple[float, float]:
-        return float(np.nanquantile(b[:, k], tail)), float(np.nanquantile(b[:, k], 1.0 - tail))
 
-    return OvercastFit(estimate[0], estimate[1], estimate[2], ci(0), ci(1), ci(2),
-                       float(np.nanmean([fr.brightness for fr in weather])),
-                       float(np.nanmean([fr.road_contrast for fr in weather])), len(weather), estimate[3], ci(3))
-
-
-__all__ = ["MAX_NORMAL_Z", "MAX_ROAD_HEIGHT_M", "MIN_HEIGHT_M", "MIN_PIXELS", "MIN_ROAD_NORMAL_Z", "ROAD_PERCENTILES",
-           "ROAD_RANGE_M", "SUN_GRID", "SURFACE_RANGE_M", "FrameLight", "OvercastFit", "fit_overcast", "frame_light",
-           "road_mask", "simulated_light", "surface_mask"]
+__all__ = ["GAIN_GRID", "GROUND_RANGE_M", "MAX_NORMAL_Z", "MAX_SURFACE_PIXELS", "MIN_GROUND_NORMAL_Z", "MIN_HEIGHT_M",
+           "MIN_PIXELS", "SUN_GRID", "SURFACE_RANGE_M", "FrameLight", "OvercastFit", "fit_overcast", "frame_light",
+           "gain_for", "log_gain", "simulated_brightness", "surface_mask"]

@@ -103,8 +103,35 @@ class PrecipitationRates:
     rate_mm_h: dict[str, float]
     source: dict[str, str]
     ground_depth_m: dict[str, float] = field(default_factory=dict)
-    overcast: dict[str, Overcast] = field(default_factory=dict)
+    overcast: dict[str, CalibratedLight] = field(default_factory=dict)
     """Per split (``snow`` / ``rain``) the calibrated overcast light; a split absent keeps ``simulate.overcast_*``."""
+
+
+@dataclass(frozen=True)
+class CalibratedLight:
+    """One split's calibrated overcast (``rates.json["overcast"][split]``, `weatheralign.calibrate.overcast`): the
+    zenith luminance L_z, ζ, and the diffuse gain Q at each sun transmittance of ``sun_grid``; ``sun_transmittance``
+    where the reference identified it, else None (the simulation's ``simulate.overcast_sun_transmittance`` is used
+    and Q read off the curve)."""
+
+    zenith_luminance: float
+    zenith_over_surface: float
+    sun_grid: tuple[float, ...]
+    diffuse_gains: tuple[float, ...]
+    sun_transmittance: float | None = None
+
+    @classmethod
+    def of(cls, light: Overcast) -> CalibratedLight:
+        """A fully known light (``T`` given, Q the same at every T)."""
+        return cls(light.zenith_luminance, light.zenith_over_surface, (light.sun_transmittance,),
+                   (light.diffuse_gain,), light.sun_transmittance)
+
+    def light(self, configured_sun: float) -> Overcast:
+        """The operator's light: this split's T (``configured_sun`` where not identified), Q at that T (interpolated
+        on ``sun_grid``, clamped to its ends)."""
+        t = configured_sun if self.sun_transmittance is None else self.sun_transmittance
+        return Overcast(t, self.zenith_luminance, float(np.interp(t, self.sun_grid, self.diffuse_gains)),
+                        self.zenith_over_surface)
 
 
 def params_precipitation_rates(particles: ParticlesConfig) -> PrecipitationRates:
@@ -144,14 +171,33 @@ def calibrated_precipitation_rates(path: Path, particles: ParticlesConfig) -> Pr
             out.ground_depth_m[kind] = _positive(path, f"ground.{kind}.depth_m", depth)
     for kind, entry in (tuned.get("overcast") or {} if isinstance(tuned, dict) else {}).items():
         if kind in ("snow", "rain"):
-            entry = entry if isinstance(entry, dict) else {}
-            try:
-                keys = ("sun_transmittance", "zenith_luminance", "diffuse_gain", "zenith_over_surface")
-                out.overcast[kind] = Overcast(*(_positive(path, f"overcast.{kind}.{key}", entry.get(key))
-                                                for key in keys if key in entry or key != keys[-1]))
-            except ValueError as exc:
-                raise DataFormatError(f"{path}: overcast.{kind}: {exc}") from None
+            out.overcast[kind] = _calibrated_light(path, kind, entry if isinstance(entry, dict) else {})
     return out
+
+
+def _calibrated_light(path: Path, kind: str, entry: dict) -> CalibratedLight:
+    """`CalibratedLight` of ``rates.json["overcast"][kind]`` (``sun_transmittance`` null: not identified).
+
+    Raises:
+        DataFormatError: a value missing or not positive, or a Q curve that does not match its T grid.
+    """
+    where = f"overcast.{kind}"
+    grid = entry.get("sun_grid")
+    gains = entry.get("diffuse_gain_by_sun")
+    if not isinstance(grid, list) or not isinstance(gains, list) or len(grid) != len(gains) or not grid:
+        raise DataFormatError(f"{path}: {where}: sun_grid and diffuse_gain_by_sun must be lists of one length, got "
+                              f"{grid!r} and {gains!r}")
+    sun = entry.get("sun_transmittance")
+    try:
+        light = CalibratedLight(_positive(path, f"{where}.zenith_luminance", entry.get("zenith_luminance")),
+                                _positive(path, f"{where}.zenith_over_surface", entry.get("zenith_over_surface")),
+                                tuple(float(t) for t in grid),
+                                tuple(_positive(path, f"{where}.diffuse_gain_by_sun", q) for q in gains),
+                                None if sun is None else _positive(path, f"{where}.sun_transmittance", sun))
+        light.light(0.0)
+    except (TypeError, ValueError) as exc:
+        raise DataFormatError(f"{path}: {where}: {exc}") from None
+    return light
 
 
 def configured_precipitation_rates(cfg: SimulateConfig, particles: ParticlesConfig, data: Path
@@ -395,12 +441,13 @@ def resolve_media(condition: Condition, cfg: SimulateConfig, scenes: list[str], 
 def resolve_overcast(condition: Condition, cfg: SimulateConfig, rates: PrecipitationRates | None = None
                      ) -> dict[str, float] | None:
     """The light of ``condition`` (`Overcast.to_dict`; None without a `SkyPart` or with ``simulate.overcast``
-    off): the calibrated light of its split where ``rates`` has one, else ``simulate.overcast_*``."""
+    off): the calibrated light of its split where ``rates`` has one (``simulate.overcast_sun_transmittance`` where
+    its T was not identified), else ``simulate.overcast_*``."""
     if condition.sky is None or not cfg.overcast:
         return None
     calibrated = (rates.overcast if rates is not None else {}).get(condition.sky.split)
     if calibrated is not None:
-        return calibrated.to_dict()
+        return calibrated.light(cfg.overcast_sun_transmittance).to_dict()
     return Overcast(cfg.overcast_sun_transmittance, cfg.overcast_zenith_luminance, cfg.overcast_diffuse_gain,
                     cfg.overcast_zenith_over_surface).to_dict()
 
