@@ -224,3 +224,85 @@ def test_the_hidden_sun_transmittance_is_recovered(overcast_fits, kind) -> None:
     fits, truth = overcast_fits
     recovered = fits[kind].rates_entry()["sun_transmittance"]
     assert recovered is not None and abs(recovered / truth[kind]["sun_transmittance"] - 1.0) < 0.25
+
+
+def _level_camera(w: int, horizon_row: float) -> tuple[np.ndarray, np.ndarray]:
+    K = np.array([[80.0, 0.0, w / 2], [0.0, 80.0, horizon_row], [0.0, 0.0, 1.0]])
+    T = np.eye(4)
+    T[:3, :3] = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # camera x, -z, y: global z up
+    return K, T
+
+
+def test_a_real_streets_shadow_lit_by_warm_surroundings_comes_out_neutral() -> None:
+    from weatheralign.camera.overcast import (
+        SUN_COLOUR,
+        Exposure,
+        bounce_share,
+        light_layers,
+        overcast_linear,
+        unit_colour,
+    )
+
+    # a blue sky, a sunlit red-brick wall, a neutral grey road half in the sun; the shadow is lit by the sky and by
+    # what the sunlit wall and road reflect (bounce_share of its light), as on a real street
+    h, w, s = 48, 96, DIRECT_TO_DIFFUSE
+    rng = np.random.default_rng(1)
+    sky_c, sun_c = unit_colour((0.3, 0.45, 0.6)), unit_colour(SUN_COLOUR)
+    lit_light = sky_c + s * sun_c
+    wall = np.array([0.35, 0.18, 0.12]) * lit_light
+    road = 0.3 * lit_light
+    reflected = unit_colour(0.25 * wall + 0.5 * road + 0.25 * 0.3 * sky_c)  # the sunlit surroundings' mean colour
+    k = bounce_share(s)
+    shade_light = (1.0 - k) * sky_c + k * reflected
+    texture = (1.0 + 0.08 * rng.standard_normal((h, w)))[..., None]
+    lin = np.empty((h, w, 3))
+    lin[:12] = 0.45 * np.array([0.3, 0.45, 0.6]) / 0.45
+    lin[12:24] = wall * 0.2 * texture[12:24]
+    lin[24:] = np.where((np.arange(w) < w // 2)[None, :, None], road, 0.3 * shade_light) * 0.2 * texture[24:]
+    image = encode_srgb_u8(lin.astype(np.float32))
+    ranges = np.full((h, w), 20.0, np.float32)
+    ranges[:12] = np.inf
+    K, T = _level_camera(w, 12.0)
+    light = Overcast(0.1, 1.5, 3.0)
+    shade = (slice(30, None), slice(60, 90))
+    for real, cast in ((False, 0.15), (True, 0.06)):
+        layers = light_layers(image, ranges, K, T, real=real)
+        out, _ = overcast_linear(layers, light, Exposure.AUTO)
+        px = out[shade].reshape(-1, 3).mean(axis=0)
+        r_g, b_g = px[0] / px[1], px[2] / px[1]
+        if real:  # the road's grey albedo under the grey cloud: neutral
+            assert abs(r_g - 1.0) < cast and abs(b_g - 1.0) < cast, (r_g, b_g)
+        else:  # divided by the blue sky alone: the shadow turns warm (the flaw seen on KITTI)
+            assert r_g - 1.0 > cast, (r_g, b_g)
+
+
+def test_blue_sky_between_leaves_becomes_the_overcast_sky() -> None:
+    from weatheralign.camera.overcast import Exposure, light_layers, overcast_linear
+
+    # a blue sky above row 10, a tree crown (dark textured green) down to the horizon at row 30 with a gap of blue
+    # sky in it that the LiDAR's range map calls surface (it hits the branches around it), a road below
+    h, w = 48, 96
+    rng = np.random.default_rng(2)
+    blue = np.array([0.3, 0.5, 0.75])
+    lin = np.empty((h, w, 3))
+    lin[:10] = blue
+    lin[10:30] = np.array([0.04, 0.09, 0.03]) * (1.0 + 0.3 * rng.standard_normal((20, w, 1))).clip(0.2)
+    lin[16:22, 40:46] = blue  # the gap
+    lin[30:] = 0.15 * (1.0 + 0.05 * rng.standard_normal((18, w, 1)))
+    image = encode_srgb_u8(lin.astype(np.float32))
+    ranges = np.full((h, w), 15.0, np.float32)
+    ranges[:10] = np.inf
+    K, T = _level_camera(w, 30.0)
+    light = Overcast(0.1, 1.5, 3.0)
+    sky_out = {}
+    for real in (False, True):
+        layers = light_layers(image, ranges, K, T, real=real)
+        out, zenith = overcast_linear(layers, light, Exposure.AUTO)
+        gap = out[17:21, 41:45].reshape(-1, 3)
+        sky_out[real] = gap[:, 2].mean() / gap[:, 0].mean()
+        if real:
+            expected = overcast_sky_luminance(layers.sin_elevation[17:21, 41:45], zenith).ravel()
+            np.testing.assert_allclose(gap[:, 1], expected, rtol=1e-4)  # the overcast sky at its elevation
+            assert layers.sky[10:30].sum() <= 8 * 8  # the gap and its rim, not the leaves
+            assert not layers.sky[30:].any()  # nothing below the horizon
+    assert sky_out[False] > 1.2 and sky_out[True] == pytest.approx(1.0, abs=1e-4)  # relit as a surface: blue

@@ -96,6 +96,25 @@ ZENITH_OVER_SURFACE = 4.5
 surfaces are mostly vertical (irradiance 0.308 of ``π L_z`` from the sky, 0.03 from the ground,
 `irradiance_factor`); their bright tenth are light walls and car paint of albedo about 0.6: ``0.22 L_z``."""
 
+SKY_VIEW_FACTOR = 0.6
+"""``V``: the share of a street surface's view that is sky (a suburban street: the rest is facades, cars, trees and
+the ground); the rest sends it the light its surroundings reflect."""
+
+SURROUND_ALBEDO = 0.25
+"""``ρ``: the mean albedo of a street's surroundings (asphalt 0.1, foliage 0.2, light facades 0.6)."""
+
+SUN_WHITE_PERCENTILE = 95.0
+"""The lit, unclipped surfaces above this luminance percentile are the image's whites in the sun (white walls and
+paint): their colour is the sun's plus the ambient's as the camera records them (`image_sun_colour`)."""
+
+SKY_MATCH_LOG = 0.25
+"""Colour evidence of the sky seen through gaps (`sky_from_colour`): a pixel within this of the open sky's log blue
+over red and log green over red."""
+
+SKY_MATCH_BRIGHTNESS = 0.5
+"""... and at least this share of the open sky's luminance at its elevation: a surface in a shadow sees at most half
+the sky (a vertical one) and reflects part of it, so it is darker than ``ρ V`` of the sky it sees."""
+
 BRIGHT_PERCENTILE = 90.0
 """The metered surfaces' percentile the sky's zenith is tied to: light walls and paint, whose albedo varies less
 between scenes than the median's (a street of trees is darker than one of houses)."""
@@ -248,34 +267,41 @@ def lit_share(base: NDArray, valid: NDArray, window: int, direct_to_diffuse: flo
     return np.where(ok, np.clip(m, 0.0, 1.0), 0.0).astype(np.float32)
 
 
-def relight_gain(m: NDArray, overcast: Overcast, sky_colour: NDArray,
-                 direct_to_diffuse: float = DIRECT_TO_DIFFUSE) -> F32:
-    """(H, W, 3) per-channel gain ``E'_c / E_c = (Q + T s m c_sun) / (c_sky + s m c_sun)`` of lit share ``m``
-    (H, W) (module docstring; ``sky_colour`` (3,) the clear sky's light colour at unit luminance)."""
+def relight_gain(m: NDArray, overcast: Overcast, ambient_colour: NDArray,
+                 direct_to_diffuse: float = DIRECT_TO_DIFFUSE, sun_colour: NDArray | None = None) -> F32:
+    """(H, W, 3) per-channel gain ``E'_c / E_c = (Q + T s m c_sun) / (c_amb + s m c'_sun)`` of lit share ``m``
+    (H, W) (module docstring; ``ambient_colour`` (3,) the clear shadows' light colour at unit luminance: the sky's,
+    plus the surroundings' reflection on a real street, `ambient_colour`; ``sun_colour`` (3,) the clear sun's as
+    the camera recorded it, `image_sun_colour`, the world's `SUN_COLOUR` by default; the overcast's remaining sun
+    is the world's sun)."""
     s = float(direct_to_diffuse)
     sun = unit_colour(SUN_COLOUR).astype(np.float32)
-    sky = np.asarray(sky_colour, dtype=np.float32)
-    sm = (s * np.asarray(m, dtype=np.float32))[..., None] * sun
-    return ((np.float32(overcast.diffuse_gain) + np.float32(overcast.sun_transmittance) * sm) / (sky + sm)
-            ).astype(np.float32)
+    clear_sun = sun if sun_colour is None else np.asarray(sun_colour, dtype=np.float32)
+    amb = np.asarray(ambient_colour, dtype=np.float32)
+    sm = (s * np.asarray(m, dtype=np.float32))[..., None]
+    return ((np.float32(overcast.diffuse_gain) + np.float32(overcast.sun_transmittance) * sm * sun)
+            / (amb + sm * clear_sun)).astype(np.float32)
 
 
 def relight(linear: NDArray, sky: NDArray, sin_elevation: NDArray, m: NDArray, overcast: Overcast,
-            sky_colour: NDArray, direct_to_diffuse: float = DIRECT_TO_DIFFUSE) -> F32:
+            ambient_colour: NDArray, direct_to_diffuse: float = DIRECT_TO_DIFFUSE,
+            sun_colour: NDArray | None = None) -> F32:
     """(H, W, 3) float32 linear image under ``overcast`` at the clear image's exposure: the ``sky`` (H, W) pixels the
     CIE overcast sky at their ``sin_elevation`` (H, W), the others ``linear`` (H, W, 3) times `relight_gain` of their
-    lit share ``m`` (H, W) and the image's ``direct_to_diffuse``."""
+    lit share ``m`` (H, W), the clear ``ambient_colour`` and ``sun_colour`` and the image's ``direct_to_diffuse``."""
     lin = np.asarray(linear, dtype=np.float32)
-    out = lin * relight_gain(m, overcast, sky_colour, direct_to_diffuse)
+    out = lin * relight_gain(m, overcast, ambient_colour, direct_to_diffuse, sun_colour)
     grey = overcast_sky_luminance(sin_elevation, overcast.zenith_luminance).astype(np.float32)
     return np.where(np.asarray(sky, dtype=bool)[..., None], grey[..., None], out).astype(np.float32)
 
 
 def relight_naive(linear: NDArray, sky: NDArray, sin_elevation: NDArray, m: NDArray, overcast: Overcast,
-                  sky_colour: NDArray, direct_to_diffuse: float = DIRECT_TO_DIFFUSE) -> F64:
+                  ambient_colour: NDArray, direct_to_diffuse: float = DIRECT_TO_DIFFUSE,
+                  sun_colour: NDArray | None = None) -> F64:
     """`relight` pixel by pixel in float64: the oracle of the vectorised form."""
     s, t, q = float(direct_to_diffuse), overcast.sun_transmittance, overcast.diffuse_gain
     sun = unit_colour(SUN_COLOUR)
+    clear_sun = sun if sun_colour is None else np.asarray(sun_colour, dtype=np.float64)
     h, w = np.asarray(sky).shape
     out = np.empty((h, w, 3))
     for v in range(h):
@@ -285,8 +311,9 @@ def relight_naive(linear: NDArray, sky: NDArray, sin_elevation: NDArray, m: NDAr
                                                          ) / 3.0
                 continue
             for c in range(3):
-                direct = s * float(m[v, u]) * sun[c]
-                out[v, u, c] = float(linear[v, u, c]) * (q + t * direct) / (float(sky_colour[c]) + direct)
+                sm = s * float(m[v, u])
+                out[v, u, c] = float(linear[v, u, c]) * (q + t * sm * sun[c]) / (float(ambient_colour[c])
+                                                                                  + sm * float(clear_sun[c]))
     return out
 
 
@@ -305,6 +332,80 @@ def image_direct_to_diffuse(sky_colour: NDArray, sky_pixels: int,
     if sky_pixels < MIN_SKY_PIXELS:
         return float(direct_to_diffuse)
     return float(direct_to_diffuse) * (1.0 - cloud_share(sky_colour))
+
+
+def bounce_share(direct_to_diffuse: float, sky_view: float = SKY_VIEW_FACTOR,
+                 surround_albedo: float = SURROUND_ALBEDO) -> float:
+    """The share of a shadow's light that its sunlit surroundings reflect: a street surface sees the sky over
+    ``sky_view`` (``V``) of its view and, over the rest, surroundings of albedo ``surround_albedo`` (``ρ``) lit by the
+    sky and the sun, ``1 + s`` times the sky's light (``s`` = ``direct_to_diffuse``): ``(1 - V) ρ (1 + s) / (V +
+    (1 - V) ρ (1 + s))``, 0.45 under a cloudless sky (``s = 4``), 0.22 at ``s = 1``, 0.14 without sun."""
+    reflected = (1.0 - float(sky_view)) * float(surround_albedo) * (1.0 + float(direct_to_diffuse))
+    return reflected / (float(sky_view) + reflected)
+
+
+def ambient_colour(linear: NDArray, surfaces: NDArray, sky_colour: NDArray, share: float) -> F64:
+    """(3,) the clear shadows' light colour at unit luminance: ``1 - share`` of the sky's ``sky_colour`` (3,) and
+    ``share`` (`bounce_share`) of the light the surroundings reflect, whose colour is the mean colour of the
+    ``surfaces`` (H, W) of ``linear`` (H, W, 3) (radiance-weighted: the sunlit ones dominate)."""
+    sky = unit_colour(sky_colour)
+    px = np.asarray(linear, dtype=np.float64)[np.asarray(surfaces, dtype=bool)]
+    if share <= 0.0 or len(px) < MIN_SKY_PIXELS:
+        return sky
+    return unit_colour((1.0 - share) * sky + share * unit_colour(px.mean(axis=0)))
+
+
+def image_sun_colour(linear: NDArray, surfaces: NDArray, lit: NDArray, ambient: NDArray,
+                     direct_to_diffuse: float, spread: float = 0.3) -> F64:
+    """(3,) the clear sun's colour at unit luminance as the camera recorded it (its white balance): the lit
+    (``lit`` > 0.5), unclipped ``surfaces`` (H, W) of ``linear`` (H, W, 3) above the `SUN_WHITE_PERCENTILE`
+    luminance are whites in the sun, lit by ``ambient + s c_sun`` (``ambient`` (3,) at unit luminance, ``s`` =
+    ``direct_to_diffuse``), so ``c_sun = ((1 + s) white - ambient) / s``, kept within ``spread`` of the world's
+    `SUN_COLOUR` per channel (a camera's white balance moves it by tens of per cent at most); the world's with
+    little sun (``s`` < 0.5) or too few such pixels."""
+    world = unit_colour(SUN_COLOUR)
+    s = float(direct_to_diffuse)
+    lin = np.asarray(linear, dtype=np.float64)
+    ok = np.asarray(surfaces, dtype=bool) & (lin.max(axis=2) < 0.98) & (np.asarray(lit) > 0.5)
+    if s < 0.5 or int(ok.sum()) < MIN_SKY_PIXELS:
+        return world
+    y = luminance(lin)
+    white = lin[ok & (y >= np.percentile(y[ok], SUN_WHITE_PERCENTILE))]
+    if len(white) < MIN_SKY_PIXELS // 5:
+        return world
+    sun = ((1.0 + s) * unit_colour(white.mean(axis=0)) - np.asarray(ambient, dtype=np.float64)) / s
+    return unit_colour(np.clip(sun, (1.0 - spread) * world, (1.0 + spread) * world))
+
+
+def sky_from_colour(linear: NDArray, sky: NDArray, sin_elevation: NDArray) -> NDArray[np.bool_]:
+    """(H, W) ``sky`` (H, W) and the blue sky seen through gaps that the range map misses (between leaves, where the
+    LiDAR hits the branches around it): pixels above the horizon (``sin_elevation`` (H, W) > 0) at least as blue as
+    the open sky as the camera recorded it (clipped channels and all: a bright blue sky clips green and blue), within
+    `SKY_MATCH_LOG`, in log blue over red and log blue over green (a leaf is greener than blue; the sky is bluer
+    higher up, where the gaps in a crown are), and at least `SKY_MATCH_BRIGHTNESS` of its luminance (the median of
+    the open sky at the same elevation, in bins of 0.05 in ``sin γ``); then the pixels next to them (3 x 3) as blue
+    as a cloudless sky (blue over red above `CLEAR_SKY_BLUE_RED`: a leaf's edge mixed with the sky). Only a
+    cloudless sky (`cloud_share` 0) is told from the surfaces by its colour; ``sky`` unchanged otherwise."""
+    lin = np.asarray(linear, dtype=np.float64)
+    sky = np.asarray(sky, dtype=bool)
+    if int(sky.sum()) < MIN_SKY_PIXELS or cloud_share(np.median(lin[sky], axis=0)) > 0.0:
+        return sky
+    eps = 1e-4
+    log_br = np.log((lin[..., 2] + eps) / (lin[..., 0] + eps))
+    log_bg = np.log((lin[..., 2] + eps) / (lin[..., 1] + eps))
+    y = luminance(lin)
+    sin_el = np.asarray(sin_elevation, dtype=np.float64)
+    bins = np.clip((sin_el / 0.05).astype(np.int64), 0, 20)
+    filled = np.bincount(bins[sky], minlength=21) > 0
+    have = np.nonzero(filled)[0]
+    ref = np.interp(np.arange(21), have, [float(np.median(y[sky & (bins == b)])) for b in have])
+    above = ~sky & (sin_el > 0.0)
+    gap = above & (log_br >= np.median(log_br[sky]) - SKY_MATCH_LOG)
+    gap &= log_bg >= np.median(log_bg[sky]) - SKY_MATCH_LOG
+    gap &= y >= SKY_MATCH_BRIGHTNESS * ref[bins]
+    near = cv2.dilate((gap | sky).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+    fringe = near & above & (log_br > np.log(CLEAR_SKY_BLUE_RED))
+    return sky | gap | fringe
 
 
 def metering_mask(sky: NDArray, sin_elevation: NDArray) -> NDArray[np.bool_]:
@@ -344,7 +445,8 @@ class LightLayers:
     """What `light_layers` finds in a clear image: ``linear`` (H, W, 3) float32, ``sky`` (H, W) bool,
     ``sin_elevation`` (H, W), ``base`` (H, W) log-luminance base layer, ``lit`` (H, W) lit share, ``sky_colour`` (3,)
     the clear sky's light colour at unit luminance, ``direct_to_diffuse`` the image's own
-    (`image_direct_to_diffuse`)."""
+    (`image_direct_to_diffuse`), ``ambient_colour`` (3,) the clear shadows' light (`ambient_colour`; the sky's when
+    None) and ``sun_colour`` (3,) the clear sun's as recorded (`image_sun_colour`; the world's when None)."""
 
     linear: F32
     sky: NDArray[np.bool_]
@@ -353,53 +455,77 @@ class LightLayers:
     lit: F32
     sky_colour: F64
     direct_to_diffuse: float = DIRECT_TO_DIFFUSE
+    ambient_colour: F64 | None = None
+    sun_colour: F64 | None = None
+
+    @property
+    def ambient(self) -> F64:
+        """(3,) the clear shadows' light colour at unit luminance."""
+        return self.sky_colour if self.ambient_colour is None else self.ambient_colour
 
 
-def light_layers(image: U8, range_map: NDArray, K: NDArray, T_global_cam: NDArray) -> LightLayers:
+def light_layers(image: U8, range_map: NDArray, K: NDArray, T_global_cam: NDArray,
+                 real: bool = False) -> LightLayers:
     """The layers of a clear ``image`` (H, W, 3) uint8 sRGB with ray lengths ``range_map`` (H, W) [m] (inf = sky)
-    seen by the pinhole ``K`` (3, 3) posed at ``T_global_cam`` (4, 4; global z up)."""
+    seen by the pinhole ``K`` (3, 3) posed at ``T_global_cam`` (4, 4; global z up).
+
+    ``real``: a real street seen by a real camera. Its sky's gaps between leaves are found by colour
+    (`sky_from_colour`: a dense depth's sky misses them), its shadows are lit by the sky and by the light their
+    sunlit surroundings reflect (`ambient_colour`, `bounce_share`), and its camera's white balance gives the sun its
+    own colour (`image_sun_colour`). Otherwise the synthetic world's exact model: the range map's sky, the sky alone
+    in the shadows (the world renders no interreflection), the world's sun."""
     lin = decode_srgb_u8(np.asarray(image, dtype=np.uint8))
     h, w = lin.shape[:2]
     sky = ~np.isfinite(np.asarray(range_map))
     sin_el = pixel_sin_elevation(K, w, h, up_in_camera(T_global_cam))
+    colour = clear_sky_colour(lin, sky)
+    if real:
+        sky = sky_from_colour(lin, sky, sin_el)
     log_y = np.log(np.maximum(luminance(lin), LOG_FLOOR)).astype(np.float32)
     base = log_base(log_y, max(2, int(round(BASE_RADIUS_FRACTION * w))))
-    colour = clear_sky_colour(lin, sky)
     s = image_direct_to_diffuse(colour, int(sky.sum()))
     lit = lit_share(base, ~sky, max(3, int(round(ENVELOPE_FRACTION * w))), max(s, 1e-3))
-    return LightLayers(lin, sky, sin_el, base, lit, colour, s)
+    if not real:
+        return LightLayers(lin, sky, sin_el, base, lit, colour, s)
+    ambient = ambient_colour(lin, ~sky, colour, bounce_share(s))
+    sun = image_sun_colour(lin, ~sky, lit, ambient, s)
+    return LightLayers(lin, sky, sin_el, base, lit, colour, s, ambient, sun)
 
 
 def overcast_linear(layers: LightLayers, overcast: Overcast, exposure: Exposure = Exposure.FIXED
                     ) -> tuple[F32, float]:
     """(H, W, 3) float32 linear image of `light_layers` under ``overcast`` (`relight`; `auto_expose` with
     `Exposure.AUTO`) and its sky's zenith luminance in that image's units."""
-    relit = relight(layers.linear, layers.sky, layers.sin_elevation, layers.lit, overcast, layers.sky_colour,
-                    layers.direct_to_diffuse)
+    relit = relight(layers.linear, layers.sky, layers.sin_elevation, layers.lit, overcast, layers.ambient,
+                    layers.direct_to_diffuse, layers.sun_colour)
     if Exposure(exposure) is Exposure.FIXED:
         return relit, overcast.zenith_luminance
     return auto_expose(layers.linear, relit, layers.sky, layers.sin_elevation, overcast.zenith_over_surface)
 
 
 def overcast_edit(image: U8, range_map: NDArray, K: NDArray, T_global_cam: NDArray, overcast: Overcast,
-                  exposure: Exposure = Exposure.FIXED) -> tuple[U8, F64]:
+                  exposure: Exposure = Exposure.FIXED, real: bool | None = None) -> tuple[U8, F64]:
     """(H, W, 3) uint8 sRGB: the clear ``image`` (arguments as `light_layers`) under ``overcast`` exposed by
     ``exposure``; and (3,) its overcast horizon ``L_z / 3`` grey, linear in its units (the airlight under the
-    cloud)."""
-    lin, zenith = overcast_linear(light_layers(image, range_map, K, T_global_cam), overcast, exposure)
+    cloud). ``real`` (`light_layers`): a real street, by default where the camera meters (`Exposure.AUTO`: a real
+    camera; the synthetic world's has `Exposure.FIXED`)."""
+    real = Exposure(exposure) is Exposure.AUTO if real is None else bool(real)
+    lin, zenith = overcast_linear(light_layers(image, range_map, K, T_global_cam, real), overcast, exposure)
     return encode_srgb_u8(lin), np.full(3, zenith / 3.0)
 
 
 def overcast_image(image: U8, range_map: NDArray, K: NDArray, T_global_cam: NDArray, overcast: Overcast,
-                   exposure: Exposure = Exposure.FIXED) -> U8:
+                   exposure: Exposure = Exposure.FIXED, real: bool | None = None) -> U8:
     """(H, W, 3) uint8 sRGB: the clear ``image`` under ``overcast`` (`overcast_edit`)."""
-    return overcast_edit(image, range_map, K, T_global_cam, overcast, exposure)[0]
+    return overcast_edit(image, range_map, K, T_global_cam, overcast, exposure, real)[0]
 
 
 __all__ = ["BASE_EPS", "BASE_RADIUS_FRACTION", "BRIGHT_PERCENTILE", "CLEAR_SKY_BLUE_RED", "DIRECT_TO_DIFFUSE",
-           "ENVELOPE_FRACTION", "GROUND_ALBEDO", "HORIZONTAL_FACTOR", "REC709", "SKY_IRRADIANCE_TABLE", "SUN_COLOUR",
-           "ZENITH_OVER_SURFACE", "Exposure", "LightLayers", "Overcast", "auto_expose", "clear_sky_colour",
-           "cloud_share", "image_direct_to_diffuse", "irradiance_factor", "light_layers", "lit_share", "log_base",
-           "luminance", "metered_log_luminance", "metering_mask", "overcast_edit", "overcast_image",
-           "overcast_linear", "overcast_sky_luminance", "pixel_sin_elevation", "relight", "relight_gain",
-           "relight_naive", "unit_colour", "up_in_camera"]
+           "ENVELOPE_FRACTION", "GROUND_ALBEDO", "HORIZONTAL_FACTOR", "REC709", "SKY_IRRADIANCE_TABLE",
+           "SKY_MATCH_BRIGHTNESS", "SKY_MATCH_LOG", "SKY_VIEW_FACTOR", "SUN_COLOUR", "SUN_WHITE_PERCENTILE",
+           "SURROUND_ALBEDO", "ZENITH_OVER_SURFACE", "Exposure", "LightLayers", "Overcast", "ambient_colour",
+           "auto_expose", "bounce_share", "clear_sky_colour", "cloud_share", "image_direct_to_diffuse",
+           "image_sun_colour", "irradiance_factor", "light_layers", "lit_share", "log_base", "luminance",
+           "metered_log_luminance", "metering_mask", "overcast_edit", "overcast_image", "overcast_linear",
+           "overcast_sky_luminance", "pixel_sin_elevation", "relight", "relight_gain", "relight_naive",
+           "sky_from_colour", "unit_colour", "up_in_camera"]
