@@ -6,8 +6,9 @@ the embedded synthetic reference (its exact range map; the reference's fixed exp
 `weatheralign.camera.overcast` at the params' light (``simulate.overcast_*``); beside the synthetic frame the same
 scene rendered by the reference itself under its hidden snow light (`weatheralign.reference.overcast`, without the
 snowfall and lying snow), and last the real snowy STF frame. Figure: ``reports/benchmarks/overcast_real.png``
-(clear left, overcast right); numbers (the sky's blue over red and the share of saturated pixels, clear and overcast)
-in ``reports/benchmarks/overcast_real.json``.
+(clear left, overcast right); numbers (the sky's blue over red, the share of saturated pixels, the surfaces' median
+chromaticity and, on the real frames, the share of visibly blue pixels above the horizon, clear and overcast) in
+``reports/benchmarks/overcast_real.json``; the real snowy frame's road chromaticity beside them.
 """
 
 from __future__ import annotations
@@ -27,27 +28,42 @@ from weatheralign.atomic import write_json
 OUT = REPO / "reports" / "benchmarks"
 
 
-def light_stats(image: np.ndarray, sky: np.ndarray) -> dict[str, float | None]:
-    """Blue over red of the mean sky pixel (linear sRGB; None without sky) and the share of pixels with a channel at
-    255 of ``image`` (H, W, 3) uint8."""
+def light_stats(image: np.ndarray, sky: np.ndarray, above: np.ndarray | None = None) -> dict[str, float | None]:
+    """Blue over red of the mean sky pixel (linear sRGB; None without sky), the share of pixels with a channel at
+    255 of ``image`` (H, W, 3) uint8, the median per-pixel red over green and blue over green of its surfaces (not
+    ``sky``, luminance above 0.01), and with ``above`` (H, W; above the horizon) the share of those pixels that are
+    visibly blue (blue over red above 1.5, luminance above 0.05)."""
     from weatheralign.camera.fog import decode_srgb_u8
+    from weatheralign.camera.overcast import luminance
 
     lin = decode_srgb_u8(image)
     blue_red = float(lin[sky][:, 2].mean() / max(lin[sky][:, 0].mean(), 1e-6)) if sky.any() else None
-    return {"sky_blue_over_red": blue_red, "saturated_share": float((image.max(axis=2) >= 255).mean())}
+    y = luminance(lin)
+    px = lin[~sky & (y > 0.01)]
+    chroma = np.median(px / np.maximum(px[:, 1:2], 1e-4), axis=0)
+    row: dict[str, float | None] = {"sky_blue_over_red": blue_red,
+                                    "saturated_share": float((image.max(axis=2) >= 255).mean()),
+                                    "surface_red_over_green": float(chroma[0]),
+                                    "surface_blue_over_green": float(chroma[2])}
+    if above is not None:
+        blue = (lin[..., 2] > 1.5 * np.maximum(lin[..., 0], 1e-4)) & (y > 0.05)
+        row["blue_share_above_horizon"] = float(blue[above].mean())
+    return row
 
 
 def real_tiles(name: str, frame: Any, light: Any) -> tuple[list[np.ndarray], dict[str, Any]]:
     """(clear, overcast) tiles and the numbers of one real frame (a metering camera)."""
     from weatheralign.camera.depth import camera_range_map
-    from weatheralign.camera.overcast import Exposure, overcast_image
+    from weatheralign.camera.overcast import Exposure, overcast_image, pixel_sin_elevation, up_in_camera
 
     view = next(iter(frame.cameras.values()))
     image = view.load_image()
     rng = camera_range_map(view, frame.lidar, image)
     out = overcast_image(image, rng, view.K, view.T_global_cam, light, Exposure.AUTO)
     sky = ~np.isfinite(rng)
-    row = {"frame": name, "clear": light_stats(image, sky), "overcast": light_stats(out, sky)}
+    h, w = sky.shape
+    above = pixel_sin_elevation(view.K, w, h, up_in_camera(view.T_global_cam)) > 0.0
+    row = {"frame": name, "clear": light_stats(image, sky, above), "overcast": light_stats(out, sky, above)}
     return [label(image, f"{name}: clear"), label(out, f"{name}: overcast (operator, metering camera)")], row
 
 
@@ -112,8 +128,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     tiles += t
     rows.append(row)
     if (REAL / "stf" / STF_SNOW).is_file():
-        tiles.append(label(np.asarray(Image.open(REAL / "stf" / STF_SNOW).convert("RGB")),
-                           "REAL snow (another STF recording)"))
+        snow = np.asarray(Image.open(REAL / "stf" / STF_SNOW).convert("RGB"))
+        tiles.append(label(snow, "REAL snow (another STF recording)"))
+        h, w = snow.shape[:2]
+        road = np.ones(snow.shape[:2], bool)
+        road[int(0.72 * h):int(0.9 * h), int(0.22 * w):int(0.78 * w)] = False  # its road, as a "not sky" region
+        rows.append({"frame": "stf_snow_road", "real_snow": light_stats(snow, road)})
     args.out.mkdir(parents=True, exist_ok=True)
     Image.fromarray(grid(tiles, 2, 600)).save(args.out / "overcast_real.png", optimize=True)
     result = {"light": overcast_light(params).to_dict(), "frames": rows}
