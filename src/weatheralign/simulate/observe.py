@@ -261,7 +261,7 @@ def observe_camera(image: NDArray[np.uint8], range_map: NDArray[np.float32], vie
         image, horizon = overcast_edit(image, range_map, np.asarray(view.K, dtype=np.float64), view.T_global_cam,
                                        media.overcast, exposure)
         airlight = linear_to_srgb(np.minimum(horizon, 1.0))
-    if ground is not None:  # the wet or snowy ground under the clear air, lit by the scene's clear sky
+    if ground is not None:  # the wet or snowy ground under the clear air, lit by the sky (under the cloud: its horizon)
         image, ground_mask = edit_image_u8(image, range_map, CameraGeometry(
             np.asarray(view.K, dtype=np.float64), view.T_global_cam), view.range_path is not None, ground.surfaces,
             ground.T_world_scan, ground.state, srgb_to_linear(airlight))
