@@ -20,6 +20,7 @@ from weatheralign.camera.overcast import (
     pixel_sin_elevation,
     relight,
     relight_naive,
+    relit_u8,
 )
 
 
@@ -49,6 +50,19 @@ def _street(h: int = 48, w: int = 96) -> tuple[np.ndarray, np.ndarray, np.ndarra
     T = np.eye(4)
     T[:3, :3] = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]).T  # OpenCV camera, global z up
     return encode_srgb_u8(lin), ranges, K, T
+
+
+@pytest.mark.parametrize("real", [False, True])
+def test_the_compiled_relight_encodes_exactly_what_relight_gives(real) -> None:
+    """The fixed-exposure path's one-pass kernel against the numpy `relight` then `encode_srgb_u8`, code for code, on
+    the synthetic model and on a real street's (its shadows' and sun's own colours)."""
+    image, ranges, K, T = _street(40, 64)
+    layers = light_layers(image, ranges, K, T, real)
+    sky = Overcast(0.15, 1.8, 2.5)
+    slow = encode_srgb_u8(relight(layers.linear, layers.sky, layers.sin_elevation, layers.lit, sky, layers.ambient,
+                                  layers.direct_to_diffuse, layers.sun_colour))
+    fast = relit_u8(image, layers, sky)
+    assert np.array_equal(fast, slow) and not np.array_equal(fast, image)
 
 
 def test_relight_equals_its_per_pixel_oracle() -> None:

@@ -46,7 +46,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from weatheralign.camera.fog import decode_srgb_u8, encode_srgb_u8, guided_filter
+from weatheralign.camera.fog import SRGB_TABLES, decode_srgb_u8, encode_srgb_u8, guided_filter
+from weatheralign.camera.kernels import relit_encode_kernel
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -510,8 +511,26 @@ def overcast_edit(image: U8, range_map: NDArray, K: NDArray, T_global_cam: NDArr
     cloud). ``real`` (`light_layers`): a real street, by default where the camera meters (`Exposure.AUTO`: a real
     camera; the synthetic world's has `Exposure.FIXED`)."""
     real = Exposure(exposure) is Exposure.AUTO if real is None else bool(real)
-    lin, zenith = overcast_linear(light_layers(image, range_map, K, T_global_cam, real), overcast, exposure)
+    layers = light_layers(image, range_map, K, T_global_cam, real)
+    if Exposure(exposure) is Exposure.FIXED:
+        return relit_u8(image, layers, overcast), np.full(3, overcast.zenith_luminance / 3.0)
+    lin, zenith = overcast_linear(layers, overcast, exposure)
     return encode_srgb_u8(lin), np.full(3, zenith / 3.0)
+
+
+def relit_u8(image: U8, layers: LightLayers, overcast: Overcast) -> U8:
+    """(H, W, 3) uint8 sRGB: ``encode_srgb_u8(relight(...))`` of the clear ``image`` and its `light_layers` under
+    ``overcast`` at a fixed exposure, in one compiled pass (`weatheralign.camera.kernels.relit_encode_kernel`)."""
+    sun = unit_colour(SUN_COLOUR).astype(np.float32)
+    clear_sun = sun if layers.sun_colour is None else np.asarray(layers.sun_colour, dtype=np.float32)
+    return relit_encode_kernel(np.ascontiguousarray(image, dtype=np.uint8),
+                               np.ascontiguousarray(layers.lit, dtype=np.float32),
+                               np.ascontiguousarray(layers.sky, dtype=np.bool_),
+                               np.ascontiguousarray(layers.sin_elevation, dtype=np.float32),
+                               float(overcast.diffuse_gain), float(overcast.sun_transmittance),
+                               float(layers.direct_to_diffuse), float(overcast.zenith_luminance),
+                               np.ascontiguousarray(layers.ambient, dtype=np.float32), sun,
+                               np.ascontiguousarray(clear_sun, dtype=np.float32), *SRGB_TABLES)
 
 
 def overcast_image(image: U8, range_map: NDArray, K: NDArray, T_global_cam: NDArray, overcast: Overcast,
@@ -527,5 +546,5 @@ __all__ = ["BASE_EPS", "BASE_RADIUS_FRACTION", "BRIGHT_PERCENTILE", "CLEAR_SKY_B
            "auto_expose", "bounce_share", "clear_sky_colour", "cloud_share", "image_direct_to_diffuse",
            "image_sun_colour", "irradiance_factor", "light_layers", "lit_share", "log_base", "luminance",
            "metered_log_luminance", "metering_mask", "overcast_edit", "overcast_image", "overcast_linear",
-           "overcast_sky_luminance", "pixel_sin_elevation", "relight", "relight_gain", "relight_naive",
+           "overcast_sky_luminance", "pixel_sin_elevation", "relight", "relight_gain", "relight_naive", "relit_u8",
            "sky_from_colour", "unit_colour", "up_in_camera"]
