@@ -12,12 +12,15 @@ whose ground statistic (the ground returns' mean intensity; the LiDAR's height a
 rain / snow split's. The two fits meet in the open-path statistic (weak wet returns and snow-lifted ground change
 which echoes are isolated and which beams are open), so they go in turn: the ground under the particles params' rate,
 the rate grid over the clear scans carrying that ground (`grounded_scans`), the ground again under the tuned rate.
-The camera side of the check (KID, visibility) is in the `verify` stage, which simulates the reference frames at
-these rates.
+The camera's light: the clear and each weather split's camera frames give the overcast's zenith luminance, the
+metering ratio ζ and the diffuse gain over the sun transmittance (`weatheralign.calibrate.overcast.fit_overcast`, one
+mapped task per frame; the sun transmittance is not identified and stays the simulation's). The camera side of the
+check (KID, visibility) is in the `verify` stage, which simulates the reference frames at these rates.
 
-Writes ``<paths.data>/calibrate_precipitation/rates.json`` (``{snow|rain: {rate_mm_h, ci_low, ci_high}}`` and
-``{ground: {snow|rain: {depth_m, ci_low, ci_high}}}``: what the media stage applies to the particle fields and the
-ground with ``simulate.precipitation_rates: calibrated``),
+Writes ``<paths.data>/calibrate_precipitation/rates.json`` (``{snow|rain: {rate_mm_h, ci_low, ci_high}}``,
+``{ground: {snow|rain: {depth_m, ci_low, ci_high}}}`` and ``{overcast: {snow|rain: OvercastFit.rates_entry}}``: what
+the media stage applies to the particle fields, the ground and the cameras' light with
+``simulate.precipitation_rates: calibrated``),
 ``reports/calibrate_precipitation/details.json`` (its headline in ``metrics.json``) and ``rates.png`` (the
 statistic against the rate, per kind, with the reference's mean and interval), also logged to MLflow. The synthetic
 reference's sealed truth is never read here.
@@ -37,10 +40,11 @@ from matplotlib.ticker import NullFormatter  # noqa: E402
 from prefect import flow  # noqa: E402
 
 from flows.common import gather, parse_stage_args, run_stage  # noqa: E402
-from tasks.calibrate import ground_statistics_task, precipitation_statistics_task  # noqa: E402
+from tasks.calibrate import ground_statistics_task, overcast_light_task, precipitation_statistics_task  # noqa: E402
 from tasks.tracking import StageTracker  # noqa: E402
 from weatheralign import atomic  # noqa: E402
 from weatheralign.calibrate.ground import DepthFit, TunedAir, fit_depth, ground_statistic  # noqa: E402
+from weatheralign.calibrate.overcast import FrameLight, OvercastFit, fit_overcast  # noqa: E402
 from weatheralign.calibrate.precipitation import RateFit, fit_rate, reference_statistics  # noqa: E402
 from weatheralign.config import Params  # noqa: E402
 from weatheralign.data.errors import DataFormatError  # noqa: E402
@@ -91,6 +95,23 @@ def fit_ground(ds, kind: str, rate_mm_h: float, lidar, params: Params) -> tuple[
     fit = fit_depth(reference, simulated, grid, kind, num_bootstrap=cfg.num_bootstrap, confidence=cfg.confidence,
                     seed=cfg.seed)
     return fit, simulated, reference
+
+
+def frame_lights(ds, ids: list[str], what: str, show_progress: bool) -> list[FrameLight]:
+    """The light of each of the reference frames ``ids`` (one mapped task per frame)."""
+    return gather([overcast_light_task.submit(ds, i) for i in ids], f"calibrate_precipitation {what}: frame light",
+                  show_progress)
+
+
+def fit_light(clear: list[FrameLight], weather: list[FrameLight], kind: str, params: Params) -> OvercastFit | None:
+    """`fit_overcast` of ``kind``'s split (None, with a warning, where its frames show no unsaturated sky)."""
+    cfg = params.calibrate_precipitation
+    try:
+        return fit_overcast(clear, weather, num_bootstrap=cfg.num_bootstrap, confidence=cfg.confidence,
+                            seed=cfg.seed)
+    except ValueError as exc:
+        print(f"calibrate_precipitation {kind} light: WARNING: {exc}; the simulation keeps simulate.overcast_*")
+        return None
 
 
 def ground_figure(fits: dict[str, DepthFit], reference: dict[str, np.ndarray], simulated: dict[str, np.ndarray]):
@@ -152,6 +173,8 @@ def calibrate_precipitation_flow(params: Params) -> dict:
                          "kinds": kinds, "statistic": "isolated returns within 20 m per open beam"}
         rates, fits, reference, simulated = {}, {}, {}, {}
         ground, ground_fits, ground_reference, ground_simulated = {}, {}, {}, {}
+        light: dict[str, dict] = {}
+        clear_light = frame_lights(ds, clear, "clear", params.run.show_progress) if kinds else []
         for kind in kinds:
             t_kind = time.time()
             configured_rate = getattr(params.particles, kind).rate_mm_h
@@ -180,6 +203,14 @@ def calibrate_precipitation_flow(params: Params) -> dict:
             ground[kind] = {"depth_m": g.depth_m, "ci_low": g.ci_low, "ci_high": g.ci_high}
             metrics[kind]["ground"] = {**g.metrics(), "first_pass_depth_m": first.depth_m,
                                        "first_pass_rate_mm_h": configured_rate}
+            sky = fit_light(clear_light, frame_lights(ds, ds.ids(kind), kind, params.run.show_progress), kind, params)
+            if sky is not None:
+                light[kind] = sky.rates_entry()
+                metrics[kind]["overcast"] = sky.metrics()
+                print(f"calibrate_precipitation {kind} light: zenith {sky.zenith_luminance:.3g} "
+                      f"[{sky.zenith_ci[0]:.3g}, {sky.zenith_ci[1]:.3g}], zeta {sky.zenith_over_surface:.3g}, "
+                      f"diffuse gain {sky.diffuse_gains[0]:.3g} (T = 0) to {sky.diffuse_gains[-1]:.3g} "
+                      f"(T = {sky.sun_grid[-1]:g}); sun transmittance not identified")
             metrics[kind]["seconds"] = round(time.time() - t_kind, 2)
             print(f"calibrate_precipitation {kind} ground: {1000 * g.depth_m:.3g} mm [{1000 * g.ci_low:.3g}, "
                   f"{1000 * g.ci_high:.3g}] ({g.statistic}: reference {g.reference_mean:.4g})"
@@ -188,7 +219,7 @@ def calibrate_precipitation_flow(params: Params) -> dict:
             print(f"calibrate_precipitation: reference {ds.root} has no snow or rain split; the particles params' "
                   f"rates stay in force")
         atomic.write_json(params.paths.data / PRECIPITATION_RATES_FILE,
-                          {**rates, "ground": ground, "reference_root": str(ds.root),
+                          {**rates, "ground": ground, "overcast": light, "reference_root": str(ds.root),
                            "reference_source": params.reference.source},
                           indent=2)
         figure = tracker.reports / "rates.png"

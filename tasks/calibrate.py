@@ -1,5 +1,6 @@
 """Mapped tasks of the calibration stages: one (alpha, beta) grid cell and one reference camera frame
-(`calibrate_fog`); one grid rate of snow or rain over the clear scans (`calibrate_precipitation`)."""
+(`calibrate_fog`); one grid rate of snow or rain over the clear scans and one reference frame's light
+(`calibrate_precipitation`)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ from prefect.cache_policies import NO_CACHE
 from weatheralign.calibrate.ground import TunedAir, grounded_scans, simulated_ground_statistics
 from weatheralign.calibrate.histograms import IntensityHistograms
 from weatheralign.calibrate.lidar import CellResult, FogFrames, evaluate_cell
+from weatheralign.calibrate.overcast import FrameLight, frame_light
 from weatheralign.calibrate.precipitation import simulated_statistics
 from weatheralign.config import ParticlesConfig
 from weatheralign.lidar.pulse import PulseSensor
@@ -57,3 +59,11 @@ def precipitation_statistics_task(ds: ReferenceDataset, kind: str, rate_mm_h: fl
     ids = ds.ids("clear")
     scans = grounded_scans([ds.load_scan(i) for i in ids], ids, kind, ground_depth_m, lidar.noise_floor)
     return simulated_statistics(scans, kind, (rate_mm_h,), lidar, particles, ids)[0]
+
+
+@task(name="overcast-light", cache_policy=NO_CACHE, retries=0)
+def overcast_light_task(ds: ReferenceDataset, sample_id: str) -> FrameLight:
+    """The light of one reference frame's stereo-left camera (`weatheralign.calibrate.overcast.frame_light`)."""
+    frame, image, range_map = reference_frame(ds, sample_id)
+    view = next(iter(frame.cameras.values()))
+    return frame_light(image, range_map, view.K, view.T_ego_cam, view.T_global_cam)

@@ -179,13 +179,15 @@ def test_point_normals_and_the_neighbour_median_are_their_oracles() -> None:
     distance, _ = cKDTree(points).query(points, k=16)  # the line's equal spacing ties: compare distances
     found = np.sort(np.linalg.norm(points[neighbours] - points[:, None], axis=2), axis=1)
     np.testing.assert_allclose(found, distance, atol=1e-12)
-    fast = point_normals(points, np.zeros(3), neighbours)
-    slow = point_normals_naive(points, np.zeros(3), neighbours)
+    fast, variation = point_normals(points, np.zeros(3), neighbours)
+    slow, slow_variation = point_normals_naive(points, np.zeros(3), neighbours)
     np.testing.assert_allclose(np.linalg.norm(fast, axis=1), 1.0, atol=1e-12)
     planar = slice(0, len(points) - len(line))
     np.testing.assert_allclose(np.sum(fast[planar] * slow[planar], axis=1), 1.0, atol=1e-9)
     across = fast[-len(line):] @ np.array([1.0, 0, 0])  # the line's: any direction across it
     np.testing.assert_allclose(across, 0.0, atol=1e-6)
+    np.testing.assert_allclose(variation, slow_variation, atol=1e-9)
+    assert variation[-len(line):].max() < 1e-12  # a line has no variance across it
     values = rng.uniform(size=len(points))
     assert np.array_equal(median_over_neighbours(values, neighbours), np.median(values[neighbours], axis=1))
     odd = neighbours[:, :15]

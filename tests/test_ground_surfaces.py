@@ -56,7 +56,7 @@ def test_a_cloud_without_low_returns_is_refused() -> None:
 def test_point_normals_face_the_sensor_and_stray_values_are_outvoted() -> None:
     points, normal, _ = tilted_ground()
     neighbours = nearest_neighbours(points)
-    normals = point_normals(points, np.zeros(3), neighbours)
+    normals = point_normals(points, np.zeros(3), neighbours).normals
     assert np.median(normals[:4000] @ normal) > 0.99  # the road's, turned up towards the sensor
     assert np.median(normals[4000:] @ np.array([-1.0, 0, 0])) > 0.95  # the facade's, turned back to the sensor
     values = np.where(np.arange(len(points)) == 7, 5.0, 1.0)
@@ -139,3 +139,30 @@ def test_returns_hidden_from_the_camera_do_not_count() -> None:
     visible = mask_agreement(points, edited, camera, camera_mask, range_map=range_map)
     assert visible.iou == 1.0 and visible.pixels == 5000
     assert mask_agreement(points, edited, camera, camera_mask).iou == pytest.approx(0.5)
+
+
+def test_surface_variation_tells_a_roof_from_foliage_and_only_the_roof_holds_snow() -> None:
+    """A level roof and a tree crown (returns scattered through a ball) beside a road, under 1 cm range noise: the
+    roof's neighbourhoods are surfaces (Pauly's variation ~0, under `MAX_SURFACE_VARIATION`), the crown's are not
+    (an isotropic blob: 1/3 in the limit), and `scan_surfaces` gives the roof snow's orientation (|n_z| ~ 1) and the
+    crown none, whatever its PCA normals say."""
+    from weatheralign.data.frame import LidarScan
+    from weatheralign.ground.edit import scan_surfaces
+    from weatheralign.ground.surfaces import MAX_SURFACE_VARIATION
+
+    rng = np.random.default_rng(11)
+    road = np.column_stack([rng.uniform(-25, 25, (6000, 2)), rng.normal(-1.8, 0.02, 6000)])
+    roof = np.column_stack([rng.uniform(6, 8, 800), rng.uniform(-1, 1, 800), rng.normal(-0.3, 0.01, 800)])
+    ball = rng.normal(0, 1, (800, 3))
+    ball *= (rng.uniform(0, 1, 800) ** (1 / 3) / np.linalg.norm(ball, axis=1))[:, None] * 1.5
+    crown = ball + [4.0, -7.0, 2.5]
+    points = np.concatenate([road, roof, crown])
+    found = point_normals(points, np.zeros(3), nearest_neighbours(points))
+    roof_rows, crown_rows = slice(6000, 6800), slice(6800, 7600)
+    assert np.median(found.variation[roof_rows]) < MAX_SURFACE_VARIATION / 2
+    assert np.quantile(found.variation[crown_rows], 0.05) > 2 * MAX_SURFACE_VARIATION
+    scan = LidarScan(np.column_stack([points, np.full(len(points), 10.0), np.zeros(len(points))]).astype(np.float32),
+                     0.0, np.eye(4), np.eye(4))
+    surfaces = scan_surfaces(scan, tolerance_m=0.2)
+    assert np.median(surfaces.cos_up[roof_rows]) > 0.95
+    assert surfaces.cos_up[crown_rows].max() == 0.0

@@ -446,6 +446,7 @@ def test_synthetic_reference_layout_is_readable(tiny_reference):
 
 def test_sealed_truth_is_outside_the_root_and_off_grid(tiny_reference):
     from weatheralign.reference.ground import draw_ground_truth
+    from weatheralign.reference.overcast import draw_overcast_truth
 
     params, _ = tiny_reference
     path = sealed_truth_path(params.paths.data)
@@ -459,8 +460,15 @@ def test_sealed_truth_is_outside_the_root_and_off_grid(tiny_reference):
     for level, (lo, hi), depth, (d_lo, d_hi) in (
             ("snow", pc.snow_rate_mm_h, "snow_depth_m", pc.snow_depth_m),
             ("rain", pc.rain_rate_mm_h, "film_depth_m", pc.wet_film_depth_m)):
-        assert set(truth[level]) == {"rate_mm_h", depth} and lo <= truth[level]["rate_mm_h"] <= hi
+        light = {"sun_transmittance", "zenith_luminance"} if pc.overcast else set()
+        assert set(truth[level]) == {"rate_mm_h", depth} | light and lo <= truth[level]["rate_mm_h"] <= hi
         assert d_lo <= truth[level][depth] <= d_hi and draw_ground_truth(cfg)[level] == truth[level][depth]
+        if light:
+            sky = draw_overcast_truth(cfg)[level]
+            assert (truth[level]["sun_transmittance"], truth[level]["zenith_luminance"]) == (
+                sky.sun_transmittance, sky.zenith_luminance)
+            assert pc.overcast_sun_transmittance[0] <= sky.sun_transmittance <= pc.overcast_sun_transmittance[1]
+            assert pc.overcast_zenith_luminance[0] <= sky.zenith_luminance <= pc.overcast_zenith_luminance[1]
     assert not any(b"depth_m" in data for data in _files(root).values())
     assert draw_precipitation_truth(cfg)["snow"] == truth["snow"]["rate_mm_h"]
     for level, (lo, hi) in (("light", cfg.alpha_light), ("dense", cfg.alpha_dense)):

@@ -123,6 +123,18 @@ class GroundPart:
 
 
 @dataclass(frozen=True)
+class SkyPart:
+    """The light the condition falls under: the overcast sky of snowfall or rain (`weatheralign.camera.overcast`),
+    its parameters those calibrated on the reference's ``split`` (``snow`` or ``rain``) or ``simulate.overcast_*``;
+    ``simulate.overcast`` switches it off.
+
+    Aligned and unaligned cameras see the same light: it is the day's, global to the scene, not a medium that a
+    per-sensor simulator could place elsewhere (the LiDAR, its own light source, does not see it)."""
+
+    split: PrecipitationKind
+
+
+@dataclass(frozen=True)
 class Condition:
     """One named weather condition: its media (``fog``, ``particles``, or both) and a one-line description."""
 
@@ -131,6 +143,7 @@ class Condition:
     fog: FogPart | None = None
     particles: ParticlePart | None = None
     ground: GroundPart | None = None
+    sky: SkyPart | None = None
 
     def __post_init__(self) -> None:
         if self.fog is None and self.particles is None:
@@ -158,11 +171,12 @@ RAIN_PART = ParticlePart("rain", RAIN_REFLECTIVITY, "rain")
 CONDITIONS: dict[str, Condition] = {
     "fog_light": Condition("fog_light", "light fog (the tuned light level)", fog=FogPart("light")),
     "fog_dense": Condition("fog_dense", "dense fog (the tuned dense level)", fog=FogPart("dense")),
-    "snow": Condition("snow", "snowfall on snow-covered ground (particles.snow)", particles=SNOW_PART,
-                      ground=GroundPart("snow")),
-    "rain": Condition("rain", "rain on a wet road (particles.rain)", particles=RAIN_PART, ground=GroundPart("wet")),
-    "fog_snow": Condition("fog_snow", "light fog and snowfall together, snow-covered ground", fog=FogPart("light"),
-                          particles=SNOW_PART, ground=GroundPart("snow")),
+    "snow": Condition("snow", "snowfall on snow-covered ground under an overcast sky (particles.snow)",
+                      particles=SNOW_PART, ground=GroundPart("snow"), sky=SkyPart("snow")),
+    "rain": Condition("rain", "rain on a wet road under an overcast sky (particles.rain)", particles=RAIN_PART,
+                      ground=GroundPart("wet"), sky=SkyPart("rain")),
+    "fog_snow": Condition("fog_snow", "light fog and snowfall together, snow-covered ground, overcast",
+                          fog=FogPart("light"), particles=SNOW_PART, ground=GroundPart("snow"), sky=SkyPart("snow")),
 }
 """Every named condition; the `simulate` DVC matrix runs each, aligned and unaligned."""
 if tuple(CONDITIONS) != CONDITION_NAMES:
@@ -200,5 +214,5 @@ def condition_tags(name: str, aligned: bool | None, snow_rate_mm_h: float, rain_
 
 
 __all__ = ["ALIGNMENTS", "CONDITIONS", "RAIN_APPEARANCES", "Condition", "FogPart", "GroundPart", "ParticlePart",
-           "condition_named",
+           "SkyPart", "condition_named",
            "condition_tags", "severity_label", "variant_name"]

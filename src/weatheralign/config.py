@@ -360,6 +360,13 @@ class SimulateConfig(_Section):
     one field per scene in world coordinates (seed ``ground_seed``), seen by the LiDAR and the cameras
     (`weatheralign.ground.edit`); unaligned cameras see another seed's field at a depth drawn like the particles'
     rate (``unaligned_rate_factor``).
+    Light (``overcast``: on; false: the clear day's light): snow and rain fall under an overcast sky
+    (`weatheralign.camera.overcast`): the calibrate_precipitation stage's recovered light of the reference's split
+    with ``precipitation_rates: calibrated``, else ``overcast_sun_transmittance`` (the sun's share left),
+    ``overcast_zenith_luminance`` (the CIE overcast sky's zenith, linear image units) and ``overcast_diffuse_gain``
+    (the overcast sky's irradiance over the clear sky's) at the synthetic world's fixed exposure, and for real
+    cameras, which meter, ``overcast_zenith_over_surface`` (the sky's zenith over the metered surfaces' 90th
+    percentile); the same for aligned and unaligned cameras.
     The sensors (noise floor, divergence, exposure, ...) are the dataset's (its manifest), not simulate params.
     """
 
@@ -386,6 +393,11 @@ class SimulateConfig(_Section):
     wet_puddle_share: Annotated[float, Field(ge=0.0, le=1.0)] = 0.08
     snow_depth_m: Annotated[float, Field(gt=0.0, le=1.0)] = 0.05
     ground_seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 11
+    overcast: bool = True
+    overcast_sun_transmittance: Annotated[float, Field(ge=0.0, le=1.0)] = 0.12
+    overcast_zenith_luminance: Annotated[float, Field(gt=0.0, le=10.0)] = 2.0
+    overcast_diffuse_gain: Annotated[float, Field(gt=0.0, le=20.0)] = 3.0
+    overcast_zenith_over_surface: Annotated[float, Field(gt=0.0, le=100.0)] = 4.5
 
     @field_validator("aligned", mode="before")
     @classmethod
@@ -480,7 +492,11 @@ class ReferencePrecipitationConfig(_Section):
     reflectivity at 905 nm: ``snow_reflectivity``, ``rain_reflectivity`` (water's Fresnel reflectance).
     The ground (``ground``: on): the rain split's road under a water film of a hidden mean depth drawn uniformly in
     ``wet_film_depth_m``, the snow split's under lying snow of a hidden depth in ``snow_depth_m`` [m], sealed beside
-    the rates (`weatheralign.reference.synthetic.draw_ground_truth`), drawn on the true surfaces of the scene."""
+    the rates (`weatheralign.reference.synthetic.draw_ground_truth`), drawn on the true surfaces of the scene.
+    The light (``overcast``: on): both splits under an overcast sky, the direct sun's transmittance through the cloud
+    drawn uniformly in ``overcast_sun_transmittance`` and the CIE overcast sky's zenith luminance (the reference
+    camera's linear units) in ``overcast_zenith_luminance``, per split, sealed beside the rates
+    (`weatheralign.reference.overcast`)."""
 
     snow_rate_mm_h: tuple[float, float] = (1.2, 3.2)
     rain_rate_mm_h: tuple[float, float] = (25.0, 80.0)
@@ -496,11 +512,16 @@ class ReferencePrecipitationConfig(_Section):
     ground: bool = True
     wet_film_depth_m: tuple[float, float] = (0.0002, 0.0008)
     snow_depth_m: tuple[float, float] = (0.02, 0.1)
+    overcast: bool = True
+    overcast_sun_transmittance: tuple[float, float] = (0.05, 0.25)
+    overcast_zenith_luminance: tuple[float, float] = (1.6, 2.6)
 
     @model_validator(mode="after")
     def _check(self) -> ReferencePrecipitationConfig:
         for name, lo_ok, hi_ok in (("snow_rate_mm_h", 0.0, 50.0), ("rain_rate_mm_h", 0.0, 500.0),
-                                   ("wet_film_depth_m", 0.0, 0.01), ("snow_depth_m", 0.0, 1.0)):
+                                   ("wet_film_depth_m", 0.0, 0.01), ("snow_depth_m", 0.0, 1.0),
+                                   ("overcast_sun_transmittance", 0.0, 1.0),
+                                   ("overcast_zenith_luminance", 0.0, 10.0)):
             lo, hi = getattr(self, name)
             if not (lo_ok < lo < hi <= hi_ok):
                 raise ValueError(f"{name} = [{lo}, {hi}] must satisfy {lo_ok} < low < high <= {hi_ok}")
@@ -811,7 +832,9 @@ SETUP_FILES: dict[tuple[str, str], tuple[str, ...]] = {
                           "depth_loss_weight", "scene_block", "mix_weather_fraction", "eval_every", "score_threshold",
                           "max_detections", "num_bootstrap", "confidence"),
     ("simulate", "setup"): ("fog_alpha_light", "fog_alpha_dense", "fog_beta_mor", "fog_beta_light", "fog_beta_dense",
-                            "jpeg_quality", "near_clip_m", "refine_transmission"),
+                            "jpeg_quality", "near_clip_m", "refine_transmission", "overcast",
+                            "overcast_sun_transmittance", "overcast_zenith_luminance", "overcast_diffuse_gain",
+                            "overcast_zenith_over_surface"),
     ("tracking", "setup"): ("mlflow_uri", "experiment", "enabled"),
 }
 """Per (section, key) of params.yaml that names a YAML file (relative to the params file's folder, or absolute): the

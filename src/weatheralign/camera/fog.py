@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -111,6 +112,19 @@ _ENCODE_AMBIGUOUS: NDArray[np.bool_] = _read_only(
     != np.searchsorted(_ENCODE_THRESHOLDS, _ENC_EDGES[1:] + _ENC_SLACK, side="right")
 )
 """(65536,) bins that contain (or nearly touch) a code step: their pixels are rounded exactly, one by one."""
+
+
+class SrgbTables(NamedTuple):
+    """The exact sRGB tables a compiled kernel decodes and encodes with (`encode_srgb_u8`'s rule)."""
+
+    decode: F32  # (256,) linear value of every code
+    encode: U8  # (65536,) code of each linear bin
+    ambiguous: NDArray[np.bool_]  # (65536,) bins rounded exactly, by the thresholds
+    thresholds: NDArray[np.float64]  # (255,) linear code steps
+    bins: int
+
+
+SRGB_TABLES = SrgbTables(_DECODE_LUT, _ENCODE_LUT, _ENCODE_AMBIGUOUS, _ENCODE_THRESHOLDS, _ENC_BINS)
 
 
 def decode_srgb_u8(image: U8) -> F32:

@@ -42,6 +42,33 @@ def encode_srgb_kernel(linear: NDArray, lut: NDArray, ambiguous: NDArray, thresh
 
 
 @numba.njit(cache=True, nogil=True)
+def relit_encode_kernel(image: U8, lit: F32, sky: NDArray, sin_elevation: F32, diffuse_gain: float,
+                        sun_transmittance: float, direct_to_diffuse: float, zenith: float, ambient: F32, sun: F32,
+                        clear_sun: F32, decode_lut: F32, lut: NDArray, ambiguous: NDArray, thresholds: NDArray,
+                        bins: int) -> U8:
+    """(H, W, 3) uint8 sRGB ``image`` relit under an overcast at the clear image's exposure and encoded exactly, in
+    one pass: sky pixels (``sky`` (H, W)) the CIE overcast sky ``zenith (1 + 2 clip(sin γ, 0, 1)) / 3`` of
+    ``sin_elevation`` (H, W), the others their decoded value times ``(Q + T s m sun_c) / (amb_c + s m clear_sun_c)``
+    of lit share ``lit`` (H, W) (``ambient``, ``sun``, ``clear_sun`` (3,) float32); float32 in
+    `weatheralign.camera.overcast.relight`'s operation order, so that it equals ``encode_srgb_u8(relight(...))``."""
+    height, width = image.shape[0], image.shape[1]
+    out = np.empty((height, width, 3), np.uint8)
+    q, t, s = np.float32(diffuse_gain), np.float32(sun_transmittance), np.float32(direct_to_diffuse)
+    for v in range(height):
+        for u in range(width):
+            if sky[v, u]:
+                e = min(max(np.float64(sin_elevation[v, u]), 0.0), 1.0)
+                code = encode_one(np.float32(zenith * (1.0 + 2.0 * e) / 3.0), lut, ambiguous, thresholds, bins)
+                out[v, u, 0], out[v, u, 1], out[v, u, 2] = code, code, code
+                continue
+            sm = s * lit[v, u]
+            for c in range(3):
+                gain = (q + t * sm * sun[c]) / (ambient[c] + sm * clear_sun[c])
+                out[v, u, c] = encode_one(decode_lut[image[v, u, c]] * gain, lut, ambiguous, thresholds, bins)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
 def _axis_weights(n_out: int, n_in: int) -> tuple[NDArray, NDArray, NDArray]:
     """OpenCV ``INTER_LINEAR`` sampling of ``n_in`` cells onto ``n_out`` pixels (half-pixel centres, clamped):
     per output pixel the lower cell, the upper cell and the upper weight."""
@@ -253,4 +280,4 @@ def guided_affine_edit_kernel(image: U8, gain: NDArray, offset: NDArray, edited:
 
 
 __all__ = ["composite_guided_kernel", "composite_plain_kernel", "encode_one", "encode_srgb_kernel",
-           "guided_affine_edit_kernel", "range_weight"]
+           "guided_affine_edit_kernel", "range_weight", "relit_encode_kernel"]

@@ -24,6 +24,7 @@ from weatheralign.data.frame import LidarScan
 from weatheralign.ground.camera import CameraGeometry, snow_cover_layers, wet_road_layer_pair, wet_road_layers
 from weatheralign.ground.snow import SnowCover, TireTracks, snow_covered_ground, surface_snow
 from weatheralign.ground.surfaces import (
+    MAX_SURFACE_VARIATION,
     GroundPlane,
     fit_ground_plane,
     median_over_neighbours,
@@ -87,7 +88,8 @@ class ScanSurfaces(NamedTuple):
 def scan_surfaces(scan: LidarScan, tolerance_m: float = 0.2, off_ground: bool = True) -> ScanSurfaces:
     """The ground plane of ``scan`` (`fit_ground_plane`) and its returns' surface orientation: the plane's on the
     ground; elsewhere (``off_ground``) from the other off-ground returns around each (a car's flank is not levelled
-    by the road beside it), else vertical (0: no snow lies there)."""
+    by the road beside it; the median over them of ``|n_z|``, 0 where the neighbourhood is no surface:
+    `MAX_SURFACE_VARIATION`), else vertical (0: no snow lies there)."""
     xyz = scan.points[:, :3].astype(np.float64)
     plane = fit_ground_plane(xyz, tolerance_m=tolerance_m)
     on_ground = plane.contains(xyz)
@@ -99,8 +101,10 @@ def scan_surfaces(scan: LidarScan, tolerance_m: float = 0.2, off_ground: bool = 
     cos_up[on_ground] = abs(float((T[:3, :3] @ np.asarray(plane.normal))[2]))
     if off_ground and len(off) >= 16:
         neighbours = nearest_neighbours(xyz[off])  # one search for the normals and their median
-        normals[off] = point_normals(xyz[off], np.zeros(3), neighbours)
-        cos_up[off] = median_over_neighbours(np.abs(normals[off] @ T[2, :3]), neighbours)
+        found = point_normals(xyz[off], np.zeros(3), neighbours)
+        normals[off] = found.normals
+        level = np.where(found.variation <= MAX_SURFACE_VARIATION, np.abs(found.normals @ T[2, :3]), 0.0)
+        cos_up[off] = median_over_neighbours(level, neighbours)
     else:
         normals[off] = xyz[off] / np.maximum(np.linalg.norm(xyz[off], axis=1, keepdims=True), 1e-9)
     return ScanSurfaces(plane, on_ground, normals, cos_up, xyz @ T[:3, :3].T + T[:3, 3])

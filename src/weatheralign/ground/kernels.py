@@ -150,12 +150,14 @@ def smallest_eigenvector(a00: float, a01: float, a02: float, a11: float, a12: fl
 
 
 @numba.njit(cache=True, nogil=True)
-def neighbour_normals_kernel(points: F64, index: NDArray[np.int64], origin: F64) -> F64:
+def neighbour_normals_kernel(points: F64, index: NDArray[np.int64], origin: F64) -> tuple[F64, F64]:
     """(N, 3) unit normals of ``points`` (N, 3): the direction of least variance of each point's neighbours
     ``index`` (N, k) (their covariance about their mean, `smallest_eigenvector`), turned towards ``origin`` (3,)
-    (`weatheralign.ground.surfaces.point_normals_naive`'s rule)."""
+    (`weatheralign.ground.surfaces.point_normals_naive`'s rule); and (N,) the share of the variance along it
+    (``nᵀ C n / tr C``, the least eigenvalue over their sum; 0 where the neighbours coincide)."""
     n, k = index.shape
     out = np.empty((n, 3))
+    variation = np.empty(n)
     for i in range(n):
         mx = my = mz = 0.0
         for m in range(k):
@@ -178,7 +180,11 @@ def neighbour_normals_kernel(points: F64, index: NDArray[np.int64], origin: F64)
         if nx * (origin[0] - points[i, 0]) + ny * (origin[1] - points[i, 1]) + nz * (origin[2] - points[i, 2]) < 0:
             nx, ny, nz = -nx, -ny, -nz
         out[i, 0], out[i, 1], out[i, 2] = nx, ny, nz
-    return out
+        trace = sxx + syy + szz
+        along = (sxx * nx * nx + syy * ny * ny + szz * nz * nz
+                 + 2.0 * (sxy * nx * ny + sxz * nx * nz + syz * ny * nz))
+        variation[i] = min(max(along / trace, 0.0), 1.0) if trace > 0.0 else 0.0
+    return out, variation
 
 
 @numba.njit(cache=True, nogil=True)

@@ -2,12 +2,13 @@
 
 The ground is the dominant plane under the sensor (`fit_ground_plane`: a seeded RANSAC on the returns more than
 ``min_drop_m`` below the LiDAR, refined by least squares); a LiDAR return is on it within ``tolerance_m``. The
-up-facing surfaces elsewhere (car roofs, ledges, tree crowns) come from surface normals: the LiDAR's from its
-points' neighbourhoods (`point_normals`), a camera's from the 3-D points of an exact range map (`pixel_normals`: the
-synthetic world's). A dense depth interpolated from a LiDAR's rings is no such map: between rings it spans flat
-facets, and its normals on facades, cars and people point anywhere; there a pixel takes the orientation of the LiDAR
-return nearest its surface point (`nearest_return_values`), so both sensors read one set of normals. Both sensors
-then ask the same questions of the same world positions (`weatheralign.ground.snow.snow_coverage`,
+up-facing surfaces elsewhere (car roofs, ledges, wall tops) come from surface normals: the LiDAR's from its points'
+neighbourhoods (`point_normals`; a neighbourhood that is no surface, such as real foliage or the returns behind a
+car's window, holds no snow: `MAX_SURFACE_VARIATION`), a camera's from the 3-D points of an exact range map
+(`pixel_normals`: the synthetic world's). A dense depth interpolated from a LiDAR's rings is no such map: between
+rings it spans flat facets, and its normals on facades, cars and people point anywhere; there a pixel takes the
+orientation of the LiDAR return nearest its surface point (`nearest_return_values`), so both sensors read one set of
+normals. Both sensors then ask the same questions of the same world positions (`weatheralign.ground.snow.snow_coverage`,
 `weatheralign.ground.wet.water_depth`), and `mask_agreement` measures how well they agree: the LiDAR's edited
 returns projected into a camera against the camera's edited pixels.
 """
@@ -93,6 +94,14 @@ def fit_ground_plane(points: F64, min_drop_m: float = 1.0, tolerance_m: float = 
     return GroundPlane((float(normal[0]), float(normal[1]), float(normal[2])), offset, tolerance_m)
 
 
+MAX_SURFACE_VARIATION = 0.02
+"""Largest surface variation (`point_normals_naive`) of a LiDAR return's 16 neighbours that still makes a surface
+snow can lie on. A roof, a car's bonnet or a wall top under a range noise of about 1 cm (an HDL-64's) stays below it
+(a plane's variation is about the noise's variance over the neighbourhood's extent's); foliage, the
+returns seen through a car's window and scattered clutter lie well above (up to 1/3), and their PCA normal points
+anywhere, so an orientation read from it would put snow on a tree's side or a car's door."""
+
+
 def nearest_neighbours(points: F64, neighbours: int = 16) -> NDArray[np.int64]:
     """(N, k) the rows of each of ``points``' (N, 3) ``neighbours`` nearest points (k = min(neighbours, N)), itself
     included, in any order among equals (open3d's nanoflann search): one search for the normals and the median over
@@ -119,22 +128,34 @@ def plane_inliers_naive(points: F64, normals: F64, offsets: F64, tolerance_m: fl
     return np.count_nonzero(np.abs(points @ normals.T + offsets) < tolerance_m, axis=0)
 
 
-def point_normals(points: F64, origin: F64, index: NDArray[np.int64]) -> F64:
+class PointNormals(NamedTuple):
+    """LiDAR returns' surface orientation from their neighbourhoods."""
+
+    normals: F64  # (N, 3) unit, turned towards the sensor
+    variation: F64  # (N,) the neighbours' variance share along the normal: ~0 on a surface, 1/3 for a scattered blob
+
+
+def point_normals(points: F64, origin: F64, index: NDArray[np.int64]) -> PointNormals:
     """`point_normals_naive`, compiled (`weatheralign.ground.kernels.neighbour_normals_kernel`)."""
-    return neighbour_normals_kernel(np.ascontiguousarray(points, dtype=np.float64), np.ascontiguousarray(index),
-                                    np.asarray(origin, dtype=np.float64))
+    return PointNormals(*neighbour_normals_kernel(np.ascontiguousarray(points, dtype=np.float64),
+                                                  np.ascontiguousarray(index), np.asarray(origin, dtype=np.float64)))
 
 
-def point_normals_naive(points: F64, origin: F64, index: NDArray[np.int64]) -> F64:
-    """(N, 3) unit normals of LiDAR returns (N, 3) from their neighbours ``index`` (N, k) (`nearest_neighbours`):
-    the eigenvector of the least eigenvalue of their covariance (PCA), turned towards the sensor at ``origin`` (3,)."""
+def point_normals_naive(points: F64, origin: F64, index: NDArray[np.int64]) -> PointNormals:
+    """Unit normals (N, 3) of LiDAR returns (N, 3) from their neighbours ``index`` (N, k) (`nearest_neighbours`):
+    the eigenvector of the least eigenvalue of their covariance (PCA), turned towards the sensor at ``origin`` (3,);
+    and their surface variation (N,), the least eigenvalue over the eigenvalues' sum (Pauly, Gross & Kobbelt 2002):
+    near 0 on a road, a roof or a facade, up to 1/3 where the neighbours scatter in every direction (foliage)."""
     points = np.asarray(points, dtype=np.float64)
     around = points[index] - points[index].mean(axis=1, keepdims=True)
     covariance = np.einsum("nki,nkj->nij", around, around) / index.shape[1]
-    normals = np.linalg.eigh(covariance)[1][:, :, 0]
+    values, vectors = np.linalg.eigh(covariance)
+    normals = vectors[:, :, 0]
     facing = np.sum(normals * (np.asarray(origin) - points), axis=1) < 0
     normals[facing] *= -1.0
-    return normals
+    total = values.sum(axis=1)
+    variation = np.where(total > 0.0, np.clip(values[:, 0], 0.0, None) / np.where(total > 0.0, total, 1.0), 0.0)
+    return PointNormals(normals, variation)
 
 
 def median_over_neighbours(values: F64, index: NDArray[np.int64]) -> F64:
@@ -263,6 +284,7 @@ def mask_agreement(points_world: F64, edited: Mask, camera: CameraGeometry, came
                          both / max(int(cam.sum()), 1), len(pixel))
 
 
-__all__ = ["fit_ground_plane", "GroundPlane", "mask_agreement", "MaskAgreement", "median_over_neighbours",
+__all__ = ["fit_ground_plane", "GroundPlane", "mask_agreement", "MaskAgreement", "MAX_SURFACE_VARIATION",
+           "median_over_neighbours", "PointNormals",
            "nearest_neighbours", "nearest_return_values", "pixel_normals", "pixel_normals_naive", "pixel_points",
            "PixelSurfaces", "plane_inliers", "plane_inliers_naive", "point_normals", "point_normals_naive"]

@@ -26,6 +26,11 @@ at one hidden depth per split (`weatheralign.reference.ground`: drawn in ``preci
 ``snow_depth_m``, sealed as ``{rain: {film_depth_m}}``, ``{snow: {snow_depth_m}}``), on the scene's true surfaces,
 seen by the LiDAR and the camera before the particles.
 
+Hidden light. Snow and rain fall from a cloud deck: both splits are lit by an overcast sky of a hidden zenith
+luminance and what the cloud leaves of the sun (`weatheralign.reference.overcast`: drawn per split in
+``precipitation.overcast_sun_transmittance`` / ``overcast_zenith_luminance``, sealed as ``{snow|rain:
+{sun_transmittance, zenith_luminance}}``); the clear and fog levels keep the clear sky and the sun.
+
 Sensors (one instant per frame: every beam at the frame time, STF has no per-point times; the camera integrates its
 exposure around it):
 - LiDAR: an HDL-64-like sensor (64 lasers at the `weatheralign.data.rings` HDL-64E elevations, ``firings_per_ring``
@@ -100,6 +105,14 @@ from weatheralign.reference.lidar_exact import (
     system_constants,
 )
 from weatheralign.reference.lidar_particles_exact import PARTICLE, particle_returns
+from weatheralign.reference.overcast import (
+    OvercastTruth,
+    draw_overcast_truth,
+    drop_radiance,
+    flake_radiance,
+    overcast_radiance,
+    visible_hemisphere,
+)
 from weatheralign.world.layout import generate_layout
 from weatheralign.world.raycast import WorldRaycaster
 from weatheralign.world.render import pixel_directions, sun_lit
@@ -358,22 +371,20 @@ def frame_medium(spec: FrameSpec, cfg: ReferenceConfig) -> FogLevel | ParticleFi
     return frame_field(spec, cfg) if spec.level in PRECIPITATION_LEVELS else draw_truth(cfg)[spec.level]
 
 
+def frame_overcast(spec: FrameSpec, cfg: ReferenceConfig) -> OvercastTruth | None:
+    """The hidden overcast light of a snow or rain frame (`weatheralign.reference.overcast`); None for the clear and
+    fog levels or with ``cfg.precipitation.overcast`` off."""
+    if not cfg.precipitation.overcast or spec.level not in PRECIPITATION_LEVELS:
+        return None
+    return draw_overcast_truth(cfg)[spec.level]
+
+
 def _lambert_sphere(view: F64, sun: F64, n: int = 4096) -> float:
     """Mean ``max(n·sun, 0)`` over the visible half of a Lambertian sphere seen from unit direction ``view`` (towards
     the camera), weighted by projected area (``n·view``): the sun term of a flake's radiance. Fixed quadrature
-    (``n`` points of a Fibonacci hemisphere)."""
-    k = np.arange(n) + 0.5
-    z = k / n
-    phi = np.pi * (1.0 + 5.0 ** 0.5) * k
-    r = np.sqrt(1.0 - z * z)
-    local = np.stack([r * np.cos(phi), r * np.sin(phi), z], 1)
-    a = np.array([1.0, 0.0, 0.0]) if abs(view[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    e1 = np.cross(view, a)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(view, e1)
-    normals = local[:, :1] * e1 + local[:, 1:2] * e2 + local[:, 2:] * view
-    w = normals @ view
-    return float(np.sum(np.maximum(normals @ sun, 0.0) * w) / np.sum(w))
+    (``n`` points of a Fibonacci hemisphere, `visible_hemisphere`)."""
+    normals, w = visible_hemisphere(np.asarray(view, dtype=np.float64), n)
+    return float(w @ np.maximum(normals @ sun, 0.0))
 
 
 def particle_radiance(level: str, layout, J: F64, view: F64) -> F64:
@@ -456,19 +467,30 @@ def render_frame(spec: FrameSpec, cfg: ReferenceConfig, medium: FogLevel | Parti
     origin = T_global_cam[:3, 3]
     chits = caster.cast_camera(cam.K, T_global_cam, cam.width, cam.height, spec.time, pdirs)
     lit = sun_lit(caster, origin, pdirs, chits, spec.time, cfg.camera.shadows)
-    J = camera_radiance(layout, origin, pdirs, chits.range, chits.normal, chits.material, chits.albedo,
-                       chits.reflectivity, lit)
+    sky = frame_overcast(spec, cfg)
+    if sky is None:
+        J = camera_radiance(layout, origin, pdirs, chits.range, chits.normal, chits.material, chits.albedo,
+                           chits.reflectivity, lit)
+        sky_light = np.asarray(layout.sky_horizon, dtype=np.float64)
+    else:  # snow and rain fall from a cloud deck: the overcast sky and what is left of the sun light the scene
+        J = overcast_radiance(layout, origin, pdirs, chits.range, chits.normal, chits.material, chits.albedo,
+                              chits.reflectivity, lit, sky)
+        sky_light = np.full(3, sky.zenith_luminance / 3.0)
     if surfaces is not None:
         J = edit_image(J.reshape(cam.height, cam.width, 3), chits.range.reshape(cam.height, cam.width),
                        CameraGeometry(cam.K, T_global_cam), True, surfaces, T_global_lidar, ground,
-                       np.asarray(layout.sky_horizon, dtype=np.float64), work_stride=1).linear.reshape(-1, 3)
+                       sky_light, work_stride=1).linear.reshape(-1, 3)
     coverage = 0.0
     if particles:
         pc = cfg.precipitation
         view = T_global_cam[:3, 2]
+        if sky is None:
+            radiance = particle_radiance(spec.level, layout, J, view)
+        else:
+            radiance = flake_radiance(layout, view, sky) if spec.level == "snow" else drop_radiance(J, sky)
         seen = particle_image(J.reshape(cam.height, cam.width, 3), chits.range.reshape(cam.height, cam.width),
                               cam.K, T_global_cam, spec.time, medium,
-                              particle_radiance(spec.level, layout, J, view), v_cam=_ego_velocity(layout, spec.time),
+                              radiance, v_cam=_ego_velocity(layout, spec.time),
                               exposure_s=pc.exposure_s, samples=pc.camera_samples,
                               per_diameter_fall=spec.level == "rain",
                               seed=int(_noise_rng(cfg, spec, 4).integers(0, 2**31 - 1)))
@@ -628,6 +650,10 @@ def finalize(cfg: ReferenceConfig, data: Path, records: list[FrameRecord]) -> di
         for level, depth in draw_ground_truth(cfg).items():
             if level in sealed:
                 sealed[level][depth_key[level]] = depth
+    if cfg.precipitation.overcast:
+        for level, sky in draw_overcast_truth(cfg).items():
+            if level in sealed:
+                sealed[level].update(sun_transmittance=sky.sun_transmittance, zenith_luminance=sky.zenith_luminance)
     atomic.write_json(sealed_truth_path(data), sealed, indent=2)
     details: dict[str, dict] = {
         level: {"alpha": truth[level].alpha, "beta": truth[level].beta, "mor_m": truth[level].mor,

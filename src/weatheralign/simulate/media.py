@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from weatheralign.camera.overcast import Overcast
 from weatheralign.conditions import CONDITIONS, Condition, FogPart, GroundPart, ParticlePart
 from weatheralign.config import ParticlesConfig, SimulateConfig
 from weatheralign.data.errors import DataFormatError, read_json_file
@@ -102,6 +103,35 @@ class PrecipitationRates:
     rate_mm_h: dict[str, float]
     source: dict[str, str]
     ground_depth_m: dict[str, float] = field(default_factory=dict)
+    overcast: dict[str, CalibratedLight] = field(default_factory=dict)
+    """Per split (``snow`` / ``rain``) the calibrated overcast light; a split absent keeps ``simulate.overcast_*``."""
+
+
+@dataclass(frozen=True)
+class CalibratedLight:
+    """One split's calibrated overcast (``rates.json["overcast"][split]``, `weatheralign.calibrate.overcast`): the
+    zenith luminance L_z, ζ, and the diffuse gain Q at each sun transmittance of ``sun_grid``; ``sun_transmittance``
+    where the reference identified it, else None (the simulation's ``simulate.overcast_sun_transmittance`` is used
+    and Q read off the curve)."""
+
+    zenith_luminance: float
+    zenith_over_surface: float
+    sun_grid: tuple[float, ...]
+    diffuse_gains: tuple[float, ...]
+    sun_transmittance: float | None = None
+
+    @classmethod
+    def of(cls, light: Overcast) -> CalibratedLight:
+        """A fully known light (``T`` given, Q the same at every T)."""
+        return cls(light.zenith_luminance, light.zenith_over_surface, (light.sun_transmittance,),
+                   (light.diffuse_gain,), light.sun_transmittance)
+
+    def light(self, configured_sun: float) -> Overcast:
+        """The operator's light: this split's T (``configured_sun`` where not identified), Q at that T (interpolated
+        on ``sun_grid``, clamped to its ends)."""
+        t = configured_sun if self.sun_transmittance is None else self.sun_transmittance
+        return Overcast(t, self.zenith_luminance, float(np.interp(t, self.sun_grid, self.diffuse_gains)),
+                        self.zenith_over_surface)
 
 
 def params_precipitation_rates(particles: ParticlesConfig) -> PrecipitationRates:
@@ -139,7 +169,35 @@ def calibrated_precipitation_rates(path: Path, particles: ParticlesConfig) -> Pr
         if kind in ("snow", "rain"):
             depth = entry.get("depth_m") if isinstance(entry, dict) else None
             out.ground_depth_m[kind] = _positive(path, f"ground.{kind}.depth_m", depth)
+    for kind, entry in (tuned.get("overcast") or {} if isinstance(tuned, dict) else {}).items():
+        if kind in ("snow", "rain"):
+            out.overcast[kind] = _calibrated_light(path, kind, entry if isinstance(entry, dict) else {})
     return out
+
+
+def _calibrated_light(path: Path, kind: str, entry: dict) -> CalibratedLight:
+    """`CalibratedLight` of ``rates.json["overcast"][kind]`` (``sun_transmittance`` null: not identified).
+
+    Raises:
+        DataFormatError: a value missing or not positive, or a Q curve that does not match its T grid.
+    """
+    where = f"overcast.{kind}"
+    grid = entry.get("sun_grid")
+    gains = entry.get("diffuse_gain_by_sun")
+    if not isinstance(grid, list) or not isinstance(gains, list) or len(grid) != len(gains) or not grid:
+        raise DataFormatError(f"{path}: {where}: sun_grid and diffuse_gain_by_sun must be lists of one length, got "
+                              f"{grid!r} and {gains!r}")
+    sun = entry.get("sun_transmittance")
+    try:
+        light = CalibratedLight(_positive(path, f"{where}.zenith_luminance", entry.get("zenith_luminance")),
+                                _positive(path, f"{where}.zenith_over_surface", entry.get("zenith_over_surface")),
+                                tuple(float(t) for t in grid),
+                                tuple(_positive(path, f"{where}.diffuse_gain_by_sun", q) for q in gains),
+                                None if sun is None else _positive(path, f"{where}.sun_transmittance", sun))
+        light.light(0.0)
+    except (TypeError, ValueError) as exc:
+        raise DataFormatError(f"{path}: {where}: {exc}") from None
+    return light
 
 
 def configured_precipitation_rates(cfg: SimulateConfig, particles: ParticlesConfig, data: Path
@@ -214,6 +272,8 @@ class SceneMedia:
         airlight_gain: the fog's airlight over the scene's clear-sky airlight (`FogPart.airlight_gain`; 1 without
             fog).
         ground: the scene's ground (`SceneGround`) or None (the air alone).
+        overcast: the light the cameras see the scene under (`weatheralign.camera.overcast.Overcast`), or None (the
+            clear day's).
     """
 
     condition: Condition
@@ -226,6 +286,7 @@ class SceneMedia:
     camera_rate_mm_h: float | None = None
     airlight_gain: float = 1.0
     ground: SceneGround | None = None
+    overcast: Overcast | None = None
 
     @property
     def has_particles(self) -> bool:
@@ -255,6 +316,7 @@ class ConditionMedia:
         camera_rate_unaligned: ``{scene: rate [mm/h]}`` the unaligned cameras' rate (with ``fields``).
         ground: ``{scene: SceneGround}`` as the unaligned copy sees it (the aligned copy's cameras see the LiDAR's
             ground), or None.
+        overcast: the overcast light of every scene (`Overcast.to_dict`; aligned and unaligned alike), or None.
     """
 
     condition: str
@@ -262,6 +324,7 @@ class ConditionMedia:
     fields: dict[str, FieldSpec] | None
     camera_rate_unaligned: dict[str, float] | None = None
     ground: dict[str, SceneGround] | None = None
+    overcast: dict[str, float] | None = None
 
     def for_scene(self, scene: str, aligned: bool, rain_appearance: str = "rain") -> SceneMedia:
         """`SceneMedia` of ``scene``.
@@ -294,6 +357,8 @@ class ConditionMedia:
                                       f"stage")
             g = self.ground[scene]
             kw["ground"] = g if not aligned else replace(g, camera_amount_m=g.amount_m, camera_seed=g.seed)
+        if self.overcast is not None:
+            kw["overcast"] = Overcast(**self.overcast)
         return SceneMedia(condition, aligned, scene, **kw)
 
     def rates(self, particles: ParticlesConfig) -> tuple[float, float]:
@@ -310,7 +375,8 @@ class ConditionMedia:
                 "fields": None if self.fields is None else {k: v.to_dict() for k, v in sorted(self.fields.items())},
                 "camera_rate_unaligned": None if self.camera_rate_unaligned is None
                 else dict(sorted(self.camera_rate_unaligned.items())),
-                "ground": None if self.ground is None else {k: v.to_dict() for k, v in sorted(self.ground.items())}}
+                "ground": None if self.ground is None else {k: v.to_dict() for k, v in sorted(self.ground.items())},
+                "overcast": self.overcast}
 
     @staticmethod
     def from_dict(d: dict[str, Any], where: str = "media") -> ConditionMedia:
@@ -322,7 +388,10 @@ class ConditionMedia:
             rates = None if rates is None else {k: float(v) for k, v in rates.items()}
             ground = d.get("ground")
             ground = None if ground is None else {k: SceneGround(**v) for k, v in ground.items()}
-            return ConditionMedia(d["condition"], d["fog"], fields, rates, ground)
+            overcast = d.get("overcast")
+            if overcast is not None:
+                overcast = Overcast(**overcast).to_dict()
+            return ConditionMedia(d["condition"], d["fog"], fields, rates, ground, overcast)
         except (KeyError, TypeError, ValueError) as exc:
             raise DataFormatError(f"{where}: not a valid media file ({exc})") from None
 
@@ -362,9 +431,25 @@ def resolve_media(condition: Condition, cfg: SimulateConfig, scenes: list[str], 
         camera_rates = {s: ParticlePart.camera_rate(False, spec.rate_mm_h, cfg.unaligned_rate_factor, spec.seed)
                         for s, spec in per_scene.items()}
         return ConditionMedia(condition.name, fog, per_scene, camera_rates, resolve_ground(
-            condition, cfg, scenes, None if rates is None else rates.ground_depth_m))
+            condition, cfg, scenes, None if rates is None else rates.ground_depth_m),
+            resolve_overcast(condition, cfg, rates))
     return ConditionMedia(condition.name, fog, per_scene, ground=resolve_ground(
-        condition, cfg, scenes, None if rates is None else rates.ground_depth_m))
+        condition, cfg, scenes, None if rates is None else rates.ground_depth_m),
+        overcast=resolve_overcast(condition, cfg, rates))
+
+
+def resolve_overcast(condition: Condition, cfg: SimulateConfig, rates: PrecipitationRates | None = None
+                     ) -> dict[str, float] | None:
+    """The light of ``condition`` (`Overcast.to_dict`; None without a `SkyPart` or with ``simulate.overcast``
+    off): the calibrated light of its split where ``rates`` has one (``simulate.overcast_sun_transmittance`` where
+    its T was not identified), else ``simulate.overcast_*``."""
+    if condition.sky is None or not cfg.overcast:
+        return None
+    calibrated = (rates.overcast if rates is not None else {}).get(condition.sky.split)
+    if calibrated is not None:
+        return calibrated.light(cfg.overcast_sun_transmittance).to_dict()
+    return Overcast(cfg.overcast_sun_transmittance, cfg.overcast_zenith_luminance, cfg.overcast_diffuse_gain,
+                    cfg.overcast_zenith_over_surface).to_dict()
 
 
 def resolve_ground(condition: Condition, cfg: SimulateConfig, scenes: list[str],

@@ -11,10 +11,13 @@ How media compose (see `weatheralign.conditions`):
   `weatheralign.lidar.simulate_fog`; a particle field (with or without fog) through
   `weatheralign.lidar.simulate_particle_scans` (all scans at once), which adds the fog's extinction to every echo
   and lets the fog's backscatter compete with the strongest echo of each beam. The sensor is the dataset's `LidarModel`.
-- Cameras (`observe_camera`), each at its own timestamp and ego pose: one transmission per pixel, the fog's
+- Cameras (`observe_camera`), each at its own timestamp and ego pose: under snow and rain first the overcast light
+  (`weatheralign.camera.overcast`: grey sky, the sun's shadows lifted, neutral light; the background edit), then the
+  ground (its wet road mirrors the relit scene and the overcast horizon), then one transmission per pixel, the fog's
   ``exp(-α ℓ)`` times the unresolved particles' ``exp(-τ_u(ℓ))``, guided-filtered where the ray lengths are estimated
   (real cameras' dense depth; an exact range map is used as it is) and composited with the fog's
-  airlight (the scene's clear-sky airlight times the scene's calibrated gain, `SceneMedia.airlight_gain`) in linear
+  airlight (the scene's clear-sky airlight times the scene's calibrated gain, `SceneMedia.airlight_gain`; under
+  the overcast its horizon, the light the droplets and unresolved particles scatter) in linear
   light in one compiled pass (`weatheralign.camera.fog.composite_image`); then the field's
   resolvable particles splatted with exposure streaks (`weatheralign.camera.splat`), pre-fogged by the same fog.
   Unaligned cameras see the media's twins (`SceneMedia.camera_alpha`, `SceneMedia.camera_field`).
@@ -28,8 +31,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from weatheralign.camera.fog import composite_image, encode_srgb_u8, fog_airlight, srgb_to_linear
+from weatheralign.camera.fog import composite_image, encode_srgb_u8, fog_airlight, linear_to_srgb, srgb_to_linear
 from weatheralign.camera.fog import transmission as fog_transmission
+from weatheralign.camera.overcast import Exposure, overcast_edit
 from weatheralign.camera.splat import (
     APPEARANCES,
     focal_px,
@@ -249,12 +253,20 @@ def observe_camera(image: NDArray[np.uint8], range_map: NDArray[np.float32], vie
     alpha = media.camera_alpha
     fld = media.camera_field()
     ground_mask = None
-    if ground is not None:  # the wet or snowy ground under the clear air, lit by the scene's clear sky
+    relit = media.overcast is not None
+    horizon = None
+    if relit:  # the background edit first: the scene under the cloud, whose grey horizon the air then scatters
+        # the synthetic world's camera (exact range map) has the reference's fixed exposure; a real one meters
+        exposure = Exposure.FIXED if view.range_path is not None else Exposure.AUTO
+        image, horizon = overcast_edit(image, range_map, np.asarray(view.K, dtype=np.float64), view.T_global_cam,
+                                       media.overcast, exposure)
+        airlight = linear_to_srgb(np.minimum(horizon, 1.0))
+    if ground is not None:  # the wet or snowy ground under the clear air, lit by the sky (under the cloud: its horizon)
         image, ground_mask = edit_image_u8(image, range_map, CameraGeometry(
             np.asarray(view.K, dtype=np.float64), view.T_global_cam), view.range_path is not None, ground.surfaces,
             ground.T_world_scan, ground.state, srgb_to_linear(airlight))
     if alpha <= 0.0 and fld is None:
-        return CameraWeather(image if ground_mask is not None else None, None, 0, ground_mask)
+        return CameraWeather(image if ground_mask is not None or relit else None, None, 0, ground_mask)
     near = options.near_clip_m
     look = APPEARANCES[media.condition.particles.camera_appearance] if fld is not None else None
     t = fog_transmission(range_map, alpha) if alpha > 0.0 else None
@@ -263,7 +275,7 @@ def observe_camera(image: NDArray[np.uint8], range_map: NDArray[np.float32], vie
         profile = unresolved_extinction_profile(fld, focal_px(view.K), look, near_clip=near)
         t_particles = profile.transmission(range_map)
         t = t_particles if t is None else t * t_particles
-    a_lin = fog_airlight(airlight, media.airlight_gain)
+    a_lin = horizon if horizon is not None else fog_airlight(airlight, media.airlight_gain)
     refine = options.refine_transmission and view.range_path is None  # exact depth needs no edge-aware smoothing
     if fld is None:
         return CameraWeather(composite_image(image, t, a_lin, refine), None, 0, ground_mask)
