@@ -1,4 +1,5 @@
-"""What the ground costs `simulate`: CPU seconds per sample with the ground on and off, in one process.
+"""What the ground and the overcast light cost `simulate`: CPU seconds per sample with both on and both off, in one
+process.
 
 Run from the repository root after ``dvc repro media`` (the world and every condition's media under ``data/``):
 ``.venv/bin/python -m benchmarks.bench_ground_overhead [--variants snow-aligned rain-aligned] [--samples 3]
@@ -8,7 +9,8 @@ For each variant, ``--samples`` keyframes spread over the world's first scene go
 (`weatheralign.simulate.weather_copy.run_sample`: load the frame, the images and range maps, the keyframe and its
 ``simulate.sweeps`` sweeps through the media, every camera, the JPEG and LiDAR files written into a scratch folder
 that is emptied between calls, outside the timing) with the scene's media as the media stage resolved them (the
-ground on) and the same media without their ground (off). The two alternate within every round, their order swapped
+ground and the overcast light on) and the same media without either (off): issue 39's whole change to the cameras
+and the LiDAR. The two alternate within every round, their order swapped
 from round to round, after one untimed warm-up call of each (numba's compiled code loaded), so that a machine shared
 with other work slows both alike. Reported per variant: CPU seconds (``time.process_time``, every thread of this
 process) and wall seconds per sample, on and off, and the overhead ``on / off - 1`` (CPU: the median over the rounds
@@ -34,7 +36,7 @@ from weatheralign.atomic import write_json
 REPO = Path(__file__).resolve().parents[1]
 REPORT = REPO / "reports" / "benchmarks" / "ground_overhead.json"
 TARGET_OVERHEAD = 0.20
-"""Issue 39: simulate's CPU per sample grows by at most this share with the ground on."""
+"""Issue 39: simulate's CPU per sample grows by at most this share with the ground and the overcast on."""
 
 
 def sample_jobs(nusc: Any, variant: str, samples: int) -> list[Any]:
@@ -51,13 +53,13 @@ def sample_jobs(nusc: Any, variant: str, samples: int) -> list[Any]:
 
 
 def timed_sample(nusc: Any, job: Any, ground: bool, world: Any, scratch: Path, sweeps: int) -> tuple[float, float]:
-    """(CPU seconds, wall seconds) of `run_sample` of ``job`` with its ground (``ground``) or without, written into
-    an emptied ``scratch``."""
+    """(CPU seconds, wall seconds) of `run_sample` of ``job`` with its ground and overcast light (``ground``) or
+    without either, written into an emptied ``scratch``."""
     from weatheralign.simulate.observe import ObserveOptions
     from weatheralign.simulate.weather_copy import run_sample
 
     if not ground:
-        job = replace(job, media=replace(job.media, ground=None))
+        job = replace(job, media=replace(job.media, ground=None, overcast=None))
     shutil.rmtree(scratch, ignore_errors=True)
     cpu0, wall0 = time.process_time(), time.perf_counter()
     run_sample(nusc, Path(world.dataroot), scratch, job, world.sensors, ObserveOptions(threads=1), "bench", 92,

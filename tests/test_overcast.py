@@ -9,11 +9,15 @@ import pytest
 
 from weatheralign.camera.fog import decode_srgb_u8, encode_srgb_u8
 from weatheralign.camera.overcast import (
+    BASE_RADIUS_FRACTION,
     DIRECT_TO_DIFFUSE,
+    LOG_FLOOR,
     SKY_IRRADIANCE_TABLE,
     Overcast,
+    clear_sky_colour,
     irradiance_factor,
     light_layers,
+    log_base,
     luminance,
     overcast_image,
     overcast_sky_luminance,
@@ -21,6 +25,7 @@ from weatheralign.camera.overcast import (
     relight,
     relight_naive,
     relit_u8,
+    up_in_camera,
 )
 
 
@@ -50,6 +55,34 @@ def _street(h: int = 48, w: int = 96) -> tuple[np.ndarray, np.ndarray, np.ndarra
     T = np.eye(4)
     T[:3, :3] = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]]).T  # OpenCV camera, global z up
     return encode_srgb_u8(lin), ranges, K, T
+
+
+@pytest.mark.parametrize("even", [False, True])
+def test_the_one_pass_layers_equal_their_numpy_definitions(even) -> None:
+    """`light_layers`' compiled front pass against `pixel_sin_elevation`, `luminance` and `clear_sky_colour`, bit for
+    bit, on a tilted, off-centre camera whose sky holds clipped pixels and an odd or even count of usable ones (the
+    median of an even count is the mean of the two middle codes)."""
+    rng = np.random.default_rng(3)
+    h, w = 30, 52
+    image = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+    image[:2, :7] = 255  # clipped: left out of the sky's colour
+    ranges = np.full((h, w), 15.0, np.float32)
+    ranges[:10] = np.inf
+    ranges[10, : 1 if even else 2] = np.inf
+    K = np.array([[61.3, 0.0, 27.9], [0.0, 60.7, 11.2], [0.0, 0.0, 1.0]])
+    tilt = 0.3
+    T = np.eye(4)
+    T[:3, :3] = np.array([[0.0, -np.sin(tilt), np.cos(tilt)], [-1.0, 0.0, 0.0], [0.0, -np.cos(tilt), -np.sin(tilt)]])
+    layers = light_layers(image, ranges, K, T)
+    sky = ~np.isfinite(ranges)
+    usable = int((sky & (decode_srgb_u8(image).max(axis=2) < 0.98)).sum())
+    assert usable % 2 == (0 if even else 1)
+    assert np.array_equal(layers.sky, sky)
+    assert np.array_equal(layers.sin_elevation, pixel_sin_elevation(K, w, h, up_in_camera(T)))
+    assert np.array_equal(layers.sky_colour, clear_sky_colour(decode_srgb_u8(image), sky))
+    assert np.array_equal(layers.linear, decode_srgb_u8(image))
+    log_y = np.log(np.maximum(luminance(decode_srgb_u8(image)), LOG_FLOOR)).astype(np.float32)
+    assert np.array_equal(layers.base, log_base(log_y, max(2, int(round(BASE_RADIUS_FRACTION * w)))))
 
 
 @pytest.mark.parametrize("real", [False, True])

@@ -4,7 +4,8 @@ composite (one pass over a full-resolution image instead of a dozen numpy passes
 The numpy forms in `weatheralign.camera.fog` (`encode_srgb_u8`'s table, `guided_filter`, `composite`) define the
 results; these kernels compute the same rule per pixel in float32 with the same operation order, so that
 `fog_composite` equals ``encode(composite(decode(image), refine(t), A))`` up to the bilinear upsampling of the
-guided-filter coefficients (OpenCV's half-pixel convention, reproduced here). Nothing here allocates per pixel; all
+guided-filter coefficients (OpenCV's half-pixel convention, reproduced here). The overcast light's kernels
+(`light_front_kernel`, `relit_encode_kernel`) equal `weatheralign.camera.overcast`'s numpy forms bit for bit. Nothing here allocates per pixel; all
 kernels release the GIL, so cameras can run on threads.
 """
 
@@ -281,3 +282,35 @@ def guided_affine_edit_kernel(image: U8, gain: NDArray, offset: NDArray, edited:
 
 __all__ = ["composite_guided_kernel", "composite_plain_kernel", "encode_one", "encode_srgb_kernel",
            "guided_affine_edit_kernel", "range_weight", "relit_encode_kernel"]
+
+
+@numba.njit(cache=True, nogil=True)
+def light_front_kernel(image: U8, range_map: NDArray, fx: float, cx: float, fy: float, cy: float, up: NDArray,
+                       decode_lut: F32, saturated: float) -> tuple[NDArray, F32, F32, NDArray]:
+    """One pass over a clear ``image`` (H, W, 3) uint8 sRGB and its ray lengths ``range_map`` (H, W) [m] (inf = sky)
+    seen by a pinhole (``fx``, ``cx``, ``fy``, ``cy`` [px]) whose camera frame has the global up ``up`` (3,): the
+    sky (H, W) bool, each pixel ray's sine of elevation (H, W) float32, the Rec. 709 luminance (H, W) float32 of the
+    decoded image and (3, 256) int64 per-channel code histograms of the sky pixels whose brightest decoded channel
+    is below ``saturated``. Same operation order as `weatheralign.camera.overcast.pixel_sin_elevation` (float64)
+    and `weatheralign.camera.overcast.luminance` (float32), so both are equal bit for bit."""
+    height, width = image.shape[0], image.shape[1]
+    sky = np.empty((height, width), np.bool_)
+    sin_el = np.empty((height, width), np.float32)
+    lum = np.empty((height, width), np.float32)
+    hist = np.zeros((3, 256), np.int64)
+    wr, wg, wb = np.float32(0.2126), np.float32(0.7152), np.float32(0.0722)
+    for v in range(height):
+        y = (v - cy) / fy
+        for u in range(width):
+            x = (u - cx) / fx
+            dot = up[0] * x + up[1] * y + up[2]
+            sin_el[v, u] = np.float32(dot / np.sqrt(x * x + y * y + 1.0))
+            r, g, b = decode_lut[image[v, u, 0]], decode_lut[image[v, u, 1]], decode_lut[image[v, u, 2]]
+            lum[v, u] = wr * r + wg * g + wb * b
+            is_sky = not np.isfinite(range_map[v, u])
+            sky[v, u] = is_sky
+            if is_sky and max(r, g, b) < saturated:
+                hist[0, image[v, u, 0]] += 1
+                hist[1, image[v, u, 1]] += 1
+                hist[2, image[v, u, 2]] += 1
+    return sky, sin_el, lum, hist

@@ -41,13 +41,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import StrEnum
+from functools import cached_property
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
 from weatheralign.camera.fog import SRGB_TABLES, decode_srgb_u8, encode_srgb_u8, guided_filter
-from weatheralign.camera.kernels import relit_encode_kernel
+from weatheralign.camera.kernels import light_front_kernel, relit_encode_kernel
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -72,6 +73,9 @@ HORIZONTAL_FACTOR = 7.0 / 9.0
 
 MIN_SKY_PIXELS = 50
 """Fewer sky pixels than this give no clear-sky colour (the light is taken as neutral)."""
+
+SKY_SATURATED = 0.98
+"""A sky pixel whose brightest linear channel reaches this is clipped and tells nothing of the sky's colour."""
 
 BASE_RADIUS_FRACTION = 0.025
 """The base layer's guided-filter radius as a share of the image width (24 px at 960 px)."""
@@ -228,10 +232,26 @@ def clear_sky_colour(linear: NDArray, sky: NDArray) -> F64:
     """(3,) the clear sky's light colour at unit luminance: the per-channel median of the unsaturated sky pixels
     (``sky`` (H, W) bool) of ``linear`` (H, W, 3); neutral with fewer than `MIN_SKY_PIXELS` of them."""
     px = np.asarray(linear, dtype=np.float64)[np.asarray(sky, dtype=bool)]
-    px = px[px.max(axis=1) < 0.98] if len(px) else px
+    px = px[px.max(axis=1) < SKY_SATURATED] if len(px) else px
     if len(px) < MIN_SKY_PIXELS:
         return np.ones(3)
     return unit_colour(np.median(px, axis=0))
+
+
+def sky_colour_from_histogram(hist: NDArray) -> F64:
+    """(3,) `clear_sky_colour` from (3, 256) per-channel sRGB code counts of the unsaturated sky pixels
+    (`weatheralign.camera.kernels.light_front_kernel`): the decoding is monotonic, so each channel's median is the
+    decoded median code (the mean of the two middle ones for an even count), equal to the median of the decoded
+    pixels."""
+    counts = np.asarray(hist, dtype=np.int64)
+    n = int(counts[0].sum())
+    if n < MIN_SKY_PIXELS:
+        return np.ones(3)
+    lut = SRGB_TABLES.decode.astype(np.float64)
+    cum = np.cumsum(counts, axis=1)
+    lower = np.array([lut[np.searchsorted(cum[c], (n - 1) // 2, side="right")] for c in range(3)])
+    upper = np.array([lut[np.searchsorted(cum[c], n // 2, side="right")] for c in range(3)])
+    return unit_colour((lower + upper) / 2.0)
 
 
 def log_base(log_y: NDArray, radius: int, eps: float = BASE_EPS) -> F32:
@@ -443,13 +463,13 @@ def auto_expose(clear: NDArray, relit: NDArray, sky: NDArray, sin_elevation: NDA
 
 @dataclass(frozen=True, eq=False)
 class LightLayers:
-    """What `light_layers` finds in a clear image: ``linear`` (H, W, 3) float32, ``sky`` (H, W) bool,
-    ``sin_elevation`` (H, W), ``base`` (H, W) log-luminance base layer, ``lit`` (H, W) lit share, ``sky_colour`` (3,)
-    the clear sky's light colour at unit luminance, ``direct_to_diffuse`` the image's own
+    """What `light_layers` finds in a clear image: ``image`` (H, W, 3) the clear uint8 sRGB image, ``sky`` (H, W)
+    bool, ``sin_elevation`` (H, W), ``base`` (H, W) log-luminance base layer, ``lit`` (H, W) lit share,
+    ``sky_colour`` (3,) the clear sky's light colour at unit luminance, ``direct_to_diffuse`` the image's own
     (`image_direct_to_diffuse`), ``ambient_colour`` (3,) the clear shadows' light (`ambient_colour`; the sky's when
     None) and ``sun_colour`` (3,) the clear sun's as recorded (`image_sun_colour`; the world's when None)."""
 
-    linear: F32
+    image: U8
     sky: NDArray[np.bool_]
     sin_elevation: F32
     base: F32
@@ -458,6 +478,12 @@ class LightLayers:
     direct_to_diffuse: float = DIRECT_TO_DIFFUSE
     ambient_colour: F64 | None = None
     sun_colour: F64 | None = None
+
+    @cached_property
+    def linear(self) -> F32:
+        """(H, W, 3) float32 linear RGB of ``image`` (decoded on first use: the fixed-exposure relight reads the
+        codes)."""
+        return decode_srgb_u8(self.image)
 
     @property
     def ambient(self) -> F64:
@@ -474,23 +500,32 @@ def light_layers(image: U8, range_map: NDArray, K: NDArray, T_global_cam: NDArra
     (`sky_from_colour`: a dense depth's sky misses them), its shadows are lit by the sky and by the light their
     sunlit surroundings reflect (`ambient_colour`, `bounce_share`), and its camera's white balance gives the sun its
     own colour (`image_sun_colour`). Otherwise the synthetic world's exact model: the range map's sky, the sky alone
-    in the shadows (the world renders no interreflection), the world's sun."""
-    lin = decode_srgb_u8(np.asarray(image, dtype=np.uint8))
-    h, w = lin.shape[:2]
-    sky = ~np.isfinite(np.asarray(range_map))
-    sin_el = pixel_sin_elevation(K, w, h, up_in_camera(T_global_cam))
-    colour = clear_sky_colour(lin, sky)
-    if real:
+    in the shadows (the world renders no interreflection), the world's sun.
+
+    The per-pixel layers (sky, `pixel_sin_elevation`, `luminance`, and the sky pixels' code histograms of
+    `clear_sky_colour`) come from one compiled pass (`weatheralign.camera.kernels.light_front_kernel`), equal to
+    those functions bit for bit."""
+    img = np.ascontiguousarray(image, dtype=np.uint8)
+    h, w = img.shape[:2]
+    Kf = np.asarray(K, dtype=np.float64)
+    sky, sin_el, lum, hist = light_front_kernel(img, np.ascontiguousarray(range_map), float(Kf[0, 0]),
+                                                float(Kf[0, 2]), float(Kf[1, 1]), float(Kf[1, 2]),
+                                                up_in_camera(T_global_cam), SRGB_TABLES.decode, SKY_SATURATED)
+    colour = sky_colour_from_histogram(hist)
+    lin = decode_srgb_u8(img) if real else None
+    if lin is not None:
         sky = sky_from_colour(lin, sky, sin_el)
-    log_y = np.log(np.maximum(luminance(lin), LOG_FLOOR)).astype(np.float32)
+    log_y = np.log(np.maximum(lum, LOG_FLOOR)).astype(np.float32)
     base = log_base(log_y, max(2, int(round(BASE_RADIUS_FRACTION * w))))
     s = image_direct_to_diffuse(colour, int(sky.sum()))
     lit = lit_share(base, ~sky, max(3, int(round(ENVELOPE_FRACTION * w))), max(s, 1e-3))
-    if not real:
-        return LightLayers(lin, sky, sin_el, base, lit, colour, s)
+    if lin is None:
+        return LightLayers(img, sky, sin_el, base, lit, colour, s)
     ambient = ambient_colour(lin, ~sky, colour, bounce_share(s))
     sun = image_sun_colour(lin, ~sky, lit, ambient, s)
-    return LightLayers(lin, sky, sin_el, base, lit, colour, s, ambient, sun)
+    out = LightLayers(img, sky, sin_el, base, lit, colour, s, ambient, sun)
+    out.__dict__["linear"] = lin  # the cached_property's slot: decoded once
+    return out
 
 
 def overcast_linear(layers: LightLayers, overcast: Overcast, exposure: Exposure = Exposure.FIXED
@@ -541,10 +576,11 @@ def overcast_image(image: U8, range_map: NDArray, K: NDArray, T_global_cam: NDAr
 
 __all__ = ["BASE_EPS", "BASE_RADIUS_FRACTION", "BRIGHT_PERCENTILE", "CLEAR_SKY_BLUE_RED", "DIRECT_TO_DIFFUSE",
            "ENVELOPE_FRACTION", "GROUND_ALBEDO", "HORIZONTAL_FACTOR", "REC709", "SKY_IRRADIANCE_TABLE",
-           "SKY_MATCH_BRIGHTNESS", "SKY_MATCH_LOG", "SKY_VIEW_FACTOR", "SUN_COLOUR", "SUN_WHITE_PERCENTILE",
+           "SKY_MATCH_BRIGHTNESS", "SKY_MATCH_LOG", "SKY_SATURATED", "SKY_VIEW_FACTOR", "SUN_COLOUR",
+           "SUN_WHITE_PERCENTILE",
            "SURROUND_ALBEDO", "ZENITH_OVER_SURFACE", "Exposure", "LightLayers", "Overcast", "ambient_colour",
            "auto_expose", "bounce_share", "clear_sky_colour", "cloud_share", "image_direct_to_diffuse",
            "image_sun_colour", "irradiance_factor", "light_layers", "lit_share", "log_base", "luminance",
            "metered_log_luminance", "metering_mask", "overcast_edit", "overcast_image", "overcast_linear",
            "overcast_sky_luminance", "pixel_sin_elevation", "relight", "relight_gain", "relight_naive", "relit_u8",
-           "sky_from_colour", "unit_colour", "up_in_camera"]
+           "sky_colour_from_histogram", "sky_from_colour", "unit_colour", "up_in_camera"]
