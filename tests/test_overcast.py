@@ -9,15 +9,13 @@ import pytest
 
 from weatheralign.camera.fog import decode_srgb_u8, encode_srgb_u8
 from weatheralign.camera.overcast import (
-    BASE_RADIUS_FRACTION,
     DIRECT_TO_DIFFUSE,
-    LOG_FLOOR,
     SKY_IRRADIANCE_TABLE,
     Overcast,
     clear_sky_colour,
     irradiance_factor,
     light_layers,
-    log_base,
+    light_layers_naive,
     luminance,
     overcast_image,
     overcast_sky_luminance,
@@ -57,22 +55,31 @@ def _street(h: int = 48, w: int = 96) -> tuple[np.ndarray, np.ndarray, np.ndarra
     return encode_srgb_u8(lin), ranges, K, T
 
 
-@pytest.mark.parametrize("even", [False, True])
-def test_the_one_pass_layers_equal_their_numpy_definitions(even) -> None:
-    """`light_layers`' compiled front pass against `pixel_sin_elevation`, `luminance` and `clear_sky_colour`, bit for
-    bit, on a tilted, off-centre camera whose sky holds clipped pixels and an odd or even count of usable ones (the
-    median of an even count is the mean of the two middle codes)."""
+def _tilted_camera(h: int, w: int, even: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A random image under a sky of 10 rows (and 1 or 2 pixels) whose corner is clipped, its ray lengths, an
+    off-centre pinhole and a camera tilted 0.3 rad up (the sky's usable pixel count odd or even)."""
     rng = np.random.default_rng(3)
-    h, w = 30, 52
     image = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
     image[:2, :7] = 255  # clipped: left out of the sky's colour
     ranges = np.full((h, w), 15.0, np.float32)
     ranges[:10] = np.inf
-    ranges[10, : 1 if even else 2] = np.inf
+    image[10, :2] = 100  # two more sky pixels, unclipped: one or both make the count odd or even
+    usable = int((~np.isfinite(ranges) & (decode_srgb_u8(image).max(axis=2) < 0.98)).sum())
+    ranges[10, : 1 if (usable + 1) % 2 == (0 if even else 1) else 2] = np.inf
     K = np.array([[61.3, 0.0, 27.9], [0.0, 60.7, 11.2], [0.0, 0.0, 1.0]])
     tilt = 0.3
     T = np.eye(4)
     T[:3, :3] = np.array([[0.0, -np.sin(tilt), np.cos(tilt)], [-1.0, 0.0, 0.0], [0.0, -np.cos(tilt), -np.sin(tilt)]])
+    return image, ranges, K, T
+
+
+@pytest.mark.parametrize("even", [False, True])
+def test_the_compiled_layers_equal_their_numpy_definitions(even) -> None:
+    """`light_layers`' compiled passes against `pixel_sin_elevation` and `clear_sky_colour` bit for bit, on a
+    tilted, off-centre camera of odd size whose sky holds clipped pixels and an odd or even count of usable ones
+    (the median of an even count is the mean of the two middle codes)."""
+    h, w = 31, 53
+    image, ranges, K, T = _tilted_camera(h, w, even)
     layers = light_layers(image, ranges, K, T)
     sky = ~np.isfinite(ranges)
     usable = int((sky & (decode_srgb_u8(image).max(axis=2) < 0.98)).sum())
@@ -81,8 +88,21 @@ def test_the_one_pass_layers_equal_their_numpy_definitions(even) -> None:
     assert np.array_equal(layers.sin_elevation, pixel_sin_elevation(K, w, h, up_in_camera(T)))
     assert np.array_equal(layers.sky_colour, clear_sky_colour(decode_srgb_u8(image), sky))
     assert np.array_equal(layers.linear, decode_srgb_u8(image))
-    log_y = np.log(np.maximum(luminance(decode_srgb_u8(image)), LOG_FLOOR)).astype(np.float32)
-    assert np.array_equal(layers.base, log_base(log_y, max(2, int(round(BASE_RADIUS_FRACTION * w)))))
+
+
+def test_the_compiled_lit_share_follows_its_full_resolution_definition() -> None:
+    """The lit share from the compiled passes (coefficients on the 2 x 2 block grid, base and envelope brought to
+    every pixel) against `light_layers_naive` (numpy `log_base` and `lit_share` at full resolution) on a sunlit and
+    shadowed street, and on its shadow's edge: equal where the light is even, within a few hundredths at edges."""
+    image, ranges, K, T = _street(96, 192)
+    fast = light_layers(image, ranges, K, T)
+    colour, slow = light_layers_naive(image, ranges, K, T)
+    assert np.array_equal(fast.sky_colour, colour)
+    diff = np.abs(fast.lit - slow)
+    assert diff[np.isinf(ranges)].max() == 0.0
+    assert np.median(diff) < 1e-3 and np.percentile(diff, 99) < 0.05, (np.median(diff), np.percentile(diff, 99))
+    street = fast.lit[30:, :]
+    assert street[:, :80].mean() > 0.9 and street[:, 112:].mean() < 0.1  # the sunlit half and the shadowed half
 
 
 @pytest.mark.parametrize("real", [False, True])

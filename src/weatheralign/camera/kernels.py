@@ -5,7 +5,8 @@ The numpy forms in `weatheralign.camera.fog` (`encode_srgb_u8`'s table, `guided_
 results; these kernels compute the same rule per pixel in float32 with the same operation order, so that
 `fog_composite` equals ``encode(composite(decode(image), refine(t), A))`` up to the bilinear upsampling of the
 guided-filter coefficients (OpenCV's half-pixel convention, reproduced here). The overcast light's kernels
-(`light_front_kernel`, `relit_encode_kernel`) equal `weatheralign.camera.overcast`'s numpy forms bit for bit. Nothing here allocates per pixel; all
+(`light_front_kernel`, `relit_encode_kernel`) equal `weatheralign.camera.overcast`'s numpy forms bit for bit
+(the blocks' mean luminance to float32 rounding). Nothing here allocates per pixel; all
 kernels release the GIL, so cameras can run on threads.
 """
 
@@ -284,33 +285,88 @@ __all__ = ["composite_guided_kernel", "composite_plain_kernel", "encode_one", "e
            "guided_affine_edit_kernel", "range_weight", "relit_encode_kernel"]
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _log_luminance(image: U8, v: int, u: int, decode_lut: F32, log_floor: np.float32) -> np.float32:
+    """``log(max(Y, log_floor))`` of the Rec. 709 luminance ``Y`` (float32, `weatheralign.camera.overcast.luminance`'s
+    operation order) of pixel (``v``, ``u``) of the uint8 sRGB ``image``."""
+    y = (np.float32(0.2126) * decode_lut[image[v, u, 0]] + np.float32(0.7152) * decode_lut[image[v, u, 1]]
+         + np.float32(0.0722) * decode_lut[image[v, u, 2]])
+    return np.log(max(y, log_floor))
+
+
 @numba.njit(cache=True, nogil=True)
 def light_front_kernel(image: U8, range_map: NDArray, fx: float, cx: float, fy: float, cy: float, up: NDArray,
-                       decode_lut: F32, saturated: float) -> tuple[NDArray, F32, F32, NDArray]:
-    """One pass over a clear ``image`` (H, W, 3) uint8 sRGB and its ray lengths ``range_map`` (H, W) [m] (inf = sky)
-    seen by a pinhole (``fx``, ``cx``, ``fy``, ``cy`` [px]) whose camera frame has the global up ``up`` (3,): the
-    sky (H, W) bool, each pixel ray's sine of elevation (H, W) float32, the Rec. 709 luminance (H, W) float32 of the
-    decoded image and (3, 256) int64 per-channel code histograms of the sky pixels whose brightest decoded channel
-    is below ``saturated``. Same operation order as `weatheralign.camera.overcast.pixel_sin_elevation` (float64)
-    and `weatheralign.camera.overcast.luminance` (float32), so both are equal bit for bit."""
+                       decode_lut: F32, saturated: float, log_floor: float) -> tuple[NDArray, F32, NDArray, F32, F32]:
+    """One pass over a clear ``image`` (H, W, 3) uint8 sRGB (H, W >= 2) and its ray lengths ``range_map`` (H, W)
+    [m] (inf = sky) seen by a pinhole (``fx``, ``cx``, ``fy``, ``cy`` [px]) whose camera frame has the global up
+    ``up`` (3,): the sky (H, W) bool; each pixel ray's sine of elevation (H, W) float32, operation for operation
+    `weatheralign.camera.overcast.pixel_sin_elevation` (float64), so equal bit for bit; (3, 256) int64 per-channel
+    code histograms of the sky pixels whose brightest decoded channel is below ``saturated``; and on the
+    (H // 2, W // 2) grid of 2 x 2 blocks (the odd last row and column join the last block) the mean
+    log-luminance (`_log_luminance`) and the share of surface (not sky) pixels, float32."""
     height, width = image.shape[0], image.shape[1]
+    h2, w2 = height // 2, width // 2
     sky = np.empty((height, width), np.bool_)
     sin_el = np.empty((height, width), np.float32)
-    lum = np.empty((height, width), np.float32)
     hist = np.zeros((3, 256), np.int64)
-    wr, wg, wb = np.float32(0.2126), np.float32(0.7152), np.float32(0.0722)
+    log_sum = np.zeros((h2, w2), np.float64)
+    surface = np.zeros((h2, w2), np.float64)
+    count = np.zeros((h2, w2), np.float64)
+    floor = np.float32(log_floor)
     for v in range(height):
         y = (v - cy) / fy
+        bv = min(v // 2, h2 - 1)
         for u in range(width):
             x = (u - cx) / fx
             dot = up[0] * x + up[1] * y + up[2]
             sin_el[v, u] = np.float32(dot / np.sqrt(x * x + y * y + 1.0))
-            r, g, b = decode_lut[image[v, u, 0]], decode_lut[image[v, u, 1]], decode_lut[image[v, u, 2]]
-            lum[v, u] = wr * r + wg * g + wb * b
+            bu = min(u // 2, w2 - 1)
+            log_sum[bv, bu] += _log_luminance(image, v, u, decode_lut, floor)
+            count[bv, bu] += 1.0
             is_sky = not np.isfinite(range_map[v, u])
             sky[v, u] = is_sky
-            if is_sky and max(r, g, b) < saturated:
+            if not is_sky:
+                surface[bv, bu] += 1.0
+            elif max(decode_lut[image[v, u, 0]], decode_lut[image[v, u, 1]], decode_lut[image[v, u, 2]]) < saturated:
                 hist[0, image[v, u, 0]] += 1
                 hist[1, image[v, u, 1]] += 1
                 hist[2, image[v, u, 2]] += 1
-    return sky, sin_el, lum, hist
+    return sky, sin_el, hist, (log_sum / count).astype(np.float32), (surface / count).astype(np.float32)
+
+
+@numba.njit(cache=True, nogil=True)
+def lit_share_kernel(image: U8, sky: NDArray, coeffs: F32, envelope: F32, direct_to_diffuse: float,
+                     decode_lut: F32, log_floor: float) -> F32:
+    """(H, W) float32 lit share of a clear ``image`` (H, W, 3) uint8 sRGB in one pass: each pixel's base
+    log-luminance ``a L + b`` (``L`` its `_log_luminance`, ``(a, b)`` the guided-filter coefficients ``coeffs``
+    (h, w, 2) upsampled bilinearly) against the ``envelope`` (hs, ws) upsampled bilinearly (and at least the base):
+    ``m = clip(((1 + s) exp(base - envelope) - 1) / s, 0, 1)``, 0 on the ``sky`` (H, W)
+    (`weatheralign.camera.overcast.lit_share` of `weatheralign.camera.overcast.log_base`)."""
+    height, width = image.shape[0], image.shape[1]
+    ylo, yhi, wys = _axis_weights(height, coeffs.shape[0])
+    xlo, xhi, wxs = _axis_weights(width, coeffs.shape[1])
+    eylo, eyhi, ewys = _axis_weights(height, envelope.shape[0])
+    exlo, exhi, ewxs = _axis_weights(width, envelope.shape[1])
+    out = np.empty((height, width), np.float32)
+    one = np.float32(1.0)
+    s = np.float32(direct_to_diffuse)
+    floor = np.float32(log_floor)
+    for v in range(height):
+        y0, y1, wy = ylo[v], yhi[v], wys[v]
+        ey0, ey1, ewy = eylo[v], eyhi[v], ewys[v]
+        for u in range(width):
+            if sky[v, u]:
+                out[v, u] = 0.0
+                continue
+            x0, x1, wx = xlo[u], xhi[u], wxs[u]
+            ab = ((one - wy) * ((one - wx) * coeffs[y0, x0, 0] + wx * coeffs[y0, x1, 0])
+                  + wy * ((one - wx) * coeffs[y1, x0, 0] + wx * coeffs[y1, x1, 0]))
+            bb = ((one - wy) * ((one - wx) * coeffs[y0, x0, 1] + wx * coeffs[y0, x1, 1])
+                  + wy * ((one - wx) * coeffs[y1, x0, 1] + wx * coeffs[y1, x1, 1]))
+            base = ab * _log_luminance(image, v, u, decode_lut, floor) + bb
+            ex0, ex1, ewx = exlo[u], exhi[u], ewxs[u]
+            env = ((one - ewy) * ((one - ewx) * envelope[ey0, ex0] + ewx * envelope[ey0, ex1])
+                   + ewy * ((one - ewx) * envelope[ey1, ex0] + ewx * envelope[ey1, ex1]))
+            m = (np.exp(base - max(env, base)) * (one + s) - one) / s
+            out[v, u] = min(max(m, np.float32(0.0)), one)
+    return out

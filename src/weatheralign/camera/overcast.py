@@ -47,8 +47,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from weatheralign.camera.fog import SRGB_TABLES, decode_srgb_u8, encode_srgb_u8, guided_filter
-from weatheralign.camera.kernels import light_front_kernel, relit_encode_kernel
+from weatheralign.camera.fog import SRGB_TABLES, decode_srgb_u8, encode_srgb_u8, guided_coefficients, guided_filter
+from weatheralign.camera.kernels import light_front_kernel, lit_share_kernel, relit_encode_kernel
 
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
@@ -261,27 +261,41 @@ def log_base(log_y: NDArray, radius: int, eps: float = BASE_EPS) -> F32:
     return guided_filter(ly, ly, radius, eps, subsample=2 if min(ly.shape) >= 64 else 1)
 
 
+def envelope_grid(height: int, width: int, window: int) -> tuple[tuple[int, int], int]:
+    """The coarse grid of `lit_share`'s envelope for an image of ``height`` x ``width`` px: its (width, height) in
+    cells (a 1/f-size copy, f = 8 from 256 px on, 1/64 of the smaller side beyond 512 px) and the dilation window in
+    cells for a ``window`` [px] at full size."""
+    f = max(1, min(height, width) // 64, 8 if min(height, width) >= 256 else 1)
+    return (max(1, width // f), max(1, height // f)), max(3, int(round(window / f)) | 1)
+
+
+def coarse_envelope(base: NDArray, weight: NDArray, small: tuple[int, int], k: int) -> F32:
+    """(small[1], small[0]) upper envelope of the base log-luminance ``base`` (h, w) weighted by ``weight`` (h, w)
+    in [0, 1] (the share of surface in each pixel): the area-averaged surface mean on the ``small`` grid (cells
+    under a quarter surface take the lowest surface base, so a lone bright pixel does not set it), its maximum over
+    ``k`` x ``k`` cells, smoothed by a box a quarter of that size."""
+    b = np.asarray(base, dtype=np.float32)
+    wt = np.asarray(weight, dtype=np.float32)
+    floor = float(b[wt > 0].min())
+    area = cv2.resize(wt, small, interpolation=cv2.INTER_AREA)
+    mean = cv2.resize(b * wt, small, interpolation=cv2.INTER_AREA) / np.maximum(area, 1e-6)
+    mean = np.where(area > 0.25, mean, floor).astype(np.float32)
+    env = cv2.dilate(mean, np.ones((k, k), np.uint8))
+    soft = max(3, (k // 4) | 1)
+    return cv2.blur(env, (soft, soft), borderType=cv2.BORDER_REFLECT)
+
+
 def lit_share(base: NDArray, valid: NDArray, window: int, direct_to_diffuse: float = DIRECT_TO_DIFFUSE) -> F32:
     """(H, W) lit share ``m`` in [0, 1] of each pixel: its base log-luminance ``base`` (H, W) against the upper
     envelope over ``window`` px of the ``valid`` (H, W) pixels (surfaces, not sky): ``exp(base - envelope) =
-    (1 + s m) / (1 + s)``. The envelope is the maximum of a 1/8-size copy (area-averaged, so a lone bright pixel does
-    not set it) over the window, smoothed by a box a quarter of its size and brought back bilinearly."""
+    (1 + s m) / (1 + s)``. The envelope is `coarse_envelope` on the `envelope_grid`, brought back bilinearly. The
+    numpy form of `light_layers`' compiled pass (`weatheralign.camera.kernels.lit_share_kernel`)."""
     b = np.asarray(base, dtype=np.float32)
     ok = np.asarray(valid, dtype=bool)
     h, w = b.shape
     if not ok.any():
         return np.zeros((h, w), np.float32)
-    f = max(1, min(h, w) // 64, 8 if min(h, w) >= 256 else 1)
-    small = (max(1, w // f), max(1, h // f))
-    floor = float(b[ok].min())
-    filled = np.where(ok, b, floor).astype(np.float32)
-    weight = cv2.resize(ok.astype(np.float32), small, interpolation=cv2.INTER_AREA)
-    mean = cv2.resize(filled * ok, small, interpolation=cv2.INTER_AREA) / np.maximum(weight, 1e-6)
-    mean = np.where(weight > 0.25, mean, floor).astype(np.float32)
-    k = max(3, int(round(window / f)) | 1)
-    env = cv2.dilate(mean, np.ones((k, k), np.uint8))
-    soft = max(3, (k // 4) | 1)
-    env = cv2.blur(env, (soft, soft), borderType=cv2.BORDER_REFLECT)
+    env = coarse_envelope(b, ok.astype(np.float32), *envelope_grid(h, w, window))
     env = np.maximum(cv2.resize(env, (w, h), interpolation=cv2.INTER_LINEAR), b)
     s = float(direct_to_diffuse)
     m = (np.exp(b - env) * (1.0 + s) - 1.0) / s
@@ -464,7 +478,7 @@ def auto_expose(clear: NDArray, relit: NDArray, sky: NDArray, sin_elevation: NDA
 @dataclass(frozen=True, eq=False)
 class LightLayers:
     """What `light_layers` finds in a clear image: ``image`` (H, W, 3) the clear uint8 sRGB image, ``sky`` (H, W)
-    bool, ``sin_elevation`` (H, W), ``base`` (H, W) log-luminance base layer, ``lit`` (H, W) lit share,
+    bool, ``sin_elevation`` (H, W), ``lit`` (H, W) lit share,
     ``sky_colour`` (3,) the clear sky's light colour at unit luminance, ``direct_to_diffuse`` the image's own
     (`image_direct_to_diffuse`), ``ambient_colour`` (3,) the clear shadows' light (`ambient_colour`; the sky's when
     None) and ``sun_colour`` (3,) the clear sun's as recorded (`image_sun_colour`; the world's when None)."""
@@ -472,7 +486,6 @@ class LightLayers:
     image: U8
     sky: NDArray[np.bool_]
     sin_elevation: F32
-    base: F32
     lit: F32
     sky_colour: F64
     direct_to_diffuse: float = DIRECT_TO_DIFFUSE
@@ -502,30 +515,60 @@ def light_layers(image: U8, range_map: NDArray, K: NDArray, T_global_cam: NDArra
     own colour (`image_sun_colour`). Otherwise the synthetic world's exact model: the range map's sky, the sky alone
     in the shadows (the world renders no interreflection), the world's sun.
 
-    The per-pixel layers (sky, `pixel_sin_elevation`, `luminance`, and the sky pixels' code histograms of
-    `clear_sky_colour`) come from one compiled pass (`weatheralign.camera.kernels.light_front_kernel`), equal to
-    those functions bit for bit."""
+    The layers come from two compiled passes: `weatheralign.camera.kernels.light_front_kernel` (the sky, the
+    elevation, the sky pixels' code histograms of `clear_sky_colour`, the log-luminance on the 2 x 2 block grid
+    where `log_base` finds its coefficients) and `weatheralign.camera.kernels.lit_share_kernel` (`log_base` and
+    `lit_share` at every pixel; the envelope from the block grid)."""
     img = np.ascontiguousarray(image, dtype=np.uint8)
     h, w = img.shape[:2]
+    if h < 4 or w < 4:
+        raise ValueError(f"light_layers: image of {h} x {w} px; expected at least 4 x 4")
     Kf = np.asarray(K, dtype=np.float64)
-    sky, sin_el, lum, hist = light_front_kernel(img, np.ascontiguousarray(range_map), float(Kf[0, 0]),
-                                                float(Kf[0, 2]), float(Kf[1, 1]), float(Kf[1, 2]),
-                                                up_in_camera(T_global_cam), SRGB_TABLES.decode, SKY_SATURATED)
+    sky, sin_el, hist, log_half, surface_half = light_front_kernel(
+        img, np.ascontiguousarray(range_map), float(Kf[0, 0]), float(Kf[0, 2]), float(Kf[1, 1]), float(Kf[1, 2]),
+        up_in_camera(T_global_cam), SRGB_TABLES.decode, SKY_SATURATED, LOG_FLOOR)
     colour = sky_colour_from_histogram(hist)
     lin = decode_srgb_u8(img) if real else None
-    if lin is not None:
+    if lin is not None:  # the gaps between leaves are sky too
         sky = sky_from_colour(lin, sky, sin_el)
-    log_y = np.log(np.maximum(lum, LOG_FLOOR)).astype(np.float32)
-    base = log_base(log_y, max(2, int(round(BASE_RADIUS_FRACTION * w))))
+        surface_half = cv2.resize((~sky).astype(np.float32), log_half.shape[::-1], interpolation=cv2.INTER_AREA)
     s = image_direct_to_diffuse(colour, int(sky.sum()))
-    lit = lit_share(base, ~sky, max(3, int(round(ENVELOPE_FRACTION * w))), max(s, 1e-3))
+    lit = np.zeros((h, w), np.float32)
+    if surface_half.max() > 0.0:
+        coeffs = guided_coefficients(log_half, log_half, max(1, int(round(base_radius(w) / 2))), BASE_EPS)
+        base_half = coeffs[..., 0] * log_half + coeffs[..., 1]
+        envelope = coarse_envelope(base_half, surface_half, *envelope_grid(h, w, envelope_window(w)))
+        lit = lit_share_kernel(img, sky, np.ascontiguousarray(coeffs), envelope, max(s, 1e-3), SRGB_TABLES.decode,
+                               LOG_FLOOR)
     if lin is None:
-        return LightLayers(img, sky, sin_el, base, lit, colour, s)
+        return LightLayers(img, sky, sin_el, lit, colour, s)
     ambient = ambient_colour(lin, ~sky, colour, bounce_share(s))
     sun = image_sun_colour(lin, ~sky, lit, ambient, s)
-    out = LightLayers(img, sky, sin_el, base, lit, colour, s, ambient, sun)
+    out = LightLayers(img, sky, sin_el, lit, colour, s, ambient, sun)
     out.__dict__["linear"] = lin  # the cached_property's slot: decoded once
     return out
+
+
+def base_radius(width: int) -> int:
+    """`log_base`'s radius [px] for an image ``width`` px wide."""
+    return max(2, int(round(BASE_RADIUS_FRACTION * width)))
+
+
+def envelope_window(width: int) -> int:
+    """`lit_share`'s envelope window [px] for an image ``width`` px wide."""
+    return max(3, int(round(ENVELOPE_FRACTION * width)))
+
+
+def light_layers_naive(image: U8, range_map: NDArray, K: NDArray, T_global_cam: NDArray) -> tuple[F32, F32]:
+    """(sky's colour (3,), lit share (H, W)) of the synthetic path of `light_layers` in numpy at full resolution:
+    `clear_sky_colour`, then `lit_share` of `log_base` of the log-luminance. Its oracle."""
+    lin = decode_srgb_u8(np.asarray(image, dtype=np.uint8))
+    sky = ~np.isfinite(np.asarray(range_map))
+    colour = clear_sky_colour(lin, sky)
+    log_y = np.log(np.maximum(luminance(lin), LOG_FLOOR)).astype(np.float32)
+    base = log_base(log_y, base_radius(lin.shape[1]))
+    s = image_direct_to_diffuse(colour, int(sky.sum()))
+    return colour, lit_share(base, ~sky, envelope_window(lin.shape[1]), max(s, 1e-3))
 
 
 def overcast_linear(layers: LightLayers, overcast: Overcast, exposure: Exposure = Exposure.FIXED
@@ -577,10 +620,10 @@ def overcast_image(image: U8, range_map: NDArray, K: NDArray, T_global_cam: NDAr
 __all__ = ["BASE_EPS", "BASE_RADIUS_FRACTION", "BRIGHT_PERCENTILE", "CLEAR_SKY_BLUE_RED", "DIRECT_TO_DIFFUSE",
            "ENVELOPE_FRACTION", "GROUND_ALBEDO", "HORIZONTAL_FACTOR", "REC709", "SKY_IRRADIANCE_TABLE",
            "SKY_MATCH_BRIGHTNESS", "SKY_MATCH_LOG", "SKY_SATURATED", "SKY_VIEW_FACTOR", "SUN_COLOUR",
-           "SUN_WHITE_PERCENTILE",
-           "SURROUND_ALBEDO", "ZENITH_OVER_SURFACE", "Exposure", "LightLayers", "Overcast", "ambient_colour",
-           "auto_expose", "bounce_share", "clear_sky_colour", "cloud_share", "image_direct_to_diffuse",
-           "image_sun_colour", "irradiance_factor", "light_layers", "lit_share", "log_base", "luminance",
+           "SUN_WHITE_PERCENTILE", "SURROUND_ALBEDO", "ZENITH_OVER_SURFACE", "Exposure", "LightLayers", "Overcast",
+           "ambient_colour", "auto_expose", "base_radius", "bounce_share", "clear_sky_colour", "cloud_share",
+           "coarse_envelope", "envelope_grid", "envelope_window", "image_direct_to_diffuse", "image_sun_colour",
+           "irradiance_factor", "light_layers", "light_layers_naive", "lit_share", "log_base", "luminance",
            "metered_log_luminance", "metering_mask", "overcast_edit", "overcast_image", "overcast_linear",
            "overcast_sky_luminance", "pixel_sin_elevation", "relight", "relight_gain", "relight_naive", "relit_u8",
            "sky_colour_from_histogram", "sky_from_colour", "unit_colour", "up_in_camera"]
