@@ -115,9 +115,11 @@ def _basis(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _naive(beams: Beams, particles: Particles, velocity, *, reflectivity=SNOW_REFLECTIVITY,
            sensor: PulseSensor = SENSOR, model: IntensityModel = SYNTHETIC_INTENSITY, extinction=0.0, floor=FLOOR,
-           keep=KEEP) -> dict:
+           keep=KEEP, clear=None) -> dict:
     """Brute force per beam (see the module docstring): shares per particle id, measured range, intensity, label,
-    and the margin flags that make a beam's decision borderline."""
+    and the margin flags that make a beam's decision borderline. ``clear`` (B,): the clear value each rounded
+    ``intensity0`` stood for (`beam_clear_readings`), which decides whether a kept target fell under the floor: its
+    difference from ``intensity0`` carried through the target's transmission; None: ``intensity0`` as read."""
     q = _sunflower(N_SUB)
     tanh = math.tan(0.5 * beams.divergence)
     length_pulse = sensor.pulse_length
@@ -127,6 +129,7 @@ def _naive(beams: Beams, particles: Particles, velocity, *, reflectivity=SNOW_RE
     for b in range(len(beams)):
         o, d, L = beams.origins[b], beams.directions[b], beams.lengths[b]
         i0, ret = beams.intensity0[b], bool(beams.has_return[b])
+        x = i0 if clear is None else float(clear[b])
         c = particles.positions + vel * (beams.times[b] - particles.t)
         rad = 0.5 * particles.diameters
         v = c - o
@@ -169,14 +172,20 @@ def _naive(beams: Beams, particles: Particles, velocity, *, reflectivity=SNOW_RE
         k = int(np.argmax(wave))
         p_star, r_star = wave[k], grid[k] - 0.5 * length_pulse
         label, rng, inten, pid, border = ParticleLabel.NO_ECHO, np.nan, 0.0, -1, False
+
+        def kept(reading: float) -> tuple[ParticleLabel, bool]:  # the target's outcome and whether it is borderline
+            seen = reading + (x - i0) * remaining * math.exp(-2.0 * extinction * L)
+            label = ParticleLabel.LOST if seen < floor and seen < x else ParticleLabel.ATTENUATED
+            return label, clear is not None and abs(seen - floor) < 0.05 * floor
+
         if p_star <= 0:
             if ret:
                 label = ParticleLabel.ATTENUATED if remaining > 0 else ParticleLabel.LOST
         elif ret and abs(r_star - L) <= keep:
             inten = min(p_star * L * L * float(model.gain(L)), 255.0)
-            label = ParticleLabel.LOST if inten < floor and inten < i0 else ParticleLabel.ATTENUATED
+            label, near_floor = kept(inten)
             rng = L
-            border = abs(abs(r_star - L) - keep) < 0.05
+            border = abs(abs(r_star - L) - keep) < 0.05 or near_floor
         else:
             pid = max(contrib, key=lambda key: contrib[key][k])
             inten = min(p_star * r_star ** 2 * float(model.gain(r_star)), 255.0)
@@ -187,7 +196,8 @@ def _naive(beams: Beams, particles: Particles, velocity, *, reflectivity=SNOW_RE
                 if ret:
                     kt = int(np.argmin(np.abs(grid - (L + 0.5 * length_pulse))))
                     inten = min(wave[kt] * L * L * float(model.gain(L)), 255.0)
-                    label = ParticleLabel.LOST if inten < floor and inten < i0 else ParticleLabel.ATTENUATED
+                    label, near_floor = kept(inten)
+                    border |= near_floor
                     rng, pid = L, -1
                 else:
                     label, rng, pid = ParticleLabel.NO_ECHO, np.nan, -1
@@ -967,3 +977,51 @@ def test_noise_keys_ignore_ulp_differences_of_a_direction_and_tell_beams_apart()
     assert not np.any(detector_noise_keys(times, step, ring) == keys)
     assert not np.any(detector_noise_keys(times, d, ring + 1) == keys)
     assert not np.any(detector_noise_keys(np.nextafter(times, np.inf), d, ring) == keys)
+
+
+# ------------------------------------------------------------------- readings at the floor, the road under it
+
+
+def test_fast_kernel_agrees_with_brute_force_on_rounded_readings_at_the_floor():
+    """Integer clear readings of 1..3 at a floor of 1 behind rain drops: the kernel's kept-or-lost decisions on the
+    clear values the readings stood for (`beam_clear_readings`) are the brute force's on the same values."""
+    from weatheralign.lidar.particles.api import beam_clear_readings
+
+    beams, fld = _random_scene(7)
+    rng = np.random.default_rng(7)
+    beams = replace(beams, intensity0=np.where(beams.has_return, rng.integers(1, 4, len(beams)), 0.0).astype(float))
+    lidar = make_lidar(noise_floor=1.0)
+    clear = beam_clear_readings(beams, 1.0)
+    assert clear is not None and np.all(clear[beams.has_return] != beams.intensity0[beams.has_return])
+    res = simulate_particles(beams, fld, lidar=lidar, reflectivity=RAIN_REFLECTIVITY, ratio_threshold=0.0,
+                             attenuation=False)
+    everything = fld.materialize([-15, -15, -1], [15.5, 15, 3], res.stats["t_ref"], min_diameter=0.0)
+    naive = _naive(beams, everything, fld.velocity, reflectivity=RAIN_REFLECTIVITY, floor=1.0, clear=clear)
+    _compare(_fast_beam_view(res, beams), naive)
+    as_read = _naive(beams, everything, fld.velocity, reflectivity=RAIN_REFLECTIVITY, floor=1.0)
+    lost = sum(x == ParticleLabel.LOST for x in naive["label"])
+    # the drops' occlusion makes the decisions: as read, every attenuated reading of 1 is lost
+    assert sum(x == ParticleLabel.LOST for x in as_read["label"]) > lost + 10
+    assert sum(not b for b in naive["borderline"]) >= 0.8 * len(beams)
+
+
+@pytest.mark.parametrize(("q", "k"), [(1.0, 0.99), (2.0, 0.45)])
+def test_a_rounded_reading_attenuated_a_little_is_kept_with_the_closed_form_share(q, k):
+    """A clear reading q of an integer-quantised scan stood for a value uniform on [max(q - ½, floor), q + ½); a
+    weather of two-way transmission k (bulk extinction, no particle, noise-free) keeps it iff k x >= floor: a share
+    (q + ½ - floor / k) / (q + ½ - max(q - ½, floor)). Read as exactly q it is lost every time (k q < floor); an
+    unrounded reading (q + 0.001) is read as it is."""
+    n, length, floor = 20000, 10.0, 1.0
+    lidar = make_lidar(noise_floor=floor)
+    alpha = -math.log(k) / (2.0 * length)
+    lo = max(q - 0.5, floor)
+    want = (q + 0.5 - floor / k) / (q + 0.5 - lo)
+    none = _particles(np.zeros((0, 3)), np.zeros(0))
+    for value, expected in ((q, want), (q + 1e-3, 0.0)):
+        beams = _beams([0, 0, 0], np.tile([1.0, 0.0, 0.0], (n, 1)), length, value, times=np.arange(n) * 1e-6)
+        res = simulate_particle_list(beams, none, lidar=lidar, reflectivity=RAIN_REFLECTIVITY, extinction=alpha,
+                                     intensity_max=255.0)
+        kept = np.mean(res.input_labels != ParticleLabel.LOST)
+        assert abs(kept - expected) <= 4 * math.sqrt(max(expected * (1 - expected), 1e-9) / n), (value, kept)
+        # the kept ones report the attenuated reading as read
+        np.testing.assert_allclose(res.points[:, 3], value * k, rtol=1e-9)

@@ -35,6 +35,7 @@ from weatheralign.ground.surfaces import (
     point_normals,
 )
 from weatheralign.ground.wet import WetRoad, film_depth, incidence_angle, puddle_margin, water_depth, wet_ground
+from weatheralign.lidar.quantum import scan_clear_readings
 
 F64 = NDArray[np.float64]
 Mask = NDArray[np.bool_]
@@ -121,9 +122,10 @@ class EditedScan(NamedTuple):
 
 
 def edit_scan(scan: LidarScan, surfaces: ScanSurfaces, state: GroundState, noise_floor: float) -> EditedScan:
-    """``scan`` with ``state``'s ground: wet ground returns dimmed by the film (`wet_ground`), the ones under
-    ``noise_floor`` (0..255) lost; snow-covered returns raised onto the snow along their beams and brightened over
-    the covered share (`snow_covered_ground`)."""
+    """``scan`` with ``state``'s ground: wet ground returns dimmed by the film (`wet_ground`: an integer-quantised
+    scan's readings spread over their rounding intervals, `weatheralign.lidar.quantum.scan_clear_readings`), the
+    ones under ``noise_floor`` (0..255) lost; snow-covered returns raised onto the snow along their beams and
+    brightened over the covered share (`snow_covered_ground`)."""
     points = scan.points.copy()
     intensity = scan.intensity_255().astype(np.float64)
     keep = np.ones(len(points), dtype=bool)
@@ -131,8 +133,9 @@ def edit_scan(scan: LidarScan, surfaces: ScanSurfaces, state: GroundState, noise
         ground = surfaces.on_ground
         xyz = points[ground, :3].astype(np.float64)
         depth = water_depth(surfaces.world[ground, :2], state.road, state.seed)
+        clear = scan_clear_readings(scan, noise_floor)
         effect = wet_ground(intensity[ground], incidence_angle(xyz, np.zeros(3), np.asarray(surfaces.plane.normal)),
-                            depth, state.road, noise_floor)
+                            depth, state.road, noise_floor, None if clear is None else clear[ground])
         intensity[ground] = effect.intensity
         keep[np.nonzero(ground)[0][effect.lost]] = False
         edited = ground.copy()

@@ -20,7 +20,8 @@ lacks ``σ_0² (1 - k²)`` of the reading's variance at transmission ``k``, adde
 moves along its beam to the measured range (SCATTERED, with the id of the particle contributing most at the peak). A
 particle echo below the detector noise floor is not detected: the target's own echo then decides, and a return the
 weather pushed below the floor is LOST (points that were below the floor in clear weather were detected nevertheless and
-are kept, as in the fog model). Beams without return can return a particle: SCATTERED clutter with ``source_index`` -1
+are kept, as in the fog model), decided on the value an integer clear reading stood for before the sensor rounded it
+(`weatheralign.lidar.quantum`). Beams without return can return a particle: SCATTERED clutter with ``source_index`` -1
 (the reference code never simulates those beams). Echoes measured nearer than the sensor's minimum range are not
 reported.
 
