@@ -1025,3 +1025,90 @@ def test_a_rounded_reading_attenuated_a_little_is_kept_with_the_closed_form_shar
         assert abs(kept - expected) <= 4 * math.sqrt(max(expected * (1 - expected), 1e-9) / n), (value, kept)
         # the kept ones report the attenuated reading as read
         np.testing.assert_allclose(res.points[:, 3], value * k, rtol=1e-9)
+
+
+def _road_scan(road_z: float = -1.5, dark_elevation_deg: float = -6.0) -> LidarScan:
+    """A static sensor over a flat road ``z = road_z`` (sensor frame = global): three steep rings return all round
+    (0.5° steps, intensity 20), a shallow ring at ``dark_elevation_deg`` returns only from a bright marking (azimuth
+    0..10°, intensity 30) and nothing from the dark road elsewhere."""
+    rows = []
+    for ring, el_deg in enumerate((-30.0, -24.0, -18.0, dark_elevation_deg)):
+        az = np.radians(np.arange(0.0, 360.0, 0.5) if ring < 3 else np.arange(0.0, 10.0, 0.5))
+        el = math.radians(el_deg)
+        r = road_z / math.sin(el)
+        d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.full(len(az), math.sin(el))], axis=1)
+        rows.append(np.column_stack([d * r, np.full(len(az), 20.0 if ring < 3 else 30.0), np.full(len(az), ring)]))
+    return LidarScan(np.concatenate(rows).astype(np.float32), 100.0, np.eye(4), np.eye(4), num_rings=4)
+
+
+def test_beams_without_return_below_the_horizon_end_on_the_fitted_road():
+    """The dark road's beams without return (a whole ring's worth, far beyond the short runs `with_faint_surfaces`
+    bridges) get their surface from the fitted ground plane: range ``h / sin(-elevation)`` and intensity floor / 2;
+    beams above the horizon stay open, the returns are untouched; no plane or no floor: nothing changes."""
+    from weatheralign.lidar.beams import (
+        NoReturnBeams,
+        plane_ranges,
+        scan_ground_plane,
+        with_faint_surfaces,
+        with_ground_plane,
+    )
+
+    scan = _road_scan()
+    lidar = make_lidar(noise_floor=1.0)
+    up = np.radians(np.arange(0.0, 360.0, 5.0))
+    sky = np.stack([np.cos(up), np.sin(up), np.full(len(up), 0.05)], axis=1)
+    sky /= np.linalg.norm(sky, axis=1, keepdims=True)
+    beams = beams_from_scan(scan, lidar=lidar)
+    beams = with_faint_surfaces(beams, lidar.noise_floor)
+    n_ret, n_dark = beams.num_returns, len(beams) - beams.num_returns
+    assert n_dark > 600  # the reconstructed dark road: the ring's 700 gaps
+    plane = scan_ground_plane(scan)
+    assert plane is not None and plane.normal[2] == pytest.approx(1.0, abs=1e-6)
+    out = with_ground_plane(beams, plane, lidar.noise_floor)
+    dark = ~beams.has_return
+    np.testing.assert_allclose(out.lengths[dark], 1.5 / np.sin(np.radians(6.0)), rtol=1e-4)
+    np.testing.assert_array_equal(out.intensity0[dark], 0.5)
+    np.testing.assert_array_equal(out.lengths[:n_ret], beams.lengths[:n_ret])
+    np.testing.assert_array_equal(out.intensity0[:n_ret], beams.intensity0[:n_ret])
+    np.testing.assert_array_equal(out.has_return, beams.has_return)
+    both = beams_from_scan(scan, lidar=lidar, no_return_directions=NoReturnBeams(
+        sky, np.zeros(len(sky)), np.full(len(sky), 3, np.float32)))
+    assert np.all(np.isinf(plane_ranges(both, plane)[~both.has_return]))  # above the horizon: never on the road
+    assert with_ground_plane(both, plane, 1.0).lengths.tobytes() == both.lengths.tobytes()
+    assert with_ground_plane(beams, None, 1.0) is beams and with_ground_plane(beams, plane, 0.0) is beams
+
+
+def test_the_road_under_the_floor_ends_its_beam_no_drop_under_it_is_reported():
+    """A flake on a dark-road beam: 1 m behind the road (under it) it returns nothing once the beam ends on the
+    fitted plane; on the open beam (as before) it came back as clutter; 1 m in front of the road it is reported."""
+    from weatheralign.lidar.beams import scan_ground_plane, with_ground_plane
+
+    scan = _road_scan()
+    lidar = make_lidar(noise_floor=1.0)
+    beams = beams_from_scan(scan, lidar=lidar)
+    b = int(np.flatnonzero(~beams.has_return)[100])
+    one = beams.select(np.array([b]))
+    road = with_ground_plane(one, scan_ground_plane(scan), lidar.noise_floor)
+    L = float(road.lengths[0])
+    assert L == pytest.approx(1.5 / math.sin(math.radians(6.0)), rel=1e-4)
+    for s, on_road, open_beam in ((L + 1.0, ParticleLabel.NO_ECHO, ParticleLabel.SCATTERED),
+                                  (L - 1.0, ParticleLabel.SCATTERED, ParticleLabel.SCATTERED)):
+        w = s * math.tan(0.5 * lidar.divergence_rad)
+        flake = _particles(one.origins[0] + one.directions[0] * s, [2 * w * 0.5])  # a quarter of the beam
+        got = [simulate_particle_list(x, flake, lidar=lidar, reflectivity=SNOW_REFLECTIVITY,
+                                      intensity_max=255.0).beam_label[0] for x in (road, one)]
+        assert got == [on_road, open_beam], s
+
+
+def test_a_scan_through_snow_reports_no_echo_from_under_its_road():
+    """`simulate_particles` on a scan over a dark road in a snow layer reaching 3 m under it: with the faint
+    surfaces (the fitted plane among them) no weather echo lies under the road; every beam open, many did."""
+    scan = _road_scan()
+    lidar = make_lidar(noise_floor=1.0)
+    dist = ExponentialSizeDistribution(n0=60.0 * 150.0 * math.exp(150.0 * 4e-3), lam=150.0, d_min=4e-3, d_max=0.03)
+    fld = ParticleField(11, dist, velocity=(0.0, 0.0, 0.0), t_ref=100.0, z_min=-4.5, z_max=3.0, cell_size=1.0)
+    res = {faint: simulate_particles(scan, fld, lidar=lidar, reflectivity=SNOW_REFLECTIVITY, faint_surfaces=faint)
+           for faint in (True, False)}
+    under = {k: int(np.count_nonzero((r.source_index < 0) & (r.points[:, 2] < -1.5 - 0.05))) for k, r in res.items()}
+    assert under[False] > 20 and under[True] == 0, under
+    assert res[True].counts["CLUTTER"] > 20  # the snow in front of the road still is

@@ -30,9 +30,10 @@ The unresolved particles (below) return light too: a smooth waveform peaking a f
 the pulse sum's crest and at the continuum's; where the continuum's is stronger it is read like a particle echo
 (SCATTERED without particle id if detected). Far below the floor, it still hides fainter far echoes from a
 strongest-return receiver. Likewise a short run of beams without return between two returns of a surface at the detector
-floor is taken to hit that surface under the floor (`weatheralign.lidar.beams.with_faint_surfaces`): its undetectable
-echo outshines weaker weather echoes, and the beam reports nothing unless the weather puts a detectable echo in front of
-it.
+floor is taken to hit that surface under the floor (`weatheralign.lidar.beams.with_faint_surfaces`), and a beam without
+return still open that points below the horizon hits the scan's fitted ground plane under the floor
+(`weatheralign.lidar.beams.with_ground_plane`: a dark or wet road): its undetectable echo outshines weaker weather
+echoes, it ends the beam, and the beam reports nothing unless the weather puts a detectable echo in front of it.
 
 Particle echo vs target echo (the calibration choice, `weatheralign.sensors.IntensityModel`, part of the sensor's
 `LidarModel`). A clear measurement ``i_0`` at ``R_0`` fixes only the product of the system constant and the target's

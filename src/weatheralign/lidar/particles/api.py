@@ -14,7 +14,14 @@ from numpy.typing import NDArray
 
 from weatheralign.data.frame import LidarScan
 from weatheralign.geometry import invert
-from weatheralign.lidar.beams import Beams, beams_from_scan, detector_noise_keys, with_faint_surfaces
+from weatheralign.lidar.beams import (
+    Beams,
+    beams_from_scan,
+    detector_noise_keys,
+    scan_ground_plane,
+    with_faint_surfaces,
+    with_ground_plane,
+)
 from weatheralign.lidar.fog import reading_normals, soft_target_response
 from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel
 from weatheralign.lidar.particles.beam_index import (
@@ -490,11 +497,13 @@ def _identity(beams: Beams, points: NDArray[np.float32], intensity_max: float, s
 def _inputs(scan: LidarScan | Beams, *, lidar: LidarModel, T_global_lidar: F64 | None, intensity_max: float | None,
             columns: object, reconstruct: bool, faint_surfaces: bool = False) -> tuple[Beams, NDArray, F64, float]:
     """(beams, input points (N, 5) float32, output frame T_global_out, intensity scale); a scan's beams with its
-    faint surfaces (`with_faint_surfaces`) if ``faint_surfaces``."""
+    surfaces under the floor if ``faint_surfaces``: `with_faint_surfaces`, then the fitted ground plane for the beams
+    still open (`with_ground_plane`)."""
     if isinstance(scan, LidarScan):
         beams = beams_from_scan(scan, lidar=lidar, columns=columns, reconstruct=reconstruct)
         if faint_surfaces:
             beams = with_faint_surfaces(beams, lidar.noise_floor)
+            beams = with_ground_plane(beams, scan_ground_plane(scan), lidar.noise_floor)
         T = scan.T_global_lidar if T_global_lidar is None else np.asarray(T_global_lidar, dtype=np.float64)
         return beams, scan.points, T, float(scan.intensity_max)
     if not isinstance(scan, Beams):
@@ -597,9 +606,11 @@ def simulate_particles(
             without it rain's faint far drops on open beams come back 2-3x too often (against the reference's exact
             waveform). False: particle and target pulses alone.
         faint_surfaces: a scan's beams without return that lie between two returns of a surface at the detector
-            floor are taken to hit that surface under the floor (`weatheralign.lidar.beams.with_faint_surfaces`):
-            its undetectable echo still outshines weaker weather echoes. False: every beam without return is open
-            to ``max_range``. (`Beams` inputs are used as given.)
+            floor are taken to hit that surface under the floor (`weatheralign.lidar.beams.with_faint_surfaces`),
+            and those still open that point below the horizon hit the scan's fitted ground plane under the floor
+            (`weatheralign.lidar.beams.with_ground_plane`): an undetectable echo still outshines weaker weather
+            echoes, and the surface ends the beam. False: every beam without return is open to ``max_range``.
+            (`Beams` inputs are used as given.)
         shell_ratio, first_shell: geometric range shells (``[0, first, first·ratio, ...]`` [m]).
         max_particles_per_shell: refuse a shell query expecting more particles (raise ``ratio_threshold``).
 
