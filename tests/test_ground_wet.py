@@ -127,3 +127,29 @@ def test_a_rounded_reading_under_a_film_is_kept_with_the_closed_form_share(q: fl
     # an unrounded reading passes through clear_readings as it is: the film dims that value
     same = wet_ground(dry, theta, depth, road, floor, clear=dry)
     assert same.intensity.tobytes() == wet_ground(dry, theta, depth, road, floor).intensity.tobytes()
+
+
+def test_the_wet_reading_gets_the_detector_noise_the_film_took_from_the_clear_one() -> None:
+    """A clear reading v carries the detector's noise σ_0; the film's factor f dims it with the signal, so the wet
+    reading lacks σ_0² (1 - f²) of its variance: the wet readings of one value are N(v f, σ_0² (1 - f²)) (clipped
+    at 0), lost below the floor with probability Φ((floor - v f) / (σ_0 sqrt(1 - f²))); without a film (f = 1)
+    nothing is added; no noise without normals is refused."""
+    from scipy.stats import norm
+
+    n, v, s0, floor = 40000, 2.0, 0.5, 1.0
+    road = WetRoad()
+    theta, depth = np.full(n, np.radians(80.0)), np.full(n, 0.0005)
+    z = np.random.default_rng(3).standard_normal(n)
+    quiet = wet_ground(np.full(n, v), theta, depth, road, floor)
+    f = float(quiet.factor[0])
+    effect = wet_ground(np.full(n, v), theta, depth, road, floor, noise_std=s0, normals=z)
+    sd = s0 * np.sqrt(1.0 - f * f)
+    np.testing.assert_allclose(effect.intensity[~effect.lost], np.clip(v * f + sd * z, 0.0, 255.0)[~effect.lost],
+                               rtol=1e-12)
+    p_lost = norm.cdf((floor - v * f) / sd)
+    assert abs(effect.lost.mean() - p_lost) < 4 * np.sqrt(p_lost * (1 - p_lost) / n)
+    assert not quiet.lost.any()  # v f = 1.26: noise-free, every one is kept
+    dry = wet_ground(np.full(n, v), theta, np.zeros(n), road, floor, noise_std=s0, normals=z)
+    assert np.array_equal(dry.intensity, np.full(n, v)) and not dry.lost.any()
+    with pytest.raises(ValueError, match="normals"):
+        wet_ground(np.full(n, v), theta, depth, road, floor, noise_std=s0)

@@ -43,6 +43,10 @@ def test_reading_uniforms_are_the_streams_third_draw_bit_for_bit_and_uniform():
     keys = _keys(20000)
     u = reading_uniforms(keys)
     assert np.array_equal(u, reading_uniforms_naive(keys))
+    for counter in (3, 4):  # any draw of the stream (the wet reading's noise takes 3 and 4)
+        other = reading_uniforms(keys[:2000], counter)
+        assert np.array_equal(other, reading_uniforms_naive(keys[:2000], counter))
+        assert abs(np.corrcoef(other, u[:2000])[0, 1]) < 4 / math.sqrt(2000)
     assert u.min() >= 0.0 and u.max() < 1.0
     assert abs(u.mean() - 0.5) < 4 * math.sqrt(1 / 12 / len(u))
     assert abs(np.mean(u < 0.25) - 0.25) < 4 * math.sqrt(0.25 * 0.75 / len(u))

@@ -67,21 +67,21 @@ def _uniforms_kernel(keys, counter, out):  # pragma: no cover
         out[n] = stream_uniform(keys[n], counter)
 
 
-def reading_uniforms(noise_keys: ArrayLike) -> F64:
-    """(N,) uniform in [0, 1) per beam: the `DITHER_COUNTER`-th draw of each beam's detector-noise stream
-    ``noise_keys`` (N,) (`weatheralign.lidar.beams.detector_noise_keys`)."""
+def reading_uniforms(noise_keys: ArrayLike, counter: int = DITHER_COUNTER) -> F64:
+    """(N,) uniform in [0, 1) per beam: the ``counter``-th draw (default `DITHER_COUNTER`) of each beam's
+    detector-noise stream ``noise_keys`` (N,) (`weatheralign.lidar.beams.detector_noise_keys`)."""
     keys = np.ascontiguousarray(noise_keys, dtype=np.uint64).ravel()
     out = np.empty(len(keys))
-    _uniforms_kernel(keys, np.uint64(DITHER_COUNTER), out)
+    _uniforms_kernel(keys, np.uint64(counter), out)
     return out
 
 
-def reading_uniforms_naive(noise_keys: ArrayLike) -> F64:
+def reading_uniforms_naive(noise_keys: ArrayLike, counter: int = DITHER_COUNTER) -> F64:
     """`reading_uniforms` in Python integers: draw ``c`` of stream ``k`` is the top 53 bits of SplitMix64's finaliser
     (`splitmix64_py`) of ``k + (c + 1) γ``, γ = 0x9E3779B97F4A7C15 (the golden-ratio increment): the oracle of its
     kernel."""
     gamma = 0x9E3779B97F4A7C15
-    out = [(splitmix64_py(int(k) + (DITHER_COUNTER + 1) * gamma) >> 11) * 2.0 ** -53
+    out = [(splitmix64_py(int(k) + (counter + 1) * gamma) >> 11) * 2.0 ** -53
            for k in np.asarray(noise_keys, dtype=np.uint64).ravel()]
     return np.asarray(out, dtype=np.float64)
 
