@@ -16,14 +16,16 @@ render_frame` renders them):
 - ``fast_same_field``: the fast simulator on the ``wet`` clear scan at its true pose, through the frame's own
   particle field (velocity zeroed, so every beam sees the drops where the exact one saw them at the frame time);
 - ``fast_same_field_unrounded``: the same, the clear scan's intensities before the detector's integer rounding (the
-  same noise draw): a clear return read exactly at the floor (1) is otherwise lost to any attenuation;
+  same noise draw), which the fast simulator reads as they are (the rounded ones it spreads over their rounding
+  intervals: `weatheralign.lidar.quantum`);
 - ``fast_same_field_no_faint``: ``fast_same_field`` with every beam without return open (``faint_surfaces=False``);
 - ``fast_same_field_true_surfaces`` (``_unrounded``): its beams without return that hit a surface carry the true
-  surface (range, clear intensity) instead of `with_faint_surfaces`'s guess;
+  surface (range, clear intensity) instead of the surfaces `with_faint_surfaces` and `with_ground_plane` infer;
 - ``fast_wet``: as the calibration runs it (identity pose, timestamp 0, `field_spec` of the particles params at the
   hidden rate) on the ``wet`` clear scan;
 - ``fast_calibration``: as the calibration runs it end to end: the ``dry`` clear scan, wetted by `grounded_scans`
-  at the hidden film depth, then ``fast_wet``'s simulator and field (``_unrounded``: from the unrounded clear scan).
+  at the hidden film depth through the reference detector's floor and noise, then ``fast_wet``'s simulator and field
+  (``_unrounded``: from the unrounded clear scan).
 
 Per variant: the statistic (mean over frames; ratio to ``exact`` with a paired frame-bootstrap interval; the rate
 gap it implies through the calibration's own rate grid, statistic ∝ rate^k) and per-scan counts: ``scattered`` (a
@@ -301,14 +303,14 @@ def run_frame(spec, cfg, params, lidar, truth, stored: np.ndarray, clear_stream:
     out["variants"]["fast_wet"] = {"statistic": s, "isolated": k, "open_beams": o,
                                    "counts": _fast_counts(res, hidden, cols)}
     grounded = grounded_scans([_scan(dry_pts)], [spec.sample_id], "rain", truth["film_depth_m"],
-                              lidar.noise_floor)[0]
+                              lidar.noise_floor, lidar.intensity_noise_std)[0]
     res = simulate_particles(grounded, calib_field, lidar=lidar, reflectivity=RAIN_REFLECTIVITY)
     s, k, o = _stat(res.points, lidar)
     out["variants"]["fast_calibration"] = {"statistic": s, "isolated": k, "open_beams": o,
                                            "counts": _fast_counts(res, hidden, cols),
                                            "grounded_returns": int(len(grounded.points))}
     grounded_u = grounded_scans([_scan(dry_unrounded)], [spec.sample_id], "rain", truth["film_depth_m"],
-                                lidar.noise_floor)[0]
+                                lidar.noise_floor, lidar.intensity_noise_std)[0]
     res = simulate_particles(grounded_u, calib_field, lidar=lidar, reflectivity=RAIN_REFLECTIVITY)
     s, k, o = _stat(res.points, lidar)
     out["variants"]["fast_calibration_unrounded"] = {"statistic": s, "isolated": k, "open_beams": o,

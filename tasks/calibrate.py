@@ -47,7 +47,7 @@ def ground_statistics_task(ds: ReferenceDataset, kind: str, depth_m: float, air:
     ``air`` (`weatheralign.calibrate.ground.simulated_ground_statistics`; the worker reads the scans itself)."""
     ids = ds.ids("clear")
     return simulated_ground_statistics([ds.load_scan(i) for i in ids], ids, kind, (depth_m,),
-                                       air.lidar.noise_floor, air)[0]
+                                       air.lidar.noise_floor, air, air.lidar.intensity_noise_std)[0]
 
 
 @task(name="precipitation-rate", cache_policy=NO_CACHE, retries=0)
@@ -57,7 +57,8 @@ def precipitation_statistics_task(ds: ReferenceDataset, kind: str, rate_mm_h: fl
     (`grounded_scans`), through ``kind`` at ``rate_mm_h`` (the worker reads the scans itself; each frame's fields are
     seeded from its id)."""
     ids = ds.ids("clear")
-    scans = grounded_scans([ds.load_scan(i) for i in ids], ids, kind, ground_depth_m, lidar.noise_floor)
+    scans = grounded_scans([ds.load_scan(i) for i in ids], ids, kind, ground_depth_m, lidar.noise_floor,
+                           lidar.intensity_noise_std)
     return simulated_statistics(scans, kind, (rate_mm_h,), lidar, particles, ids)[0]
 
 

@@ -194,6 +194,7 @@ def test_simulated_histograms_equal_binned_simulate_fog_with_beam_origins():
     scans = [_synthetic_scan(k, 5000, moving=True) for k in range(3)]
     frames = fog_frames(scans)
     assert frames.num_frames == 3 and frames.num_points == 15_000
+    assert frames.spread is not None and frames.spread.rounded.mean() > 0.9  # integer readings: spread at the floor
     for alpha, beta in [(0.02, 1e-4), (0.08, 1.2e-3), (0.005, 2e-5)]:
         fast = simulated_histograms(frames, alpha, beta, noise_floor=0.5, sensor=SENSOR)
         full = IntensityHistograms.from_scans(

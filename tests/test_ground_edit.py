@@ -193,3 +193,64 @@ def test_the_uint8_path_is_the_linear_edit_encoded() -> None:
         expected = encode_srgb_u8(linear.linear.astype(np.float32))
         assert np.abs(coded.astype(int) - expected.astype(int)).max() <= 1
         assert (coded == expected).mean() > 0.999
+
+
+def test_an_integer_scans_ground_readings_are_spread_before_the_film_dims_them() -> None:
+    """A scan of integer readings at the floor (1 and 2, floor 1): each ground return's reading q stood for a value
+    uniform on [max(q - ½, 1), q + ½); the film's factor f keeps it with probability (q + ½ - 1 / f) / (q + ½ -
+    max(q - ½, 1)), so the edit loses their complement in expectation (not every return with q f < 1, as a reading
+    taken for exactly q would), reports the kept ones at f x >= 1 and leaves the off-ground readings whole."""
+    scan = street_scan()
+    rng = np.random.default_rng(8)
+    q = rng.integers(1, 3, len(scan.points)).astype(np.float64)
+    scan = LidarScan(np.column_stack([scan.points[:, :3], q, scan.points[:, 4]]).astype(np.float32), 0.0, np.eye(4),
+                     scan.T_global_ego)
+    surfaces = scan_surfaces(scan)
+    road = WetRoad(film_depth_m=0.0002)
+    edited = edit_scan(scan, surfaces, GroundState(road=road, seed=3), noise_floor=1.0)
+    ground = surfaces.on_ground
+    f = wet_ground(q[ground], incidence_angle(scan.points[ground, :3].astype(np.float64), np.zeros(3),
+                                              np.asarray(surfaces.plane.normal)),
+                   water_depth(surfaces.world[ground, :2], road, 3), road, 1.0).factor
+    qg = q[ground]
+    lo = np.maximum(qg - 0.5, 1.0)
+    p_keep = np.clip((qg + 0.5 - 1.0 / f) / (qg + 0.5 - lo), 0.0, 1.0)
+    expected = float((1.0 - p_keep).sum())
+    assert abs(edited.lost - expected) < 4 * np.sqrt((p_keep * (1 - p_keep)).sum())
+    assert int((qg * f < 1.0).sum()) > expected + 200
+    out = edited.scan.points[:, 3]
+    on_ground = ground[edited.source_index]
+    assert out[on_ground & edited.changed].min() >= 1.0
+    np.testing.assert_array_equal(out[~on_ground], q[edited.source_index][~on_ground])
+
+
+def test_the_wet_edits_noise_is_each_beams_own_and_apart_from_the_airs_draws() -> None:
+    """`edit_scan` with a detector's noise reads each wet ground return again from its beam's stream
+    (`wet_reading_normals`: draws 3 and 4): the same scan gives the same bytes, the added noise is σ_0 sqrt(1 - f²)
+    times that normal, and it is uncorrelated with the normals the air's weather then draws from the same stream
+    (`normal_pair`, draws 0 and 1)."""
+    from weatheralign.ground.edit import wet_reading_normals
+    from weatheralign.lidar.beams import point_noise_keys
+    from weatheralign.medium.field import normal_pair
+
+    scan = street_scan()
+    surfaces = scan_surfaces(scan)
+    road = WetRoad(film_depth_m=0.0005)
+    state = GroundState(road=road, seed=3)
+    quiet = edit_scan(scan, surfaces, state, noise_floor=0.0)
+    loud = edit_scan(scan, surfaces, state, noise_floor=0.0, noise_std=0.5)
+    assert loud.scan.points.tobytes() == edit_scan(scan, surfaces, state, 0.0, 0.5).scan.points.tobytes()
+    ground = surfaces.on_ground
+    keys = point_noise_keys(scan)[ground]
+    z = wet_reading_normals(keys)
+    f = wet_ground(scan.intensity_255()[ground].astype(np.float64),
+                   incidence_angle(scan.points[ground, :3].astype(np.float64), np.zeros(3),
+                                   np.asarray(surfaces.plane.normal)),
+                   water_depth(surfaces.world[ground, :2], road, 3), road, 0.0).factor
+    added = loud.scan.intensity_255()[ground].astype(np.float64) - quiet.scan.intensity_255()[ground]
+    inside = quiet.scan.intensity_255()[ground] > 3.0  # away from the clip at 0
+    np.testing.assert_allclose(added[inside], (0.5 * np.sqrt(1.0 - f * f) * z)[inside], atol=2e-5)
+    assert abs(z.mean()) < 4 / np.sqrt(len(z)) and abs(z.std() - 1.0) < 0.05
+    air = np.array([normal_pair(k) for k in keys])
+    for c in range(2):
+        assert abs(np.corrcoef(z, air[:, c])[0, 1]) < 4 / np.sqrt(len(z))

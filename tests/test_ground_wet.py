@@ -100,3 +100,56 @@ def test_bad_road_is_refused() -> None:
         WetRoad(puddle_share=1.5)
     with pytest.raises(ValueError, match="film_depth_m"):
         WetRoad(film_depth_m=0.0)
+
+
+@pytest.mark.parametrize(("q", "depth_m"), [(1.0, 0.0001), (2.0, 0.0007)])
+def test_a_rounded_reading_under_a_film_is_kept_with_the_closed_form_share(q: float, depth_m: float) -> None:
+    """An integer reading q at a floor of 1 stood for a value uniform on [max(q - ½, 1), q + ½) (`clear_readings`);
+    the film's factor f keeps it iff f x >= 1: a share (q + ½ - 1 / f) / (q + ½ - max(q - ½, 1)), its wet intensity
+    f x. Read as exactly q (``clear=None``) every such reading is lost (q f < 1)."""
+    from weatheralign.lidar.quantum import clear_readings, reading_uniforms
+
+    n, floor = 20000, 1.0
+    road = WetRoad()
+    theta, depth, dry = np.full(n, np.radians(80.0)), np.full(n, depth_m), np.full(n, q)
+    f = float(wet_ground(dry[:1], theta[:1], depth[:1], road, floor).factor[0])
+    lo = max(q - 0.5, floor)
+    want = (q + 0.5 - floor / f) / (q + 0.5 - lo)
+    assert 0.1 < want < 0.95 and q * f < floor
+    keys = np.arange(n, dtype=np.uint64) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(12345)
+    x = clear_readings(dry, np.ones(n, bool), floor, reading_uniforms(keys))
+    effect = wet_ground(dry, theta, depth, road, floor, clear=x)
+    kept = 1.0 - effect.lost.mean()
+    assert abs(kept - want) <= 4 * np.sqrt(want * (1 - want) / n)
+    np.testing.assert_allclose(effect.intensity[~effect.lost], f * x[~effect.lost], rtol=1e-12)
+    assert effect.intensity[~effect.lost].min() >= floor
+    assert wet_ground(dry, theta, depth, road, floor).lost.all()
+    # an unrounded reading passes through clear_readings as it is: the film dims that value
+    same = wet_ground(dry, theta, depth, road, floor, clear=dry)
+    assert same.intensity.tobytes() == wet_ground(dry, theta, depth, road, floor).intensity.tobytes()
+
+
+def test_the_wet_reading_gets_the_detector_noise_the_film_took_from_the_clear_one() -> None:
+    """A clear reading v carries the detector's noise σ_0; the film's factor f dims it with the signal, so the wet
+    reading lacks σ_0² (1 - f²) of its variance: the wet readings of one value are N(v f, σ_0² (1 - f²)) (clipped
+    at 0), lost below the floor with probability Φ((floor - v f) / (σ_0 sqrt(1 - f²))); without a film (f = 1)
+    nothing is added; no noise without normals is refused."""
+    from scipy.stats import norm
+
+    n, v, s0, floor = 40000, 2.0, 0.5, 1.0
+    road = WetRoad()
+    theta, depth = np.full(n, np.radians(80.0)), np.full(n, 0.0005)
+    z = np.random.default_rng(3).standard_normal(n)
+    quiet = wet_ground(np.full(n, v), theta, depth, road, floor)
+    f = float(quiet.factor[0])
+    effect = wet_ground(np.full(n, v), theta, depth, road, floor, noise_std=s0, normals=z)
+    sd = s0 * np.sqrt(1.0 - f * f)
+    np.testing.assert_allclose(effect.intensity[~effect.lost], np.clip(v * f + sd * z, 0.0, 255.0)[~effect.lost],
+                               rtol=1e-12)
+    p_lost = norm.cdf((floor - v * f) / sd)
+    assert abs(effect.lost.mean() - p_lost) < 4 * np.sqrt(p_lost * (1 - p_lost) / n)
+    assert not quiet.lost.any()  # v f = 1.26: noise-free, every one is kept
+    dry = wet_ground(np.full(n, v), theta, np.zeros(n), road, floor, noise_std=s0, normals=z)
+    assert np.array_equal(dry.intensity, np.full(n, v)) and not dry.lost.any()
+    with pytest.raises(ValueError, match="normals"):
+        wet_ground(np.full(n, v), theta, depth, road, floor, noise_std=s0)

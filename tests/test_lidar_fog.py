@@ -565,3 +565,30 @@ def test_real_scans_give_sane_output(which: str, request: pytest.FixtureRequest)
     np.testing.assert_array_equal(res_other.input_labels, res_same.input_labels)
     np.testing.assert_allclose(res_other.points[:, 3], res_same.points[:, 3] * factor, rtol=1e-5, atol=1e-6)
     assert simulate_fog(scan, 0.0, 0.0, lidar=FOG_LIDAR).points.tobytes() == scan.points.tobytes()
+
+
+@pytest.mark.parametrize(("q", "k"), [(1.0, 0.99), (2.0, 0.45)])
+def test_a_rounded_reading_in_light_fog_is_kept_with_the_closed_form_share(q: float, k: float) -> None:
+    """A clear reading q of an integer-quantised scan stood for a value uniform on [max(q - ½, floor), q + ½); a fog
+    of two-way transmission T² = k (no backscatter, noise-free) keeps the target iff k x >= floor: a share
+    (q + ½ - floor / k) / (q + ½ - max(q - ½, floor)), where a reading taken for exactly q is lost every time. The
+    kept ones report k q; an unrounded reading (q + 0.001) is read as it is; `fog_intensities` given the scan's clear
+    values (`scan_clear_readings`) decides the same."""
+    n, r0, floor = 20000, 20.0, 1.0
+    alpha = -np.log(k) / (2.0 * r0)
+    want = (q + 0.5 - floor / k) / (q + 0.5 - max(q - 0.5, floor))
+    d = np.random.default_rng(9).normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    for value, expected in ((q, want), (q + 1e-3, 0.0)):
+        pts = np.column_stack([d * r0, np.full(n, value), np.zeros(n)]).astype(np.float32)
+        scan = LidarScan(points=pts, timestamp=0.0, T_ego_lidar=np.eye(4), T_global_ego=np.eye(4))
+        res = simulate_fog(scan, alpha, 0.0, lidar=_lidar(floor))
+        kept = np.mean(res.input_labels != FogLabel.LOST)
+        assert abs(kept - expected) <= 4 * np.sqrt(max(expected * (1 - expected), 1e-9) / n), (value, kept)
+        np.testing.assert_allclose(res.points[:, 3], np.float32(value) * k, rtol=1e-6)
+        from weatheralign.lidar.quantum import on_scale, scan_clear_readings
+
+        clear = scan_clear_readings(scan, floor)
+        arr = fog_intensities(np.full(n, r0), pts[:, 3], alpha, 0.0, sensor=SENSOR, noise_floor=floor,
+                              clear_values=None if clear is None else on_scale(clear, pts[:, 3], 255.0))
+        np.testing.assert_array_equal(arr.labels, res.input_labels)

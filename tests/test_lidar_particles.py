@@ -115,9 +115,11 @@ def _basis(d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _naive(beams: Beams, particles: Particles, velocity, *, reflectivity=SNOW_REFLECTIVITY,
            sensor: PulseSensor = SENSOR, model: IntensityModel = SYNTHETIC_INTENSITY, extinction=0.0, floor=FLOOR,
-           keep=KEEP) -> dict:
+           keep=KEEP, clear=None) -> dict:
     """Brute force per beam (see the module docstring): shares per particle id, measured range, intensity, label,
-    and the margin flags that make a beam's decision borderline."""
+    and the margin flags that make a beam's decision borderline. ``clear`` (B,): the clear value each rounded
+    ``intensity0`` stood for (`beam_clear_readings`), which decides whether a kept target fell under the floor: its
+    difference from ``intensity0`` carried through the target's transmission; None: ``intensity0`` as read."""
     q = _sunflower(N_SUB)
     tanh = math.tan(0.5 * beams.divergence)
     length_pulse = sensor.pulse_length
@@ -127,6 +129,7 @@ def _naive(beams: Beams, particles: Particles, velocity, *, reflectivity=SNOW_RE
     for b in range(len(beams)):
         o, d, L = beams.origins[b], beams.directions[b], beams.lengths[b]
         i0, ret = beams.intensity0[b], bool(beams.has_return[b])
+        x = i0 if clear is None else float(clear[b])
         c = particles.positions + vel * (beams.times[b] - particles.t)
         rad = 0.5 * particles.diameters
         v = c - o
@@ -169,14 +172,20 @@ def _naive(beams: Beams, particles: Particles, velocity, *, reflectivity=SNOW_RE
         k = int(np.argmax(wave))
         p_star, r_star = wave[k], grid[k] - 0.5 * length_pulse
         label, rng, inten, pid, border = ParticleLabel.NO_ECHO, np.nan, 0.0, -1, False
+
+        def kept(reading: float) -> tuple[ParticleLabel, bool]:  # the target's outcome and whether it is borderline
+            seen = reading + (x - i0) * remaining * math.exp(-2.0 * extinction * L)
+            label = ParticleLabel.LOST if seen < floor and seen < x else ParticleLabel.ATTENUATED
+            return label, clear is not None and abs(seen - floor) < 0.05 * floor
+
         if p_star <= 0:
             if ret:
                 label = ParticleLabel.ATTENUATED if remaining > 0 else ParticleLabel.LOST
         elif ret and abs(r_star - L) <= keep:
             inten = min(p_star * L * L * float(model.gain(L)), 255.0)
-            label = ParticleLabel.LOST if inten < floor and inten < i0 else ParticleLabel.ATTENUATED
+            label, near_floor = kept(inten)
             rng = L
-            border = abs(abs(r_star - L) - keep) < 0.05
+            border = abs(abs(r_star - L) - keep) < 0.05 or near_floor
         else:
             pid = max(contrib, key=lambda key: contrib[key][k])
             inten = min(p_star * r_star ** 2 * float(model.gain(r_star)), 255.0)
@@ -187,7 +196,8 @@ def _naive(beams: Beams, particles: Particles, velocity, *, reflectivity=SNOW_RE
                 if ret:
                     kt = int(np.argmin(np.abs(grid - (L + 0.5 * length_pulse))))
                     inten = min(wave[kt] * L * L * float(model.gain(L)), 255.0)
-                    label = ParticleLabel.LOST if inten < floor and inten < i0 else ParticleLabel.ATTENUATED
+                    label, near_floor = kept(inten)
+                    border |= near_floor
                     rng, pid = L, -1
                 else:
                     label, rng, pid = ParticleLabel.NO_ECHO, np.nan, -1
@@ -967,3 +977,138 @@ def test_noise_keys_ignore_ulp_differences_of_a_direction_and_tell_beams_apart()
     assert not np.any(detector_noise_keys(times, step, ring) == keys)
     assert not np.any(detector_noise_keys(times, d, ring + 1) == keys)
     assert not np.any(detector_noise_keys(np.nextafter(times, np.inf), d, ring) == keys)
+
+
+# ------------------------------------------------------------------- readings at the floor, the road under it
+
+
+def test_fast_kernel_agrees_with_brute_force_on_rounded_readings_at_the_floor():
+    """Integer clear readings of 1..3 at a floor of 1 behind rain drops: the kernel's kept-or-lost decisions on the
+    clear values the readings stood for (`beam_clear_readings`) are the brute force's on the same values."""
+    from weatheralign.lidar.particles.api import beam_clear_readings
+
+    beams, fld = _random_scene(7)
+    rng = np.random.default_rng(7)
+    beams = replace(beams, intensity0=np.where(beams.has_return, rng.integers(1, 4, len(beams)), 0.0).astype(float))
+    lidar = make_lidar(noise_floor=1.0)
+    clear = beam_clear_readings(beams, 1.0)
+    assert clear is not None and np.all(clear[beams.has_return] != beams.intensity0[beams.has_return])
+    res = simulate_particles(beams, fld, lidar=lidar, reflectivity=RAIN_REFLECTIVITY, ratio_threshold=0.0,
+                             attenuation=False)
+    everything = fld.materialize([-15, -15, -1], [15.5, 15, 3], res.stats["t_ref"], min_diameter=0.0)
+    naive = _naive(beams, everything, fld.velocity, reflectivity=RAIN_REFLECTIVITY, floor=1.0, clear=clear)
+    _compare(_fast_beam_view(res, beams), naive)
+    as_read = _naive(beams, everything, fld.velocity, reflectivity=RAIN_REFLECTIVITY, floor=1.0)
+    lost = sum(x == ParticleLabel.LOST for x in naive["label"])
+    # the drops' occlusion makes the decisions: as read, every attenuated reading of 1 is lost
+    assert sum(x == ParticleLabel.LOST for x in as_read["label"]) > lost + 10
+    assert sum(not b for b in naive["borderline"]) >= 0.8 * len(beams)
+
+
+@pytest.mark.parametrize(("q", "k"), [(1.0, 0.99), (2.0, 0.45)])
+def test_a_rounded_reading_attenuated_a_little_is_kept_with_the_closed_form_share(q, k):
+    """A clear reading q of an integer-quantised scan stood for a value uniform on [max(q - ½, floor), q + ½); a
+    weather of two-way transmission k (bulk extinction, no particle, noise-free) keeps it iff k x >= floor: a share
+    (q + ½ - floor / k) / (q + ½ - max(q - ½, floor)). Read as exactly q it is lost every time (k q < floor); an
+    unrounded reading (q + 0.001) is read as it is."""
+    n, length, floor = 20000, 10.0, 1.0
+    lidar = make_lidar(noise_floor=floor)
+    alpha = -math.log(k) / (2.0 * length)
+    lo = max(q - 0.5, floor)
+    want = (q + 0.5 - floor / k) / (q + 0.5 - lo)
+    none = _particles(np.zeros((0, 3)), np.zeros(0))
+    for value, expected in ((q, want), (q + 1e-3, 0.0)):
+        beams = _beams([0, 0, 0], np.tile([1.0, 0.0, 0.0], (n, 1)), length, value, times=np.arange(n) * 1e-6)
+        res = simulate_particle_list(beams, none, lidar=lidar, reflectivity=RAIN_REFLECTIVITY, extinction=alpha,
+                                     intensity_max=255.0)
+        kept = np.mean(res.input_labels != ParticleLabel.LOST)
+        assert abs(kept - expected) <= 4 * math.sqrt(max(expected * (1 - expected), 1e-9) / n), (value, kept)
+        # the kept ones report the attenuated reading as read
+        np.testing.assert_allclose(res.points[:, 3], value * k, rtol=1e-9)
+
+
+def _road_scan(road_z: float = -1.5, dark_elevation_deg: float = -6.0) -> LidarScan:
+    """A static sensor over a flat road ``z = road_z`` (sensor frame = global): three steep rings return all round
+    (0.5° steps, intensity 20), a shallow ring at ``dark_elevation_deg`` returns only from a bright marking (azimuth
+    0..10°, intensity 30) and nothing from the dark road elsewhere."""
+    rows = []
+    for ring, el_deg in enumerate((-30.0, -24.0, -18.0, dark_elevation_deg)):
+        az = np.radians(np.arange(0.0, 360.0, 0.5) if ring < 3 else np.arange(0.0, 10.0, 0.5))
+        el = math.radians(el_deg)
+        r = road_z / math.sin(el)
+        d = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.full(len(az), math.sin(el))], axis=1)
+        rows.append(np.column_stack([d * r, np.full(len(az), 20.0 if ring < 3 else 30.0), np.full(len(az), ring)]))
+    return LidarScan(np.concatenate(rows).astype(np.float32), 100.0, np.eye(4), np.eye(4), num_rings=4)
+
+
+def test_beams_without_return_below_the_horizon_end_on_the_fitted_road():
+    """The dark road's beams without return (a whole ring's worth, far beyond the short runs `with_faint_surfaces`
+    bridges) get their surface from the fitted ground plane: range ``h / sin(-elevation)`` and intensity floor / 2;
+    beams above the horizon stay open, the returns are untouched; no plane or no floor: nothing changes."""
+    from weatheralign.lidar.beams import (
+        NoReturnBeams,
+        plane_ranges,
+        scan_ground_plane,
+        with_faint_surfaces,
+        with_ground_plane,
+    )
+
+    scan = _road_scan()
+    lidar = make_lidar(noise_floor=1.0)
+    up = np.radians(np.arange(0.0, 360.0, 5.0))
+    sky = np.stack([np.cos(up), np.sin(up), np.full(len(up), 0.05)], axis=1)
+    sky /= np.linalg.norm(sky, axis=1, keepdims=True)
+    beams = beams_from_scan(scan, lidar=lidar)
+    beams = with_faint_surfaces(beams, lidar.noise_floor)
+    n_ret, n_dark = beams.num_returns, len(beams) - beams.num_returns
+    assert n_dark > 600  # the reconstructed dark road: the ring's 700 gaps
+    plane = scan_ground_plane(scan)
+    assert plane is not None and plane.normal[2] == pytest.approx(1.0, abs=1e-6)
+    out = with_ground_plane(beams, plane, lidar.noise_floor)
+    dark = ~beams.has_return
+    np.testing.assert_allclose(out.lengths[dark], 1.5 / np.sin(np.radians(6.0)), rtol=1e-4)
+    np.testing.assert_array_equal(out.intensity0[dark], 0.5)
+    np.testing.assert_array_equal(out.lengths[:n_ret], beams.lengths[:n_ret])
+    np.testing.assert_array_equal(out.intensity0[:n_ret], beams.intensity0[:n_ret])
+    np.testing.assert_array_equal(out.has_return, beams.has_return)
+    both = beams_from_scan(scan, lidar=lidar, no_return_directions=NoReturnBeams(
+        sky, np.zeros(len(sky)), np.full(len(sky), 3, np.float32)))
+    assert np.all(np.isinf(plane_ranges(both, plane)[~both.has_return]))  # above the horizon: never on the road
+    assert with_ground_plane(both, plane, 1.0).lengths.tobytes() == both.lengths.tobytes()
+    assert with_ground_plane(beams, None, 1.0) is beams and with_ground_plane(beams, plane, 0.0) is beams
+
+
+def test_the_road_under_the_floor_ends_its_beam_no_drop_under_it_is_reported():
+    """A flake on a dark-road beam: 1 m behind the road (under it) it returns nothing once the beam ends on the
+    fitted plane; on the open beam (as before) it came back as clutter; 1 m in front of the road it is reported."""
+    from weatheralign.lidar.beams import scan_ground_plane, with_ground_plane
+
+    scan = _road_scan()
+    lidar = make_lidar(noise_floor=1.0)
+    beams = beams_from_scan(scan, lidar=lidar)
+    b = int(np.flatnonzero(~beams.has_return)[100])
+    one = beams.select(np.array([b]))
+    road = with_ground_plane(one, scan_ground_plane(scan), lidar.noise_floor)
+    L = float(road.lengths[0])
+    assert L == pytest.approx(1.5 / math.sin(math.radians(6.0)), rel=1e-4)
+    for s, on_road, open_beam in ((L + 1.0, ParticleLabel.NO_ECHO, ParticleLabel.SCATTERED),
+                                  (L - 1.0, ParticleLabel.SCATTERED, ParticleLabel.SCATTERED)):
+        w = s * math.tan(0.5 * lidar.divergence_rad)
+        flake = _particles(one.origins[0] + one.directions[0] * s, [2 * w * 0.5])  # a quarter of the beam
+        got = [simulate_particle_list(x, flake, lidar=lidar, reflectivity=SNOW_REFLECTIVITY,
+                                      intensity_max=255.0).beam_label[0] for x in (road, one)]
+        assert got == [on_road, open_beam], s
+
+
+def test_a_scan_through_snow_reports_no_echo_from_under_its_road():
+    """`simulate_particles` on a scan over a dark road in a snow layer reaching 3 m under it: with the faint
+    surfaces (the fitted plane among them) no weather echo lies under the road; every beam open, many did."""
+    scan = _road_scan()
+    lidar = make_lidar(noise_floor=1.0)
+    dist = ExponentialSizeDistribution(n0=60.0 * 150.0 * math.exp(150.0 * 4e-3), lam=150.0, d_min=4e-3, d_max=0.03)
+    fld = ParticleField(11, dist, velocity=(0.0, 0.0, 0.0), t_ref=100.0, z_min=-4.5, z_max=3.0, cell_size=1.0)
+    res = {faint: simulate_particles(scan, fld, lidar=lidar, reflectivity=SNOW_REFLECTIVITY, faint_surfaces=faint)
+           for faint in (True, False)}
+    under = {k: int(np.count_nonzero((r.source_index < 0) & (r.points[:, 2] < -1.5 - 0.05))) for k, r in res.items()}
+    assert under[False] > 20 and under[True] == 0, under
+    assert res[True].counts["CLUTTER"] > 20  # the snow in front of the road still is

@@ -594,7 +594,7 @@ def test_the_lidar_sees_the_ground_first_then_the_air(world):
         got = observe_lidar_scans(scans, media, sensors.lidar)
         state = media.ground.state(camera=False, tracks=TireTracks.along_heading(scans[0].T_global_lidar))
         edited = [edit_scan(scan, scan_surfaces(scan, off_ground=state.kind == "snow"), state,
-                            sensors.lidar.noise_floor) for scan in scans]
+                            sensors.lidar.noise_floor, sensors.lidar.intensity_noise_std) for scan in scans]
         air = observe_lidar_scans([e.scan for e in edited], replace(media, ground=None), sensors.lidar)
         for lw, e, a, scan in zip(got, edited, air, scans):
             np.testing.assert_array_equal(lw.scan.points, a.scan.points)

@@ -104,27 +104,29 @@ class TunedAir:
 
 
 def grounded_scans(scans: Sequence[LidarScan], names: Sequence[str], kind: str, depth_m: float,
-                   noise_floor: float) -> list[LidarScan]:
+                   noise_floor: float, noise_std: float = 0.0) -> list[LidarScan]:
     """Each clear scan with the simulation's ground of ``kind`` at ``depth_m`` [m] (`edit_scan` on the scan's own
-    surfaces, returns under ``noise_floor`` (0..255) lost, the field seeded from the scan's name): what the weather
-    split's air falls onto, so the rate's statistic is measured over the ground the split has."""
+    surfaces, read by a detector of intensity noise ``noise_std`` and floor ``noise_floor`` (0..255; returns under
+    it lost), the field seeded from the scan's name): what the weather split's air falls onto, so the rate's
+    statistic is measured over the ground the split has."""
     return [edit_scan(scan, scan_surfaces(scan, off_ground=kind == "snow"),
-                      ground_state(kind, float(depth_m), ground_seed(name, kind), scan), noise_floor).scan
+                      ground_state(kind, float(depth_m), ground_seed(name, kind), scan), noise_floor, noise_std).scan
             for scan, name in zip(scans, names)]
 
 
 def simulated_ground_statistics(scans: Sequence[LidarScan], names: Sequence[str], kind: str,
-                                depths_m: Sequence[float], noise_floor: float, air: TunedAir | None = None) -> F64:
+                                depths_m: Sequence[float], noise_floor: float, air: TunedAir | None = None,
+                                noise_std: float = 0.0) -> F64:
     """(D, F) `ground_statistic` of each clear scan with the simulation's ground of ``kind`` at each depth [m]
-    (`edit_scan` on the scan's own surfaces, returns under ``noise_floor`` (0..255) lost; the fields seeded from
-    ``names``: the same wet patches and tracks at every depth), then through ``air``'s particles (the same field per
-    scan at every depth) where given."""
+    (`edit_scan` on the scan's own surfaces, read by a detector of intensity noise ``noise_std`` and floor
+    ``noise_floor`` (0..255; returns under it lost); the fields seeded from ``names``: the same wet patches and
+    tracks at every depth), then through ``air``'s particles (the same field per scan at every depth) where given."""
     out = np.empty((len(depths_m), len(scans)))
     for f, (scan, name) in enumerate(zip(scans, names)):
         surfaces = scan_surfaces(scan, off_ground=kind == "snow")
         for d, depth in enumerate(depths_m):
             state = ground_state(kind, float(depth), ground_seed(name, kind), scan)
-            edited = edit_scan(scan, surfaces, state, noise_floor).scan
+            edited = edit_scan(scan, surfaces, state, noise_floor, noise_std).scan
             if air is not None:
                 weather = simulate_particles(edited, field_spec(air.particles, kind, name, scan.timestamp).field(),
                                                lidar=air.lidar,

@@ -66,6 +66,7 @@ from weatheralign.calibrate.histograms import (
 from weatheralign.data.frame import LidarScan
 from weatheralign.lidar.beams import beam_origins, point_noise_keys
 from weatheralign.lidar.fog import FogLabel, fog_intensities, intensity_normals, soft_target_response
+from weatheralign.lidar.quantum import ReadingSpread, clear_readings, on_scale, scan_reading_spread
 from weatheralign.medium.fog import LN20, PAPER_BETA_FACTORS, mor_from_alpha
 from weatheralign.sensors import PulseSensor
 
@@ -104,6 +105,9 @@ class FogFrames:
             `weatheralign.lidar.fog.fog_intensities`); 0, 0: noise-free.
         normals: (N,) float64 the standard normal of each point's reading (`intensity_normals` of its beam's noise
             stream, as `simulate_fog` draws it), or None when noise-free.
+        spread: which ``i0`` the sensor rounded and where in its rounding interval each lies (each scan's
+            `weatheralign.lidar.quantum.scan_reading_spread`, as `simulate_fog` finds it), or None where no scan was
+            integer-quantised.
     """
 
     r0: F64
@@ -113,6 +117,7 @@ class FogFrames:
     noise_std: float = 0.0
     noise_rel: float = 0.0
     normals: F64 | None = None
+    spread: ReadingSpread | None = None
 
     def __post_init__(self) -> None:
         n = len(self.r0)
@@ -126,6 +131,9 @@ class FogFrames:
         if (self.noise_std > 0.0 or self.noise_rel > 0.0) and (self.normals is None or self.normals.shape != (n,)):
             raise ValueError(f"FogFrames: a noisy detector needs normals of shape ({n},), got "
                              f"{None if self.normals is None else self.normals.shape}")
+        if self.spread is not None and (self.spread.rounded.shape != (n,) or self.spread.uniforms.shape != (n,)):
+            raise ValueError(f"FogFrames: spread must hold two arrays of shape ({n},), got "
+                             f"{self.spread.rounded.shape}, {self.spread.uniforms.shape}")
         if off.ndim != 1 or len(off) < 2 or off[0] != 0 or off[-1] != n or (np.diff(off) < 0).any():
             raise ValueError(f"FogFrames: offsets must be non-decreasing from 0 to N = {n} with at least one frame")
         if self.intensity_max not in (1.0, 255.0):
@@ -167,8 +175,9 @@ def fog_frames(scans: Iterable[LidarScan], *, noise_std: float = 0.0, noise_rel:
     ``intensity_noise_rel``).
 
     Each point's range is taken from its own beam origin (`weatheralign.lidar.beams.beam_origins`: a moving ego's sensor
-    moves during the sweep; None -> the frame origin), exactly as `simulate_fog` computes it, and so is its noise
-    (`weatheralign.lidar.beams.point_noise_keys`).
+    moves during the sweep; None -> the frame origin), exactly as `simulate_fog` computes it, and so are its noise
+    (`weatheralign.lidar.beams.point_noise_keys`) and, for an integer-quantised scan, where each rounded reading lies
+    in its rounding interval (`weatheralign.lidar.quantum.scan_reading_spread`).
 
     Raises:
         ValueError: no scans, or scans of different intensity scales.
@@ -176,6 +185,7 @@ def fog_frames(scans: Iterable[LidarScan], *, noise_std: float = 0.0, noise_rel:
     r0s: list[F64] = []
     i0s: list[NDArray[np.float32]] = []
     normals: list[F64] = []
+    spreads: list[ReadingSpread | None] = []
     noisy = noise_std > 0.0 or noise_rel > 0.0
     scale: float | None = None
     for k, scan in enumerate(scans):
@@ -189,9 +199,15 @@ def fog_frames(scans: Iterable[LidarScan], *, noise_std: float = 0.0, noise_rel:
         i0s.append(np.ascontiguousarray(scan.points[:, 3], dtype=np.float32))
         if noisy:
             normals.append(intensity_normals(point_noise_keys(scan)))
+        spreads.append(scan_reading_spread(scan))
     if scale is None:
         raise ValueError("fog_frames: no scans; expected at least one clear LidarScan")
     frames = fog_frames_from_arrays(r0s, i0s, scale)
+    if any(p is not None for p in spreads):
+        none = [ReadingSpread(np.zeros(len(i), dtype=bool), np.zeros(len(i))) for i in i0s]
+        joined = [n if p is None else p for n, p in zip(none, spreads)]
+        frames = replace(frames, spread=ReadingSpread(np.concatenate([p.rounded for p in joined]),
+                                                      np.concatenate([p.uniforms for p in joined])))
     if not noisy:
         return frames
     return replace(frames, noise_std=float(noise_std), noise_rel=float(noise_rel), normals=np.concatenate(normals))
@@ -235,6 +251,17 @@ def _bin_frames(intensity, labels, offsets, scale, lost, out):  # pragma: no cov
             out[f, k] += 1
 
 
+def frame_clear_values(frames: FogFrames, noise_floor: float | None) -> F64 | None:
+    """(N,) the clear value each of ``frames``' intensities stood for before the sensor rounded it, on their scale,
+    under a detector floor ``noise_floor`` (0..255; `weatheralign.lidar.quantum.clear_readings`), or None where none
+    was rounded."""
+    if frames.spread is None:
+        return None
+    i0_255 = frames.i0 * np.float32(255.0 / frames.intensity_max)
+    x = clear_readings(i0_255, frames.spread.rounded, noise_floor, frames.spread.uniforms)
+    return on_scale(x, frames.i0, frames.intensity_max)
+
+
 def simulated_histograms(
     frames: FogFrames,
     alpha: float,
@@ -257,7 +284,8 @@ def simulated_histograms(
     """
     res = fog_intensities(frames.r0, frames.i0, alpha, beta, intensity_max=frames.intensity_max, sensor=sensor,
                           noise_floor=noise_floor, response=soft_target_response(alpha, sensor),
-                          noise_std=frames.noise_std, noise_rel=frames.noise_rel, noise_normals=frames.normals)
+                          noise_std=frames.noise_std, noise_rel=frames.noise_rel, noise_normals=frames.normals,
+                          clear_values=frame_clear_values(frames, noise_floor))
     counts = np.zeros((frames.num_frames, NUM_BINS), dtype=np.int64)
     _bin_frames(res.intensity, res.labels, frames.offsets, 255.0 / frames.intensity_max, np.uint8(FogLabel.LOST),
                 counts)

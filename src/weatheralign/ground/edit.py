@@ -35,6 +35,8 @@ from weatheralign.ground.surfaces import (
     point_normals,
 )
 from weatheralign.ground.wet import WetRoad, film_depth, incidence_angle, puddle_margin, water_depth, wet_ground
+from weatheralign.lidar.beams import point_noise_keys
+from weatheralign.lidar.quantum import reading_uniforms, scan_clear_readings
 
 F64 = NDArray[np.float64]
 Mask = NDArray[np.bool_]
@@ -49,6 +51,21 @@ puddle is a sharp mirror, and coarser blocks show as steps in its image."""
 
 WORK_STRIDE = 4
 """The ground's camera layers are found on every this-many rows and columns (`edit_image`)."""
+
+WET_NOISE_COUNTER = 3
+"""The wet reading's missing noise takes draws 3 and 4 of each beam's detector-noise stream (`wet_reading_normals`):
+the air's weather reads the same beam next with draws 0 and 1 (`weatheralign.medium.field.normal_pair`: intensity and
+range noise) and places its clear reading with draw 2 (`weatheralign.lidar.quantum.DITHER_COUNTER`)."""
+
+
+def wet_reading_normals(noise_keys: NDArray[np.uint64]) -> F64:
+    """(N,) a standard normal per beam from draws `WET_NOISE_COUNTER` and the next of its detector-noise stream
+    ``noise_keys`` (N,) (`weatheralign.lidar.beams.point_noise_keys`), by Box–Muller as `normal_pair` draws its
+    first."""
+    u1 = 1.0 - reading_uniforms(noise_keys, WET_NOISE_COUNTER)  # (0, 1]
+    u2 = reading_uniforms(noise_keys, WET_NOISE_COUNTER + 1)
+    return np.sqrt(-2.0 * np.log(u1)) * np.cos(2.0 * np.pi * u2)
+
 
 SNOW_EDIT_MIN_COVERAGE = 0.5
 """A return or pixel counts as snow-covered (edited, for the agreement of the sensors) over this covered share."""
@@ -120,10 +137,13 @@ class EditedScan(NamedTuple):
     lost: int  # returns pushed under the detector floor
 
 
-def edit_scan(scan: LidarScan, surfaces: ScanSurfaces, state: GroundState, noise_floor: float) -> EditedScan:
-    """``scan`` with ``state``'s ground: wet ground returns dimmed by the film (`wet_ground`), the ones under
-    ``noise_floor`` (0..255) lost; snow-covered returns raised onto the snow along their beams and brightened over
-    the covered share (`snow_covered_ground`)."""
+def edit_scan(scan: LidarScan, surfaces: ScanSurfaces, state: GroundState, noise_floor: float,
+              noise_std: float = 0.0) -> EditedScan:
+    """``scan`` with ``state``'s ground: wet ground returns dimmed by the film (`wet_ground`: an integer-quantised
+    scan's readings spread over their rounding intervals, `weatheralign.lidar.quantum.scan_clear_readings`; read
+    again by a detector of intensity noise ``noise_std`` (0..255), each with its beam's `wet_reading_normals`), the
+    ones under ``noise_floor`` (0..255) lost; snow-covered returns raised onto the snow along their beams and
+    brightened over the covered share (`snow_covered_ground`)."""
     points = scan.points.copy()
     intensity = scan.intensity_255().astype(np.float64)
     keep = np.ones(len(points), dtype=bool)
@@ -131,8 +151,11 @@ def edit_scan(scan: LidarScan, surfaces: ScanSurfaces, state: GroundState, noise
         ground = surfaces.on_ground
         xyz = points[ground, :3].astype(np.float64)
         depth = water_depth(surfaces.world[ground, :2], state.road, state.seed)
+        clear = scan_clear_readings(scan, noise_floor)
+        normals = wet_reading_normals(point_noise_keys(scan)[ground]) if noise_std > 0.0 else None
         effect = wet_ground(intensity[ground], incidence_angle(xyz, np.zeros(3), np.asarray(surfaces.plane.normal)),
-                            depth, state.road, noise_floor)
+                            depth, state.road, noise_floor, None if clear is None else clear[ground], noise_std,
+                            normals)
         intensity[ground] = effect.intensity
         keep[np.nonzero(ground)[0][effect.lost]] = False
         edited = ground.copy()
@@ -285,4 +308,5 @@ def ground_layers(linear: F64, range_map: F64, camera: CameraGeometry, exact_ran
 
 
 __all__ = ["EditedImage", "EditedScan", "GroundLayers", "GroundState", "SNOW_EDIT_MIN_COVERAGE", "ScanSurfaces",
-           "WORK_STRIDE", "edit_image", "edit_image_u8", "edit_scan", "ground_layers", "odd_px", "scan_surfaces"]
+           "WET_NOISE_COUNTER", "WORK_STRIDE", "edit_image", "edit_image_u8", "edit_scan", "ground_layers", "odd_px",
+           "scan_surfaces", "wet_reading_normals"]

@@ -6,7 +6,8 @@ valleys between the stones, ``texture_depth_m`` deep): with a 45-degree (triangu
 covers the share ``min(h / texture_depth_m, 1)`` of the surface (`wetted_share`); where the water rises above the
 texture the surface is a flat puddle. The covered share answers as water over pavement
 (`weatheralign.ground.optics.wet_lidar_factor`), the rest as dry pavement. Returns that fall below the detector's
-noise floor are lost (`WetGroundEffect.lost`).
+noise floor are lost (`WetGroundEffect.lost`): the film dims the value an integer reading stood for before the sensor
+rounded it (`weatheralign.lidar.quantum`), which the wet return then reports.
 """
 
 from __future__ import annotations
@@ -150,16 +151,33 @@ def incidence_angle(points: F64, origins: F64, normals: F64) -> F64:
     return np.arccos(np.clip(np.abs(np.sum(rays * normals, axis=-1)), 0.0, 1.0))
 
 
-def wet_ground(intensity: F64, incidence: F64, depth_m: F64, road: WetRoad, noise_floor: float
-               ) -> WetGroundEffect:
-    """Ground returns' intensities (N,) at incidence angles (N,) [rad] under water ``depth_m`` (N,) [m]: the wetted
-    share answers with `wet_lidar_factor`, the rest dry; returns the water takes below ``noise_floor`` (0..255) are
-    lost (a return already below it dry, which a real sensor may still report, is kept, scaled)."""
+def wet_ground(intensity: F64, incidence: F64, depth_m: F64, road: WetRoad, noise_floor: float,
+               clear: F64 | None = None, noise_std: float = 0.0, normals: F64 | None = None) -> WetGroundEffect:
+    """Ground returns' intensities (N,) (0..255) at incidence angles (N,) [rad] under water ``depth_m`` (N,) [m]: the
+    wetted share answers with `wet_lidar_factor`, the rest dry; returns the water takes below ``noise_floor``
+    (0..255) are lost (a return already below it dry, which a real sensor may still report, is kept, scaled).
+
+    ``clear`` (N,): the clear value each rounded intensity stood for before the sensor rounded it
+    (`weatheralign.lidar.quantum.scan_clear_readings`; None: every intensity as read). The water dims that value:
+    it decides the loss (a reading at the floor is not lost to any film) and is the wet return's intensity, so the
+    air's weather that reads the wet scan next tests the same value.
+
+    ``noise_std`` (0..255): the detector's signal-independent intensity noise σ_0. The clear reading carries its own
+    noise, which the film dims with the signal by the factor f; the wet reading lacks ``σ_0² (1 - f²)`` of its
+    variance (a signal-proportional part scales exactly), added with the standard ``normals`` (N,) of the beams'
+    streams and clipped to 0..255 before the floor decides, as the fog and the particles read a weakened target."""
     share = wetted_share(depth_m, road.texture_depth_m)
     water = wet_lidar_factor(incidence, road.pavement_reflectivity, depth_m, road.refractive_index,
                              road.absorption_per_m)
     factor = 1.0 - share + share * water
-    new = np.asarray(intensity, dtype=np.float64) * factor
+    dry = np.asarray(intensity, dtype=np.float64)
+    new = (dry if clear is None else np.where(factor < 1.0, np.asarray(clear, dtype=np.float64), dry)) * factor
+    if noise_std > 0.0:
+        if normals is None or np.shape(normals) != dry.shape:
+            raise ValueError(f"wet_ground: noise_std = {noise_std} needs normals of shape {dry.shape}, got "
+                             f"{None if normals is None else np.shape(normals)}")
+        missing = noise_std * np.sqrt(np.maximum(1.0 - factor * factor, 0.0))
+        new = np.clip(new + missing * np.asarray(normals, dtype=np.float64), 0.0, 255.0)
     lost = (new < noise_floor) & (np.asarray(intensity) >= noise_floor)
     return WetGroundEffect(np.where(lost, 0.0, new), lost, np.asarray(depth_m, dtype=np.float64), factor)
 

@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 from weatheralign.data.frame import LidarScan
 from weatheralign.data.nuscenes import derived_time_offsets, read_point_extras
 from weatheralign.geometry import invert
+from weatheralign.ground.surfaces import GroundPlane, fit_ground_plane
 
 if TYPE_CHECKING:
     from weatheralign.sensors import FiringPattern, LidarModel
@@ -460,6 +461,50 @@ def with_faint_surfaces(beams: Beams, noise_floor: float | None) -> Beams:
     lengths, intensity0 = beams.lengths.copy(), beams.intensity0.copy()
     lengths[rows] = np.repeat(r_a, run) + frac * np.repeat(r_b - r_a, run)
     intensity0[rows] = 0.5 * noise_floor
+    return Beams(beams.origins, beams.directions, beams.times, lengths, beams.has_return, intensity0, beams.ring,
+                 beams.point_index, beams.divergence, beams.max_range)
+
+
+def scan_ground_plane(scan: LidarScan) -> GroundPlane | None:
+    """The ground plane of ``scan`` in the global frame: `weatheralign.ground.surfaces.fit_ground_plane` on its
+    points (sensor frame, z up; the ground edit's plane), moved by ``scan.T_global_lidar``; None where too few
+    returns lie below the sensor to fit one."""
+    try:
+        plane = fit_ground_plane(scan.points[:, :3].astype(np.float64))
+    except ValueError:
+        return None
+    return plane.transformed(scan.T_global_lidar)
+
+
+def plane_ranges(beams: Beams, plane: GroundPlane) -> F64:
+    """(N,) the range [m] at which each beam meets ``plane`` (global frame, normal up) from above, going down: the
+    beams that point below the plane's horizon from an origin above it; inf for the others."""
+    normal = np.asarray(plane.normal, dtype=np.float64)
+    height = beams.origins @ normal + plane.offset  # the origins' height above the plane
+    descent = -(beams.directions @ normal)  # the height lost per metre along the beam
+    down = (height > 0.0) & (descent > 0.0)
+    return np.where(down, height / np.where(down, descent, 1.0), np.inf)
+
+
+def with_ground_plane(beams: Beams, plane: GroundPlane | None, noise_floor: float | None) -> Beams:
+    """``beams`` whose beams without return and still open (no surface inferred yet: ``lengths == max_range``) that
+    point below the horizon onto the fitted ground ``plane`` (global frame: `scan_ground_plane`) within the maximum
+    range hit the road under the detector floor: a dark or wet road returns nothing over much of its extent (on the
+    synthetic reference's rain frames about 6,700 beams a scan, most beyond the short runs `with_faint_surfaces`
+    bridges). Such a beam gets the range of its intersection with the plane (`plane_ranges`) and the clear intensity
+    ``noise_floor / 2`` (the mean of a uniform prior on ``(0, floor)``, as `with_faint_surfaces` gives): its
+    undetectable echo is the strongest a strongest-return receiver gets unless the weather puts a detectable echo in
+    front of it, and it ends the beam (no drop behind the road). The beams keep ``has_return`` False. None for the
+    plane or the floor (or a zero floor): ``beams`` unchanged."""
+    if plane is None or noise_floor is None or noise_floor <= 0.0 or len(beams) == 0:
+        return beams
+    reach = plane_ranges(beams, plane)
+    on = ~beams.has_return & (beams.lengths >= beams.max_range) & (reach < beams.max_range)
+    if not on.any():
+        return beams
+    lengths, intensity0 = beams.lengths.copy(), beams.intensity0.copy()
+    lengths[on] = reach[on]
+    intensity0[on] = 0.5 * noise_floor
     return Beams(beams.origins, beams.directions, beams.times, lengths, beams.has_return, intensity0, beams.ring,
                  beams.point_index, beams.divergence, beams.max_range)
 

@@ -39,7 +39,9 @@ Traps of the published code, fixed here:
   (``LidarModel.range_noise_std_m``, clipped at ±2σ, from each beam's own counter-based stream, as the particle echoes
   get it): no perfect shell, never inside the receiver's blind zone (``r1``), beyond the target or the maximum range;
 - β is an explicit argument (the published parameter object keeps β = 0.046 / MOR(α = 0.06) = 9.21e-4 whatever α);
-- an optional detector noise floor drops returns that the weather pushed below it (label LOST).
+- an optional detector noise floor drops returns that the weather pushed below it (label LOST), decided on the value
+  an integer reading stood for before the sensor rounded it (`weatheralign.lidar.quantum`: a reading of 1 at a floor
+  of 1 stood for a value in ``[1, 1.5)`` and is not lost to any fog).
 """
 
 from __future__ import annotations
@@ -56,6 +58,7 @@ from weatheralign.data.frame import LidarScan
 from weatheralign.lidar.beams import beam_origins, point_noise_keys
 from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel
 from weatheralign.lidar.pulse import SPEED_OF_LIGHT, PulseSensor, overlap
+from weatheralign.lidar.quantum import on_scale, scan_clear_readings
 from weatheralign.lidar.records import FogEchoRange, FogResponse
 from weatheralign.medium.field import normal_pair
 from weatheralign.medium.fog import DEFAULT_BETA_MOR, LN20
@@ -184,6 +187,7 @@ def fog_intensities(
     noise_std: float = 0.0,
     noise_rel: float = 0.0,
     noise_normals: ArrayLike | None = None,
+    clear_values: ArrayLike | None = None,
 ) -> FogIntensities:
     """Hard attenuation vs fog echo for points at ranges ``r0`` (N,) [m] with clear intensities ``i0`` (N,).
 
@@ -205,6 +209,10 @@ def fog_intensities(
             exactly), which is added. Readings are clipped to ``[0, intensity_max]`` before the floor decides.
         noise_normals: (N,) the standard normal of each point's reading (`intensity_normals` of its beam's
             `point_noise_keys`, as `simulate_fog` draws it); required when a noise is on.
+        clear_values: (N,) on ``0..intensity_max``, the clear value each ``i0`` stood for before the sensor rounded
+            it (`weatheralign.lidar.quantum.scan_clear_readings`, as `simulate_fog` finds them): whether an
+            attenuated return fell under the floor is decided on ``clear_values · T²`` (plus its noise), so a
+            reading at the floor is not lost to any fog; None: every ``i0`` as read.
 
     Returns:
         `FogIntensities`. The label of a non-scattered point is UNCHANGED when its float32 intensity is bit-identical
@@ -225,7 +233,7 @@ def fog_intensities(
     intensity = np.empty(len(r0))
     labels = np.empty(len(r0), dtype=np.uint8)
     r_fog = np.empty(len(r0))
-    _intensity_kernel(r0, i0, params, normals, intensity, labels, r_fog)
+    _intensity_kernel(r0, i0, _clear_values(clear_values, len(r0)), params, normals, intensity, labels, r_fog)
     return FogIntensities(intensity=intensity, labels=labels, r_fog=r_fog)
 
 
@@ -262,6 +270,19 @@ def _kernel_params(
                        float(noise_rel), float(intensity_max))
 
 
+def _clear_values(clear_values: ArrayLike | None, n: int) -> F64:
+    """The clear values as the kernels take them: (n,) float64, or (0,) for every intensity as read.
+
+    Raises:
+        ValueError: ``clear_values`` given and not (n,).
+    """
+    if clear_values is None:
+        return np.zeros(0)
+    if np.shape(clear_values) != (n,):
+        raise ValueError(f"fog: clear_values must be of shape ({n},), got {np.shape(clear_values)}")
+    return np.ascontiguousarray(clear_values, dtype=np.float64)
+
+
 def _noise_keys(noise_keys: NDArray | None, n: int, needed: bool) -> NDArray[np.uint64]:
     """The beams' noise streams as the kernels take them: (n,) uint64 when a noise is on, else (0,).
 
@@ -277,10 +298,11 @@ def _noise_keys(noise_keys: NDArray | None, n: int, needed: bool) -> NDArray[np.
 
 
 @njit(cache=True, nogil=True)
-def _fog_one(r0, i0, model, z):  # pragma: no cover
+def _fog_one(r0, i0, clear, model, z):  # pragma: no cover
     """(intensity, label, r_fog) of one return at range ``r0`` [m] with clear intensity ``i0`` (float32) under the
     `FogResponse` ``model``: the scalar model of `fog_intensities` (float64), ``z`` the standard normal of its
-    intensity reading."""
+    intensity reading, ``clear`` (float64) the clear value the rounded ``i0`` stood for, which decides whether the
+    attenuated target fell under the floor (`weatheralign.lidar.quantum`; ``i0`` itself when unrounded)."""
     r_start, dr, g, r_peak, g_peak = model.r_start, model.dr, model.g, model.r_peak, model.g_peak
     alpha, soft_gain, saturation, floor = model.alpha, model.soft_gain, model.saturation, model.floor
     noise_std, noise_rel, full_scale = model.noise_std, model.noise_rel, model.full_scale
@@ -313,17 +335,23 @@ def _fog_one(r0, i0, model, z):  # pragma: no cover
         std = noise_std * math.sqrt(max(1.0 - two_way * two_way, 0.0))
     if label != 0 and std > 0.0:
         out = min(max(out + std * z, 0.0), full_scale)
-    if label != 0 and floor >= 0.0 and out < floor and np.float32(out) < i0:
+    seen, ref = out, i0_64
+    if label == 1:  # the attenuated target: its clear value carried through the two-way transmission
+        seen, ref = out + (clear - i0_64) * two_way, clear
+    if label != 0 and floor >= 0.0 and seen < floor and np.float32(seen) < np.float32(ref):
         label = 3
     return out, label, r_fog
 
 
 @njit(cache=True, nogil=True)
-def _intensity_kernel(r0, i0, model, normals, intensity, labels, r_fog):  # pragma: no cover
-    """`_fog_one` of every return (``normals`` (N,) or (0,): noise-free) into ``intensity``, ``labels``, ``r_fog``."""
+def _intensity_kernel(r0, i0, clear, model, normals, intensity, labels, r_fog):  # pragma: no cover
+    """`_fog_one` of every return (``clear`` (N,) or (0,): each ``i0`` as read; ``normals`` (N,) or (0,):
+    noise-free) into ``intensity``, ``labels``, ``r_fog``."""
     noisy = normals.shape[0] > 0
+    rounded = clear.shape[0] > 0
     for n in range(len(r0)):
-        intensity[n], labels[n], r_fog[n] = _fog_one(r0[n], i0[n], model, normals[n] if noisy else 0.0)
+        x = clear[n] if rounded else np.float64(i0[n])
+        intensity[n], labels[n], r_fog[n] = _fog_one(r0[n], i0[n], x, model, normals[n] if noisy else 0.0)
 
 
 @njit(cache=True, nogil=True)
@@ -362,13 +390,15 @@ def _reported_range(r_fog, r0, key, echo):  # pragma: no cover
 
 
 @njit(cache=True, nogil=True)
-def _points_kernel(points, origins, keys, model, echo, out, labels, r0_out, r_fog_out):  # pragma: no cover
+def _points_kernel(points, origins, keys, clear, model, echo, out, labels, r0_out, r_fog_out):  # pragma: no cover
     """Fog every row of ``points`` (N, 5) float32 into ``out`` (a copy of ``points``) by the `FogResponse` ``model``,
     a fog echo moved to the range of `FogEchoRange` ``echo``; origins (N, 3) or (0, 3); keys (N,) the beams' noise
-    streams, or (0,) for a noise-free detector; per point its label, range ``r0_out`` and ``r_fog_out``."""
+    streams, or (0,) for a noise-free detector; clear (N,) the clear values the rounded intensities stood for, or
+    (0,): as read; per point its label, range ``r0_out`` and ``r_fog_out``."""
     noise_std, noise_rel = model.noise_std, model.noise_rel
     has_origin = origins.shape[0] > 0
     noisy = keys.shape[0] > 0
+    rounded = clear.shape[0] > 0
     for n in range(points.shape[0]):
         ox = oy = oz = 0.0
         if has_origin:
@@ -379,7 +409,8 @@ def _points_kernel(points, origins, keys, model, echo, out, labels, r0_out, r_fo
         r0 = math.sqrt(dx * dx + dy * dy + dz * dz)
         key = keys[n] if noisy else np.uint64(0)
         z = normal_pair(key)[0] if noisy and (noise_std > 0.0 or noise_rel > 0.0) else 0.0
-        value, label, r_fog = _fog_one(r0, points[n, 3], model, z)
+        x = clear[n] if rounded else np.float64(points[n, 3])
+        value, label, r_fog = _fog_one(r0, points[n, 3], x, model, z)
         labels[n] = label
         r0_out[n] = r0
         r_fog_out[n] = r_fog
@@ -450,6 +481,7 @@ def fog_point_arrays(
     response: SoftTargetResponse | None = None,
     noise_std: float = 0.0,
     noise_rel: float = 0.0,
+    clear_values: ArrayLike | None = None,
 ) -> FogResult:
     """Fog on a bare point array (the array-level core of `simulate_fog`).
 
@@ -464,6 +496,8 @@ def fog_point_arrays(
         noise_keys: (N,) each point's beam noise stream (`point_noise_keys`); required when a noise is on.
         response: precomputed `soft_target_response` of ``alpha``, or None.
         noise_std, noise_rel: the detector's intensity noise (see `fog_intensities`).
+        clear_values: (N,) the clear value each intensity stood for before rounding, or None (see
+            `fog_intensities`).
 
     A SCATTERED point moves along its ray to the range the receiver reports for the fog echo: the power peak
     ``R_fog`` minus ``c τ_H / 2`` (the hard targets' convention), plus the range noise, inside
@@ -491,7 +525,8 @@ def fog_point_arrays(
     r0 = np.empty(n)
     r_fog = np.empty(n)
     echo = FogEchoRange(sensor.pulse_length / 2.0, float(range_noise_std), float(sensor.r1), float(sensor.max_range))
-    _points_kernel(np.ascontiguousarray(points), origins, keys, params, echo, out, labels, r0, r_fog)
+    _points_kernel(np.ascontiguousarray(points), origins, keys, _clear_values(clear_values, n), params, echo, out,
+                   labels, r0, r_fog)
     counts = np.bincount(labels, minlength=len(POINT_LABELS))
     if counts[FogLabel.LOST]:
         keep = np.flatnonzero(labels != FogLabel.LOST)
@@ -526,7 +561,9 @@ def simulate_fog(
         lidar: the sensor (`weatheralign.sensors.LidarModel`): its pulse, its detector noise floor (0..255), its
             intensity noise (``intensity_noise_std``, ``intensity_noise_rel``; see `fog_intensities`) and the range
             noise of a new echo (``range_noise_std_m``); each beam's noise from its own stream (`point_noise_keys`:
-            firing time, direction and ring), so the same scan gives the same bytes.
+            firing time, direction and ring), so the same scan gives the same bytes. An integer-quantised scan's
+            readings are spread over their rounding intervals by the same streams in the floor test
+            (`weatheralign.lidar.quantum.scan_clear_readings`).
 
     Returns:
         `FogResult` (use ``result.apply_to(scan)`` for a `LidarScan`).
@@ -534,6 +571,9 @@ def simulate_fog(
     origins = beam_origins(scan, "scan")
     noisy = lidar.range_noise_std_m > 0.0 or lidar.intensity_noise_std > 0.0 or lidar.intensity_noise_rel > 0.0
     keys = point_noise_keys(scan) if noisy else None
+    clear = scan_clear_readings(scan, lidar.noise_floor)
     return fog_point_arrays(scan.points, origins, alpha, beta, intensity_max=scan.intensity_max, sensor=lidar.pulse,
                             noise_floor=lidar.noise_floor, range_noise_std=lidar.range_noise_std_m, noise_keys=keys,
-                            noise_std=lidar.intensity_noise_std, noise_rel=lidar.intensity_noise_rel)
+                            noise_std=lidar.intensity_noise_std, noise_rel=lidar.intensity_noise_rel,
+                            clear_values=None if clear is None else on_scale(clear, scan.points[:, 3],
+                                                                             scan.intensity_max))

@@ -20,7 +20,8 @@ lacks ``σ_0² (1 - k²)`` of the reading's variance at transmission ``k``, adde
 moves along its beam to the measured range (SCATTERED, with the id of the particle contributing most at the peak). A
 particle echo below the detector noise floor is not detected: the target's own echo then decides, and a return the
 weather pushed below the floor is LOST (points that were below the floor in clear weather were detected nevertheless and
-are kept, as in the fog model). Beams without return can return a particle: SCATTERED clutter with ``source_index`` -1
+are kept, as in the fog model), decided on the value an integer clear reading stood for before the sensor rounded it
+(`weatheralign.lidar.quantum`). Beams without return can return a particle: SCATTERED clutter with ``source_index`` -1
 (the reference code never simulates those beams). Echoes measured nearer than the sensor's minimum range are not
 reported.
 
@@ -29,9 +30,10 @@ The unresolved particles (below) return light too: a smooth waveform peaking a f
 the pulse sum's crest and at the continuum's; where the continuum's is stronger it is read like a particle echo
 (SCATTERED without particle id if detected). Far below the floor, it still hides fainter far echoes from a
 strongest-return receiver. Likewise a short run of beams without return between two returns of a surface at the detector
-floor is taken to hit that surface under the floor (`weatheralign.lidar.beams.with_faint_surfaces`): its undetectable
-echo outshines weaker weather echoes, and the beam reports nothing unless the weather puts a detectable echo in front of
-it.
+floor is taken to hit that surface under the floor (`weatheralign.lidar.beams.with_faint_surfaces`), and a beam without
+return still open that points below the horizon hits the scan's fitted ground plane under the floor
+(`weatheralign.lidar.beams.with_ground_plane`: a dark or wet road): its undetectable echo outshines weaker weather
+echoes, it ends the beam, and the beam reports nothing unless the weather puts a detectable echo in front of it.
 
 Particle echo vs target echo (the calibration choice, `weatheralign.sensors.IntensityModel`, part of the sensor's
 `LidarModel`). A clear measurement ``i_0`` at ``R_0`` fixes only the product of the system constant and the target's

@@ -14,7 +14,14 @@ from numpy.typing import NDArray
 
 from weatheralign.data.frame import LidarScan
 from weatheralign.geometry import invert
-from weatheralign.lidar.beams import Beams, beams_from_scan, detector_noise_keys, with_faint_surfaces
+from weatheralign.lidar.beams import (
+    Beams,
+    beams_from_scan,
+    detector_noise_keys,
+    scan_ground_plane,
+    with_faint_surfaces,
+    with_ground_plane,
+)
 from weatheralign.lidar.fog import reading_normals, soft_target_response
 from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel
 from weatheralign.lidar.particles.beam_index import (
@@ -37,6 +44,7 @@ from weatheralign.lidar.particles.records import (
     PulseParams,
 )
 from weatheralign.lidar.particles.response import response_kernel
+from weatheralign.lidar.quantum import attenuated_reading, clear_readings, reading_uniforms, rounded_readings
 from weatheralign.medium.distributions import RAIN_REFLECTIVITY, SNOW_REFLECTIVITY  # noqa: F401  (re-exported)
 from weatheralign.medium.field import DEFAULT_MAX_PARTICLES, ParticleField, Particles
 from weatheralign.medium.fog import FogMedium
@@ -195,6 +203,30 @@ def beam_noise_keys(beams: Beams) -> NDArray[np.uint64]:
     return detector_noise_keys(beams.times, beams.directions, beams.ring)
 
 
+def beam_clear_readings(beams: Beams, noise_floor: float | None) -> F64 | None:
+    """(B,) the clear value each beam's clear intensity stood for before the sensor rounded it (0..255,
+    `weatheralign.lidar.quantum`): the returns' readings of an integer-quantised scan (`rounded_readings`) spread
+    over their rounding intervals by their beams' noise streams, every other beam's ``intensity0`` as it is; None
+    where the sensor rounded none."""
+    ret = np.flatnonzero(beams.has_return)
+    rounded = np.zeros(len(beams), dtype=bool)
+    rounded[ret] = rounded_readings(beams.intensity0[ret])
+    if not rounded.any():
+        return None
+    r = np.flatnonzero(rounded)
+    uniforms = np.zeros(len(beams))
+    uniforms[r] = reading_uniforms(detector_noise_keys(beams.times[r], beams.directions[r], beams.ring[r]))
+    return clear_readings(beams.intensity0, rounded, noise_floor, uniforms)
+
+
+def _joined_clear(parts: list[Beams], noise_floor: float | None) -> F64 | None:
+    """`beam_clear_readings` of several scans' beams, joined as `_joined_beams` joins them (None: none rounded)."""
+    each = [beam_clear_readings(b, noise_floor) for b in parts]
+    if all(c is None for c in each):
+        return None
+    return np.concatenate([b.intensity0.astype(np.float64) if c is None else c for b, c in zip(parts, each)])
+
+
 NO_CONTINUUM = Continuum(step=1.0, peak=np.zeros(1), peak_r=np.zeros(1), cum0=np.zeros(2), cumc=np.zeros(2),
                          cums=np.zeros(2))
 """No unresolved particles' echo (all particles resolved, or fog alone)."""
@@ -261,9 +293,10 @@ def unresolved_continuum(edges: F64, cross_section: F64, alphas: F64, opt: _Opti
 
 
 def _respond(beams: Beams, hits: HitArrays, edges: F64, alphas: F64, opt: _Options,
-             continuum: Continuum = NO_CONTINUUM) -> _Response:
+             continuum: Continuum = NO_CONTINUUM, clear: F64 | None = None) -> _Response:
     """Run the response kernel on the sorted ``hits`` with the bulk extinction ``alphas`` (K,) [1/m] on the range
-    shells ``edges`` (K+1,) [m] and the unresolved particles' echo ``continuum``."""
+    shells ``edges`` (K+1,) [m] and the unresolved particles' echo ``continuum``; ``clear`` (B,): the clear value
+    each beam's intensity stood for before rounding (`beam_clear_readings`), None: as read."""
     n = len(beams)
     hit_off = np.zeros(n + 1, dtype=np.int64)
     np.cumsum(np.bincount(hits.beam, minlength=n), out=hit_off[1:])
@@ -275,7 +308,8 @@ def _respond(beams: Beams, hits: HitArrays, edges: F64, alphas: F64, opt: _Optio
     noisy = opt.intensity_noise_std > 0.0 or opt.intensity_noise_rel > 0.0 or opt.range_noise_std > 0.0
     targets = BeamTargets(has_ret=beams.has_return, lengths=beams.lengths.astype(np.float64),
                           i0=beams.intensity0.astype(np.float64),
-                          noise_key=beam_noise_keys(beams) if noisy else np.zeros(0, dtype=np.uint64))
+                          noise_key=beam_noise_keys(beams) if noisy else np.zeros(0, dtype=np.uint64),
+                          clear=np.zeros(0) if clear is None else np.ascontiguousarray(clear, dtype=np.float64))
     pulse = PulseParams(pulse_len=opt.sensor.pulse_length, r1=opt.sensor.r1, r2=opt.sensor.r2,
                         part_gain=model.scale * opt.reflectivity, r_ref=model.r_ref, falloff=model.falloff,
                         keep_tol=opt.keep_tolerance, floor=-1.0 if opt.noise_floor is None else float(opt.noise_floor),
@@ -337,12 +371,14 @@ def _fog_backscatter(beams: Beams, response: _Response, fog: FogMedium, opt: _Op
     out.dom[b] = -1
 
 
-def _read_attenuated(beams: Beams, response: _Response, opt: _Options) -> None:
+def _read_attenuated(beams: Beams, response: _Response, opt: _Options, clear: F64 | None = None) -> None:
     """The detector's reading of each target kept at its range (ATTENUATED, in place on ``response.outcome``): its
     clear intensity ``i_0`` carries its clear reading's noise, scaled with the signal by the transmission ``k =
     i / i_0``; the reading lacks ``σ_0² (1 - k²)`` of its variance (``intensity_noise_std`` σ_0; the proportional
     part scales exactly), added from the beam's noise stream (the first normal, unused by a kept target), as
-    `weatheralign.lidar.fog` does. A reading the weather pushed below the floor (and below ``i_0``) is LOST."""
+    `weatheralign.lidar.fog` does. A reading the weather pushed below the floor (and below ``i_0``) is LOST, tested
+    on the clear value ``clear`` (B,) the rounded ``i_0`` stood for (`beam_clear_readings`; None: ``i_0``) carried
+    through ``k`` (`weatheralign.lidar.quantum.attenuated_reading`)."""
     if opt.intensity_noise_std <= 0.0:
         return
     out = response.outcome
@@ -356,7 +392,9 @@ def _read_attenuated(beams: Beams, response: _Response, opt: _Options) -> None:
                       opt.sensor.saturation)
     out.intensity[b] = reading
     if opt.noise_floor is not None:
-        lost = (reading < opt.noise_floor) & (reading.astype(np.float32) < i0.astype(np.float32))
+        x = i0 if clear is None else clear[b]
+        seen = attenuated_reading(reading, i0, x, k)
+        lost = (seen < opt.noise_floor) & (seen.astype(np.float32) < x.astype(np.float32))
         out.state[b[lost]] = WeatherLabel.LOST
 
 
@@ -459,11 +497,13 @@ def _identity(beams: Beams, points: NDArray[np.float32], intensity_max: float, s
 def _inputs(scan: LidarScan | Beams, *, lidar: LidarModel, T_global_lidar: F64 | None, intensity_max: float | None,
             columns: object, reconstruct: bool, faint_surfaces: bool = False) -> tuple[Beams, NDArray, F64, float]:
     """(beams, input points (N, 5) float32, output frame T_global_out, intensity scale); a scan's beams with its
-    faint surfaces (`with_faint_surfaces`) if ``faint_surfaces``."""
+    surfaces under the floor if ``faint_surfaces``: `with_faint_surfaces`, then the fitted ground plane for the beams
+    still open (`with_ground_plane`)."""
     if isinstance(scan, LidarScan):
         beams = beams_from_scan(scan, lidar=lidar, columns=columns, reconstruct=reconstruct)
         if faint_surfaces:
             beams = with_faint_surfaces(beams, lidar.noise_floor)
+            beams = with_ground_plane(beams, scan_ground_plane(scan), lidar.noise_floor)
         T = scan.T_global_lidar if T_global_lidar is None else np.asarray(T_global_lidar, dtype=np.float64)
         return beams, scan.points, T, float(scan.intensity_max)
     if not isinstance(scan, Beams):
@@ -566,9 +606,11 @@ def simulate_particles(
             without it rain's faint far drops on open beams come back 2-3x too often (against the reference's exact
             waveform). False: particle and target pulses alone.
         faint_surfaces: a scan's beams without return that lie between two returns of a surface at the detector
-            floor are taken to hit that surface under the floor (`weatheralign.lidar.beams.with_faint_surfaces`):
-            its undetectable echo still outshines weaker weather echoes. False: every beam without return is open
-            to ``max_range``. (`Beams` inputs are used as given.)
+            floor are taken to hit that surface under the floor (`weatheralign.lidar.beams.with_faint_surfaces`),
+            and those still open that point below the horizon hit the scan's fitted ground plane under the floor
+            (`weatheralign.lidar.beams.with_ground_plane`): an undetectable echo still outshines weaker weather
+            echoes, and the surface ends the beam. False: every beam without return is open to ``max_range``.
+            (`Beams` inputs are used as given.)
         shell_ratio, first_shell: geometric range shells (``[0, first, first·ratio, ...]`` [m]).
         max_particles_per_shell: refuse a shell query expecting more particles (raise ``ratio_threshold``).
 
@@ -651,6 +693,7 @@ def simulate_particle_scans(
     inputs = [_inputs(s, lidar=lidar, T_global_lidar=T_global_lidar, intensity_max=intensity_max, columns=columns,
                       reconstruct=reconstruct, faint_surfaces=faint_surfaces) for s in scans]
     beams, offsets = _joined_beams([i[0] for i in inputs])
+    clear = _joined_clear([i[0] for i in inputs], lidar.noise_floor)
     opt = _Options.of(lidar, reflectivity, keep_tolerance)
     if ratio_threshold is None:
         ratio_threshold = auto_ratio_threshold(reflectivity)
@@ -671,14 +714,14 @@ def simulate_particle_scans(
         return [_identity(b, pts, imax, scan_stats(b)) for b, pts, _, imax in inputs]
     if empty:  # fog alone, through the same response: no hits, the fog's extinction everywhere
         hits = empty_hits()
-        response = _respond(beams, hits, np.array([0.0, 1e300]), np.array([fog_alpha]), opt)
+        response = _respond(beams, hits, np.array([0.0, 1e300]), np.array([fog_alpha]), opt, clear=clear)
         _fog_backscatter(beams, response, fog, opt)
-        _read_attenuated(beams, response, opt)
+        _read_attenuated(beams, response, opt, clear)
         joint: dict = {}
     else:
         hits, response, joint = _field_response(beams, field, opt, fog, float(ratio_threshold), attenuation,
                                                 unresolved_extinction_factor, unresolved_echo, shell_ratio,
-                                                first_shell, max_particles_per_shell)
+                                                first_shell, max_particles_per_shell, clear)
     results = []
     for (b, pts, T_out, imax), b0 in zip(inputs, offsets[:-1]):
         part_hits, part_response = _scan_part(b, int(b0), hits, response)
@@ -688,11 +731,12 @@ def simulate_particle_scans(
 
 def _field_response(beams: Beams, field: ParticleField, opt: _Options, fog: FogMedium | None, ratio_threshold: float,
                     attenuation: bool, unresolved_extinction_factor: float, unresolved_echo: bool,
-                    shell_ratio: float, first_shell: float, max_particles_per_shell: int
+                    shell_ratio: float, first_shell: float, max_particles_per_shell: int, clear: F64 | None = None
                     ) -> tuple[HitArrays, _Response, dict]:
     """The hits of the resolved particles of ``field`` on ``beams``, sorted by beam then range, the per-beam response
     (with the unresolved particles' and the fog's extinction, the unresolved particles' echo, and the fog's
-    backscatter) and the run's diagnostics (range shells, reference time, particles, origin spread)."""
+    backscatter; ``clear``: `beam_clear_readings`) and the run's diagnostics (range shells, reference time,
+    particles, origin spread)."""
     fog_alpha = 0.0 if fog is None else fog.alpha
     index = index_beams(beams)
     vel = field.velocity_array
@@ -723,10 +767,10 @@ def _field_response(beams: Beams, field: ParticleField, opt: _Options, fog: FogM
                "hits": int(per_shell[k, 1]), "unresolved_extinction": float(alphas[k])}
               for k in range(len(thresholds))]
     continuum = unresolved_continuum(edges, 0.5 * unresolved, alphas, opt) if unresolved_echo else NO_CONTINUUM
-    response = _respond(beams, hits, edges, alphas, opt, continuum)
+    response = _respond(beams, hits, edges, alphas, opt, continuum, clear)
     if fog is not None and fog_alpha > 0.0:
         _fog_backscatter(beams, response, fog, opt)
-    _read_attenuated(beams, response, opt)
+    _read_attenuated(beams, response, opt, clear)
     return hits, response, {"shells": shells, "t_ref": index.t_ref, "particles": sum(x["particles"] for x in shells),
                             "origin_spread": index.e_origin}
 
@@ -773,6 +817,7 @@ def simulate_particle_list(
     edges, alphas = np.array([0.0, float(beams.lengths.max()) + 1.0]), np.array([float(extinction)])
     continuum = (unresolved_continuum(edges, np.array([float(unresolved_cross_section)]), alphas, opt)
                  if unresolved_cross_section > 0.0 else NO_CONTINUUM)
-    response = _respond(beams, hits, np.array([0.0, 1e300]), alphas, opt, continuum)
-    _read_attenuated(beams, response, opt)
+    clear = beam_clear_readings(beams, lidar.noise_floor)
+    response = _respond(beams, hits, np.array([0.0, 1e300]), alphas, opt, continuum, clear)
+    _read_attenuated(beams, response, opt, clear)
     return _assemble(beams, points, T_out, imax, hits, response, stats)

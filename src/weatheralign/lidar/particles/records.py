@@ -220,6 +220,8 @@ class BeamTargets(NamedTuple):
     lengths: F64  # (B,) its range R_0, or the maximum range [m]
     i0: F64  # (B,) its clear intensity on the 0..255 scale
     noise_key: NDArray[np.uint64]  # (B,) each beam's detector-noise stream (`api.beam_noise_keys`); (0,) noise-free
+    clear: F64  # (B,) the clear value each i0 stood for before the sensor rounded it, 0..255
+    # (`weatheralign.lidar.quantum.clear_readings`: i0 itself where unrounded); (0,): every i0 as read
 
 
 class PulseParams(NamedTuple):

@@ -57,11 +57,14 @@ def _gain(r, r_ref, falloff):  # pragma: no cover
 
 
 @njit(nogil=True, cache=True, inline="always")
-def _keep_or_lost(val, floor, i0):  # pragma: no cover
+def _keep_or_lost(val, floor, i0, clear, transmission):  # pragma: no cover
     """Outcome of a return kept at its range with intensity ``val`` (clear intensity ``i0``, both 0..255): LOST if
     there is a noise ``floor`` (>= 0) and the weather pushed the return below it (a return already below it in clear
-    weather was detected nevertheless and stays), else ATTENUATED."""
-    return WeatherLabel.LOST if (floor >= 0.0 and val < floor and val < i0) else WeatherLabel.ATTENUATED
+    weather was detected nevertheless and stays), else ATTENUATED. The test reads the clear value ``clear`` the
+    rounded ``i0`` stood for (`weatheralign.lidar.quantum.clear_readings`; ``i0`` itself when unrounded): ``val``
+    plus the difference carried by the target's ``transmission`` (`quantum.attenuated_reading`)."""
+    v = val + (clear - i0) * transmission
+    return WeatherLabel.LOST if (floor >= 0.0 and v < floor and v < clear) else WeatherLabel.ATTENUATED
 
 
 @njit(nogil=True, cache=True, inline="always")
@@ -315,10 +318,12 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
     the beam's stream ``beams.noise_key``) is added to its peak and range before the floor decides whether it is
     detected; an echo measured nearer than ``pulse.min_range`` is not. A target kept at its range keeps the noise of
     its clear measurement (scaled with it) here; the reading's missing variance is added afterwards
-    (`weatheralign.lidar.particles.api._read_attenuated`).
+    (`weatheralign.lidar.particles.api._read_attenuated`). Whether the weather pushed a kept target under the floor
+    is decided on the clear value its rounded reading stood for (``beams.clear``, `_keep_or_lost`).
     """
     h_s, h_u1, h_u2, h_a, h_ratio = hits.s, hits.u1, hits.u2, hits.a, ratio
-    has_ret, lengths, i0 = beams.has_ret, beams.lengths, beams.i0
+    has_ret, lengths, i0, clear = beams.has_ret, beams.lengths, beams.i0, beams.clear
+    rounded = clear.shape[0] > 0
     pulse_len, r1, r2, part_gain = pulse.pulse_len, pulse.r1, pulse.r2, pulse.part_gain
     r_ref, falloff = pulse.r_ref, pulse.falloff
     keep_tol, floor, saturation, grid_n = pulse.keep_tol, pulse.floor, pulse.saturation, pulse.grid_n
@@ -349,6 +354,7 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
         out_int[b] = 0.0
         hidden = (not ret) and i0[b] > 0.0 and length > 0.0  # a surface under the floor in clear weather
         tau_target = _optical_depth(length, medium) if (ret or hidden) else 0.0
+        x0 = clear[b] if rounded else i0[b]  # the clear value the reading i0 stood for
         c_peak, c_r = _continuum_at(length, continuum)
         if c_peak > 0.0 and k_hits == 0 and (ret or hidden) and length > 0.0:  # the target beats the continuum?
             if c_peak <= i0[b] * math.exp(-2.0 * tau_target) / (length * length * _gain(length, r_ref, falloff)):
@@ -365,7 +371,7 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
             val = min(i0[b] * math.exp(-2.0 * tau_target), saturation)
             out_range[b] = length
             out_int[b] = val
-            out_state[b] = _keep_or_lost(val, floor, i0[b])
+            out_state[b] = _keep_or_lost(val, floor, i0[b], x0, math.exp(-2.0 * tau_target))
             continue
         # --- occlusion ratios, nearest first: closed form for a disk that overlaps no nearer disk inside the beam,
         # else the uncovered part of its disk is counted on a grid_n x grid_n grid over its box ∩ the beam's box
@@ -404,6 +410,7 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
         for j in range(k_hits):
             covered += h_ratio[h0 + j]
         remaining = max(0.0, 1.0 - covered)
+        t_target = remaining * math.exp(-2.0 * tau_target)  # the share of the clear echo that comes back
         # --- pulse amplitudes in raw power units (intensity / (R² g(R)))
         for j in range(k_hits):
             h = h0 + j
@@ -447,7 +454,7 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
             val_t = _target_crest(starts, amps, m, length, pulse_len, r_ref, falloff, saturation)
             out_range[b] = length
             out_int[b] = val_t
-            out_state[b] = _keep_or_lost(val_t, floor, i0[b])
+            out_state[b] = _keep_or_lost(val_t, floor, i0[b], x0, t_target)
             continue
         if p_peak <= 0.0:
             if ret and remaining > 0.0:  # a zero-intensity target, no visible particle: stays at zero
@@ -466,7 +473,7 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
             val = min(p_peak * length * length * g0, saturation)
             out_range[b] = length
             out_int[b] = val
-            out_state[b] = _keep_or_lost(val, floor, i0[b])
+            out_state[b] = _keep_or_lost(val, floor, i0[b], x0, t_target)
             continue
         # the particle contributing most at the peak
         best = -1.0
@@ -492,7 +499,7 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
             val_t = _target_crest(starts, amps, m, length, pulse_len, r_ref, falloff, saturation)
             out_range[b] = length
             out_int[b] = val_t
-            out_state[b] = _keep_or_lost(val_t, floor, i0[b])
+            out_state[b] = _keep_or_lost(val_t, floor, i0[b], x0, t_target)
             continue
         out_state[b] = WeatherLabel.SCATTERED
         out_range[b] = r_out
