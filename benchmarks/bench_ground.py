@@ -8,7 +8,7 @@ one wet road and one snow cover seen by the LiDAR and the camera of each frame.
    (`wet_lidar_factor_naive`) at the incidence angles a car's LiDAR meets the road at, for two pavement
    reflectivities;
 2. on the real Seeing Through Fog and KITTI HDL-64 scans of ``../shared/data/real``: the ground found once
-   (`weatheralign.ground.surfaces.fit_ground_plane`), the water depth field of `weatheralign.ground.wet.water_depth`
+   (`weatheralign.lidar.ground_plane.fit_ground_plane`), the water depth field of `weatheralign.ground.wet.water_depth`
    at the points' world positions, and for film depths from damp to flooded: the ground returns' mean intensity
    ratio, the share lost under the scan's estimated detector floor (`weatheralign.sensors.estimate_lidar_model`),
    and the share pushed below the weakest intensity the dry scan reports (Seeing Through Fog clamps its weakest

@@ -64,7 +64,7 @@ from weatheralign.conditions import CONDITIONS, variant_name  # noqa: E402
 from weatheralign.config import Params  # noqa: E402
 from weatheralign.data.errors import DataFormatError  # noqa: E402
 from weatheralign.reference import PRECIPITATION_LEVELS, ReferenceDataset, configured_reference, reference_lidar_model  # noqa: E402
-from weatheralign.simulate.media import configured_fog_levels, configured_precipitation_rates  # noqa: E402
+from weatheralign.simulate.media import configured_fog_levels, configured_precipitation_rates, resolve_overcast  # noqa: E402
 from weatheralign.verify.classifier import (  # noqa: E402
     broken_pairs,
     ensemble_report,
@@ -94,14 +94,16 @@ CLASS_OF_LEVEL: dict[str, int] = {"clear": 0, "light": 1, "dense": 1, "snow": 2,
 def severity_of(params: Params) -> tuple[Severity, dict[str, str]]:
     """The severity `simulate` uses — the fog levels of ``simulate.fog_levels``, the snow / rain rates and the
     ground of ``simulate.precipitation_rates`` (the ground's params depths where none was calibrated; none with
-    ``simulate.ground`` off) — and where each rate came from."""
+    ``simulate.ground`` off), the overcast light of each sky (`resolve_overcast`) — and where each rate came from."""
     cfg = params.simulate
     rates = configured_precipitation_rates(cfg, params.particles, params.paths.data)
     ground = {} if not cfg.ground else {"rain": rates.ground_depth_m.get("rain", cfg.wet_film_depth_m),
                                          "snow": rates.ground_depth_m.get("snow", cfg.snow_depth_m)}
+    overcast = {c.sky.split: light for c in CONDITIONS.values() if c.sky is not None
+                for light in [resolve_overcast(c, cfg, rates)] if light is not None}
     return Severity(configured_fog_levels(cfg, params.paths.data), rates.rate_mm_h["snow"], rates.rate_mm_h["rain"],
                     params.particles, cfg.unaligned_rate_factor, ground, cfg.wet_puddle_share,
-                    cfg.ground_seed), rates.source
+                    cfg.ground_seed, overcast), rates.source
 
 
 def verified_conditions(ds: ReferenceDataset) -> dict[str, str]:
@@ -281,7 +283,7 @@ def verify_flow(params: Params) -> dict:
             "reference_root": str(ds.root), "reference_source": params.reference.source,
             "severity": {"fog_levels": severity.levels.source, "snow_rate_mm_h": severity.snow_rate_mm_h,
                          "rain_rate_mm_h": severity.rain_rate_mm_h, "rates": rate_source,
-                         "ground_depth_m": dict(severity.ground_depth_m)},
+                         "ground_depth_m": dict(severity.ground_depth_m), "overcast": dict(severity.overcast)},
             "classifier_accuracy": report.accuracy, "classifier_held_out": int(len(report.held_out)),
             "classifiers": len(models), "classifier_accuracy_each": member_accuracy,
             "classifier_confusion": report.confusion.tolist(), "classes": list(CLASSES),

@@ -18,12 +18,11 @@ from weatheralign.ground.surfaces import (
     pixel_normals,
     pixel_normals_naive,
     pixel_points,
-    plane_inliers,
-    plane_inliers_naive,
     point_normals,
     point_normals_naive,
 )
 from weatheralign.ground.wet import fractal_noise, fractal_noise_naive
+from weatheralign.lidar.ground_plane import plane_inliers, plane_inliers_naive
 
 
 def test_fractal_noise_is_its_oracle_bit_for_bit() -> None:

@@ -9,8 +9,6 @@ from scipy.ndimage import binary_dilation, binary_erosion
 
 from weatheralign.ground.camera import CameraGeometry
 from weatheralign.ground.surfaces import (
-    GroundPlane,
-    fit_ground_plane,
     mask_agreement,
     median_over_neighbours,
     nearest_neighbours,
@@ -18,6 +16,7 @@ from weatheralign.ground.surfaces import (
     pixel_normals,
     point_normals,
 )
+from weatheralign.lidar.ground_plane import GroundPlane, fit_ground_plane
 
 
 def tilted_ground(n: int = 4000, seed: int = 0) -> tuple[np.ndarray, np.ndarray, float]:

@@ -106,6 +106,28 @@ def test_no_import_cycle() -> None:
     assert not found, f"import cycles (imports inside functions included): {found}"
 
 
+def package_graph(graph: dict[str, set[str]]) -> dict[str, set[str]]:
+    """The library's subpackages (``weatheralign.lidar``; a top-level module is its own) and the ones they import."""
+    def package(module: str) -> str:
+        return ".".join(module.split(".")[:2])
+    out: dict[str, set[str]] = {}
+    for name, edges in graph.items():
+        if name.startswith("weatheralign."):
+            out.setdefault(package(name), set()).update(
+                package(e) for e in edges if e.startswith("weatheralign.") and package(e) != package(name))
+    return out
+
+
+def test_no_cycle_between_the_library_packages() -> None:
+    """One-way between packages too: ``weatheralign.ground`` may use ``weatheralign.lidar`` or the reverse, not
+    both (a module-level cycle check passes while two packages import each other's modules)."""
+    assert package_graph({"weatheralign.a.x": {"weatheralign.b.y"}, "weatheralign.b.y": set(),
+                          "weatheralign.b.z": {"weatheralign.a.w"}, "weatheralign.a.w": set()}) == {
+        "weatheralign.a": {"weatheralign.b"}, "weatheralign.b": {"weatheralign.a"}}
+    found = cycles(package_graph(import_graph(project_modules())))
+    assert not found, f"packages importing each other: {found}"
+
+
 def test_library_never_imports_the_pipeline() -> None:
     """``pip install weatheralign`` comes without Prefect, MLflow, DVC and Dask: the library imports none of them."""
     offenders = []

@@ -10,10 +10,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from weatheralign.camera.overcast import Overcast
 from weatheralign.conditions import CONDITIONS
-from weatheralign.config import ParticlesConfig
+from weatheralign.config import ParticlesConfig, load_params
 from weatheralign.reference import open_reference
-from weatheralign.simulate.media import FogLevels
+from weatheralign.simulate.media import FogLevels, configured_precipitation_rates, resolve_overcast
 from weatheralign.verify.frames import Severity, reference_fused_input, scene_media, simulated_pair
 
 from .conftest import REPO, make_lidar
@@ -51,6 +52,31 @@ def test_particle_media_take_the_severity_rate_and_a_field_per_frame() -> None:
     assert rain.field.field(True).seed != rain.field.field(False).seed  # the unaligned cameras see the twin
     mixed = scene_media(CONDITIONS["fog_snow"], True, "rec_00001", severity(), seed=0)
     assert mixed.field is not None and mixed.lidar_alpha == LEVELS.alpha["light"]
+
+
+def test_snow_and_rain_media_fall_under_the_severity_overcast_and_fog_under_the_clear_day() -> None:
+    light = {"snow": Overcast(0.3, 2.4, 0.9).to_dict(), "rain": Overcast(0.2, 2.2, 0.8).to_dict()}
+    lit = replace(severity(), overcast=light)
+    for name, split in (("snow", "snow"), ("rain", "rain"), ("fog_snow", "snow")):
+        for aligned in (True, False):  # the day's light: the unaligned cameras see it too
+            assert scene_media(CONDITIONS[name], aligned, "rec_00001", lit, seed=0).overcast == Overcast(**light[split])
+        assert scene_media(CONDITIONS[name], True, "rec_00001", severity(), seed=0).overcast is None
+    assert scene_media(CONDITIONS["fog_dense"], True, "rec_00001", lit, seed=0).overcast is None
+
+
+def test_verify_severity_takes_the_overcast_simulate_resolves(tmp_path) -> None:
+    from flows.verify import severity_of  # the flow module: Prefect and torch on import
+
+    params = load_params(REPO / "params.yaml", [f"paths.data={tmp_path}", "simulate.precipitation_rates=params",
+                                                "simulate.fog_levels=params"])
+    severity_on, _ = severity_of(params)
+    rates = configured_precipitation_rates(params.simulate, params.particles, tmp_path)
+    assert severity_on.overcast == {name: resolve_overcast(CONDITIONS[name], params.simulate, rates)
+                                    for name in ("snow", "rain")}
+    assert all(light is not None for light in severity_on.overcast.values())
+    off = load_params(REPO / "params.yaml", [f"paths.data={tmp_path}", "simulate.precipitation_rates=params",
+                                             "simulate.fog_levels=params", "simulate.overcast=false"])
+    assert severity_of(off)[0].overcast == {}
 
 
 @pytest.fixture(scope="module")

@@ -25,8 +25,6 @@ from weatheralign.ground.camera import CameraGeometry, snow_cover_layers, wet_ro
 from weatheralign.ground.snow import SnowCover, TireTracks, snow_covered_ground, surface_snow
 from weatheralign.ground.surfaces import (
     MAX_SURFACE_VARIATION,
-    GroundPlane,
-    fit_ground_plane,
     median_over_neighbours,
     nearest_neighbours,
     nearest_return_values,
@@ -36,6 +34,7 @@ from weatheralign.ground.surfaces import (
 )
 from weatheralign.ground.wet import WetRoad, film_depth, incidence_angle, puddle_margin, water_depth, wet_ground
 from weatheralign.lidar.beams import point_noise_keys
+from weatheralign.lidar.ground_plane import GroundPlane, fit_ground_plane
 from weatheralign.lidar.quantum import reading_uniforms, scan_clear_readings
 
 F64 = NDArray[np.float64]
@@ -151,8 +150,9 @@ def edit_scan(scan: LidarScan, surfaces: ScanSurfaces, state: GroundState, noise
         ground = surfaces.on_ground
         xyz = points[ground, :3].astype(np.float64)
         depth = water_depth(surfaces.world[ground, :2], state.road, state.seed)
-        clear = scan_clear_readings(scan, noise_floor)
-        normals = wet_reading_normals(point_noise_keys(scan)[ground]) if noise_std > 0.0 else None
+        keys = point_noise_keys(scan)
+        clear = scan_clear_readings(scan, noise_floor, keys)
+        normals = wet_reading_normals(keys[ground]) if noise_std > 0.0 else None
         effect = wet_ground(intensity[ground], incidence_angle(xyz, np.zeros(3), np.asarray(surfaces.plane.normal)),
                             depth, state.road, noise_floor, None if clear is None else clear[ground], noise_std,
                             normals)

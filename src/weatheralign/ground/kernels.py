@@ -1,7 +1,6 @@
 """Compiled per-point kernels of the ground: the value and fractal noise that the water-depth and snow-depth fields
 and the snow's grain are made of, evaluated at every LiDAR return and every camera pixel; the surfaces they lie on
-(RANSAC's inlier counts, the returns' PCA normals and their neighbours' median, a range map's normals); the mirror
-image's march.
+(the returns' PCA normals and their neighbours' median, a range map's normals); the mirror image's march.
 
 `weatheralign.ground.wet.fractal_noise_naive` (numpy) defines the result; `fractal_noise_kernel` computes the same
 rule point by point (the same integer hash, the same operation order). Nothing here allocates per point; the kernels
@@ -87,21 +86,6 @@ def fractal_noise_kernel(xy: F64, cell_m: float, seed: int, octaves: int) -> F64
 
 
 
-
-
-@numba.njit(cache=True, nogil=True)
-def plane_inliers_kernel(points: F64, normals: F64, offsets: F64, tolerance_m: float) -> NDArray[np.int64]:
-    """(H,) per plane ``normals[h] . x + offsets[h] = 0`` (normals (H, 3), offsets (H,)) the number of ``points``
-    (S, 3) closer to it than ``tolerance_m`` (`weatheralign.ground.surfaces.plane_inliers_naive`)."""
-    x, y, z = points[:, 0].copy(), points[:, 1].copy(), points[:, 2].copy()  # contiguous: the loop vectorises
-    counts = np.zeros(normals.shape[0], np.int64)
-    for h in range(normals.shape[0]):
-        nx, ny, nz, d = normals[h, 0], normals[h, 1], normals[h, 2], offsets[h]
-        count = 0
-        for i in range(x.shape[0]):
-            count += abs(x[i] * nx + y[i] * ny + z[i] * nz + d) < tolerance_m
-        counts[h] = count
-    return counts
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -380,6 +364,6 @@ def screen_space_reflection_kernel(image: F64, range_map: F64, K: F64, start: F6
 
 
 __all__ = ["fractal_noise_kernel", "hash01", "neighbour_median_kernel", "neighbour_normals_kernel",
-           "pixel_normals_kernel", "pixel_points_kernel", "plane_inliers_kernel", "reflect_index",
+           "pixel_normals_kernel", "pixel_points_kernel", "reflect_index",
            "screen_space_reflection_kernel", "smallest_eigenvector", "tracks_factor_kernel", "value_noise_kernel",
            "value_noise_one"]

@@ -37,7 +37,7 @@ from numpy.typing import NDArray
 from weatheralign.data.frame import LidarScan
 from weatheralign.data.nuscenes import derived_time_offsets, read_point_extras
 from weatheralign.geometry import invert
-from weatheralign.ground.surfaces import GroundPlane, fit_ground_plane
+from weatheralign.lidar.ground_plane import GroundPlane, fit_ground_plane
 
 if TYPE_CHECKING:
     from weatheralign.sensors import FiringPattern, LidarModel
@@ -466,7 +466,7 @@ def with_faint_surfaces(beams: Beams, noise_floor: float | None) -> Beams:
 
 
 def scan_ground_plane(scan: LidarScan) -> GroundPlane | None:
-    """The ground plane of ``scan`` in the global frame: `weatheralign.ground.surfaces.fit_ground_plane` on its
+    """The ground plane of ``scan`` in the global frame: `fit_ground_plane` on its
     points (sensor frame, z up; the ground edit's plane), moved by ``scan.T_global_lidar``; None where too few
     returns lie below the sensor to fit one."""
     try:

@@ -112,21 +112,23 @@ class ReadingSpread(NamedTuple):
     uniforms: F64  # (N,) in [0, 1): `reading_uniforms` of each point's beam (0 where not rounded)
 
 
-def scan_reading_spread(scan: LidarScan) -> ReadingSpread | None:
-    """``scan``'s `ReadingSpread`, its uniforms drawn from each point's beam stream (`point_noise_keys`, the stream of
-    its detector noise), or None where the sensor rounded none of its readings."""
+def scan_reading_spread(scan: LidarScan, keys: NDArray[np.uint64] | None = None) -> ReadingSpread | None:
+    """``scan``'s `ReadingSpread`, its uniforms drawn from each point's beam stream (``keys`` (N,), the scan's
+    `point_noise_keys` where the caller has them: the stream of its detector noise), or None where the sensor rounded
+    none of its readings."""
     rounded = rounded_readings(scan.intensity_255())
     if not rounded.any():
         return None
     uniforms = np.zeros(len(rounded))
-    uniforms[rounded] = reading_uniforms(point_noise_keys(scan)[rounded])
+    uniforms[rounded] = reading_uniforms((point_noise_keys(scan) if keys is None else keys)[rounded])
     return ReadingSpread(rounded, uniforms)
 
 
-def scan_clear_readings(scan: LidarScan, noise_floor: float | None) -> F64 | None:
-    """(N,) `clear_readings` of ``scan``'s points on the 0..255 scale (`scan_reading_spread`), or None where the
-    sensor rounded none of them."""
-    spread = scan_reading_spread(scan)
+def scan_clear_readings(scan: LidarScan, noise_floor: float | None, keys: NDArray[np.uint64] | None = None
+                        ) -> F64 | None:
+    """(N,) `clear_readings` of ``scan``'s points on the 0..255 scale (`scan_reading_spread`, ``keys`` its
+    `point_noise_keys` where known), or None where the sensor rounded none of them."""
+    spread = scan_reading_spread(scan, keys)
     if spread is None:
         return None
     return clear_readings(scan.intensity_255(), spread.rounded, noise_floor, spread.uniforms)

@@ -23,8 +23,8 @@ from weatheralign.config import ReferenceConfig
 from weatheralign.data.frame import LidarScan
 from weatheralign.ground.edit import GroundState, ScanSurfaces, edit_scan
 from weatheralign.ground.snow import SnowCover, TireTracks
-from weatheralign.ground.surfaces import GroundPlane
 from weatheralign.ground.wet import WetRoad
+from weatheralign.lidar.ground_plane import GroundPlane
 from weatheralign.reference.layout import LEVELS, PRECIPITATION_LEVELS
 
 F64 = NDArray[np.float64]

@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 from weatheralign.calibrate.histograms import frame_counts
 from weatheralign.camera.fog import estimate_airlight
+from weatheralign.camera.overcast import Overcast
 from weatheralign.conditions import Condition, FogPart, GroundPart, ParticlePart
 from weatheralign.config import ParticlesConfig
 from weatheralign.data.frame import Frame
@@ -45,7 +46,9 @@ class Severity:
     equivalent) of the particle fields, with the field physics of ``particles`` (``particles.<kind>.rate_mm_h`` is
     replaced by the rate given here); ``unaligned_rate_factor``: the unaligned cameras' rate spread
     (`ParticlePart.camera_rate`, ``simulate.unaligned_rate_factor``; 1: positions alone misaligned); the ground of
-    each kind, its puddles' share and fields' seed (``simulate.wet_puddle_share``, ``ground_seed``)."""
+    each kind, its puddles' share and fields' seed (``simulate.wet_puddle_share``, ``ground_seed``); the overcast
+    light of each sky (``snow`` / ``rain``, `Overcast.to_dict`, as `weatheralign.simulate.media.resolve_overcast`
+    gives it)."""
 
     levels: FogLevels
     snow_rate_mm_h: float
@@ -57,6 +60,8 @@ class Severity:
     leaves none."""
     wet_puddle_share: float = 0.08
     ground_seed: int = 11
+    overcast: dict[str, dict[str, float]] = field(default_factory=dict)
+    """The light each sky split (``snow`` / ``rain``) falls under; a split absent: the clear day's light."""
 
     def particles_at_rates(self) -> ParticlesConfig:
         """``particles`` with the snow and rain rates of this severity."""
@@ -122,7 +127,7 @@ def scene_media(condition: Condition, aligned: bool, sample_id: str, severity: S
     (`FogPart.airlight_gain`, both cameras), the particle field seeded from
     (``severity.particles.seed``, kind, frame id) (unaligned cameras: its twin at `ParticlePart.camera_rate`), the
     ground at ``severity``'s depth with fields seeded from the frame id (unaligned cameras: its twin,
-    `GroundPart.camera_amount`)."""
+    `GroundPart.camera_amount`), the overcast of the condition's sky (aligned and unaligned alike)."""
     kw: dict = {}
     if condition.fog is not None:
         levels = severity.levels
@@ -147,6 +152,8 @@ def scene_media(condition: Condition, aligned: bool, sample_id: str, severity: S
             kw["ground"] = SceneGround(condition.ground.kind, depth, lidar_seed, GroundPart.camera_amount(
                 aligned, depth, severity.unaligned_rate_factor, lidar_seed), camera_seed,
                 severity.wet_puddle_share if condition.ground.kind == "wet" else 0.0)
+    if condition.sky is not None and condition.sky.split in severity.overcast:
+        kw["overcast"] = Overcast(**severity.overcast[condition.sky.split])
     return SceneMedia(condition, aligned, sample_id, **kw)
 
 
