@@ -16,22 +16,23 @@ snow, rain):
    pairs against another frame's LiDAR, the frame's own LiDAR shifted, and, for snow and rain frames with particle
    echoes in view, the frame's LiDAR with its particle echoes displaced); its penultimate layer is the fused feature.
    ``verify.classifiers`` classifiers train alike from consecutive seeds; every MMD below uses the mean of their
-   kernels (`pooled_kernel`), so that no single training draw decides a verdict (the control's p-value of each
-   classifier alone is reported beside it);
+   kernels (`pooled_kernel`), so that no single training draw decides a verdict (the control's p-value and the
+   MMD^2 of each classifier alone are reported beside it), and the bootstrap intervals resample the classifiers as
+   well as the frames (`member_weights`: the training noise is in the intervals);
    ``verify.held_out_fraction`` of every reference level (at least two frames) is held out of its training
    (`held_out_split`): the classifier's accuracy is measured on them, and the MMDs below compare only held-out
    reference frames and simulations of held-out clear frames. (Measured: with the MMD's reference frames among the
    training frames, the features told trained-on frames from everything else, and the control's verdict flipped
    between reference sizes: detected at 20 frames per split, p 0.92 at 40.);
 4. per condition, on one kernel (Gaussian, median heuristic on the pooled standardised reference, aligned and
-   unaligned features): MMD^2 (unbiased) of the
-   reference's weather frames against the aligned and against the unaligned simulation with permutation p-values and
-   frame-bootstrap intervals, the paired test of their difference, and the **sensitivity control**: the reference
-   weather frames against themselves with every LiDAR paired with another frame's camera (`paired_mmd_test`: row i
-   of both sets holds frame i's camera, so the null swaps within frames and the statistic leaves each frame's own
-   cross term out; an unpaired permutation test sees a frame's two rows as near-duplicates). Unaligned snow and rain
-   misalign severity and positions (`ParticlePart.camera_rate`); the same tests also run against the unaligned
-   camera at the LiDAR's rate (``mmd_*_positions``: positions alone misaligned).
+   unaligned features): MMD^2 (unbiased) of the reference's weather frames against the aligned and against the
+   unaligned simulation with permutation p-values and bootstrap intervals (frames and classifiers), the paired test of
+   their difference, and the **sensitivity control**: the reference weather frames against themselves with every
+   LiDAR paired with another frame's camera (`paired_mmd_test`: row i of both sets holds frame i's camera, so the
+   null swaps within frames and the statistic leaves each frame's own cross term out; an unpaired permutation test
+   sees a frame's two rows as near-duplicates). Unaligned snow and rain misalign severity and positions
+   (`ParticlePart.camera_rate`); the same tests also run against the unaligned camera at the LiDAR's rate
+   (``mmd_*_positions``: positions alone misaligned).
 
 Writes ``reports/verify/details.json`` (``conditions: {<condition>: {...}}`` plus ``classifier_accuracy``,
 ``control_mmd``, ``control_p``), ``reports/verify/table.md`` (the paper's Table 1 regenerated beside the paper's
@@ -146,6 +147,9 @@ def condition_metrics(name: str, ref_feat: np.ndarray, sims: list[SimulatedPair]
     control = paired_mmd_test(ref_feat, control_feat, scale=scale, **kw)  # row i of both: frame i's camera
     control_each = [paired_mmd_test(ref_feat[m], control_feat[m], scale=[f[m] for f in scale], **kw).p_value
                     for m in range(len(ref_feat))]  # each classifier alone: the spread over training draws
+    alone = {"aligned": al_feat, "unaligned": un_feat}  # each classifier's own MMD² (the intervals above hold this)
+    each = {k: [mmd_test(ref_feat[m], f[m], permutations=0, resamples=0, scale=[s[m] for s in scale]).mmd2
+                for m in range(len(ref_feat))] for k, f in alone.items()}
     diff = paired_mmd_difference(ref_feat, al_feat, un_feat, **kw)
     reproj = np.concatenate([s.reprojection_px for s in sims])
     metrics = {
@@ -153,7 +157,8 @@ def condition_metrics(name: str, ref_feat: np.ndarray, sims: list[SimulatedPair]
         "mmd_unaligned": unaligned.mmd2, "mmd_unaligned_ci": list(unaligned.ci), "mmd_p_unaligned": unaligned.p_value,
         "mmd_difference": diff.difference, "mmd_difference_ci": list(diff.ci), "mmd_difference_p": diff.p_value,
         "control_mmd": control.mmd2, "control_mmd_ci": list(control.ci), "control_p": control.p_value,
-        "control_p_each_classifier": control_each,
+        "control_p_each_classifier": control_each, "mmd_aligned_each_classifier": each["aligned"],
+        "mmd_unaligned_each_classifier": each["unaligned"],
         "mmd_bandwidth": aligned.bandwidth,
         "reference_reprojection_mean_px": float(reproj.mean()) if len(reproj) else None,
         "reference_reprojection_max_px": float(reproj.max()) if len(reproj) else None,

@@ -20,8 +20,9 @@ from PIL import Image
 
 from weatheralign.camera.depth import dense_depth
 from weatheralign.camera.fog import estimate_airlight
+from weatheralign.camera.overcast import Overcast
 from weatheralign.conditions import CONDITIONS
-from weatheralign.config import ParticlesConfig
+from weatheralign.config import ParticlesConfig, load_params
 from weatheralign.data.stf import load_stf_frame
 from weatheralign.sensors import CameraModel, SensorRig, estimate_lidar_model
 from weatheralign.simulate.media import FogLevels
@@ -37,6 +38,9 @@ STF_ID = "2019-09-11_19-13-44_00960"
 SPLITS = {"clear": ("clear", None), "light": ("light_fog", "fog_light"), "dense": ("dense_fog", "fog_dense"),
           "snow": ("snow", "snow"), "rain": ("rain", "rain")}
 FRAMES = 3
+_SIM = load_params(REPO / "params.yaml").simulate
+PARAMS_LIGHT = Overcast(_SIM.overcast_sun_transmittance, _SIM.overcast_zenith_luminance, _SIM.overcast_diffuse_gain,
+                        _SIM.overcast_zenith_over_surface).to_dict()  # the light of snow and rain without rates.json
 KEYS = ("ks", "ks_ci_low", "ks_ci_high", "kid", "kid_backbone", "camera_visibility_ratio", "reprojection_mean_px",
         "reprojection_max_px", "mmd_aligned", "mmd_unaligned", "mmd_p_aligned", "mmd_p_unaligned", "mmd_difference_p",
         "control_mmd", "control_p")
@@ -86,7 +90,8 @@ def test_verify_and_rate_calibration_on_an_stf_layout_tree_with_snow_and_rain(tm
     sets = ["reference.source=stf", f"reference.stf_root={root}", f"paths.data={data}", f"paths.reports={reports}",
             "tracking.enabled=false", "run.show_progress=false", "simulate.fog_levels=params",
             "simulate.precipitation_rates=params", "verify.steps=8",
-            "verify.image_hw=[32, 64]", "verify.permutations=100", "verify.resamples=20", "verify.batch_size=4",
+            "verify.image_hw=[32, 64]", "verify.classifiers=2", "verify.permutations=100", "verify.resamples=20",
+            "verify.batch_size=4",
             "reference.sensor_overrides.noise_floor=1.0"]
     run = subprocess.run([sys.executable, "-m", "flows.verify", *[a for s in sets for a in ("--set", s)]],
                          cwd=REPO, capture_output=True, text=True, timeout=HANG_GUARD_S,
@@ -111,14 +116,19 @@ def test_verify_and_rate_calibration_on_an_stf_layout_tree_with_snow_and_rain(tm
         assert m["reprojection_mean_px"] is None  # no simulate stage ran in this tree
     assert metrics["severity"] == {"fog_levels": "params", "snow_rate_mm_h": 2.0, "rain_rate_mm_h": 50.0,
                                    "rates": {"snow": "params", "rain": "params"},
-                                   "ground_depth_m": {"rain": 0.0005, "snow": 0.05}}  # simulate's ground params
+                                   "ground_depth_m": {"rain": 0.0005, "snow": 0.05},  # simulate's ground params
+                                   "overcast": {kind: PARAMS_LIGHT for kind in ("snow", "rain")}}  # params' light
     assert 0.0 <= metrics["classifier_accuracy"] <= 1.0 and len(metrics["classifier_confusion"]) == 4
-    assert metrics["classifiers"] == 3 and len(metrics["classifier_accuracy_each"]) == 3  # the params' ensemble
-    assert all(len(m["control_p_each_classifier"]) == 3 for m in metrics["conditions"].values())
+    assert metrics["classifiers"] == 2 and len(metrics["classifier_accuracy_each"]) == 2  # the run's ensemble
+    for m in metrics["conditions"].values():
+        assert len(m["control_p_each_classifier"]) == len(m["mmd_aligned_each_classifier"]) == 2
+        each = m["mmd_aligned_each_classifier"]
+        assert min(each) - 1e-9 <= m["mmd_aligned"] <= max(each) + 1e-9  # the mean kernel's: the members' mean
     table = (reports / "verify" / "table.md").read_text()
     assert "| MMD² aligned |" in table and "The paper" in table and "0.2837" in table
     control_row = next(line for line in table.splitlines() if line.startswith("| control: broken pairs |"))
-    assert "3 weather classifier(s)" in table and control_row.count("[") == 4  # each classifier's p per weather
+    assert "2 weather classifier(s)" in table and "| MMD² of each classifier alone" in table
+    assert control_row.count("[") == 4  # each classifier's p per weather
     for name in ("ecdf.png", "confusion.png", "embedding_snow.png", "permutations_rain.png"):
         assert (reports / "verify" / name).is_file()
 

@@ -12,12 +12,15 @@ import pytest
 from weatheralign.verify.mmd import (
     gaussian_kernel,
     median_bandwidth,
+    member_kernels,
+    member_weights,
     mmd2_unbiased,
     mmd_test,
     paired_mmd_difference,
     paired_mmd_test,
     pooled_kernel,
     standardise,
+    weighted_kernel,
 )
 
 
@@ -123,6 +126,61 @@ def test_paired_test_is_the_pair_u_statistic_and_sees_what_the_unpaired_test_can
     assert paired_mmd_test(x, y, 50, 20, seed=3) == paired_mmd_test(x, y, 50, 20, seed=3)
     with pytest.raises(ValueError, match="paired"):
         paired_mmd_test(x, y[:-1])
+
+
+def test_member_weights_draw_members_with_replacement() -> None:
+    w = member_weights(5, 4000, seed=2)
+    assert w.shape == (4000, 5) and np.allclose(w.sum(axis=1), 1.0)
+    assert set(np.unique(w * 5)) <= set(range(6))  # counts of 5 draws
+    assert np.allclose(w.mean(axis=0), 0.2, atol=0.01)  # each member equally likely
+    assert np.allclose(np.var(w * 5, axis=0), 5 * 0.2 * 0.8, rtol=0.1)  # multinomial's variance
+    np.testing.assert_array_equal(member_weights(1, 7, seed=2), np.ones((7, 1)))
+    np.testing.assert_array_equal(w, member_weights(5, 4000, seed=2))
+
+
+def test_the_bootstrap_of_several_feature_extractors_is_a_weighted_sum_over_members() -> None:
+    """The interval's resamples against a slow loop: per resample, the frames drawn as one member's test draws them
+    and the members' own statistics weighted by `member_weights` (MMD^2 is linear in the kernel)."""
+    rng = np.random.default_rng(4)
+    x, y = rng.normal(size=(3, 10, 4)), rng.normal(0.3, 1.0, (3, 12, 4))
+    kernels, _ = member_kernels((x, y))
+    assert np.allclose(kernels.mean(axis=0), pooled_kernel((x, y))[0], rtol=0, atol=1e-15)
+    weights = member_weights(3, 40, seed=9)
+    fast = mmd_test(x, y, permutations=100, resamples=40, seed=9, confidence=0.9)
+    replay = np.random.default_rng(9)
+    replay.random((100, 22))  # the permutations' draws come first (one batch of 100)
+    slow = []
+    for r in range(40):
+        idx = np.concatenate([replay.integers(0, 10, 10), 10 + replay.integers(0, 12, 12)])
+        slow.append(sum(weights[r, m] * mmd2_unbiased(kernels[m][np.ix_(idx, idx)], 10) for m in range(3)))
+    lo, hi = np.quantile(slow, [0.05, 0.95])
+    assert fast.ci == pytest.approx((lo, hi), rel=1e-10)
+    assert np.allclose(weighted_kernel(kernels, [1.0, 0.0, 0.0]), kernels[0])
+
+
+def test_training_noise_widens_the_interval_of_several_feature_extractors() -> None:
+    """Members that disagree (each sees y shifted by its own amount) widen the interval beyond that of members
+    that agree (five copies of one): the training noise is in it; five copies give the one member's interval."""
+    rng = np.random.default_rng(11)
+    x, y = rng.normal(size=(30, 3)), rng.normal(size=(30, 3))
+    copies = mmd_test(np.stack([x] * 5), np.stack([y] * 5), permutations=100, resamples=400, seed=1)
+    alone = mmd_test(x, y, permutations=100, resamples=400, seed=1)
+    assert copies.ci == pytest.approx(alone.ci, rel=1e-9, abs=1e-12)
+    shifts = np.array([0.0, 0.2, 0.6, 1.0, 1.5])[:, None, None]
+    disagree = mmd_test(np.stack([x] * 5), np.stack([y] * 5) + shifts, permutations=100, resamples=400, seed=1)
+    each = [mmd_test(x, y + s[0], permutations=100, resamples=0).mmd2 for s in shifts]
+    assert disagree.mmd2 == pytest.approx(np.mean(each), rel=1e-9)
+    assert disagree.ci[1] - disagree.ci[0] > 2.0 * (copies.ci[1] - copies.ci[0])
+    assert disagree.ci[0] <= disagree.mmd2 <= disagree.ci[1]
+    paired_copies = paired_mmd_test(np.stack([x] * 5), np.stack([y] * 5), permutations=50, resamples=300, seed=1)
+    paired_disagree = paired_mmd_test(np.stack([x] * 5), np.stack([y] * 5) + shifts, permutations=50,
+                                      resamples=300, seed=1)
+    assert np.diff(paired_disagree.ci)[0] > 2.0 * np.diff(paired_copies.ci)[0]
+    diff_copies = paired_mmd_difference(np.stack([x] * 5), np.stack([y] * 5), np.stack([y] * 5) + 0.3,
+                                        permutations=20, resamples=300, seed=1)
+    diff_disagree = paired_mmd_difference(np.stack([x] * 5), np.stack([y] * 5), np.stack([y] * 5) + shifts,
+                                          permutations=20, resamples=300, seed=1)
+    assert np.diff(diff_disagree.ci)[0] > 2.0 * np.diff(diff_copies.ci)[0]
 
 
 def test_an_ensemble_of_feature_extractors_averages_their_statistics() -> None:

@@ -646,8 +646,9 @@ class VerifyConfig(_Section):
     feature (a wide one dilutes the correspondence in the kernel: measured, 64 missed the control). ``classifiers``
     classifiers train alike from seeds ``seed``, ``seed + 1``, ...; the MMDs use the mean of their kernels
     (`weatheralign.verify.mmd.pooled_kernel`) and the accuracy their mean class probabilities. MMD tests:
-    ``permutations`` permutations, ``resamples`` frame-bootstrap resamples at ``confidence``. ``device``: the torch
-    device of the classifier (``cpu``, ``cuda``, ``cuda:N``, ``mps``); KID features as in calibrate_fog.
+    ``permutations`` permutations, ``resamples`` bootstrap resamples (frames and classifiers) at ``confidence``.
+    ``device``: the torch device of the classifier (``cpu``, ``cuda``, ``cuda:N``, ``mps``); KID features as in
+    calibrate_fog.
     """
 
     seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
@@ -659,7 +660,7 @@ class VerifyConfig(_Section):
     held_out_fraction: Annotated[float, Field(gt=0.0, lt=1.0)] = 0.5
     correspondence_weight: Annotated[float, Field(ge=0.0, le=100.0)] = 1.0
     embedding: Annotated[int, Field(ge=2, le=1024)] = 16
-    classifiers: Annotated[int, Field(ge=1, le=32)] = 3
+    classifiers: Annotated[int, Field(ge=1, le=32)] = 5
     permutations: Annotated[int, Field(ge=100, le=100_000)] = 1000
     resamples: Annotated[int, Field(ge=10, le=100_000)] = 1000
     confidence: Annotated[float, Field(gt=0.5, lt=1.0)] = 0.95

@@ -17,9 +17,12 @@ Conventions (stated once, used everywhere here):
 * MMD^2 is the unbiased U-statistic (Gretton et al. 2012, eq. 3): the within-set means exclude the diagonal. It can be
   slightly negative when the distributions agree.
 * Permutation p-value: ``(1 + #{permuted >= observed}) / (1 + permutations)`` (never 0).
-* Frame bootstrap: frames resampled with replacement within each set, the statistic recomputed from the same kernel
-  matrix; percentile interval. (A resampled frame that appears twice adds kernel value 1 pairs: the interval is a
-  little wide of the estimator's own spread when sets are small.)
+* Bootstrap: frames resampled with replacement within each set, the statistic recomputed from the same kernel
+  matrices; percentile interval. (A resampled frame that appears twice adds kernel value 1 pairs: the interval is a
+  little wide of the estimator's own spread when sets are small.) With M feature extractors the members are
+  resampled with replacement too (`member_weights`, a generator of their own, so the frames' draws are those of one
+  member): the interval holds the training noise of the classifiers as well as the sampling of the frames. The
+  permutation nulls keep the members' mean kernel (a test given the trained classifiers).
 
 Shapes: feature sets are (n, d) float arrays, one row per frame, or (M, n, d) for M feature extractors.
 """
@@ -70,23 +73,45 @@ def _members(sets: Sequence[NDArray]) -> list[F64]:
     return out
 
 
-def pooled_kernel(sets: Sequence[NDArray], scale: Sequence[NDArray] | None = None) -> tuple[F64, float]:
-    """The (N, N) kernel matrix over the rows of ``sets`` (concatenated in order) and its length scale. A set is
-    (n, d) features, or (M, n, d): the same frames through M feature extractors (independently trained
-    classifiers), whose members are standardised and given a median-heuristic bandwidth each, with ``scale``'s
-    members (default: ``sets``'); the kernel is the mean of the members' Gaussian kernels (itself a kernel, so
-    every MMD^2 on it is the mean of the members' MMD^2 under one permutation). Returns the mean bandwidth."""
+def member_kernels(sets: Sequence[NDArray], scale: Sequence[NDArray] | None = None) -> tuple[F64, float]:
+    """(M, N, N) the Gaussian kernel matrix of each of M feature extractors over the rows of ``sets`` (concatenated
+    in order) and their mean length scale. A set is (n, d) features (M = 1), or (M, n, d): the same frames through
+    M feature extractors (independently trained classifiers), whose members are standardised and given a
+    median-heuristic bandwidth each, with ``scale``'s members (default: ``sets``')."""
     members = _members(sets)
     scale_members = members if scale is None else _members(scale)
     if scale_members[0].shape[0] != members[0].shape[0]:
         raise ValueError("scale must have as many feature extractors as the sets")
-    K, widths = None, []
+    kernels, widths = [], []
     for m in range(members[0].shape[0]):
         scaled, width = _scale_and_bandwidth([s[m] for s in members], [s[m] for s in scale_members])
-        Km = gaussian_kernel(np.concatenate(scaled), width)
-        K = Km if K is None else K + Km
+        kernels.append(gaussian_kernel(np.concatenate(scaled), width))
         widths.append(width)
-    return K / len(widths), float(np.mean(widths))
+    return np.stack(kernels), float(np.mean(widths))
+
+
+def pooled_kernel(sets: Sequence[NDArray], scale: Sequence[NDArray] | None = None) -> tuple[F64, float]:
+    """The (N, N) mean of `member_kernels` (itself a kernel, so every MMD^2 on it is the mean of the members' MMD^2
+    under one permutation) and the members' mean length scale."""
+    kernels, width = member_kernels(sets, scale)
+    return kernels.mean(axis=0), width
+
+
+def member_weights(members: int, resamples: int, seed: int) -> F64:
+    """(resamples, members) the weight of each feature extractor in each bootstrap resample: how often it is drawn
+    when ``members`` are drawn with replacement, over ``members`` (rows sum to 1; all 1 for a single member). From a
+    generator of their own (``seed`` and a fixed stream number), so that the frames' resamples do not depend on it."""
+    rng = np.random.default_rng([seed, MEMBER_STREAM])
+    return rng.multinomial(members, np.full(members, 1.0 / members), size=resamples) / members
+
+
+MEMBER_STREAM = 1
+"""The stream number of `member_weights`' generator beside the tests' own ``seed``."""
+
+
+def weighted_kernel(kernels: F64, weights: NDArray) -> F64:
+    """(N, N) the members' kernels (M, N, N) weighted by ``weights`` (M,) (a row of `member_weights`)."""
+    return np.tensordot(np.asarray(weights, dtype=np.float64), kernels, axes=1)
 
 
 def median_bandwidth(z: NDArray) -> float:
@@ -159,8 +184,10 @@ def mmd_test(x: NDArray, y: NDArray, permutations: int = 1000, resamples: int = 
              confidence: float = 0.95, batch: int = 250, scale: Sequence[NDArray] | None = None) -> MmdTest:
     """Two-sample MMD test of feature sets ``x`` (m, d) and ``y`` (n, d) under the module's conventions; ``scale``:
     the sets whose pool sets the standardisation and the bandwidth (default: x and y), so that several tests share
-    one kernel."""
-    K, bandwidth = pooled_kernel((x, y), scale)
+    one kernel. Sets of M feature extractors (M, m, d) and (M, n, d): the members' mean kernel, the bootstrap over
+    frames and members."""
+    kernels, bandwidth = member_kernels((x, y), scale)
+    K = kernels.mean(axis=0)
     m = _members((x,))[0].shape[1]
     n = len(K) - m
     observed = mmd2_unbiased(K, m)
@@ -174,9 +201,10 @@ def mmd_test(x: NDArray, y: NDArray, permutations: int = 1000, resamples: int = 
         null[start:start + rows] = _mmd2(K, member)
     exceed = int((null >= observed - 1e-15).sum())
     stats = np.empty(resamples)
+    weights = member_weights(len(kernels), resamples, seed)
     for r in range(resamples):
         idx = np.concatenate([rng.integers(0, m, m), m + rng.integers(0, n, n)])
-        stats[r] = mmd2_unbiased(K[np.ix_(idx, idx)], m)
+        stats[r] = mmd2_unbiased(weighted_kernel(kernels[:, idx[:, None], idx[None, :]], weights[r]), m)
     ci = percentile_interval(stats, confidence, observed)
     return MmdTest(observed, (1 + exceed) / (1 + permutations), ci, bandwidth, null)
 
@@ -203,7 +231,8 @@ def paired_mmd_test(x: NDArray, y: NDArray, permutations: int = 1000, resamples:
     if np.shape(x) != np.shape(y) or np.shape(x)[-2] < 2:
         raise ValueError(f"paired sets need the same shape and two frames or more, got {np.shape(x)} and "
                          f"{np.shape(y)}")
-    K, bandwidth = pooled_kernel((x, y), scale)
+    kernels, bandwidth = member_kernels((x, y), scale)
+    K = kernels.mean(axis=0)
     n = len(K) // 2
     x_rows, y_rows = np.arange(n), n + np.arange(n)
     observed = float(_paired_mmd2(K, x_rows[None], y_rows[None])[0])
@@ -214,9 +243,11 @@ def paired_mmd_test(x: NDArray, y: NDArray, permutations: int = 1000, resamples:
         null[start:start + len(swap)] = _paired_mmd2(K, np.where(swap, y_rows, x_rows), np.where(swap, x_rows, y_rows))
     exceed = int((null >= observed - 1e-15).sum())
     stats = np.empty(resamples)
+    weights = member_weights(len(kernels), resamples, seed)
     for start in range(0, resamples, batch):
         pick = rng.integers(0, n, (min(batch, resamples - start), n))
-        stats[start:start + len(pick)] = _paired_mmd2(K, x_rows[pick], y_rows[pick])
+        each = np.stack([_paired_mmd2(Km, x_rows[pick], y_rows[pick]) for Km in kernels])  # (M, rows): linear in K
+        stats[start:start + len(pick)] = np.einsum("rm,mr->r", weights[start:start + len(pick)], each)
     ci = percentile_interval(stats, confidence, observed)
     return MmdTest(observed, (1 + exceed) / (1 + permutations), ci, bandwidth, null)
 
@@ -238,20 +269,22 @@ def paired_mmd_difference(reference: NDArray, a: NDArray, b: NDArray, permutatio
                           resamples: int = 1000, seed: int = 0, confidence: float = 0.95) -> PairedMmdDifference:
     """Is ``a`` (n, d) closer to ``reference`` (r, d) than its paired set ``b`` (n, d)? All three standardised
     together, one kernel (median heuristic over the three) for both MMDs: ``mmd2_a`` and ``mmd2_b`` equal
-    `mmd_test` of each against the reference with ``scale=(reference, a, b)``."""
+    `mmd_test` of each against the reference with ``scale=(reference, a, b)``. Sets of M feature extractors: the
+    members' mean kernel, the bootstrap over frames and members."""
     if np.shape(a) != np.shape(b):
         raise ValueError(f"paired sets need one row per frame in both: {np.shape(a)} vs {np.shape(b)}")
-    K, bandwidth = pooled_kernel((reference, a, b))
+    kernels, bandwidth = member_kernels((reference, a, b))
+    K = kernels.mean(axis=0)
     n = np.shape(a)[-2]
     r = len(K) - 2 * n
     ref_idx = np.arange(r)
 
-    def to_reference(rows: NDArray, ref: NDArray = ref_idx) -> float:
+    def to_reference(rows: NDArray, ref: NDArray = ref_idx, kernel: F64 = K) -> float:
         pool = np.concatenate([ref, rows])
-        return mmd2_unbiased(K[np.ix_(pool, pool)], len(ref))
+        return mmd2_unbiased(kernel[np.ix_(pool, pool)], len(ref))
 
-    def difference(a_idx: NDArray, b_idx: NDArray, ref: NDArray = ref_idx) -> float:
-        return to_reference(a_idx, ref) - to_reference(b_idx, ref)
+    def difference(a_idx: NDArray, b_idx: NDArray, ref: NDArray = ref_idx, kernel: F64 = K) -> float:
+        return to_reference(a_idx, ref, kernel) - to_reference(b_idx, ref, kernel)
 
     a_rows, b_rows = r + np.arange(n), r + n + np.arange(n)
     mmd_a, mmd_b = to_reference(a_rows), to_reference(b_rows)
@@ -263,12 +296,14 @@ def paired_mmd_difference(reference: NDArray, a: NDArray, b: NDArray, permutatio
         if abs(difference(np.where(swap, b_rows, a_rows), np.where(swap, a_rows, b_rows))) >= abs(observed) - 1e-15:
             exceed += 1
     stats = np.empty(resamples)
+    weights = member_weights(len(kernels), resamples, seed)
     for k in range(resamples):
         pick, ref = rng.integers(0, n, n), rng.integers(0, r, r)
-        stats[k] = difference(a_rows[pick], b_rows[pick], ref)
+        stats[k] = difference(a_rows[pick], b_rows[pick], ref, weighted_kernel(kernels, weights[k]))
     ci = percentile_interval(stats, confidence, observed)
     return PairedMmdDifference(mmd_a, mmd_b, observed, (1 + exceed) / (1 + permutations), ci, bandwidth)
 
 
-__all__ = ["MmdTest", "PairedMmdDifference", "gaussian_kernel", "median_bandwidth", "mmd2_unbiased", "mmd_test",
-           "paired_mmd_difference", "paired_mmd_test", "percentile_interval", "pooled_kernel", "standardise"]
+__all__ = ["MEMBER_STREAM", "MmdTest", "PairedMmdDifference", "gaussian_kernel", "median_bandwidth", "member_kernels",
+           "member_weights", "mmd2_unbiased", "mmd_test", "paired_mmd_difference", "paired_mmd_test",
+           "percentile_interval", "pooled_kernel", "standardise", "weighted_kernel"]

@@ -52,11 +52,12 @@ def table_markdown(metrics: Mapping[str, Any]) -> str:
              f"{metrics['classifier_accuracy']:.3f} ({metrics['classifier_held_out']} frames). MMD² is the unbiased "
              "estimator on the classifiers' fused features (Gaussian kernel, median heuristic on the pooled, "
              "standardised features of each classifier, the kernels averaged over the classifiers); p: permutation "
-             "p-value; brackets: frame-bootstrap interval; the control is a paired test (a frame's camera with its own "
-             "LiDAR and with another frame's; the p-value of each classifier alone in brackets). Unaligned: the "
-             "camera sees independent media of its own severity (fog: α drawn between the levels; snow / rain: "
-             "another field at a rate within a factor of the LiDAR's); for snow and rain also the positions alone "
-             "(the unaligned camera at the LiDAR's rate).", "",
+             "p-value; brackets: bootstrap interval over frames and classifiers (their training noise included); "
+             "the range of the classifiers' own MMD² (aligned, unaligned) in its row; the control is a paired test "
+             "(a frame's camera with its own LiDAR and with another frame's; the p-value of each classifier alone in "
+             "brackets). Unaligned: the camera sees independent media of its own severity (fog: α drawn between "
+             "the levels; snow / rain: another field at a rate within a factor of the LiDAR's); for snow and rain "
+             "also the positions alone (the unaligned camera at the LiDAR's rate).", "",
              "## Ours", "",
              "| | " + " | ".join(names) + " |", "|---|" + "---|" * len(names)]
 
@@ -70,6 +71,10 @@ def table_markdown(metrics: Mapping[str, Any]) -> str:
                                   f"(p {_p(c['mmd_p_aligned'])})")
     row("MMD² unaligned", lambda c: f"{_num(c['mmd_unaligned'])}{_ci(c.get('mmd_unaligned_ci'))} "
                                     f"(p {_p(c['mmd_p_unaligned'])})")
+    if any(len(c.get("mmd_aligned_each_classifier", ())) > 1 for c in conditions.values()):
+        row("MMD² of each classifier alone: aligned; unaligned", lambda c: "; ".join(
+            f"{_num(min(c[k]))}..{_num(max(c[k]))}" if c.get(k) else "—"
+            for k in ("mmd_aligned_each_classifier", "mmd_unaligned_each_classifier")))
     row("aligned − unaligned (paired)", lambda c: f"{c['mmd_difference']:+.4f}{_ci(c.get('mmd_difference_ci'))} "
                                                   f"(p {_p(c['mmd_difference_p'])})")
     if any("mmd_unaligned_positions" in c for c in conditions.values()):
