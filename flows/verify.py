@@ -269,7 +269,7 @@ def verify_flow(params: Params) -> dict:
                 "reference_split": level, "frames_reference": len(ref_inputs), "frames_simulated": len(sims[name]),
                 "ks": ks.statistic, "ks_ci_low": ks.ci_low, "ks_ci_high": ks.ci_high,
                 "kid": kid.mean, "kid_std": kid.std, "kid_backbone": kid.backbone,
-                "camera_visibility_ratio": visibility.ratio if np.isfinite(visibility.ratio) else None,
+                **visibility.metrics(),  # the ratio and each set's α̂ and visibility (None: not estimable)
                 "reprojection_mean_px": sim_report.get("reprojection_mean_px"),
                 "reprojection_max_px": sim_report.get("reprojection_max_px"),
                 **metrics}
