@@ -296,18 +296,21 @@ def _log_luminance(image: U8, v: int, u: int, decode_lut: F32, log_floor: np.flo
 
 @numba.njit(cache=True, nogil=True)
 def light_front_kernel(image: U8, range_map: NDArray, fx: float, cx: float, fy: float, cy: float, up: NDArray,
-                       decode_lut: F32, saturated: float, log_floor: float) -> tuple[NDArray, F32, NDArray, F32, F32]:
+                       decode_lut: F32, saturated: float, log_floor: float
+                       ) -> tuple[NDArray, F32, NDArray, F32, F32, F32]:
     """One pass over a clear ``image`` (H, W, 3) uint8 sRGB (H, W >= 2) and its ray lengths ``range_map`` (H, W)
     [m] (inf = sky) seen by a pinhole (``fx``, ``cx``, ``fy``, ``cy`` [px]) whose camera frame has the global up
     ``up`` (3,): the sky (H, W) bool; each pixel ray's sine of elevation (H, W) float32, operation for operation
     `weatheralign.camera.overcast.pixel_sin_elevation` (float64), so equal bit for bit; (3, 256) int64 per-channel
     code histograms of the sky pixels whose brightest decoded channel is below ``saturated``; and on the
     (H // 2, W // 2) grid of 2 x 2 blocks (the odd last row and column join the last block) the mean
-    log-luminance (`_log_luminance`) and the share of surface (not sky) pixels, float32."""
+    log-luminance (`_log_luminance`) and the share of surface (not sky) pixels, float32; each pixel's
+    log-luminance (H, W) float32 (`lit_share_kernel` reads it)."""
     height, width = image.shape[0], image.shape[1]
     h2, w2 = height // 2, width // 2
     sky = np.empty((height, width), np.bool_)
     sin_el = np.empty((height, width), np.float32)
+    log_lum = np.empty((height, width), np.float32)
     hist = np.zeros((3, 256), np.int64)
     log_sum = np.zeros((h2, w2), np.float64)
     surface = np.zeros((h2, w2), np.float64)
@@ -321,7 +324,9 @@ def light_front_kernel(image: U8, range_map: NDArray, fx: float, cx: float, fy: 
             dot = up[0] * x + up[1] * y + up[2]
             sin_el[v, u] = np.float32(dot / np.sqrt(x * x + y * y + 1.0))
             bu = min(u // 2, w2 - 1)
-            log_sum[bv, bu] += _log_luminance(image, v, u, decode_lut, floor)
+            log_y = _log_luminance(image, v, u, decode_lut, floor)
+            log_lum[v, u] = log_y
+            log_sum[bv, bu] += log_y
             count[bv, bu] += 1.0
             is_sky = not np.isfinite(range_map[v, u])
             sky[v, u] = is_sky
@@ -331,18 +336,20 @@ def light_front_kernel(image: U8, range_map: NDArray, fx: float, cx: float, fy: 
                 hist[0, image[v, u, 0]] += 1
                 hist[1, image[v, u, 1]] += 1
                 hist[2, image[v, u, 2]] += 1
-    return sky, sin_el, hist, (log_sum / count).astype(np.float32), (surface / count).astype(np.float32)
+    return (sky, sin_el, hist, (log_sum / count).astype(np.float32), (surface / count).astype(np.float32),
+            log_lum)
 
 
 @numba.njit(cache=True, nogil=True)
-def lit_share_kernel(image: U8, sky: NDArray, coeffs: F32, envelope: F32, direct_to_diffuse: float,
-                     decode_lut: F32, log_floor: float) -> F32:
-    """(H, W) float32 lit share of a clear ``image`` (H, W, 3) uint8 sRGB in one pass: each pixel's base
-    log-luminance ``a L + b`` (``L`` its `_log_luminance`, ``(a, b)`` the guided-filter coefficients ``coeffs``
+def lit_share_kernel(log_luminance: F32, sky: NDArray, coeffs: F32, envelope: F32, direct_to_diffuse: float
+                     ) -> F32:
+    """(H, W) float32 lit share of a clear image in one pass: each pixel's base log-luminance ``a L + b`` (``L``
+    its `_log_luminance`, given as ``log_luminance`` (H, W) by `light_front_kernel`; ``(a, b)`` the guided-filter
+    coefficients ``coeffs``
     (h, w, 2) upsampled bilinearly) against the ``envelope`` (hs, ws) upsampled bilinearly (and at least the base):
     ``m = clip(((1 + s) exp(base - envelope) - 1) / s, 0, 1)``, 0 on the ``sky`` (H, W)
     (`weatheralign.camera.overcast.lit_share` of `weatheralign.camera.overcast.log_base`)."""
-    height, width = image.shape[0], image.shape[1]
+    height, width = log_luminance.shape[0], log_luminance.shape[1]
     ylo, yhi, wys = _axis_weights(height, coeffs.shape[0])
     xlo, xhi, wxs = _axis_weights(width, coeffs.shape[1])
     eylo, eyhi, ewys = _axis_weights(height, envelope.shape[0])
@@ -350,7 +357,6 @@ def lit_share_kernel(image: U8, sky: NDArray, coeffs: F32, envelope: F32, direct
     out = np.empty((height, width), np.float32)
     one = np.float32(1.0)
     s = np.float32(direct_to_diffuse)
-    floor = np.float32(log_floor)
     for v in range(height):
         y0, y1, wy = ylo[v], yhi[v], wys[v]
         ey0, ey1, ewy = eylo[v], eyhi[v], ewys[v]
@@ -363,7 +369,7 @@ def lit_share_kernel(image: U8, sky: NDArray, coeffs: F32, envelope: F32, direct
                   + wy * ((one - wx) * coeffs[y1, x0, 0] + wx * coeffs[y1, x1, 0]))
             bb = ((one - wy) * ((one - wx) * coeffs[y0, x0, 1] + wx * coeffs[y0, x1, 1])
                   + wy * ((one - wx) * coeffs[y1, x0, 1] + wx * coeffs[y1, x1, 1]))
-            base = ab * _log_luminance(image, v, u, decode_lut, floor) + bb
+            base = ab * log_luminance[v, u] + bb
             ex0, ex1, ewx = exlo[u], exhi[u], ewxs[u]
             env = ((one - ewy) * ((one - ewx) * envelope[ey0, ex0] + ewx * envelope[ey0, ex1])
                    + ewy * ((one - ewx) * envelope[ey1, ex0] + ewx * envelope[ey1, ex1]))

@@ -516,15 +516,15 @@ def light_layers(image: U8, range_map: NDArray, K: NDArray, T_global_cam: NDArra
     in the shadows (the world renders no interreflection), the world's sun.
 
     The layers come from two compiled passes: `weatheralign.camera.kernels.light_front_kernel` (the sky, the
-    elevation, the sky pixels' code histograms of `clear_sky_colour`, the log-luminance on the 2 x 2 block grid
-    where `log_base` finds its coefficients) and `weatheralign.camera.kernels.lit_share_kernel` (`log_base` and
-    `lit_share` at every pixel; the envelope from the block grid)."""
+    elevation, the sky pixels' code histograms of `clear_sky_colour`, each pixel's log-luminance and its mean on
+    the 2 x 2 block grid where `log_base` finds its coefficients) and `weatheralign.camera.kernels.lit_share_kernel`
+    (`log_base` and `lit_share` at every pixel; the envelope from the block grid)."""
     img = np.ascontiguousarray(image, dtype=np.uint8)
     h, w = img.shape[:2]
     if h < 4 or w < 4:
         raise ValueError(f"light_layers: image of {h} x {w} px; expected at least 4 x 4")
     Kf = np.asarray(K, dtype=np.float64)
-    sky, sin_el, hist, log_half, surface_half = light_front_kernel(
+    sky, sin_el, hist, log_half, surface_half, log_lum = light_front_kernel(
         img, np.ascontiguousarray(range_map), float(Kf[0, 0]), float(Kf[0, 2]), float(Kf[1, 1]), float(Kf[1, 2]),
         up_in_camera(T_global_cam), SRGB_TABLES.decode, SKY_SATURATED, LOG_FLOOR)
     colour = sky_colour_from_histogram(hist)
@@ -538,8 +538,7 @@ def light_layers(image: U8, range_map: NDArray, K: NDArray, T_global_cam: NDArra
         coeffs = guided_coefficients(log_half, log_half, max(1, int(round(base_radius(w) / 2))), BASE_EPS)
         base_half = coeffs[..., 0] * log_half + coeffs[..., 1]
         envelope = coarse_envelope(base_half, surface_half, *envelope_grid(h, w, envelope_window(w)))
-        lit = lit_share_kernel(img, sky, np.ascontiguousarray(coeffs), envelope, max(s, 1e-3), SRGB_TABLES.decode,
-                               LOG_FLOOR)
+        lit = lit_share_kernel(log_lum, sky, np.ascontiguousarray(coeffs), envelope, max(s, 1e-3))
     if lin is None:
         return LightLayers(img, sky, sin_el, lit, colour, s)
     ambient = ambient_colour(lin, ~sky, colour, bounce_share(s))
