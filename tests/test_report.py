@@ -16,6 +16,7 @@ from weatheralign.report import (
     StageCost,
     StageSource,
     cost_table,
+    earlier_stages,
     findings,
     markdown_to_html,
     redam_table,
@@ -102,6 +103,21 @@ def test_every_table_names_its_mlflow_run_and_dvc_experiment():
     text = summary_markdown({"calibrate_fog": {}}, None, ["## Table 2\n\n| a |\n| --- |\n| 1 |"], {}, [], sources)
     assert text.count("DVC experiment `exp-snow-5`") == 1 and text.count("[calibrate_fog](http://x/runs/def)") == 1
     assert "MLflow run" not in summary_markdown({"calibrate_fog": {}}, None, ["## Table 2"], {}, [])
+    assert "computed by this run;" in text
+
+
+def test_figures_of_a_stage_this_tracking_store_never_ran_are_labelled_an_earlier_runs():
+    """Reports of a stage that did not rerun (its figures present, no run of it in the tracking store) are said to
+    come from an earlier run, in the opening line and under its tables; without tracking nothing is claimed."""
+    sources = {"calibrate_fog": StageSource("calibrate_fog", "calibrate_fog", "http://x/runs/def", "workspace")}
+    metrics = {"calibrate_fog": {}, "detect": {}}
+    assert earlier_stages(metrics, sources) == {"detect"} and earlier_stages(metrics, {}) == frozenset()
+    line = source_line(sources, "detect", earlier=frozenset({"detect"}))
+    assert line.startswith("*From `detect`: an earlier run, not in this MLflow store") and "dvc status" in line
+    text = summary_markdown(metrics, None, ["## Table 2\n\n| a |\n| --- |\n| 1 |"], {}, [], sources)
+    assert "computed by this run;" not in text and "those of `detect` come from an earlier run" in text
+    assert text.count("`detect`: an earlier run") == 1  # under Table 2
+    assert "computed by this run;" in summary_markdown(metrics, None, ["## Table 2"], {}, [])  # tracking off
 
 
 def test_cost_table_totals():

@@ -12,6 +12,7 @@ from weatheralign.report.summary import (
     StageCost,
     StageSource,
     cost_table,
+    earlier_stages,
     findings,
     rate_table,
     redam_table,
@@ -20,5 +21,5 @@ from weatheralign.report.summary import (
     summary_markdown,
 )
 
-__all__ = ["PAPER_TABLE1", "StageCost", "StageSource", "cost_table", "findings", "markdown_to_html", "rate_table",
-           "redam_table", "reprojection_table", "source_line", "summary_markdown"]
+__all__ = ["PAPER_TABLE1", "StageCost", "StageSource", "cost_table", "earlier_stages", "findings", "markdown_to_html",
+           "rate_table", "redam_table", "reprojection_table", "source_line", "summary_markdown"]

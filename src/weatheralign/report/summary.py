@@ -141,15 +141,21 @@ class StageSource:
     dvc_experiment: str
 
 
-def source_line(sources: dict[str, StageSource], *stages: str) -> str:
+def source_line(sources: dict[str, StageSource], *stages: str, earlier: frozenset[str] = frozenset()) -> str:
     """One Markdown line naming, for each of ``stages`` with a known source, its MLflow run (a link) and its DVC
-    experiment; empty when none is known (tracking off)."""
-    known = [sources[s] for s in stages if s in sources]
-    if not known:
-        return ""
+    experiment, and for each in ``earlier`` (figures present but no run of it in this tracking store) that it comes
+    from an earlier run; empty when neither (tracking off)."""
     items = [f"`{s.stage}`: MLflow run [{s.run_name}]({s.run_url}), DVC experiment `{s.dvc_experiment}`"
-             for s in known]
-    return "*From " + "; ".join(items) + ".*"
+             for s in (sources[name] for name in stages if name in sources)]
+    items += [f"`{name}`: an earlier run, not in this MLflow store (its inputs may differ from this run's: "
+              "`dvc status` lists what to rerun)" for name in stages if name in earlier and name not in sources]
+    return "*From " + "; ".join(items) + ".*" if items else ""
+
+
+def earlier_stages(metrics: dict[str, dict[str, Any]], sources: dict[str, StageSource]) -> frozenset[str]:
+    """The stages whose figures ``metrics`` holds but whose run this tracking store does not (an earlier run's
+    reports, e.g. after a rerun of some stages only); none without tracking (``sources`` empty)."""
+    return frozenset(name for name in metrics if sources and name not in sources)
 
 
 def cost_table(costs: list[StageCost]) -> str:
@@ -173,17 +179,24 @@ def summary_markdown(metrics: dict[str, dict[str, Any]], truth: dict[str, Any] |
     image path relative to the summary; ``costs``: per stage; ``sources``: per stage its MLflow run and DVC
     experiment, named under each table."""
     sources = sources or {}
+    earlier = earlier_stages(metrics, sources)
     world = metrics.get("world", {})
+    provenance = ("Every figure below is computed by this run" if not earlier else
+                  "Every figure below is computed by the run named under its table; those of "
+                  + ", ".join(f"`{name}`" for name in sorted(earlier)) + " come from an earlier run whose inputs may "
+                  "differ from this run's")
     parts = ["# weatheralign: run summary", "",
              f"Dataset: {world.get('source', '?')} world, {world.get('num_scenes', '?')} scenes, "
-             f"{world.get('num_samples', '?')} keyframe samples, {world.get('num_sweeps', '?')} sweeps. Every figure "
-             "below is computed by this run; the paper's figures (real nuScenes-mini and Seeing Through Fog data) "
-             "are shown beside ours for comparison and labelled as the paper's.", ""]
+             f"{world.get('num_samples', '?')} keyframe samples, {world.get('num_sweeps', '?')} sweeps. {provenance}; "
+             "the paper's figures (real nuScenes-mini and Seeing Through Fog data) are shown beside ours for "
+             "comparison and labelled as the paper's.", ""]
     parts += ["## Findings", "",
               "Generated from the detect stage's paired bootstrap intervals (training seeds x scene blocks) "
               f"({metrics.get('detect', {}).get('confidence', 0.95):.0%}); those exceeding the noise first.", ""]
     found = findings(metrics.get("detect", {}))
     parts += [f"- {f}" for f in found] if found else ["- (no detect metrics in this run)"]
+    if found and "detect" in earlier:
+        parts += ["", source_line(sources, "detect", earlier=earlier)]
     verify = metrics.get("verify", {})
     mmd_half = (re.sub(r"^(#+) ", r"##\1 ", verify["table_markdown"], flags=re.MULTILINE) if "table_markdown" in verify
                 else "The MMD of fused features (the paper's second half of Table 1) needs the `verify` stage, which "
@@ -192,22 +205,23 @@ def summary_markdown(metrics: dict[str, dict[str, Any]], truth: dict[str, Any] |
               "Re-projection: each particle the LiDAR saw, projected into every camera that drew it, against where the "
               "camera drew it.", "",
               reprojection_table(metrics.get("simulate", {})), "", mmd_half, "",
-              source_line(sources, "simulate", "verify"), "",
+              source_line(sources, "simulate", "verify", earlier=earlier), "",
               "## ReDAM: fog severity tuned to the reference", "",
               "The LiDAR fog parameters tuned so that the simulated intensity distribution matches the reference's "
               "(two-sample Kolmogorov-Smirnov distance, frame-bootstrap interval); the cameras get the same α. For "
               "the synthetic reference, the hidden levels it was tuned blind to are beside.", "",
-              redam_table(metrics.get("calibrate_fog", {}), truth), "", source_line(sources, "calibrate_fog"), ""]
+              redam_table(metrics.get("calibrate_fog", {}), truth), "",
+              source_line(sources, "calibrate_fog", earlier=earlier), ""]
     if "calibrate_precipitation" in metrics:
         parts += ["## ReDAM for snow and rain: rates tuned to the reference", "",
                   "The snow and rain rates tuned so that the fast simulator's statistic "
                   f"({metrics['calibrate_precipitation'].get('statistic', 'an echo rate')}) matches the reference's "
                   "(frame-bootstrap interval). For the synthetic reference, the hidden rates it was tuned blind to "
                   "are beside.", "", rate_table(metrics["calibrate_precipitation"], truth), "",
-                  source_line(sources, "calibrate_precipitation"), ""]
+                  source_line(sources, "calibrate_precipitation", earlier=earlier), ""]
     for table in detect_tables:
         parts += [re.sub(r"^(#+) ", r"#\1 ", table, flags=re.MULTILINE), "",  # one level below the summary
-                  source_line(sources, "detect"), ""]
+                  source_line(sources, "detect", earlier=earlier), ""]
     parts += ["## Figures", ""]
     parts += [f"![{caption}]({path})\n\n*{caption}*\n" for caption, path in figures.items()]
     parts += ["## What the run cost", "", "Wall time of each stage's latest tracked run (MLflow) and the disk its "
