@@ -166,14 +166,16 @@ def percentile_interval(stats: NDArray, confidence: float, estimate: float) -> t
 
 @dataclass(frozen=True, eq=False)
 class MmdTest:
-    """MMD^2 of x against y with its permutation p-value, frame-bootstrap interval, the kernel's length scale (in
-    standardised units) and the permuted statistics ``null`` (permutations,)."""
+    """MMD^2 of x against y with its permutation p-value, bootstrap interval, the kernel's length scale (in
+    standardised units) and the permuted statistics ``null`` (permutations,); ``each``: with M feature extractors,
+    each one's own MMD^2 (`mmd_test`; empty where not computed)."""
 
     mmd2: float
     p_value: float
     ci: tuple[float, float]
     bandwidth: float
     null: NDArray[np.float64]
+    each: tuple[float, ...] = ()
 
     def __eq__(self, other: object) -> bool:
         return (isinstance(other, MmdTest) and (self.mmd2, self.p_value, self.ci, self.bandwidth)
@@ -206,7 +208,8 @@ def mmd_test(x: NDArray, y: NDArray, permutations: int = 1000, resamples: int = 
         idx = np.concatenate([rng.integers(0, m, m), m + rng.integers(0, n, n)])
         stats[r] = mmd2_unbiased(weighted_kernel(kernels[:, idx[:, None], idx[None, :]], weights[r]), m)
     ci = percentile_interval(stats, confidence, observed)
-    return MmdTest(observed, (1 + exceed) / (1 + permutations), ci, bandwidth, null)
+    each = tuple(mmd2_unbiased(kernel, m) for kernel in kernels)
+    return MmdTest(observed, (1 + exceed) / (1 + permutations), ci, bandwidth, null, each)
 
 
 def _paired_mmd2(K: F64, x_idx: NDArray, y_idx: NDArray) -> NDArray:
