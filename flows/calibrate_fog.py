@@ -156,7 +156,8 @@ def calibrate_fog_flow(params: Params) -> dict:
         tracker.log_params({"calibrate_fog": cfg.model_dump(mode="json"), "reference.source": params.reference.source,
                             "reference_lidar": sensor.to_dict()})
         frames = fog_frames((ds.load_scan(i) for i in ds.ids("clear")), noise_std=sensor.intensity_noise_std,
-                            noise_rel=sensor.intensity_noise_rel)
+                            noise_rel=sensor.intensity_noise_rel, intensity=sensor.intensity,
+                            floor_range_m=sensor.floor_range_m)
         extractor = feature_extractor(cfg.inception_path, device=cfg.device)
         cams = camera_sets(ds, params)
         clear_features = extractor([img for img, _ in cams["clear"]])

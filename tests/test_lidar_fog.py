@@ -32,6 +32,7 @@ from weatheralign.lidar.fog import (
     soft_target_response,
 )
 from weatheralign.medium.fog import default_beta, mor_from_alpha
+from weatheralign.sensors import HAHNER_INTENSITY as RAW
 from weatheralign.sensors import SPEED_OF_LIGHT, LidarModel, PulseSensor
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
@@ -46,12 +47,13 @@ PUBLISHED_CROSSOVER = {0.005: 138.0, 0.01: 101.0, 0.02: 70.0, 0.03: 55.0, 0.06: 
 # ---------------------------------------------------------------------------------------------------- references
 
 
-def _lidar(noise_floor: float = 0.0, sensor: PulseSensor = SENSOR, range_noise: float = 0.0) -> LidarModel:
+def _lidar(noise_floor: float = 0.0, sensor: PulseSensor = SENSOR, range_noise: float = 0.0,
+           floor_range_m: float | None = None) -> LidarModel:
     """A `LidarModel` with the fog model's pulse ``sensor``, detector ``noise_floor`` (0..255; 0 keeps every
-    return, like ``noise_floor=None`` of the array functions, since intensities are >= 0) and Gaussian
-    ``range_noise`` [m] of a new echo."""
+    return, like ``noise_floor=None`` of the array functions, since intensities are >= 0; at ``floor_range_m`` when
+    given: a raw-power detector) and Gaussian ``range_noise`` [m] of a new echo."""
     return make_lidar(pulse=sensor, max_range_m=sensor.max_range, noise_floor=noise_floor,
-                      range_noise_std_m=range_noise)
+                      range_noise_std_m=range_noise, floor_range_m=floor_range_m)
 
 
 def _reported(alpha: float, sensor: PulseSensor = SENSOR) -> float:
@@ -191,7 +193,7 @@ def test_fast_response_matches_naive_integral(alpha: float) -> None:
     # the fused kernel used on point clouds evaluates the same I(R_0) as the table
     r0 = np.array(r0s)
     beta = 0.05 / r0.max() ** 2  # keeps i_soft below saturation
-    got = fog_intensities(r0, np.full(len(r0), 100.0, np.float32), alpha, beta, sensor=SENSOR, noise_floor=None)
+    got = fog_intensities(r0, np.full(len(r0), 100.0, np.float32), alpha, beta, intensity=RAW, sensor=SENSOR, noise_floor=None)
     soft = fast_i * 100.0 * r0**2 * beta / SENSOR.beta_0
     hard = np.exp(-2 * alpha * r0) * 100.0
     assert soft.max() < 255.0
@@ -230,7 +232,7 @@ def test_alpha_006_fog_peak_saturates_near_4_6_m() -> None:
 def test_published_crossover_ranges(alpha: float) -> None:
     """The published figures come from the published code, i.e. β = 9.21e-4 for every α (its trap)."""
     r0 = np.arange(0.5, 300.0, 0.01)
-    res = fog_intensities(r0, np.full(len(r0), 100.0, np.float32), alpha, REFERENCE_CODE_BETA, sensor=SENSOR,
+    res = fog_intensities(r0, np.full(len(r0), 100.0, np.float32), alpha, REFERENCE_CODE_BETA, intensity=RAW, sensor=SENSOR,
                           noise_floor=None)
     cross = _crossover(alpha, REFERENCE_CODE_BETA, r0, res.labels)
     assert abs(cross - PUBLISHED_CROSSOVER[alpha]) <= 0.75, cross
@@ -239,7 +241,7 @@ def test_published_crossover_ranges(alpha: float) -> None:
     gap = lambda r: g_star * r * r * REFERENCE_CODE_BETA / SENSOR.beta_0 - math.exp(-2.0 * alpha * r)  # noqa: E731
     assert brentq(gap, 10.0, 400.0) == pytest.approx(cross, abs=0.05)
     # the crossover does not depend on the intensity (below saturation)
-    res_dim = fog_intensities(r0, np.full(len(r0), 3.0, np.float32), alpha, REFERENCE_CODE_BETA, sensor=SENSOR,
+    res_dim = fog_intensities(r0, np.full(len(r0), 3.0, np.float32), alpha, REFERENCE_CODE_BETA, intensity=RAW, sensor=SENSOR,
                               noise_floor=None)
     assert _crossover(alpha, REFERENCE_CODE_BETA, r0, res_dim.labels) == cross
 
@@ -253,7 +255,7 @@ def test_beta_follows_the_caller() -> None:
     for alpha, want in expected.items():
         beta = default_beta(alpha)
         assert beta == pytest.approx(0.046 / mor_from_alpha(alpha))
-        labels = fog_intensities(r0, i0, alpha, beta, sensor=SENSOR, noise_floor=None).labels
+        labels = fog_intensities(r0, i0, alpha, beta, intensity=RAW, sensor=SENSOR, noise_floor=None).labels
         cross = _crossover(alpha, beta, r0, labels)
         assert cross == pytest.approx(want, abs=0.3)
         if alpha < 0.06:
@@ -296,7 +298,9 @@ def test_labels_and_attenuation() -> None:
     fog = res.labels == FogLabel.SCATTERED
     assert fog.sum() > 0 and (r0[fog] > 30).all() and (r0[~fog & ~zero & (r0 > 40)].size == 0)
     np.testing.assert_allclose(np.linalg.norm(res.points[fog, :3], axis=1), _reported(0.06), rtol=1e-5)
-    assert (res.points[fog, 3] > np.exp(-0.12 * r0[fog]) * src[fog, 3]).all()
+    # the receiver picks the stronger echo on raw power (reported value over the compensation R² g(R) at its range)
+    comp = FOG_LIDAR.intensity.compensation
+    assert (res.points[fog, 3] / comp(_reported(0.06)) > np.exp(-0.12 * r0[fog]) * src[fog, 3] / comp(r0[fog])).all()
 
 
 def test_intensity_scale_0_1_behaves_like_0_255() -> None:
@@ -304,7 +308,8 @@ def test_intensity_scale_0_1_behaves_like_0_255() -> None:
     pts1 = scan255.points.copy()
     pts1[:, 3] /= np.float32(255.0)
     scan1 = replace(scan255, points=pts1, intensity_max=1.0)
-    for kwargs in ({"lidar": FOG_LIDAR}, {"lidar": _lidar(40.0)}, {"lidar": _lidar(range_noise=0.05)}):
+    for kwargs in ({"lidar": FOG_LIDAR}, {"lidar": _lidar(0.5, floor_range_m=100.0)},
+                   {"lidar": _lidar(range_noise=0.05)}):
         a = simulate_fog(scan255, 0.1, default_beta(0.1), **kwargs)
         b = simulate_fog(scan1, 0.1, default_beta(0.1), **kwargs)
         assert b.intensity_max == 1.0 and a.intensity_max == 255.0
@@ -314,8 +319,8 @@ def test_intensity_scale_0_1_behaves_like_0_255() -> None:
         assert a.counts["SCATTERED"] > 0
         assert b.points[:, 3].max() <= 1.0
     # the sensor saturation applies on the input's scale: 255 on 0..255, 1 on 0..1
-    sat = fog_intensities([150.0], [255.0], 0.3, 1.0, sensor=SENSOR, noise_floor=None).intensity[0], fog_intensities(
-        [150.0], [1.0], 0.3, 1.0, sensor=SENSOR, noise_floor=None, intensity_max=1.0).intensity[0]
+    sat = fog_intensities([150.0], [255.0], 0.3, 1.0, intensity=RAW, sensor=SENSOR, noise_floor=None).intensity[0], fog_intensities(
+        [150.0], [1.0], 0.3, 1.0, intensity=RAW, sensor=SENSOR, noise_floor=None, intensity_max=1.0).intensity[0]
     assert sat == (255.0, 1.0)
 
 
@@ -345,10 +350,10 @@ def test_fog_echoes_get_the_sensors_range_noise_bounded_and_deterministic() -> N
     r_wild = np.linalg.norm(wild.points[:, :3].astype(np.float64) - origins[wild.source_index], axis=1)
     assert r_wild[wild.labels == FogLabel.SCATTERED].min() == pytest.approx(sensor.r1, abs=1e-5)
     with pytest.raises(ValueError, match="noise_keys"):
-        fog_point_arrays(scan.points, origins, 0.1, default_beta(0.1), sensor=sensor, noise_floor=None,
+        fog_point_arrays(scan.points, origins, 0.1, default_beta(0.1), intensity=FOG_LIDAR.intensity, sensor=sensor, noise_floor=None,
                          range_noise_std=0.05)
     with pytest.raises(ValueError, match="range_noise_std"):
-        fog_point_arrays(scan.points, origins, 0.1, default_beta(0.1), sensor=sensor, noise_floor=None,
+        fog_point_arrays(scan.points, origins, 0.1, default_beta(0.1), intensity=FOG_LIDAR.intensity, sensor=sensor, noise_floor=None,
                          range_noise_std=-1.0)
     with pytest.raises(ValueError):
         simulate_fog(scan, -0.1, 0.0, lidar=_lidar(sensor=sensor))
@@ -369,8 +374,8 @@ def test_detector_intensity_noise_has_the_missing_variance_of_each_reading() -> 
     for r, i0, alpha, beta in ((100.0, 250.0, 0.06, default_beta(0.06)),  # dense fog: the fog echo wins
                                (20.0, 80.0, 0.03, 0.0)):  # no backscatter: the attenuated target
         r0, i0s = np.full(n, r), np.full(n, i0, np.float32)
-        quiet = fog_intensities(r0, i0s, alpha, beta, sensor=SENSOR, noise_floor=None)
-        loud = fog_intensities(r0, i0s, alpha, beta, sensor=SENSOR, noise_floor=None, noise_std=s0, noise_rel=rel,
+        quiet = fog_intensities(r0, i0s, alpha, beta, intensity=RAW, sensor=SENSOR, noise_floor=None)
+        loud = fog_intensities(r0, i0s, alpha, beta, intensity=RAW, sensor=SENSOR, noise_floor=None, noise_std=s0, noise_rel=rel,
                                noise_normals=z)
         np.testing.assert_array_equal(quiet.labels, loud.labels)
         mean = quiet.intensity[0]
@@ -386,21 +391,21 @@ def test_detector_intensity_noise_has_the_missing_variance_of_each_reading() -> 
         assert (expected > 0.0).all()  # nothing clipped at 0 here
         np.testing.assert_allclose(loud.intensity, expected, rtol=1e-12)
     # α = 0: the clear reading stands, bit for bit; a noise-free detector is the old model
-    clear = fog_intensities(np.full(n, 30.0), np.full(n, 50.0, np.float32), 0.0, 0.0, sensor=SENSOR, noise_floor=None,
+    clear = fog_intensities(np.full(n, 30.0), np.full(n, 50.0, np.float32), 0.0, 0.0, intensity=RAW, sensor=SENSOR, noise_floor=None,
                             noise_std=s0, noise_rel=rel, noise_normals=z)
     assert (clear.labels == FogLabel.UNCHANGED).all() and (clear.intensity == 50.0).all()
     # the floor decides on the reading: attenuated to the floor itself, about half the readings fall below it
     r = 40.0
     floor = float(np.float32(math.exp(-2.0 * 0.03 * r) * 10.0))
-    weak = fog_intensities(np.full(n, r), np.full(n, 10.0, np.float32), 0.03, 0.0, sensor=SENSOR, noise_floor=floor,
+    weak = fog_intensities(np.full(n, r), np.full(n, 10.0, np.float32), 0.03, 0.0, intensity=RAW, sensor=SENSOR, noise_floor=floor,
                            noise_std=s0, noise_rel=rel, noise_normals=z)
     assert 0.45 < np.mean(weak.labels == FogLabel.LOST) < 0.55
     assert (weak.intensity[weak.labels != FogLabel.LOST] >= floor).all()
     with pytest.raises(ValueError, match="noise_normals"):
-        fog_intensities(np.full(3, r), np.full(3, 10.0, np.float32), 0.03, 0.0, sensor=SENSOR, noise_floor=None,
+        fog_intensities(np.full(3, r), np.full(3, 10.0, np.float32), 0.03, 0.0, intensity=RAW, sensor=SENSOR, noise_floor=None,
                         noise_std=s0)
     with pytest.raises(ValueError, match="noise"):
-        fog_intensities(np.full(3, r), np.full(3, 10.0, np.float32), 0.03, 0.0, sensor=SENSOR, noise_floor=None,
+        fog_intensities(np.full(3, r), np.full(3, 10.0, np.float32), 0.03, 0.0, intensity=RAW, sensor=SENSOR, noise_floor=None,
                         noise_std=-1.0)
 
 
@@ -422,7 +427,7 @@ def test_simulate_fog_reads_through_the_sensors_intensity_noise_deterministicall
     assert not np.array_equal(res.points[np.searchsorted(res.source_index, both), 3],
                               quiet.points[np.searchsorted(quiet.source_index, both), 3])
     r0 = np.linalg.norm(scan.points[:, :3].astype(np.float64) - origins, axis=1)
-    arr = fog_intensities(r0, scan.points[:, 3], alpha, beta, sensor=SENSOR, noise_floor=2.0, noise_std=1.5,
+    arr = fog_intensities(r0, scan.points[:, 3], alpha, beta, intensity=FOG_LIDAR.intensity, sensor=SENSOR, noise_floor=2.0, noise_std=1.5,
                           noise_rel=0.03, noise_normals=intensity_normals(point_noise_keys(scan)))
     np.testing.assert_array_equal(arr.labels, res.input_labels)
     np.testing.assert_array_equal(arr.intensity[res.source_index].astype(np.float32), res.points[:, 3])
@@ -444,7 +449,7 @@ def test_noise_floor_drops_undetectable_returns() -> None:
     assert (floored.points[weak, 3] >= i0[kept][weak]).all()
     assert np.array_equal(floored.points, full.points[kept])
     assert full.counts["LOST"] == 0  # a floor of 0 drops nothing ...
-    no_floor = fog_point_arrays(scan.points, None, 0.06, default_beta(0.06), sensor=SENSOR, noise_floor=None)
+    no_floor = fog_point_arrays(scan.points, None, 0.06, default_beta(0.06), intensity=FOG_LIDAR.intensity, sensor=SENSOR, noise_floor=None)
     assert no_floor.points.tobytes() == full.points.tobytes()  # ... exactly like no floor at all
 
 
@@ -456,9 +461,9 @@ def test_simulate_fog_takes_pulse_and_floor_from_the_explicit_lidar_model() -> N
     with pytest.raises(TypeError, match="sensor"):
         soft_target_response(0.06)  # type: ignore[call-arg]
     with pytest.raises(TypeError, match="sensor"):
-        fog_intensities([10.0], [100.0], 0.06, 1e-3, noise_floor=None)  # type: ignore[call-arg]
+        fog_intensities([10.0], [100.0], 0.06, 1e-3, intensity=RAW, noise_floor=None)  # type: ignore[call-arg]
     with pytest.raises(TypeError, match="noise_floor"):
-        fog_point_arrays(scan.points, None, 0.06, 1e-3, sensor=SENSOR)  # type: ignore[call-arg]
+        fog_point_arrays(scan.points, None, 0.06, 1e-3, intensity=RAW, sensor=SENSOR)  # type: ignore[call-arg]
     short = PulseSensor(tau_h=10e-9)
     peaks = {}
     for sensor in (SENSOR, short):
@@ -467,12 +472,12 @@ def test_simulate_fog_takes_pulse_and_floor_from_the_explicit_lidar_model() -> N
         peaks[sensor.tau_h] = soft_target_response(0.06, sensor).r_peak
         assert fog.sum() > 0
         np.testing.assert_allclose(np.linalg.norm(res.points[fog, :3], axis=1), _reported(0.06, sensor), rtol=1e-5)
-        same = fog_point_arrays(scan.points, None, 0.06, default_beta(0.06), sensor=sensor, noise_floor=None)
+        same = fog_point_arrays(scan.points, None, 0.06, default_beta(0.06), intensity=FOG_LIDAR.intensity, sensor=sensor, noise_floor=None)
         assert same.points.tobytes() == res.points.tobytes()
     assert abs(peaks[10e-9] - peaks[20e-9]) > 0.5  # the pulse really is the model's
     floored = simulate_fog(scan, 0.06, default_beta(0.06), lidar=_lidar(20.0))
     assert floored.counts["LOST"] > 0
-    same = fog_point_arrays(scan.points, None, 0.06, default_beta(0.06), sensor=SENSOR, noise_floor=20.0)
+    same = fog_point_arrays(scan.points, None, 0.06, default_beta(0.06), intensity=FOG_LIDAR.intensity, sensor=SENSOR, noise_floor=20.0)
     assert same.points.tobytes() == floored.points.tobytes()
 
 
@@ -488,7 +493,7 @@ def test_beam_origins_and_moving_ego() -> None:
     r_fog = np.linalg.norm(res.points[fog, :3].astype(np.float64) - fast[fog], axis=1)
     np.testing.assert_allclose(r_fog, _reported(0.08), rtol=1e-5)
     # the array-level function with explicit origins is what simulate_fog runs
-    arr = fog_point_arrays(scan.points, fast, 0.08, default_beta(0.08), sensor=SENSOR, noise_floor=None)
+    arr = fog_point_arrays(scan.points, fast, 0.08, default_beta(0.08), intensity=FOG_LIDAR.intensity, sensor=SENSOR, noise_floor=None)
     assert arr.points.tobytes() == res.points.tobytes()
     fogged = res.apply_to(scan)
     assert isinstance(fogged, LidarScan) and fogged.points is res.points
@@ -504,12 +509,12 @@ def test_array_level_many_points_many_betas() -> None:
     fractions = []
     for k in (1.0, 1.4, 2.0):
         beta = 0.023 * k / mor_from_alpha(0.04)
-        res = fog_intensities(r0, i0, 0.04, beta, sensor=SENSOR, noise_floor=None, response=resp)
+        res = fog_intensities(r0, i0, 0.04, beta, intensity=RAW, sensor=SENSOR, noise_floor=None, response=resp)
         assert res.intensity.shape == r0.shape and (res.intensity <= 255.0).all()
         fractions.append(float((res.labels == FogLabel.SCATTERED).mean()))
     assert fractions == sorted(fractions) and fractions[0] > 0
     with pytest.raises(ValueError, match="alpha"):
-        fog_intensities(r0[:5], i0[:5], 0.05, 1e-3, sensor=SENSOR, noise_floor=None, response=resp)
+        fog_intensities(r0[:5], i0[:5], 0.05, 1e-3, intensity=RAW, sensor=SENSOR, noise_floor=None, response=resp)
 
 
 # ------------------------------------------------------------------------------------------------------ real scans
@@ -589,6 +594,57 @@ def test_a_rounded_reading_in_light_fog_is_kept_with_the_closed_form_share(q: fl
         from weatheralign.lidar.quantum import on_scale, scan_clear_readings
 
         clear = scan_clear_readings(scan, floor)
-        arr = fog_intensities(np.full(n, r0), pts[:, 3], alpha, 0.0, sensor=SENSOR, noise_floor=floor,
+        arr = fog_intensities(np.full(n, r0), pts[:, 3], alpha, 0.0, intensity=RAW, sensor=SENSOR, noise_floor=floor,
                               clear_values=None if clear is None else on_scale(clear, pts[:, 3], 255.0))
         np.testing.assert_array_equal(arr.labels, res.input_labels)
+
+
+def test_a_fog_echo_is_reported_through_the_compensation_at_its_own_range() -> None:
+    """The receiver picks the echo on raw power and reports it as ``P R_e² g(R_e)``: for any intensity model the fog
+    echo reads ``I(R_0) i_0 β / β_0 · R_e² g(R_e) / g(R_0)`` (closed form from the tabulated response), which is
+    Hahner's ``I(R_0) i_0 R_0² β / β_0`` for the raw-power sensor; which points scatter does not depend on it."""
+    from weatheralign.sensors import CALIBRATED_INTENSITY, SYNTHETIC_INTENSITY
+
+    alpha, beta = 0.06, default_beta(0.06)
+    r0 = np.linspace(20.0, 110.0, 400)
+    i0 = np.full(len(r0), 100.0, np.float32)
+    integral, r_fog = soft_target_response(alpha, SENSOR)(r0)
+    r_e = np.clip(r_fog - SENSOR.pulse_length / 2.0, SENSOR.r1, np.minimum(r0, SENSOR.max_range))
+    labels = None
+    for model in (RAW, SYNTHETIC_INTENSITY, CALIBRATED_INTENSITY):
+        res = fog_intensities(r0, i0, alpha, beta, intensity=model, sensor=SENSOR, noise_floor=None)
+        fog = res.labels == FogLabel.SCATTERED
+        assert fog.sum() > 100
+        expected = integral * 100.0 * beta / SENSOR.beta_0 * model.compensation(r_e) / model.gain(r0)
+        np.testing.assert_allclose(res.intensity[fog], np.minimum(expected[fog], SENSOR.saturation), rtol=1e-9)
+        labels = res.labels if labels is None else labels
+        np.testing.assert_array_equal(res.labels, labels)
+    hahner = integral * 100.0 * r0 * r0 * beta / SENSOR.beta_0
+    raw = fog_intensities(r0, i0, alpha, beta, intensity=RAW, sensor=SENSOR, noise_floor=None)
+    fog = raw.labels == FogLabel.SCATTERED
+    np.testing.assert_allclose(raw.intensity[fog], np.minimum(hahner[fog], SENSOR.saturation), rtol=1e-9)
+
+
+def test_a_raw_power_detector_has_a_floor_that_grows_with_the_reported_range() -> None:
+    """`LidarModel.floor_range_m`: the floor on the reported scale is ``f R² g(R) / (r_f² g(r_f))`` (the kernels'
+    scalar agrees with `LidarModel.floor_at`); attenuated targets are lost against the floor at their own range."""
+    from weatheralign.lidar.detector import floor_scale
+
+    lidar = _lidar(5.0, floor_range_m=35.0)
+    r = np.array([0.5, 1.6, 10.0, 35.0, 80.0])
+    g = lidar.intensity.gain(r)
+    np.testing.assert_allclose(lidar.floor_at(r), 5.0 * r * r * g / (35.0 ** 2 * float(lidar.intensity.gain(35.0))))
+    det = lidar.detector()
+    np.testing.assert_allclose([5.0 * floor_scale(x, det.r_ref, det.falloff, det.comp_ref) for x in r],
+                               lidar.floor_at(r), rtol=1e-12)
+    np.testing.assert_array_equal(_lidar(5.0).floor_at(r), 5.0)
+    assert LidarModel.from_dict(lidar.to_dict()) == lidar and "floor_range_m" not in _lidar(5.0).to_dict()
+    with pytest.raises(ValueError, match="floor_range_m"):
+        _lidar(5.0, floor_range_m=-1.0)
+    # targets of reading 3 between 10 and 100 m in a thin fog: kept exactly where T² · 3 reaches the floor there
+    r0 = np.linspace(10.0, 100.0, 901)
+    res = fog_intensities(r0, np.full(len(r0), 3.0, np.float32), 1e-4, 0.0, intensity=lidar.intensity,
+                          sensor=SENSOR, noise_floor=5.0, floor_range_m=35.0)
+    below = np.exp(-2e-4 * r0) * 3.0 < lidar.floor_at(r0)
+    np.testing.assert_array_equal(res.labels == FogLabel.LOST, below)
+    assert 0 < below.sum() < len(r0)

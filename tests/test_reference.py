@@ -55,7 +55,7 @@ from weatheralign.reference.synthetic import (
     synthetic_root,
     tf_tree,
 )
-from weatheralign.sensors import PulseSensor
+from weatheralign.sensors import SYNTHETIC_INTENSITY, PulseSensor
 
 from .conftest import REPO
 
@@ -299,7 +299,9 @@ def test_peak_search_against_brute_force_receiver_axis():
                 power += np.where(inside, SENSOR.beta_0 * math.exp(-2 * alpha * r0[i]) / r0[i] ** 2
                                   * np.sin(np.pi * (R - r0[i]) / L) ** 2, 0.0)
             j = int(np.argmax(power))
-            assert ret.power[i] == pytest.approx(c[i] * power[j], rel=1e-5)
+            # the peak is chosen on raw power and reported through R_e² g(R_e) at its reported range
+            raw = ret.power[i] / SYNTHETIC_INTENSITY.compensation(max(ret.r_peak[i] - L / 2, SENSOR.r1))
+            assert raw == pytest.approx(c[i] * power[j], rel=1e-5)
             assert abs(ret.r_peak[i] - R[j]) < 2e-3
 
 
@@ -326,14 +328,15 @@ def test_fog_effects_are_monotonic_and_match_the_fast_model():
             assert ret.r_peak[~np.isfinite(r0)][0] == pytest.approx(fast.r_peak, abs=0.02)
             # one range convention: the fast model reports its fog echo where the exact receiver does (peak - cτ_H/2)
             far = fog_point_arrays(np.array([[100.0, 0.0, 0.0, 50.0, 0.0]], np.float32), None, alpha,
-                                   0.046 * alpha / LN20, sensor=FAST_SENSOR, noise_floor=None)
+                                   0.046 * alpha / LN20, intensity=SYNTHETIC_INTENSITY, sensor=FAST_SENSOR,
+                                   noise_floor=None)
             assert far.labels[0] == 2
             assert float(far.points[0, 0]) == pytest.approx(ret.r_peak[~np.isfinite(r0)][0] - L / 2, abs=0.02)
             exact_tables = fog_tables(alpha)
             assert exact_tables.g_peak == pytest.approx(fast.g_peak, rel=0.01)
             hard_r = r0[np.isfinite(r0)]
             fast_fog = fog_intensities(hard_r, i0[np.isfinite(r0)], alpha, 0.046 * alpha / LN20,
-                                       sensor=FAST_SENSOR, noise_floor=None).labels == 2
+                                       intensity=SYNTHETIC_INTENSITY, sensor=FAST_SENSOR, noise_floor=None).labels == 2
             agree = np.mean(fast_fog == (ret.source[np.isfinite(r0)] == FOG))
             assert agree > 0.99
     assert means[0] > means[1] > means[2] > means[3]
@@ -341,7 +344,7 @@ def test_fog_effects_are_monotonic_and_match_the_fast_model():
     # a beam without return takes its ring's median constant
     sky = np.flatnonzero(~np.isfinite(r0))[0]
     same = np.isfinite(r0) & (ring == ring[sky])
-    assert c[sky] == pytest.approx(np.median(i0[same] * r0[same] ** 2 / SENSOR.beta_0))
+    assert c[sky] == pytest.approx(np.median(i0[same] / (SENSOR.beta_0 * SYNTHETIC_INTENSITY.gain(r0[same]))))
 
 
 def test_read_out_floor_quantisation_and_seed():

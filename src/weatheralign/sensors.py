@@ -33,6 +33,17 @@ SPEED_OF_LIGHT = 299_792_458.0
 """c [m/s]."""
 
 
+class DetectorFloor(NamedTuple):
+    """A sensor's detector floor as the numba kernels take it (`LidarModel.detector`): on the 0..255 scale the floor
+    at reported range ``R`` is ``floor · R² g(R) / comp_ref`` (``g`` the `IntensityModel` gain of ``r_ref``,
+    ``falloff``), or ``floor`` at every range when ``comp_ref`` is 0."""
+
+    floor: float  # the floor at the reference range (0..255)
+    r_ref: float  # the intensity model's range compensation: g(R) = min(1, (r_ref / R)^falloff)
+    falloff: float
+    comp_ref: float  # r_f² g(r_f) [m²] at the floor's reference range; 0: a constant floor
+
+
 @dataclass(frozen=True)
 class PulseSensor:
     """Pulse and optics parameters of a pulsed LiDAR.
@@ -106,6 +117,13 @@ class IntensityModel:
         r = np.maximum(np.asarray(r, dtype=np.float64), 1e-9)
         return np.minimum(1.0, (self.r_ref / r) ** self.falloff)
 
+    def compensation(self, r: NDArray | float) -> F64:
+        """``R² g(R)`` [m²] (any shape) at ranges ``r`` [m]: what turns a received raw power (falling as ``1 / R²``)
+        into the reported value, up to the constant ``scale``; constant for a raw-reporting sensor (``r_ref = 1 m``,
+        ``falloff = 2``, beyond 1 m)."""
+        r = np.maximum(np.asarray(r, dtype=np.float64), 1e-9)
+        return r * r * self.gain(r)
+
     def intensity(self, reflectivity: NDArray | float, r: NDArray | float, ratio: NDArray | float = 1.0) -> F64:
         """Reported intensity (0..255, unclipped) of a disk of ``reflectivity`` covering ``ratio`` of the beam at range
         ``r`` [m], in clear air."""
@@ -164,7 +182,8 @@ class LidarModel:
         laser_step_s: delay between consecutive rings of one firing column [s].
         divergence_rad: full beam divergence [rad].
         max_range_m, min_range_m: reported range limits [m] (beams without return are ``max_range_m`` long).
-        noise_floor: detector floor on the 0..255 scale: echoes below it are not reported.
+        noise_floor: detector floor on the 0..255 scale: echoes below it are not reported. With ``floor_range_m``
+            it is the floor at that range (`floor_at`).
         intensity_max: the intensity scale the scans are stored on (255 or 1).
         intensity: how the sensor turns received power into reported intensity (`IntensityModel`).
         pulse: pulse width, overlap and saturation (`PulseSensor`; its ``max_range`` is ``max_range_m``).
@@ -175,6 +194,13 @@ class LidarModel:
             Gaussian of std ``sqrt(std² + (rel · peak)²)`` on the received peak, before the floor decides whether it
             is detected (0, 0: noise-free). Weak particle echoes near the floor are detected by chance through it.
         range_noise_std_m: Gaussian range noise of a new echo [m], clipped at ±2 σ.
+        floor_range_m: None: the floor is ``noise_floor`` at every range, on the reported scale. A range [m]: the
+            detector decides on the received raw power, as a real receiver does, and the reported value is that
+            power times the range compensation ``R² g(R)`` at the reported range (`IntensityModel.compensation`), so
+            on the reported scale the floor grows with range: ``floor(R) = noise_floor · R² g(R) / (r_f² g(r_f))``,
+            ``noise_floor`` being what a target exactly at the floor reads at ``r_f = floor_range_m``. The constant
+            part of a new echo's intensity noise is the receiver's and scales alike (`floor_scale`).
+            ``docs/physics.md`` section 3.5.
     """
 
     elevations_deg: tuple[float, ...]
@@ -195,9 +221,12 @@ class LidarModel:
     intensity_noise_std: float = 0.0
     intensity_noise_rel: float = 0.0
     range_noise_std_m: float = 0.0
+    floor_range_m: float | None = None
 
     def __post_init__(self) -> None:
         checks = {
+            "floor_range_m": self.floor_range_m is None
+            or (math.isfinite(self.floor_range_m) and 0.0 < self.floor_range_m <= 1000.0),
             "intensity_noise_std": math.isfinite(self.intensity_noise_std) and 0.0 <= self.intensity_noise_std <= 50.0,
             "intensity_noise_rel": math.isfinite(self.intensity_noise_rel) and 0.0 <= self.intensity_noise_rel <= 1.0,
             "range_noise_std_m": math.isfinite(self.range_noise_std_m) and 0.0 <= self.range_noise_std_m <= 1.0,
@@ -226,6 +255,21 @@ class LidarModel:
         """Rotation period [s]."""
         return 1.0 / self.rotation_hz
 
+    def floor_scale(self, r: NDArray | float) -> F64:
+        """(any shape) ``floor(R) / noise_floor`` at reported ranges ``r`` [m]: 1 without ``floor_range_m``, else
+        ``R² g(R) / (r_f² g(r_f))``; the constant part of a new echo's intensity noise scales alike."""
+        return floor_scale(r, self.intensity, self.floor_range_m)
+
+    def floor_at(self, r: NDArray | float) -> F64:
+        """(any shape) the detector floor on the 0..255 scale for echoes reported at ranges ``r`` [m]."""
+        return self.noise_floor * self.floor_scale(r)
+
+    def detector(self) -> DetectorFloor:
+        """The floor as the numba kernels take it (`DetectorFloor`; ``weatheralign.lidar.detector``)."""
+        comp = 0.0 if self.floor_range_m is None else float(self.intensity.compensation(self.floor_range_m))
+        return DetectorFloor(float(self.noise_floor), float(self.intensity.r_ref), float(self.intensity.falloff),
+                             comp)
+
     def firing_pattern(self) -> FiringPattern:
         """Every (ring, column) beam of one sweep: column c fires at azimuth ``start ∓ 2π (c + 1/2) / C`` (``-`` for
         clockwise) and time ``(c / C - 1) · period + ring · laser_step_s`` relative to the sweep's end."""
@@ -242,8 +286,11 @@ class LidarModel:
                              np.asarray(self.elevations_deg, dtype=np.float64), self.period)
 
     def to_dict(self) -> dict[str, Any]:
+        """Plain JSON; ``floor_range_m`` only when set (a constant-floor sensor's dict is what it always was)."""
         d = asdict(self)
         d["elevations_deg"] = [float(e) for e in self.elevations_deg]
+        if d["floor_range_m"] is None:
+            del d["floor_range_m"]
         return d
 
     @staticmethod
@@ -401,6 +448,15 @@ def mount_yaw_of(T_ego_lidar: NDArray) -> float:
     """Yaw [rad] of a LiDAR mounting ``T_ego_lidar`` (4, 4) about the ego's z axis."""
     R = np.asarray(T_ego_lidar, dtype=np.float64)[:3, :3]
     return float(math.atan2(R[1, 0], R[0, 0]))
+
+
+def floor_scale(r: NDArray | float, intensity: IntensityModel, floor_range_m: float | None) -> F64:
+    """(any shape) a detector floor's factor at reported ranges ``r`` [m] (`LidarModel.floor_scale`): 1 for a
+    constant floor (``floor_range_m`` None), else ``R² g(R) / (r_f² g(r_f))`` with ``g`` the gain of ``intensity``."""
+    r = np.asarray(r, dtype=np.float64)
+    if floor_range_m is None:
+        return np.ones(r.shape)
+    return intensity.compensation(r) / float(intensity.compensation(floor_range_m))
 
 
 def lidar_model_from_params(cfg: Any, mount_yaw: float = LIDAR_TOP_YAW) -> LidarModel:
@@ -618,9 +674,9 @@ def camera_models(views: dict[str, Any], exposure_s: float) -> dict[str, CameraM
 
 
 __all__ = ["CALIBRATED_INTENSITY", "DEFAULT_NOISE_FLOOR", "HAHNER_INTENSITY", "SPEED_OF_LIGHT",
-           "SYNTHETIC_INTENSITY", "CameraModel", "FiringPattern", "IntensityModel", "LidarModel", "PulseSensor",
-           "SensorRig", "camera_models", "estimate_lidar_model", "estimate_noise_floor", "lidar_model_from_params",
-           "with_overrides"]
+           "SYNTHETIC_INTENSITY", "CameraModel", "DetectorFloor", "FiringPattern", "IntensityModel", "LidarModel",
+           "PulseSensor", "SensorRig", "camera_models", "estimate_lidar_model", "estimate_noise_floor", "floor_scale",
+           "lidar_model_from_params", "with_overrides"]
 
 
 ESTIMATION_SCANS = 8

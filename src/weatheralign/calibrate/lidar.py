@@ -64,11 +64,11 @@ from weatheralign.calibrate.histograms import (
     ks_statistic,
 )
 from weatheralign.data.frame import LidarScan
-from weatheralign.lidar.beams import beam_origins, point_noise_keys
+from weatheralign.lidar.beams import beam_origins, point_noise_keys, point_ranges
 from weatheralign.lidar.fog import FogLabel, fog_intensities, intensity_normals, soft_target_response
 from weatheralign.lidar.quantum import ReadingSpread, clear_readings, on_scale, scan_reading_spread
 from weatheralign.medium.fog import LN20, PAPER_BETA_FACTORS, mor_from_alpha
-from weatheralign.sensors import PulseSensor
+from weatheralign.sensors import SYNTHETIC_INTENSITY, IntensityModel, PulseSensor, floor_scale
 
 F64 = NDArray[np.float64]
 
@@ -108,6 +108,8 @@ class FogFrames:
         spread: which ``i0`` the sensor rounded and where in its rounding interval each lies (each scan's
             `weatheralign.lidar.quantum.scan_reading_spread`, as `simulate_fog` finds it), or None where no scan was
             integer-quantised.
+        intensity, floor_range_m: the reading sensor's `IntensityModel` and detector floor range
+            (`weatheralign.sensors.LidarModel`): how a fog echo is reported and where the floor lies.
     """
 
     r0: F64
@@ -118,6 +120,8 @@ class FogFrames:
     noise_rel: float = 0.0
     normals: F64 | None = None
     spread: ReadingSpread | None = None
+    intensity: IntensityModel = SYNTHETIC_INTENSITY
+    floor_range_m: float | None = None
 
     def __post_init__(self) -> None:
         n = len(self.r0)
@@ -157,22 +161,11 @@ class FogFrames:
         return hist
 
 
-def point_ranges(points: NDArray[np.float32], origins: NDArray | None) -> F64:
-    """(N,) float64 range of each point (N, >=3) from its beam origin (N, 3) or the frame origin (None) [m],
-    computed as the fog kernel does (float64 difference, then the Euclidean norm)."""
-    d = np.asarray(points)[:, :3].astype(np.float64)
-    if origins is not None:
-        o = np.asarray(origins, dtype=np.float64)
-        if o.shape != d.shape:
-            raise ValueError(f"point_ranges: origins {o.shape} must match points ({len(d)}, 3)")
-        d = d - o
-    return np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])
-
-
-def fog_frames(scans: Iterable[LidarScan], *, noise_std: float = 0.0, noise_rel: float = 0.0) -> FogFrames:
+def fog_frames(scans: Iterable[LidarScan], *, noise_std: float = 0.0, noise_rel: float = 0.0,
+               intensity: IntensityModel = SYNTHETIC_INTENSITY, floor_range_m: float | None = None) -> FogFrames:
     """Reduce clear scans (a sequence or any iterable, consumed once) to `FogFrames`, read through a detector of
     intensity noise ``noise_std`` (0..255 scale) and ``noise_rel`` (the sensor's ``intensity_noise_std`` /
-    ``intensity_noise_rel``).
+    ``intensity_noise_rel``), intensity model ``intensity`` and floor range ``floor_range_m``.
 
     Each point's range is taken from its own beam origin (`weatheralign.lidar.beams.beam_origins`: a moving ego's sensor
     moves during the sweep; None -> the frame origin), exactly as `simulate_fog` computes it, and so are its noise
@@ -202,7 +195,7 @@ def fog_frames(scans: Iterable[LidarScan], *, noise_std: float = 0.0, noise_rel:
         spreads.append(scan_reading_spread(scan))
     if scale is None:
         raise ValueError("fog_frames: no scans; expected at least one clear LidarScan")
-    frames = fog_frames_from_arrays(r0s, i0s, scale)
+    frames = replace(fog_frames_from_arrays(r0s, i0s, scale), intensity=intensity, floor_range_m=floor_range_m)
     if any(p is not None for p in spreads):
         none = [ReadingSpread(np.zeros(len(i), dtype=bool), np.zeros(len(i))) for i in i0s]
         joined = [n if p is None else p for n, p in zip(none, spreads)]
@@ -258,7 +251,9 @@ def frame_clear_values(frames: FogFrames, noise_floor: float | None) -> F64 | No
     if frames.spread is None:
         return None
     i0_255 = frames.i0 * np.float32(255.0 / frames.intensity_max)
-    x = clear_readings(i0_255, frames.spread.rounded, noise_floor, frames.spread.uniforms)
+    floor = None if noise_floor is None else noise_floor * floor_scale(frames.r0, frames.intensity,
+                                                                        frames.floor_range_m)
+    x = clear_readings(i0_255, frames.spread.rounded, floor, frames.spread.uniforms)
     return on_scale(x, frames.i0, frames.intensity_max)
 
 
@@ -285,7 +280,8 @@ def simulated_histograms(
     res = fog_intensities(frames.r0, frames.i0, alpha, beta, intensity_max=frames.intensity_max, sensor=sensor,
                           noise_floor=noise_floor, response=soft_target_response(alpha, sensor),
                           noise_std=frames.noise_std, noise_rel=frames.noise_rel, noise_normals=frames.normals,
-                          clear_values=frame_clear_values(frames, noise_floor))
+                          clear_values=frame_clear_values(frames, noise_floor), intensity=frames.intensity,
+                          floor_range_m=frames.floor_range_m)
     counts = np.zeros((frames.num_frames, NUM_BINS), dtype=np.int64)
     _bin_frames(res.intensity, res.labels, frames.offsets, 255.0 / frames.intensity_max, np.uint8(FogLabel.LOST),
                 counts)

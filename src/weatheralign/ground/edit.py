@@ -12,6 +12,7 @@ is a dense depth from the LiDAR) and draws the wet road or the snow over them. `
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from typing import NamedTuple
 
@@ -33,7 +34,7 @@ from weatheralign.ground.surfaces import (
     point_normals,
 )
 from weatheralign.ground.wet import WetRoad, film_depth, incidence_angle, puddle_margin, water_depth, wet_ground
-from weatheralign.lidar.beams import point_noise_keys
+from weatheralign.lidar.beams import beam_origins, point_noise_keys, point_ranges
 from weatheralign.lidar.ground_plane import GroundPlane, fit_ground_plane
 from weatheralign.lidar.quantum import reading_uniforms, scan_clear_readings
 
@@ -137,12 +138,14 @@ class EditedScan(NamedTuple):
 
 
 def edit_scan(scan: LidarScan, surfaces: ScanSurfaces, state: GroundState, noise_floor: float,
-              noise_std: float = 0.0) -> EditedScan:
+              noise_std: float = 0.0, floor_scale: Callable[[F64], F64] | None = None) -> EditedScan:
     """``scan`` with ``state``'s ground: wet ground returns dimmed by the film (`wet_ground`: an integer-quantised
     scan's readings spread over their rounding intervals, `weatheralign.lidar.quantum.scan_clear_readings`; read
     again by a detector of intensity noise ``noise_std`` (0..255), each with its beam's `wet_reading_normals`), the
     ones under ``noise_floor`` (0..255) lost; snow-covered returns raised onto the snow along their beams and
-    brightened over the covered share (`snow_covered_ground`)."""
+    brightened over the covered share (`snow_covered_ground`). ``floor_scale``: the factor of the floor and of the
+    noise's constant part at a range (a raw-power detector's, `weatheralign.sensors.LidarModel.floor_scale`), taken
+    at each return's range from its beam origin; None: both constant."""
     points = scan.points.copy()
     intensity = scan.intensity_255().astype(np.float64)
     keep = np.ones(len(points), dtype=bool)
@@ -151,11 +154,13 @@ def edit_scan(scan: LidarScan, surfaces: ScanSurfaces, state: GroundState, noise
         xyz = points[ground, :3].astype(np.float64)
         depth = water_depth(surfaces.world[ground, :2], state.road, state.seed)
         keys = point_noise_keys(scan)
-        clear = scan_clear_readings(scan, noise_floor, keys)
+        scale = (np.ones(len(points)) if floor_scale is None
+                 else floor_scale(point_ranges(scan.points, beam_origins(scan, "scan"))))
+        clear = scan_clear_readings(scan, noise_floor * scale if floor_scale is not None else noise_floor, keys)
         normals = wet_reading_normals(keys[ground]) if noise_std > 0.0 else None
         effect = wet_ground(intensity[ground], incidence_angle(xyz, np.zeros(3), np.asarray(surfaces.plane.normal)),
-                            depth, state.road, noise_floor, None if clear is None else clear[ground], noise_std,
-                            normals)
+                            depth, state.road, noise_floor * scale[ground], None if clear is None else clear[ground],
+                            noise_std * scale[ground], normals)
         intensity[ground] = effect.intensity
         keep[np.nonzero(ground)[0][effect.lost]] = False
         edited = ground.copy()

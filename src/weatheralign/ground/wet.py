@@ -151,18 +151,20 @@ def incidence_angle(points: F64, origins: F64, normals: F64) -> F64:
     return np.arccos(np.clip(np.abs(np.sum(rays * normals, axis=-1)), 0.0, 1.0))
 
 
-def wet_ground(intensity: F64, incidence: F64, depth_m: F64, road: WetRoad, noise_floor: float,
-               clear: F64 | None = None, noise_std: float = 0.0, normals: F64 | None = None) -> WetGroundEffect:
+def wet_ground(intensity: F64, incidence: F64, depth_m: F64, road: WetRoad, noise_floor: float | F64,
+               clear: F64 | None = None, noise_std: float | F64 = 0.0, normals: F64 | None = None) -> WetGroundEffect:
     """Ground returns' intensities (N,) (0..255) at incidence angles (N,) [rad] under water ``depth_m`` (N,) [m]: the
     wetted share answers with `wet_lidar_factor`, the rest dry; returns the water takes below ``noise_floor``
-    (0..255) are lost (a return already below it dry, which a real sensor may still report, is kept, scaled).
+    (0..255; a scalar or (N,) the floor at each return's range) are lost (a return already below it dry, which a real
+    sensor may still report, is kept, scaled).
 
     ``clear`` (N,): the clear value each rounded intensity stood for before the sensor rounded it
     (`weatheralign.lidar.quantum.scan_clear_readings`; None: every intensity as read). The water dims that value:
     it decides the loss (a reading at the floor is not lost to any film) and is the wet return's intensity, so the
     air's weather that reads the wet scan next tests the same value.
 
-    ``noise_std`` (0..255): the detector's signal-independent intensity noise σ_0. The clear reading carries its own
+    ``noise_std`` (0..255; a scalar or (N,) at each return's range): the detector's signal-independent intensity
+    noise σ_0. The clear reading carries its own
     noise, which the film dims with the signal by the factor f; the wet reading lacks ``σ_0² (1 - f²)`` of its
     variance (a signal-proportional part scales exactly), added with the standard ``normals`` (N,) of the beams'
     streams and clipped to 0..255 before the floor decides, as the fog and the particles read a weakened target."""
@@ -172,9 +174,9 @@ def wet_ground(intensity: F64, incidence: F64, depth_m: F64, road: WetRoad, nois
     factor = 1.0 - share + share * water
     dry = np.asarray(intensity, dtype=np.float64)
     new = (dry if clear is None else np.where(factor < 1.0, np.asarray(clear, dtype=np.float64), dry)) * factor
-    if noise_std > 0.0:
+    if np.any(np.asarray(noise_std) > 0.0):
         if normals is None or np.shape(normals) != dry.shape:
-            raise ValueError(f"wet_ground: noise_std = {noise_std} needs normals of shape {dry.shape}, got "
+            raise ValueError(f"wet_ground: a noise_std > 0 needs normals of shape {dry.shape}, got "
                              f"{None if normals is None else np.shape(normals)}")
         missing = noise_std * np.sqrt(np.maximum(1.0 - factor * factor, 0.0))
         new = np.clip(new + missing * np.asarray(normals, dtype=np.float64), 0.0, 255.0)

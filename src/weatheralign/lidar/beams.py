@@ -27,6 +27,7 @@ ego is static (global = sensor frame), so their beams all start at the sensor or
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -225,6 +226,18 @@ def detector_noise_keys(times: NDArray, directions: NDArray, ring: NDArray) -> N
     return (parts * _KEY_MULTIPLIERS).sum(axis=1, dtype=np.uint64)
 
 
+def point_ranges(points: NDArray[np.float32], origins: NDArray | None) -> F64:
+    """(N,) float64 range of each point (N, >=3) from its beam origin (N, 3) or the frame origin (None) [m],
+    computed as the fog kernel does (float64 difference, then the Euclidean norm)."""
+    d = np.asarray(points)[:, :3].astype(np.float64)
+    if origins is not None:
+        o = np.asarray(origins, dtype=np.float64)
+        if o.shape != d.shape:
+            raise ValueError(f"point_ranges: origins {o.shape} must match points ({len(d)}, 3)")
+        d = d - o
+    return np.sqrt(d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1] + d[:, 2] * d[:, 2])
+
+
 def beam_origins(scan: LidarScan, frame: str = "global") -> F64 | None:
     """(N, 3) position [m] of the sensor at each point's firing time: the origin of the point's beam.
 
@@ -416,7 +429,8 @@ FAINT_INTENSITY_FACTOR = 3.0
 """`with_faint_surfaces`: both returns at most this many times the detector floor (a surface at the floor)."""
 
 
-def with_faint_surfaces(beams: Beams, noise_floor: float | None) -> Beams:
+def with_faint_surfaces(beams: Beams, noise_floor: float | None,
+                        floor_scale: Callable[[F64], F64] | None = None) -> Beams:
     """``beams`` where runs of beams without return lie on a surface too faint to be detected: a surface under the
     detector floor is still there, and its echo, though undetectable, is the strongest a strongest-return receiver
     gets, so weaker weather echoes behind or beside it are never reported (measured against the reference's exact
@@ -431,7 +445,9 @@ def with_faint_surfaces(beams: Beams, noise_floor: float | None) -> Beams:
     ``(0, floor)``). On the synthetic reference's clear frames this finds 46 % of the beams whose surface was under
     the floor (the rest are long runs: far dark ground) and puts no open-sky beam on a surface (14 of 6,493 beams).
     The beams keep ``has_return`` False: they report nothing unless the weather puts a detectable echo on them.
-    None or a zero floor: ``beams`` unchanged.
+    None or a zero floor: ``beams`` unchanged. ``floor_scale``: the floor's factor at a range (a raw-power
+    detector's, `weatheralign.sensors.LidarModel.floor_scale`), so that both tests use the floor at the surface's
+    range; None: a constant floor.
     """
     if noise_floor is None or noise_floor <= 0.0 or len(beams) < 3:
         return beams
@@ -451,7 +467,7 @@ def with_faint_surfaces(beams: Beams, noise_floor: float | None) -> Beams:
     bright = np.maximum(beams.intensity0[order][a], beams.intensity0[order][b])
     fill = ((run >= 1) & (run <= MAX_FAINT_RUN) & (ring[a] == ring[b]) & (span <= 1.5 * step * (run + 1))
             & (np.abs(r_a - r_b) <= FAINT_RANGE_TOLERANCE * 0.5 * (r_a + r_b))
-            & (bright <= FAINT_INTENSITY_FACTOR * noise_floor))
+            & (bright <= FAINT_INTENSITY_FACTOR * noise_floor * _scaled(floor_scale, 0.5 * (r_a + r_b))))
     if not fill.any():
         return beams
     a, run, r_a, r_b = a[fill], run[fill], r_a[fill], r_b[fill]
@@ -460,7 +476,7 @@ def with_faint_surfaces(beams: Beams, noise_floor: float | None) -> Beams:
     rows = order[np.repeat(a, run) + k]
     lengths, intensity0 = beams.lengths.copy(), beams.intensity0.copy()
     lengths[rows] = np.repeat(r_a, run) + frac * np.repeat(r_b - r_a, run)
-    intensity0[rows] = 0.5 * noise_floor
+    intensity0[rows] = 0.5 * noise_floor * _scaled(floor_scale, lengths[rows])
     return Beams(beams.origins, beams.directions, beams.times, lengths, beams.has_return, intensity0, beams.ring,
                  beams.point_index, beams.divergence, beams.max_range)
 
@@ -486,7 +502,13 @@ def plane_ranges(beams: Beams, plane: GroundPlane) -> F64:
     return np.where(down, height / np.where(down, descent, 1.0), np.inf)
 
 
-def with_ground_plane(beams: Beams, plane: GroundPlane | None, noise_floor: float | None) -> Beams:
+def _scaled(floor_scale: Callable[[F64], F64] | None, r: F64) -> F64 | float:
+    """The floor's factor at ranges ``r`` [m]: ``floor_scale(r)``, or 1 for a constant floor (None)."""
+    return 1.0 if floor_scale is None else floor_scale(r)
+
+
+def with_ground_plane(beams: Beams, plane: GroundPlane | None, noise_floor: float | None,
+                      floor_scale: Callable[[F64], F64] | None = None) -> Beams:
     """``beams`` whose beams without return and still open (no surface inferred yet: ``lengths == max_range``) that
     point below the horizon onto the fitted ground ``plane`` (global frame: `scan_ground_plane`) within the maximum
     range hit the road under the detector floor: a dark or wet road returns nothing over much of its extent (on the
@@ -495,7 +517,7 @@ def with_ground_plane(beams: Beams, plane: GroundPlane | None, noise_floor: floa
     ``noise_floor / 2`` (the mean of a uniform prior on ``(0, floor)``, as `with_faint_surfaces` gives): its
     undetectable echo is the strongest a strongest-return receiver gets unless the weather puts a detectable echo in
     front of it, and it ends the beam (no drop behind the road). The beams keep ``has_return`` False. None for the
-    plane or the floor (or a zero floor): ``beams`` unchanged."""
+    plane or the floor (or a zero floor): ``beams`` unchanged. ``floor_scale``: as for `with_faint_surfaces`."""
     if plane is None or noise_floor is None or noise_floor <= 0.0 or len(beams) == 0:
         return beams
     reach = plane_ranges(beams, plane)
@@ -504,7 +526,7 @@ def with_ground_plane(beams: Beams, plane: GroundPlane | None, noise_floor: floa
         return beams
     lengths, intensity0 = beams.lengths.copy(), beams.intensity0.copy()
     lengths[on] = reach[on]
-    intensity0[on] = 0.5 * noise_floor
+    intensity0[on] = 0.5 * noise_floor * _scaled(floor_scale, reach[on])
     return Beams(beams.origins, beams.directions, beams.times, lengths, beams.has_return, intensity0, beams.ring,
                  beams.point_index, beams.divergence, beams.max_range)
 

@@ -6,10 +6,17 @@ attenuates every hard-target return two-way, ``i_hard = exp(-2 α R_0) i_0``, an
     P_soft(R) / (C_A P_0 β) = ∫_0^{2τ_H} sin²(π t / 2τ_H) · exp(-2α r) ξ(r) / r² · U(R_0 - r) dt,   r = R - c t / 2.
 
 Its maximum over the receiver's range axis ``R <= R_0`` (the published table generator searches only there) is the
-fog response ``I(R_0)`` [s/m²] at ``R_fog``; ``i_soft = min(I(R_0) i_0 R_0² β / β_0, saturation)``.
-If ``i_soft > i_hard`` the point becomes a fog return at ``R_fog`` along its ray, else it keeps its position with
-``i_hard``. A sensor with intensity noise (``LidarModel.intensity_noise_std`` σ_0 and ``intensity_noise_rel``) reads
-each changed return again: a fog echo is a new reading (std ``sqrt(σ_0² + (rel · i_soft)²)``); an attenuated target's
+fog response ``I(R_0)`` [s/m²] at ``R_fog``. The receiver reports the stronger echo, compared on raw power in units
+of the target's clear reading: the fog's ``I(R_0) i_0 R_0² β / β_0`` against ``i_hard``. If the fog's is larger the
+point becomes a fog return along its ray, reported at ``R_e = R_fog - c τ_H / 2`` (below) through the sensor's range
+compensation there: ``i_soft = min(I(R_0) i_0 β / β_0 · R_e² g(R_e) / g(R_0), saturation)`` with ``g`` the
+`IntensityModel` gain (Hahner's published form, without the last factor, is that of a raw-power sensor,
+``g = (1 m / R)²``, and reports the echo of a range-compensating sensor ``R_0² g(R_0) / (R_e² g(R_e))`` times too
+bright: about 150x for a 40 m target of the synthetic world's ``min(1, 10 m / R)``); else it keeps its position with
+``i_hard``. With a raw-power detector (`LidarModel.floor_range_m`) the floor and the constant part of the noise are
+those at each reading's reported range. A sensor with intensity noise (``LidarModel.intensity_noise_std`` σ_0 and
+``intensity_noise_rel``) reads each changed return again: a fog echo is a new reading (std
+``sqrt(σ_0² + (rel · i_soft)²)``); an attenuated target's
 ``i_0`` already carries its clear reading's noise, scaled by ``T² = exp(-2 α R_0)``, and lacks ``σ_0² (1 - T⁴)`` of
 the fogged reading's variance (the proportional part scales exactly), which is added - without it the returns near the
 detector floor are cut too sharply (on the synthetic reference this biased α* up and doubled the KS distance of light
@@ -55,7 +62,8 @@ from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
 from weatheralign.data.frame import LidarScan
-from weatheralign.lidar.beams import beam_origins, point_noise_keys
+from weatheralign.lidar.beams import beam_origins, point_noise_keys, point_ranges
+from weatheralign.lidar.detector import compensation, floor_scale
 from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel
 from weatheralign.lidar.pulse import SPEED_OF_LIGHT, PulseSensor, overlap
 from weatheralign.lidar.quantum import on_scale, scan_clear_readings
@@ -64,7 +72,7 @@ from weatheralign.medium.field import normal_pair
 from weatheralign.medium.fog import DEFAULT_BETA_MOR, LN20
 
 if TYPE_CHECKING:
-    from weatheralign.sensors import LidarModel
+    from weatheralign.sensors import IntensityModel, LidarModel
 
 F64 = NDArray[np.float64]
 
@@ -188,6 +196,8 @@ def fog_intensities(
     noise_rel: float = 0.0,
     noise_normals: ArrayLike | None = None,
     clear_values: ArrayLike | None = None,
+    intensity: IntensityModel,
+    floor_range_m: float | None = None,
 ) -> FogIntensities:
     """Hard attenuation vs fog echo for points at ranges ``r0`` (N,) [m] with clear intensities ``i0`` (N,).
 
@@ -213,12 +223,18 @@ def fog_intensities(
             it (`weatheralign.lidar.quantum.scan_clear_readings`, as `simulate_fog` finds them): whether an
             attenuated return fell under the floor is decided on ``clear_values · T²`` (plus its noise), so a
             reading at the floor is not lost to any fog; None: every ``i0`` as read.
+        intensity: the sensor's `IntensityModel`: a fog echo is reported through its range compensation at the
+            echo's noise-free reported range ``R_fog - c τ_H / 2`` (Hahner's form ``I(R_0) i_0 R_0² β / β_0`` is the
+            raw-power sensor's, `HAHNER_INTENSITY`).
+        floor_range_m: the detector floor's reference range (`LidarModel.floor_range_m`), or None: a constant
+            floor.
 
     Returns:
         `FogIntensities`. The label of a non-scattered point is UNCHANGED when its float32 intensity is bit-identical
         to the input's, else ATTENUATED.
     """
-    params = _kernel_params(alpha, beta, intensity_max, sensor, noise_floor, response, noise_std, noise_rel)
+    params = _kernel_params(alpha, beta, intensity_max, sensor, noise_floor, response, noise_std, noise_rel,
+                            intensity=intensity, floor_range_m=floor_range_m)
     r0 = np.ascontiguousarray(r0, dtype=np.float64).ravel()
     i0 = np.ascontiguousarray(i0, dtype=np.float32).ravel()
     if r0.shape != i0.shape:
@@ -230,11 +246,12 @@ def fog_intensities(
         normals = np.ascontiguousarray(noise_normals, dtype=np.float64)
     else:
         normals = np.zeros(0)
-    intensity = np.empty(len(r0))
     labels = np.empty(len(r0), dtype=np.uint8)
     r_fog = np.empty(len(r0))
-    _intensity_kernel(r0, i0, _clear_values(clear_values, len(r0)), params, normals, intensity, labels, r_fog)
-    return FogIntensities(intensity=intensity, labels=labels, r_fog=r_fog)
+    echo = FogEchoRange(sensor.pulse_length / 2.0, 0.0, float(sensor.r1), float(sensor.max_range))
+    out = np.empty(len(r0))
+    _intensity_kernel(r0, i0, _clear_values(clear_values, len(r0)), params, echo, normals, out, labels, r_fog)
+    return FogIntensities(intensity=out, labels=labels, r_fog=r_fog)
 
 
 def _kernel_params(
@@ -246,9 +263,13 @@ def _kernel_params(
     response: SoftTargetResponse | None,
     noise_std: float = 0.0,
     noise_rel: float = 0.0,
+    *,
+    intensity: IntensityModel,
+    floor_range_m: float | None = None,
 ) -> FogResponse:
     """The per-return model the numba kernels share, validated (the saturation, floor and noise std given on the
-    0..255 scale converted to the scan's)."""
+    0..255 scale converted to the scan's; the floor and the noise std at ``floor_range_m`` when given, see
+    `weatheralign.sensors.LidarModel.floor_range_m`)."""
     _check_medium(alpha, beta)
     if intensity_max not in (1.0, 255.0):
         raise ValueError(f"fog: intensity_max must be 1.0 or 255.0, got {intensity_max!r}")
@@ -265,9 +286,13 @@ def _kernel_params(
     scale = intensity_max / 255.0
     saturation = sensor.saturation * scale
     floor = -1.0 if noise_floor is None else noise_floor * scale
+    if floor_range_m is not None and not (math.isfinite(floor_range_m) and floor_range_m > 0.0):
+        raise ValueError(f"fog: floor_range_m = {floor_range_m!r}; expected None or a finite range > 0 m")
+    comp_ref = 0.0 if floor_range_m is None else float(intensity.compensation(floor_range_m))
     return FogResponse(float(grid[0]), float(grid[1] - grid[0]), response.g, response.r_peak, response.g_peak,
                        float(alpha), float(beta) / sensor.beta_0, saturation, floor, float(noise_std) * scale,
-                       float(noise_rel), float(intensity_max))
+                       float(noise_rel), float(intensity_max), float(intensity.r_ref), float(intensity.falloff),
+                       comp_ref)
 
 
 def _clear_values(clear_values: ArrayLike | None, n: int) -> F64:
@@ -298,60 +323,73 @@ def _noise_keys(noise_keys: NDArray | None, n: int, needed: bool) -> NDArray[np.
 
 
 @njit(cache=True, nogil=True)
-def _fog_one(r0, i0, clear, model, z):  # pragma: no cover
-    """(intensity, label, r_fog) of one return at range ``r0`` [m] with clear intensity ``i0`` (float32) under the
-    `FogResponse` ``model``: the scalar model of `fog_intensities` (float64), ``z`` the standard normal of its
-    intensity reading, ``clear`` (float64) the clear value the rounded ``i0`` stood for, which decides whether the
-    attenuated target fell under the floor (`weatheralign.lidar.quantum`; ``i0`` itself when unrounded)."""
+def _fog_peak(r0, model):  # pragma: no cover
+    """``(I(R_0), R_fog)`` of a target at ``r0`` [m] under the `FogResponse` ``model`` (`SoftTargetResponse`'s scalar
+    form: the response interpolated on its grid, capped at its peak)."""
     r_start, dr, g, r_peak, g_peak = model.r_start, model.dr, model.g, model.r_peak, model.g_peak
+    if r0 >= r_peak:
+        return g_peak, r_peak
+    pos = (r0 - r_start) / dr
+    if pos <= 0.0:
+        return 0.0, r0
+    j = int(pos)
+    if j >= len(g) - 1:
+        integral = g[len(g) - 1]
+    else:
+        integral = g[j] + (pos - j) * (g[j + 1] - g[j])
+    return min(integral, g_peak), r0
+
+
+@njit(cache=True, nogil=True)
+def _fog_one(r0, i0, clear, model, z, integral, r_echo):  # pragma: no cover
+    """(intensity, label) of one return at range ``r0`` [m] with clear intensity ``i0`` (float32) under the
+    `FogResponse` ``model`` (float64): ``integral`` its `_fog_peak` response, ``r_echo`` [m] the range the receiver
+    would report its fog echo at without noise (`_echo_range`), ``z`` the standard normal of its intensity reading,
+    ``clear`` (float64) the clear value the rounded ``i0`` stood for, which decides whether the attenuated target
+    fell under the floor (`weatheralign.lidar.quantum`; ``i0`` itself when unrounded).
+
+    Which echo the receiver reports is decided on raw power, in units of the target's clear reading: the fog's
+    ``I(R_0) i_0 R_0² β / β_0`` against the target's ``T² i_0``. A fog echo is reported through the sensor's range
+    compensation at its own range, ``× R_e² g(R_e) / (R_0² g(R_0))`` (Hahner's raw-power sensor: 1); the floor and the
+    constant part of the noise of each reading are those at its reported range."""
     alpha, soft_gain, saturation, floor = model.alpha, model.soft_gain, model.saturation, model.floor
     noise_std, noise_rel, full_scale = model.noise_std, model.noise_rel, model.full_scale
-    if r0 >= r_peak:
-        integral = g_peak
-        r_fog = r_peak
-    else:
-        r_fog = r0
-        pos = (r0 - r_start) / dr
-        if pos <= 0.0:
-            integral = 0.0
-        else:
-            j = int(pos)
-            if j >= len(g) - 1:
-                integral = g[len(g) - 1]
-            else:
-                frac = pos - j
-                integral = g[j] + frac * (g[j + 1] - g[j])
-            integral = min(integral, g_peak)
+    r_ref, falloff, comp_ref = model.r_ref, model.falloff, model.comp_ref
     i0_64 = np.float64(i0)
     two_way = math.exp(-2.0 * alpha * r0)
     i_hard = two_way * i0_64
-    i_soft = min(integral * i0_64 * r0 * r0 * soft_gain, saturation)
-    if i_soft > i_hard:
-        out, label = i_soft, 2
-        std = math.sqrt(noise_std * noise_std + (noise_rel * i_soft) ** 2)
+    soft_raw = integral * i0_64 * r0 * r0 * soft_gain
+    if soft_raw > i_hard:
+        label = 2
+        scale_here = floor_scale(r_echo, r_ref, falloff, comp_ref)
+        out = min(soft_raw * compensation(r_echo, r_ref, falloff) / compensation(r0, r_ref, falloff), saturation)
+        std = math.sqrt((noise_std * scale_here) ** 2 + (noise_rel * out) ** 2)
     else:
+        scale_here = floor_scale(r0, r_ref, falloff, comp_ref)
         out = i_hard
         label = 0 if np.float32(i_hard) == i0 else 1
-        std = noise_std * math.sqrt(max(1.0 - two_way * two_way, 0.0))
+        std = noise_std * scale_here * math.sqrt(max(1.0 - two_way * two_way, 0.0))
     if label != 0 and std > 0.0:
         out = min(max(out + std * z, 0.0), full_scale)
     seen, ref = out, i0_64
     if label == 1:  # the attenuated target: its clear value carried through the two-way transmission
         seen, ref = out + (clear - i0_64) * two_way, clear
-    if label != 0 and floor >= 0.0 and seen < floor and np.float32(seen) < np.float32(ref):
+    if label != 0 and floor >= 0.0 and seen < floor * scale_here and np.float32(seen) < np.float32(ref):
         label = 3
-    return out, label, r_fog
+    return out, label
 
 
 @njit(cache=True, nogil=True)
-def _intensity_kernel(r0, i0, clear, model, normals, intensity, labels, r_fog):  # pragma: no cover
+def _intensity_kernel(r0, i0, clear, model, echo, normals, intensity, labels, r_fog):  # pragma: no cover
     """`_fog_one` of every return (``clear`` (N,) or (0,): each ``i0`` as read; ``normals`` (N,) or (0,):
-    noise-free) into ``intensity``, ``labels``, ``r_fog``."""
+    noise-free; a fog echo reported at ``echo``'s noise-free range) into ``intensity``, ``labels``, ``r_fog``."""
     noisy = normals.shape[0] > 0
     rounded = clear.shape[0] > 0
     for n in range(len(r0)):
         x = clear[n] if rounded else np.float64(i0[n])
-        intensity[n], labels[n], r_fog[n] = _fog_one(r0[n], i0[n], x, model, normals[n] if noisy else 0.0)
+        integral, r_fog[n] = _fog_peak(r0[n], model)
+        r_echo = _echo_range(r_fog[n], r0[n], echo)
+        intensity[n], labels[n] = _fog_one(r0[n], i0[n], x, model, normals[n] if noisy else 0.0, integral, r_echo)
 
 
 @njit(cache=True, nogil=True)
@@ -373,6 +411,14 @@ def intensity_normals(noise_keys: ArrayLike) -> F64:
     """(N,) the standard normal of each beam's intensity reading (`reading_normals`' first, as `simulate_fog` draws
     it): `fog_intensities`' ``noise_normals``."""
     return np.ascontiguousarray(reading_normals(noise_keys)[:, 0])
+
+
+@njit(cache=True, nogil=True)
+def _echo_range(r_fog, r0, echo):  # pragma: no cover
+    """The noise-free range [m] of a fog echo whose power peaks at ``r_fog``: ``r_fog - c τ_H / 2`` inside ``[r1,
+    min(r0, max_range)]``; the range the sensor's compensation is applied at (its range noise, a timing jitter of
+    the reading, moves the point, not its intensity, so the fog's histograms do not depend on it)."""
+    return min(max(r_fog - echo.half_length, echo.r1), min(r0, echo.max_range))
 
 
 @njit(cache=True, nogil=True)
@@ -410,7 +456,8 @@ def _points_kernel(points, origins, keys, clear, model, echo, out, labels, r0_ou
         key = keys[n] if noisy else np.uint64(0)
         z = normal_pair(key)[0] if noisy and (noise_std > 0.0 or noise_rel > 0.0) else 0.0
         x = clear[n] if rounded else np.float64(points[n, 3])
-        value, label, r_fog = _fog_one(r0, points[n, 3], x, model, z)
+        integral, r_fog = _fog_peak(r0, model)
+        value, label = _fog_one(r0, points[n, 3], x, model, z, integral, _echo_range(r_fog, r0, echo))
         labels[n] = label
         r0_out[n] = r0
         r_fog_out[n] = r_fog
@@ -482,6 +529,8 @@ def fog_point_arrays(
     noise_std: float = 0.0,
     noise_rel: float = 0.0,
     clear_values: ArrayLike | None = None,
+    intensity: IntensityModel,
+    floor_range_m: float | None = None,
 ) -> FogResult:
     """Fog on a bare point array (the array-level core of `simulate_fog`).
 
@@ -498,6 +547,7 @@ def fog_point_arrays(
         noise_std, noise_rel: the detector's intensity noise (see `fog_intensities`).
         clear_values: (N,) the clear value each intensity stood for before rounding, or None (see
             `fog_intensities`).
+        intensity, floor_range_m: the sensor's intensity model and floor range (see `fog_intensities`).
 
     A SCATTERED point moves along its ray to the range the receiver reports for the fog echo: the power peak
     ``R_fog`` minus ``c τ_H / 2`` (the hard targets' convention), plus the range noise, inside
@@ -513,7 +563,8 @@ def fog_point_arrays(
     if not (math.isfinite(range_noise_std) and range_noise_std >= 0.0):
         raise ValueError(f"fog: range_noise_std = {range_noise_std!r}; expected a finite standard deviation >= 0 m")
     keys = _noise_keys(noise_keys, n, range_noise_std > 0.0 or noise_std > 0.0 or noise_rel > 0.0)
-    params = _kernel_params(alpha, beta, intensity_max, sensor, noise_floor, response, noise_std, noise_rel)
+    params = _kernel_params(alpha, beta, intensity_max, sensor, noise_floor, response, noise_std, noise_rel,
+                            intensity=intensity, floor_range_m=floor_range_m)
     if origins is None:
         origins = np.zeros((0, 3))
     else:
@@ -571,9 +622,13 @@ def simulate_fog(
     origins = beam_origins(scan, "scan")
     noisy = lidar.range_noise_std_m > 0.0 or lidar.intensity_noise_std > 0.0 or lidar.intensity_noise_rel > 0.0
     keys = point_noise_keys(scan) if noisy else None
-    clear = scan_clear_readings(scan, lidar.noise_floor)
+    floor = lidar.noise_floor
+    if lidar.floor_range_m is not None:
+        floor = lidar.floor_at(point_ranges(scan.points, origins))
+    clear = scan_clear_readings(scan, floor)
     return fog_point_arrays(scan.points, origins, alpha, beta, intensity_max=scan.intensity_max, sensor=lidar.pulse,
                             noise_floor=lidar.noise_floor, range_noise_std=lidar.range_noise_std_m, noise_keys=keys,
                             noise_std=lidar.intensity_noise_std, noise_rel=lidar.intensity_noise_rel,
                             clear_values=None if clear is None else on_scale(clear, scan.points[:, 3],
-                                                                             scan.intensity_max))
+                                                                             scan.intensity_max),
+                            intensity=lidar.intensity, floor_range_m=lidar.floor_range_m)

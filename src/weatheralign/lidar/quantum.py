@@ -86,16 +86,17 @@ def reading_uniforms_naive(noise_keys: ArrayLike, counter: int = DITHER_COUNTER)
     return np.asarray(out, dtype=np.float64)
 
 
-def rounding_interval(i0_255: ArrayLike, noise_floor: float | None) -> tuple[F64, F64]:
+def rounding_interval(i0_255: ArrayLike, noise_floor: ArrayLike | None) -> tuple[F64, F64]:
     """``(lo, hi)`` (N,) each: the values a whole reading ``i0_255`` (N,) (0..255 scale; ``q`` its nearest integer)
-    stood for, ``[max(q - ½, floor, 0), q + ½)`` (``floor`` the detector's, None: none); empty (``hi <= lo``) for a
-    reading under the floor, which the sensor reported nevertheless."""
+    stood for, ``[max(q - ½, floor, 0), q + ½)`` (``floor`` the detector's, a scalar or (N,) the floor at each
+    reading's range; None: none); empty (``hi <= lo``) for a reading under the floor, which the sensor reported
+    nevertheless."""
     q = np.rint(np.asarray(i0_255, dtype=np.float64))
-    lo = np.maximum(q - 0.5 * QUANTUM, 0.0 if noise_floor is None else max(float(noise_floor), 0.0))
+    lo = np.maximum(q - 0.5 * QUANTUM, 0.0 if noise_floor is None else np.maximum(np.asarray(noise_floor, float), 0.0))
     return lo, q + 0.5 * QUANTUM
 
 
-def clear_readings(i0_255: ArrayLike, rounded: ArrayLike, noise_floor: float | None, uniforms: ArrayLike) -> F64:
+def clear_readings(i0_255: ArrayLike, rounded: ArrayLike, noise_floor: ArrayLike | None, uniforms: ArrayLike) -> F64:
     """(N,) the value each clear reading ``i0_255`` (N,) (0..255 scale) stood for before rounding: for a ``rounded``
     (N,) one, ``lo + u (hi - lo)`` on its `rounding_interval` with ``u`` (N,) in [0, 1) (`reading_uniforms` of its
     beam); the reading itself where it was not rounded or its interval is empty."""
@@ -124,7 +125,7 @@ def scan_reading_spread(scan: LidarScan, keys: NDArray[np.uint64] | None = None)
     return ReadingSpread(rounded, uniforms)
 
 
-def scan_clear_readings(scan: LidarScan, noise_floor: float | None, keys: NDArray[np.uint64] | None = None
+def scan_clear_readings(scan: LidarScan, noise_floor: ArrayLike | None, keys: NDArray[np.uint64] | None = None
                         ) -> F64 | None:
     """(N,) `clear_readings` of ``scan``'s points on the 0..255 scale (`scan_reading_spread`, ``keys`` its
     `point_noise_keys` where known), or None where the sensor rounded none of them."""

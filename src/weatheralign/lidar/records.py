@@ -28,10 +28,13 @@ class FogResponse(NamedTuple):
     alpha: float  # extinction [1/m]
     soft_gain: float  # β / β_0: the fog's backscatter over the hard target's
     saturation: float  # largest intensity the detector reports
-    floor: float  # detector noise floor, < 0 for none
-    noise_std: float  # intensity noise std of a new reading
+    floor: float  # detector noise floor (at the floor's reference range, if any), < 0 for none
+    noise_std: float  # intensity noise std of a new reading (at the same range: it scales with the floor)
     noise_rel: float  # and its part proportional to the reading
     full_scale: float  # the scale's maximum intensity (255 or 1): readings are clipped to [0, full_scale]
+    r_ref: float  # the sensor's range compensation g(R) = min(1, (r_ref / R)^falloff) (`IntensityModel`)
+    falloff: float
+    comp_ref: float  # r_f² g(r_f) of the floor's reference range [m²]; 0: a constant floor (`DetectorFloor`)
 
 
 class FogEchoRange(NamedTuple):

@@ -59,7 +59,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.integrate import cumulative_trapezoid
 
 from weatheralign.reference.records import FogGrid, FogMedium, FogPeaks, SensorOptics
-from weatheralign.sensors import SPEED_OF_LIGHT, PulseSensor
+from weatheralign.sensors import SPEED_OF_LIGHT, SYNTHETIC_INTENSITY, IntensityModel, PulseSensor
 
 F64 = NDArray[np.float64]
 
@@ -379,21 +379,26 @@ def _beams_kernel(r0s, cs, fog, sensor, tables, stride, out):  # pragma: no cove
 
 
 def exact_returns(r0: ArrayLike, c: ArrayLike, alpha: float, beta: float, sensor: ExactSensor = ExactSensor(), *,
-                  tables: FogTables | None = None, grid_step: float = 0.02) -> ExactReturns:
-    """The strongest peak of the received power of every beam (N,).
+                  tables: FogTables | None = None, grid_step: float = 0.02,
+                  intensity: IntensityModel = SYNTHETIC_INTENSITY) -> ExactReturns:
+    """The strongest peak of the received power of every beam (N,), reported through the sensor's range
+    compensation at its reported range.
 
     Args:
         r0: (N,) hard-target range [m] of each beam, ``inf`` where there is none (or it lies beyond the window).
-        c: (N,) system constant ``C`` of each beam in intensity units x m² sr (`system_constants`).
+        c: (N,) system constant ``C`` of each beam (`system_constants` of the same ``intensity``).
         alpha, beta: the fog's extinction [1/m] and backscatter [1/(m sr)] (0, 0: clear air).
         sensor: the reference sensor.
         tables: `fog_tables` of ``alpha`` (computed when None).
         grid_step: receiver-axis step [m] of the search around the hard echo (refined by a parabola); rounded to a
             whole number of table steps.
+        intensity: the sensor's `IntensityModel`: the strongest peak is chosen on raw power ``C P(R)`` and reported
+            as ``C P(R) R_e² g(R_e)``, ``R_e = R_peak - c τ_H / 2`` the range it is reported at (section 3.5 of
+            ``docs/physics.md``; the raw-power sensor's ``R² g(R)`` is 1).
 
     Returns:
-        `ExactReturns`. With ``alpha = beta = 0`` a target at ``R_0 >= r2`` returns ``C β_0 / R_0²`` (its clear
-        intensity) at ``R_0 + c τ_H / 2``.
+        `ExactReturns` (``power``: the reported intensity before the detector). With ``alpha = beta = 0`` a target
+        at ``R_0 >= r2`` returns its clear intensity at ``R_0 + c τ_H / 2``.
     """
     if not (math.isfinite(beta) and beta >= 0.0):
         raise ValueError(f"exact_returns: beta = {beta!r}; expected a finite backscatter >= 0 [1/(m sr)]")
@@ -412,19 +417,23 @@ def exact_returns(r0: ArrayLike, c: ArrayLike, alpha: float, beta: float, sensor
     stride = max(1, int(round(grid_step / tables.step)))
     _beams_kernel(r0, c, FogMedium(float(alpha), float(beta)), sensor_optics(sensor), tables.grid(), stride,
                   FogPeaks(power, r_peak, source))
+    power *= intensity.compensation(np.maximum(r_peak - 0.5 * sensor.pulse_length, sensor.r1))
     return ExactReturns(power, r_peak, source)
 
 
-def system_constants(r0: ArrayLike, i0: ArrayLike, ring: ArrayLike, sensor: ExactSensor = ExactSensor()) -> F64:
-    """(N,) system constant ``C`` of every beam: ``i_0 R_0² / β_0`` where the beam has a target (finite ``r0`` [m],
-    ``i0`` > 0 its clear intensity on 0..255 with full overlap), else the median ``C`` of the targets of its ``ring``
-    (all rings' median if the ring has none; 0 if the scan has no target at all)."""
+def system_constants(r0: ArrayLike, i0: ArrayLike, ring: ArrayLike, sensor: ExactSensor = ExactSensor(), *,
+                     intensity: IntensityModel = SYNTHETIC_INTENSITY) -> F64:
+    """(N,) system constant ``C`` of every beam: ``i_0 / (β_0 g(R_0))`` where the beam has a target (finite ``r0``
+    [m], ``i0`` > 0 its clear intensity on 0..255 with full overlap, ``g`` the gain of ``intensity``: the clear
+    target's raw peak ``C β_0 / R_0²`` reported through ``R_0² g(R_0)`` is ``i_0``; the raw-power sensor's
+    ``i_0 R_0² / β_0``), else the median ``C`` of the targets of its ``ring`` (all rings' median if the ring has
+    none; 0 if the scan has no target at all)."""
     r0 = np.asarray(r0, dtype=np.float64)
     i0 = np.asarray(i0, dtype=np.float64)
     ring = np.asarray(ring)
     has = np.isfinite(r0) & (i0 > 0.0)
     c = np.zeros(len(r0))
-    c[has] = i0[has] * r0[has] ** 2 / sensor.beta_0
+    c[has] = i0[has] * r0[has] ** 2 / (sensor.beta_0 * intensity.compensation(r0[has]))
     if not has.any():
         return c
     overall = float(np.median(c[has]))
@@ -445,12 +454,25 @@ class Detector:
         noise_floor: a peak whose measured value (with its noise) or whose quantised intensity is below the floor is
             not detected: no point is ever reported below it.
         range_noise_std: Gaussian range noise [m], clipped at ±2σ.
+        intensity: the sensor's `IntensityModel` (the floor's range dependence).
+        floor_range_m: None: the floor is ``noise_floor`` at every range. A range [m]: a raw-power detector, whose
+            floor (and the constant part of the intensity noise) on the reported scale is ``noise_floor R² g(R) /
+            (r_f² g(r_f))`` at the noise-free reported range ``R`` (`weatheralign.sensors.LidarModel.floor_range_m`).
     """
 
     intensity_noise_std: float = 0.5
     intensity_noise_rel: float = 0.03
     noise_floor: float = 1.0
     range_noise_std: float = 0.01
+    intensity: IntensityModel = SYNTHETIC_INTENSITY
+    floor_range_m: float | None = None
+
+    def floor_scale(self, r: ArrayLike) -> F64:
+        """(any shape) the floor's and the constant noise's factor at reported ranges ``r`` [m] (1 when constant)."""
+        r = np.asarray(r, dtype=np.float64)
+        if self.floor_range_m is None:
+            return np.ones(r.shape)
+        return self.intensity.compensation(r) / float(self.intensity.compensation(self.floor_range_m))
 
 
 @dataclass(frozen=True)
@@ -470,13 +492,15 @@ def _detect(power: F64, r_peak: F64, sensor: ExactSensor, detector: Detector,
     intensity 0..255), the noise drawn for all N in a fixed order."""
     n = len(power)
     peak = np.minimum(power, sensor.saturation)
-    std = np.sqrt(detector.intensity_noise_std ** 2 + (detector.intensity_noise_rel * peak) ** 2)
+    scale = detector.floor_scale(r_peak - 0.5 * sensor.pulse_length)
+    std = np.sqrt((detector.intensity_noise_std * scale) ** 2 + (detector.intensity_noise_rel * peak) ** 2)
     measured = peak + std * rng.standard_normal(n)
     sigma = detector.range_noise_std
     jitter = np.clip(rng.normal(0.0, sigma, n), -2 * sigma, 2 * sigma) if sigma > 0 else np.zeros(n)
     reported = r_peak - 0.5 * sensor.pulse_length + jitter
     quantised = np.clip(np.rint(measured), 0.0, 255.0)
-    detected = ((measured >= detector.noise_floor) & (quantised >= detector.noise_floor)
+    floor = detector.noise_floor * scale
+    detected = ((measured >= floor) & (quantised >= floor)
                 & (reported >= sensor.min_range) & (reported <= sensor.max_range))
     return detected, reported, quantised
 

@@ -158,8 +158,9 @@ def observe_lidar_scans(scans: list[LidarScan], media: SceneMedia, lidar: LidarM
     if media.ground is not None:  # the ground first: the air's weather sees the wet or snowy returns
         state = media.ground.state(camera=False, tracks=TireTracks.along_heading(scans[0].T_global_lidar))
         surfaces = [scan_surfaces(scan, off_ground=state.kind == "snow") for scan in scans]
-        grounded = [edit_scan(scan, found, state, lidar.noise_floor, lidar.intensity_noise_std)
-                    for scan, found in zip(scans, surfaces)]
+        grounded = [edit_scan(scan, found, state, lidar.noise_floor, lidar.intensity_noise_std,
+                              None if lidar.floor_range_m is None else lidar.floor_scale)
+                     for scan, found in zip(scans, surfaces)]
         scans = [g.scan for g in grounded]
     fog = FogMedium(media.lidar_alpha, media.lidar_beta) if media.lidar_alpha > 0.0 else None
     if media.field is None:
@@ -322,7 +323,8 @@ def observe(frame: Frame, images: dict[str, NDArray[np.uint8]], ranges: dict[str
         ground = FrameGround(surfaces, frame.lidar.T_global_lidar, media.ground.state(camera=True, tracks=tracks))
         lidar_edited = lidar.ground_edited if known else edit_scan(
             frame.lidar, surfaces, media.ground.state(camera=False, tracks=tracks), sensors.lidar.noise_floor,
-            sensors.lidar.intensity_noise_std).edited
+            sensors.lidar.intensity_noise_std,
+            None if sensors.lidar.floor_range_m is None else sensors.lidar.floor_scale).edited
 
     def one_camera(channel: str) -> CameraWeather:
         return observe_camera(images[channel], ranges[channel], frame.cameras[channel], media,

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field, replace
 from typing import NamedTuple
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from weatheralign.data.frame import LidarScan
 from weatheralign.geometry import invert
@@ -48,7 +48,7 @@ from weatheralign.lidar.quantum import attenuated_reading, clear_readings, readi
 from weatheralign.medium.distributions import RAIN_REFLECTIVITY, SNOW_REFLECTIVITY  # noqa: F401  (re-exported)
 from weatheralign.medium.field import DEFAULT_MAX_PARTICLES, ParticleField, Particles
 from weatheralign.medium.fog import FogMedium
-from weatheralign.sensors import IntensityModel, LidarModel, PulseSensor
+from weatheralign.sensors import IntensityModel, LidarModel, PulseSensor, floor_scale
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -172,6 +172,15 @@ class _Options:
     intensity_noise_rel: float = 0.0
     range_noise_std: float = 0.0
     min_range: float = 0.0
+    floor_range_m: float | None = None
+
+    def floor_scale(self, r: ArrayLike) -> F64:
+        """(any shape) the floor's (and a new echo's constant noise's) factor at reported ranges ``r`` [m]."""
+        return floor_scale(r, self.intensity_model, self.floor_range_m)
+
+    def floor_at(self, r: ArrayLike) -> F64 | None:
+        """(any shape) the detector floor (0..255) at reported ranges ``r`` [m], or None: no floor."""
+        return None if self.noise_floor is None else self.noise_floor * self.floor_scale(r)
 
     @staticmethod
     def of(lidar: LidarModel, reflectivity: float, keep_tolerance: float) -> _Options:
@@ -179,7 +188,7 @@ class _Options:
         ``reflectivity``."""
         return _Options(reflectivity, lidar.pulse, lidar.intensity, lidar.noise_floor, keep_tolerance,
                         lidar.intensity_noise_std, lidar.intensity_noise_rel, lidar.range_noise_std_m,
-                        lidar.min_range_m)
+                        lidar.min_range_m, lidar.floor_range_m)
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.reflectivity) and 0.0 <= self.reflectivity <= 1.0):
@@ -203,7 +212,12 @@ def beam_noise_keys(beams: Beams) -> NDArray[np.uint64]:
     return detector_noise_keys(beams.times, beams.directions, beams.ring)
 
 
-def beam_clear_readings(beams: Beams, noise_floor: float | None) -> F64 | None:
+def beam_floor(beams: Beams, lidar: LidarModel) -> F64 | float:
+    """The detector floor (0..255) at each beam's length (B,), or the constant floor."""
+    return lidar.noise_floor if lidar.floor_range_m is None else lidar.floor_at(beams.lengths)
+
+
+def beam_clear_readings(beams: Beams, noise_floor: ArrayLike | None) -> F64 | None:
     """(B,) the clear value each beam's clear intensity stood for before the sensor rounded it (0..255,
     `weatheralign.lidar.quantum`): the returns' readings of an integer-quantised scan (`rounded_readings`) spread
     over their rounding intervals by their beams' noise streams, every other beam's ``intensity0`` as it is; None
@@ -219,9 +233,10 @@ def beam_clear_readings(beams: Beams, noise_floor: float | None) -> F64 | None:
     return clear_readings(beams.intensity0, rounded, noise_floor, uniforms)
 
 
-def _joined_clear(parts: list[Beams], noise_floor: float | None) -> F64 | None:
-    """`beam_clear_readings` of several scans' beams, joined as `_joined_beams` joins them (None: none rounded)."""
-    each = [beam_clear_readings(b, noise_floor) for b in parts]
+def _joined_clear(parts: list[Beams], lidar: LidarModel) -> F64 | None:
+    """`beam_clear_readings` of several scans' beams under ``lidar``'s floor, joined as `_joined_beams` joins them
+    (None: none rounded)."""
+    each = [beam_clear_readings(b, beam_floor(b, lidar)) for b in parts]
     if all(c is None for c in each):
         return None
     return np.concatenate([b.intensity0.astype(np.float64) if c is None else c for b, c in zip(parts, each)])
@@ -314,7 +329,8 @@ def _respond(beams: Beams, hits: HitArrays, edges: F64, alphas: F64, opt: _Optio
                         part_gain=model.scale * opt.reflectivity, r_ref=model.r_ref, falloff=model.falloff,
                         keep_tol=opt.keep_tolerance, floor=-1.0 if opt.noise_floor is None else float(opt.noise_floor),
                         saturation=opt.sensor.saturation, grid_n=SAMPLE_GRID, noise_std=opt.intensity_noise_std,
-                        noise_rel=opt.intensity_noise_rel, range_noise=opt.range_noise_std, min_range=opt.min_range)
+                        noise_rel=opt.intensity_noise_rel, range_noise=opt.range_noise_std, min_range=opt.min_range,
+                        comp_ref=0.0 if opt.floor_range_m is None else float(model.compensation(opt.floor_range_m)))
     n_sampled = response_kernel(hits, hit_off, targets, pulse, medium, continuum, ratios, outcome)
     return _Response(outcome, ratios, int(n_sampled))
 
@@ -346,25 +362,30 @@ def _fog_backscatter(beams: Beams, response: _Response, fog: FogMedium, opt: _Op
     r0 = beams.lengths[ret]
     i0 = beams.intensity0[ret]
     sensor = opt.sensor
+    comp = opt.intensity_model.compensation
     table = soft_target_response(fog.alpha, sensor)
     value, r_fog = table(r0)
-    i_soft = np.minimum(value * i0 * r0 * r0 * (fog.beta / sensor.beta_0), sensor.saturation)
+    # raw powers (a reported value over R² g(R) at its range): the fog's against the beam's current echo
+    soft_raw = value * i0 * (fog.beta / sensor.beta_0) / opt.intensity_model.gain(r0)
     state = out.state[ret]
-    current = np.where(state == WeatherLabel.UNCHANGED, i0, out.intensity[ret])
-    wins = np.flatnonzero(i_soft > current)
+    unchanged = state == WeatherLabel.UNCHANGED
+    current = np.where(unchanged, i0, out.intensity[ret]) / comp(np.where(unchanged, r0, out.range[ret]))
+    wins = np.flatnonzero(soft_raw > current)
     if not len(wins):
         return
     b = ret[wins]
-    reading, reported = i_soft[wins], r_fog[wins] - 0.5 * sensor.pulse_length
+    r_echo = np.clip(r_fog[wins] - 0.5 * sensor.pulse_length, sensor.r1, np.minimum(r0[wins], sensor.max_range))
+    reading, reported = np.minimum(soft_raw[wins] * comp(r_echo), sensor.saturation), r_echo
+    at_echo = opt.floor_scale(r_echo)
     noisy = opt.intensity_noise_std > 0.0 or opt.intensity_noise_rel > 0.0 or opt.range_noise_std > 0.0
     if noisy:
         z = reading_normals(beam_noise_keys(beams)[b])
-        std = np.sqrt(opt.intensity_noise_std ** 2 + (opt.intensity_noise_rel * reading) ** 2)
+        std = np.sqrt((opt.intensity_noise_std * at_echo) ** 2 + (opt.intensity_noise_rel * reading) ** 2)
         reading = np.clip(reading + std * z[:, 0], 0.0, sensor.saturation)
         reported = reported + opt.range_noise_std * np.clip(z[:, 1], -2.0, 2.0)
     reported = np.clip(reported, sensor.r1, np.minimum(r0[wins], sensor.max_range))
     floor = -1.0 if opt.noise_floor is None else float(opt.noise_floor)
-    lost = (floor >= 0.0) & (reading < floor) & (reading.astype(np.float32) < i0[wins].astype(np.float32))
+    lost = (floor >= 0.0) & (reading < floor * at_echo) & (reading.astype(np.float32) < i0[wins].astype(np.float32))
     out.state[b] = np.where(lost, WeatherLabel.LOST, WeatherLabel.SCATTERED)
     out.range[b] = reported
     out.intensity[b] = reading
@@ -387,14 +408,15 @@ def _read_attenuated(beams: Beams, response: _Response, opt: _Options, clear: F6
         return
     i0 = beams.intensity0[b]
     k = np.minimum(out.intensity[b] / i0, 1.0)
-    std = opt.intensity_noise_std * np.sqrt(np.maximum(1.0 - k * k, 0.0))
+    at_target = opt.floor_scale(beams.lengths[b])
+    std = opt.intensity_noise_std * at_target * np.sqrt(np.maximum(1.0 - k * k, 0.0))
     reading = np.clip(out.intensity[b] + std * reading_normals(beam_noise_keys(beams)[b])[:, 0], 0.0,
                       opt.sensor.saturation)
     out.intensity[b] = reading
     if opt.noise_floor is not None:
         x = i0 if clear is None else clear[b]
         seen = attenuated_reading(reading, i0, x, k)
-        lost = (seen < opt.noise_floor) & (seen.astype(np.float32) < x.astype(np.float32))
+        lost = (seen < opt.noise_floor * at_target) & (seen.astype(np.float32) < x.astype(np.float32))
         out.state[b[lost]] = WeatherLabel.LOST
 
 
@@ -502,8 +524,9 @@ def _inputs(scan: LidarScan | Beams, *, lidar: LidarModel, T_global_lidar: F64 |
     if isinstance(scan, LidarScan):
         beams = beams_from_scan(scan, lidar=lidar, columns=columns, reconstruct=reconstruct)
         if faint_surfaces:
-            beams = with_faint_surfaces(beams, lidar.noise_floor)
-            beams = with_ground_plane(beams, scan_ground_plane(scan), lidar.noise_floor)
+            scale = None if lidar.floor_range_m is None else lidar.floor_scale
+            beams = with_faint_surfaces(beams, lidar.noise_floor, scale)
+            beams = with_ground_plane(beams, scan_ground_plane(scan), lidar.noise_floor, scale)
         T = scan.T_global_lidar if T_global_lidar is None else np.asarray(T_global_lidar, dtype=np.float64)
         return beams, scan.points, T, float(scan.intensity_max)
     if not isinstance(scan, Beams):
@@ -693,7 +716,7 @@ def simulate_particle_scans(
     inputs = [_inputs(s, lidar=lidar, T_global_lidar=T_global_lidar, intensity_max=intensity_max, columns=columns,
                       reconstruct=reconstruct, faint_surfaces=faint_surfaces) for s in scans]
     beams, offsets = _joined_beams([i[0] for i in inputs])
-    clear = _joined_clear([i[0] for i in inputs], lidar.noise_floor)
+    clear = _joined_clear([i[0] for i in inputs], lidar)
     opt = _Options.of(lidar, reflectivity, keep_tolerance)
     if ratio_threshold is None:
         ratio_threshold = auto_ratio_threshold(reflectivity)
@@ -817,7 +840,7 @@ def simulate_particle_list(
     edges, alphas = np.array([0.0, float(beams.lengths.max()) + 1.0]), np.array([float(extinction)])
     continuum = (unresolved_continuum(edges, np.array([float(unresolved_cross_section)]), alphas, opt)
                  if unresolved_cross_section > 0.0 else NO_CONTINUUM)
-    clear = beam_clear_readings(beams, lidar.noise_floor)
+    clear = beam_clear_readings(beams, beam_floor(beams, lidar))
     response = _respond(beams, hits, np.array([0.0, 1e300]), alphas, opt, continuum, clear)
     _read_attenuated(beams, response, opt, clear)
     return _assemble(beams, points, T_out, imax, hits, response, stats)

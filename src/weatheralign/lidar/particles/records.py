@@ -241,6 +241,8 @@ class PulseParams(NamedTuple):
     noise_rel: float
     range_noise: float  # range noise std of a new echo [m], clipped at ±2 σ
     min_range: float  # a new echo measured nearer than this [m] is not reported (the sensor's minimum range)
+    comp_ref: float  # r_f² g(r_f) of the floor's reference range [m²]; 0: a constant floor (`DetectorFloor`): the
+    # floor and noise_std are those at r_f, scaled by R² g(R) / comp_ref at an echo's noise-free reported range R
 
 
 class Continuum(NamedTuple):

@@ -14,6 +14,7 @@ import math
 import numpy as np
 from numba import njit
 
+from weatheralign.lidar.detector import floor_scale
 from weatheralign.lidar.labels import WeatherLabel
 from weatheralign.medium.field import normal_pair
 
@@ -319,7 +320,9 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
     detected; an echo measured nearer than ``pulse.min_range`` is not. A target kept at its range keeps the noise of
     its clear measurement (scaled with it) here; the reading's missing variance is added afterwards
     (`weatheralign.lidar.particles.api._read_attenuated`). Whether the weather pushed a kept target under the floor
-    is decided on the clear value its rounded reading stood for (``beams.clear``, `_keep_or_lost`).
+    is decided on the clear value its rounded reading stood for (``beams.clear``, `_keep_or_lost`). Every floor test
+    uses the floor at the echo's noise-free reported range (``pulse.comp_ref``: a raw-power detector's grows with
+    range, `weatheralign.sensors.LidarModel.floor_range_m`), and a new echo's constant noise scales with it.
     """
     h_s, h_u1, h_u2, h_a, h_ratio = hits.s, hits.u1, hits.u2, hits.a, ratio
     has_ret, lengths, i0, clear = beams.has_ret, beams.lengths, beams.i0, beams.clear
@@ -328,7 +331,7 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
     r_ref, falloff = pulse.r_ref, pulse.falloff
     keep_tol, floor, saturation, grid_n = pulse.keep_tol, pulse.floor, pulse.saturation, pulse.grid_n
     noise_std, noise_rel, range_noise, noise_key = pulse.noise_std, pulse.noise_rel, pulse.range_noise, beams.noise_key
-    min_range = pulse.min_range
+    min_range, comp_ref = pulse.min_range, pulse.comp_ref
     noisy = noise_std > 0.0 or noise_rel > 0.0 or range_noise > 0.0
     out_state, out_range, out_int, out_dom = out.state, out.range, out.intensity, out.dom
     n_beams = lengths.shape[0]
@@ -355,6 +358,8 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
         hidden = (not ret) and i0[b] > 0.0 and length > 0.0  # a surface under the floor in clear weather
         tau_target = _optical_depth(length, medium) if (ret or hidden) else 0.0
         x0 = clear[b] if rounded else i0[b]  # the clear value the reading i0 stood for
+        # the floor where the target is reported (a raw-power detector's grows with range; < 0: none)
+        floor_t = floor * floor_scale(length, r_ref, falloff, comp_ref) if floor >= 0.0 else -1.0
         c_peak, c_r = _continuum_at(length, continuum)
         if c_peak > 0.0 and k_hits == 0 and (ret or hidden) and length > 0.0:  # the target beats the continuum?
             if c_peak <= i0[b] * math.exp(-2.0 * tau_target) / (length * length * _gain(length, r_ref, falloff)):
@@ -371,7 +376,7 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
             val = min(i0[b] * math.exp(-2.0 * tau_target), saturation)
             out_range[b] = length
             out_int[b] = val
-            out_state[b] = _keep_or_lost(val, floor, i0[b], x0, math.exp(-2.0 * tau_target))
+            out_state[b] = _keep_or_lost(val, floor_t, i0[b], x0, math.exp(-2.0 * tau_target))
             continue
         # --- occlusion ratios, nearest first: closed form for a disk that overlaps no nearer disk inside the beam,
         # else the uncovered part of its disk is counted on a grid_n x grid_n grid over its box ∩ the beam's box
@@ -435,9 +440,11 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
         if continuum_wins:  # the continuum's crest is the strongest: read it
             r_c = max(c_r - 0.5 * pulse_len, 1e-9)
             val = min(c_peak * r_c * r_c * _gain(r_c, r_ref, falloff), saturation)
+            at_echo = floor_scale(r_c, r_ref, falloff, comp_ref)
             if noisy:
-                val, r_c = _reading(val, r_c, noise_key[b], noise_std, noise_rel, range_noise, saturation, length)
-            if (floor < 0.0 or val >= floor) and r_c >= min_range:
+                val, r_c = _reading(val, r_c, noise_key[b], noise_std * at_echo, noise_rel, range_noise, saturation,
+                                    length)
+            if (floor < 0.0 or val >= floor * at_echo) and r_c >= min_range:
                 out_state[b] = WeatherLabel.SCATTERED
                 out_range[b] = r_c
                 out_int[b] = val
@@ -454,7 +461,7 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
             val_t = _target_crest(starts, amps, m, length, pulse_len, r_ref, falloff, saturation)
             out_range[b] = length
             out_int[b] = val_t
-            out_state[b] = _keep_or_lost(val_t, floor, i0[b], x0, t_target)
+            out_state[b] = _keep_or_lost(val_t, floor_t, i0[b], x0, t_target)
             continue
         if p_peak <= 0.0:
             if ret and remaining > 0.0:  # a zero-intensity target, no visible particle: stays at zero
@@ -473,7 +480,7 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
             val = min(p_peak * length * length * g0, saturation)
             out_range[b] = length
             out_int[b] = val
-            out_state[b] = _keep_or_lost(val, floor, i0[b], x0, t_target)
+            out_state[b] = _keep_or_lost(val, floor_t, i0[b], x0, t_target)
             continue
         # the particle contributing most at the peak
         best = -1.0
@@ -488,9 +495,11 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
         r_out = min(max(r_meas, 0.0), length)
         g1 = _gain(max(r_out, 1e-9), r_ref, falloff)
         val = min(p_peak * r_out * r_out * g1, saturation)
+        at_echo = floor_scale(r_out, r_ref, falloff, comp_ref)
         if noisy and dom >= 0:  # the detector's reading of the particle echo
-            val, r_out = _reading(val, r_out, noise_key[b], noise_std, noise_rel, range_noise, saturation, length)
-        if dom < 0 or (floor >= 0.0 and val < floor) or r_out < min_range:
+            val, r_out = _reading(val, r_out, noise_key[b], noise_std * at_echo, noise_rel, range_noise, saturation,
+                                  length)
+        if dom < 0 or (floor >= 0.0 and val < floor * at_echo) or r_out < min_range:
             if not ret:
                 out_state[b] = WeatherLabel.NO_ECHO
                 continue
@@ -499,7 +508,7 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
             val_t = _target_crest(starts, amps, m, length, pulse_len, r_ref, falloff, saturation)
             out_range[b] = length
             out_int[b] = val_t
-            out_state[b] = _keep_or_lost(val_t, floor, i0[b], x0, t_target)
+            out_state[b] = _keep_or_lost(val_t, floor_t, i0[b], x0, t_target)
             continue
         out_state[b] = WeatherLabel.SCATTERED
         out_range[b] = r_out
