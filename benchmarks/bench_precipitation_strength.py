@@ -15,7 +15,9 @@ intensity model (Lambertian, cos of the incidence), beams under the detector flo
 
 Sensors (`SENSORS`): what decides whether a particle echo is reported, the intensity model and the detector floor:
 
-- ``world``: the synthetic world's ``255 ρ min(1, 10 m / r)`` with its floor 0.5;
+- ``world``: the synthetic world's HDL-32E (configs/world_rig.yaml): calibrated ``100 ρ``, a raw-power detector with
+  a 10 % target at the floor at 35 m (floor ``10 (r / 35 m)²``);
+- ``world_constant_floor``: the world's earlier sensor, ``255 ρ min(1, 10 m / r)`` with a constant floor 0.5;
 - ``reference``: the same intensity model with the reference's floor 1.0 (noise-free here);
 - ``hahner_floor0.5``: Hahner's raw ``255 ρ (1 m / r)²`` with the floor 0.5 (the sensor of the issue's comparison);
 - ``raw_rated<R>m``: raw power (``1 / r²``) with the floor at which a 10 % target is detected out to R m
@@ -48,8 +50,9 @@ import numpy as np
 
 from benchmarks.common import REAL, STF_ID
 from weatheralign.atomic import write_json
+from weatheralign.config import LidarConfig
 from weatheralign.lidar.particles.strength import EchoSensor, expected_weather_points, rated_intensity
-from weatheralign.sensors import HAHNER_INTENSITY, SYNTHETIC_INTENSITY
+from weatheralign.sensors import HAHNER_INTENSITY, SYNTHETIC_INTENSITY, lidar_model_from_params
 
 REPO = Path(__file__).resolve().parents[1]
 REPORT = REPO / "reports" / "benchmarks" / "precipitation_strength.json"
@@ -119,7 +122,10 @@ def scenes() -> dict[str, StreetScene]:
 
 def sensors(max_range_m: float) -> dict[str, EchoSensor]:
     """The sensor variants of the module docstring for a scene's maximum range."""
-    out = {"world": EchoSensor(SYNTHETIC_INTENSITY, 0.5, DIVERGENCE_RAD, 1.0, max_range_m),
+    world = lidar_model_from_params(LidarConfig())
+    out = {"world": EchoSensor(world.intensity, world.noise_floor, DIVERGENCE_RAD, 1.0, max_range_m,
+                               world.floor_range_m),
+           "world_constant_floor": EchoSensor(SYNTHETIC_INTENSITY, 0.5, DIVERGENCE_RAD, 1.0, max_range_m),
            "reference": EchoSensor(SYNTHETIC_INTENSITY, 1.0, DIVERGENCE_RAD, 1.0, max_range_m),
            "hahner_floor0.5": EchoSensor(HAHNER_INTENSITY, 0.5, DIVERGENCE_RAD, 1.0, max_range_m)}
     for rated in RATED_RANGES:
@@ -145,7 +151,7 @@ def street_beams(scene: StreetScene, sensor: EchoSensor) -> SceneBeams:
     r0 = np.where(np.isfinite(r0) & (r0 <= scene.max_range_m), r0, np.inf)
     i0 = np.where(np.isfinite(r0), sensor.intensity.intensity(rho_cos, np.where(np.isfinite(r0), r0, 1.0)), 0.0)
     i0 = np.minimum(i0, 255.0)
-    seen = i0 >= sensor.noise_floor
+    seen = i0 >= sensor.floor_at(np.where(np.isfinite(r0), r0, 1.0))
     return SceneBeams(np.array([0.0, 0.0, scene.height_m]), d, np.where(seen, r0, np.inf), np.where(seen, i0, 0.0))
 
 
@@ -165,17 +171,17 @@ def _share(scattered: float, clutter: float, lost: float, targets: int) -> float
     return (scattered + clutter) / points if points > 0 else 0.0
 
 
-def _echo_shape(ranges: np.ndarray, intensities: np.ndarray, noise_floor: float) -> dict[str, Any]:
-    """Range quantiles [m] of the weather echoes and the share of them reading under twice the floor (labelled real
-    snow reads at the floor: `REAL_FIGURES`)."""
+def _echo_shape(ranges: np.ndarray, intensities: np.ndarray, floor_at: Any) -> dict[str, Any]:
+    """Range quantiles [m] of the weather echoes and the share of them reading under twice the floor at their range
+    (``floor_at(ranges)``; labelled real snow reads at the floor: `REAL_FIGURES`)."""
     if len(ranges) == 0:
         return {"range_p10_m": None, "range_median_m": None, "range_p90_m": None, "near_floor_share": None}
     p10, p50, p90 = np.quantile(ranges, [0.1, 0.5, 0.9])
     return {"range_p10_m": float(p10), "range_median_m": float(p50), "range_p90_m": float(p90),
-            "near_floor_share": float(np.mean(intensities < 2.0 * noise_floor))}
+            "near_floor_share": float(np.mean(intensities < 2.0 * floor_at(ranges)))}
 
 
-def _fast_counts(result: Any, origin: np.ndarray | None, noise_floor: float, clear_points: int) -> dict[str, Any]:
+def _fast_counts(result: Any, origin: np.ndarray | None, floor_at: Any, clear_points: int) -> dict[str, Any]:
     """Scattered, clutter, lost and attenuated points of a `simulate_particles` result, the weather share of a scan
     of ``clear_points`` and the echoes' shape (ranges from ``origin`` [m], None: the output frame's origin,
     `_echo_shape`)."""
@@ -190,7 +196,7 @@ def _fast_counts(result: Any, origin: np.ndarray | None, noise_floor: float, cle
             "attenuated": int((result.labels == WeatherLabel.ATTENUATED).sum()),
             "weather_share": _share(scattered, clutter, lost, clear_points),
             **_echo_shape(np.linalg.norm(echoes[:, :3] if origin is None else echoes[:, :3] - origin, axis=1),
-                          echoes[:, 3], noise_floor)}
+                          echoes[:, 3], floor_at)}
 
 
 def run_fast(scene: StreetScene, sensor: EchoSensor, beams: SceneBeams, medium: str, rate: float) -> dict[str, Any]:
@@ -206,7 +212,8 @@ def run_fast(scene: StreetScene, sensor: EchoSensor, beams: SceneBeams, medium: 
                        max_range_m=scene.max_range_m, min_range_m=sensor.min_range_m, noise_floor=sensor.noise_floor,
                        intensity_max=255.0, intensity=sensor.intensity,
                        pulse=PulseSensor(tau_h=PULSE_HALF_WIDTH_S, max_range=scene.max_range_m), origin="params",
-                       intensity_noise_std=0.0, intensity_noise_rel=0.0, range_noise_std_m=0.0)
+                       intensity_noise_std=0.0, intensity_noise_rel=0.0, range_noise_std_m=0.0,
+                       floor_range_m=sensor.floor_range_m)
     b = Beams(np.tile(beams.origin, (n, 1)), beams.directions, np.zeros(n),
               np.where(has, beams.target_range, scene.max_range_m), has, beams.intensity0, np.zeros(n, np.float32),
               np.where(has, np.cumsum(has) - 1, -1), DIVERGENCE_RAD, scene.max_range_m)
@@ -214,7 +221,7 @@ def run_fast(scene: StreetScene, sensor: EchoSensor, beams: SceneBeams, medium: 
     result = simulate_particles(b, particle_field(medium, rate), lidar=lidar, reflectivity=REFLECTIVITY[medium],
                                 intensity_max=255.0, faint_surfaces=False)
     seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
-    return {**_fast_counts(result, beams.origin, sensor.noise_floor, int(has.sum())), "seconds": seconds,
+    return {**_fast_counts(result, beams.origin, sensor.floor_at, int(has.sum())), "seconds": seconds,
             "cpu_seconds": cpu}
 
 
@@ -230,8 +237,9 @@ def run_exact(scene: StreetScene, sensor: EchoSensor, beams: SceneBeams, medium:
     returns = particle_returns(beams.origin, beams.directions, beams.target_range, beams.intensity0,
                                particle_field(medium, rate), 0.0, REFLECTIVITY[medium], exact_sensor,
                                noise_floor=sensor.noise_floor, divergence_rad=DIVERGENCE_RAD, sub_rays=sub_rays,
-                               intensity_model=sensor.intensity)
-    out = read_out(returns.returns, exact_sensor, Detector(0.0, 0.0, sensor.noise_floor, 0.0),
+                               intensity_model=sensor.intensity, floor_range_m=sensor.floor_range_m)
+    out = read_out(returns.returns, exact_sensor,
+                   Detector(0.0, 0.0, sensor.noise_floor, 0.0, sensor.intensity, sensor.floor_range_m),
                    np.random.default_rng(0))
     seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
     weather = (out.source == PARTICLE) | (out.source == FOG)
@@ -239,7 +247,7 @@ def run_exact(scene: StreetScene, sensor: EchoSensor, beams: SceneBeams, medium:
     scattered = int((weather & on_target).sum())
     clutter = int((weather & ~on_target).sum())
     lost = int(has.sum()) - scattered - int(((out.source == TARGET) & on_target).sum())
-    shape = _echo_shape(out.range[weather], out.intensity[weather], sensor.noise_floor)
+    shape = _echo_shape(out.range[weather], out.intensity[weather], sensor.floor_at)
     return {"scattered": scattered, "clutter": clutter, "lost": lost,
             "weather_share": _share(scattered, clutter, lost, int(has.sum())), **shape, "seconds": seconds,
             "cpu_seconds": cpu}
@@ -288,8 +296,7 @@ def cloud_scans() -> dict[str, Any]:
     import tempfile
 
     from benchmarks.bench_lidar_particles import _first_world_scan, _render_world
-    from weatheralign.config import LidarConfig
-    from weatheralign.sensors import estimate_lidar_model, lidar_model_from_params
+    from weatheralign.sensors import estimate_lidar_model
 
     if (WORLD_ROOT / "v1.0-mini" / "sample_data.json").is_file():
         scan, columns = _first_world_scan(WORLD_ROOT)
@@ -342,14 +349,15 @@ def run_cloud(name: str, scan: Any, columns: np.ndarray | None, lidar: Any, medi
                                 columns=columns if columns is not None else "auto")
     seconds, cpu = time.perf_counter() - t0, time.process_time() - c0
     dror = dror_outliers(result.points[:, :3]) - dror_outliers(scan.points[:, :3])
-    counts = _fast_counts(result, None, float(lidar.noise_floor), int(len(scan.points)))
+    counts = _fast_counts(result, None, lidar.floor_at, int(len(scan.points)))
     return {"workload": f"cloud_{name}_{medium}_{rate:g}mmh", "cloud": name, "medium": medium, "rate_mm_h": rate,
             "points": int(len(scan.points)), "noise_floor": float(lidar.noise_floor),
             "intensity_model": vars(lidar.intensity),
             "fast": {**counts, "dror_box_snow": dror, "seconds": seconds, "cpu_seconds": cpu}}
 
 
-SENSOR_STYLE = {"world": ("tab:blue", "world HDL-32E sensor (floor 0.5)"),
+SENSOR_STYLE = {"world": ("tab:blue", "world HDL-32E (raw-power floor: 10 % at 35 m)"),
+                "world_constant_floor": ("tab:cyan", "earlier world sensor (constant floor 0.5)"),
                 "reference": ("tab:green", "reference sensor (floor 1)"),
                 "hahner_floor0.5": ("tab:red", "Hahner's 1/r² intensity, floor 0.5 (rated 7 m)"),
                 "raw_rated100m": ("tab:purple", "raw power, rated 100 m on 10 %")}
@@ -507,8 +515,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     rates = ({"snow": (2.0,), "rain": (50.0,)} if args.quick else {"snow": SNOW_RATES, "rain": RAIN_RATES})
     entries = []
     for scene in ([] if args.clouds_only else scenes().values()):
-        entries += _rate_entries(scene, ["world", "reference", "hahner_floor0.5", "raw_rated100m"], rates,
-                                 exact=True, sub_rays=args.sub_rays)
+        entries += _rate_entries(scene, ["world", "world_constant_floor", "reference", "hahner_floor0.5",
+                                         "raw_rated100m"], rates, exact=True, sub_rays=args.sub_rays)
         if not args.quick:
             entries += _rate_entries(scene, [f"raw_rated{r:g}m" for r in RATED_RANGES if r != 100.0],
                                      {"snow": (2.0,), "rain": (50.0,)}, exact=True, sub_rays=args.sub_rays)

@@ -69,6 +69,7 @@ from weatheralign.reference.synthetic import (
     hdl64_grid,
     sensor_of,
 )
+from weatheralign.sensors import SYNTHETIC_INTENSITY
 from weatheralign.world.layout import generate_layout
 from weatheralign.world.raycast import WorldRaycaster
 from weatheralign.world.shading import lidar_intensity, texture
@@ -102,7 +103,7 @@ def _geometry(spec, cfg):
     pos = origins[hit] + dirs[hit] * r_dry[hit, None]
     surf = texture(layout, pos, hits.normal[hit], hits.material[hit], hits.albedo[hit], hits.reflectivity[hit])
     cos_inc = np.einsum("ij,ij->i", hits.normal[hit].astype(np.float64), dirs[hit])
-    i_dry[hit] = lidar_intensity(surf.reflectivity, cos_inc, r_dry[hit])
+    i_dry[hit] = lidar_intensity(surf.reflectivity, cos_inc, r_dry[hit], SYNTHETIC_INTENSITY)
     r_wet, i_wet = r_dry.copy(), i_dry.copy()
     ground = frame_ground_state(spec.level, spec.index, cfg, T_global_lidar)
     surfaces = exact_surfaces(grid.directions[hit] * r_dry[hit, None], hits.normal[hit], T_global_lidar)

@@ -47,7 +47,8 @@ def ground_statistics_task(ds: ReferenceDataset, kind: str, depth_m: float, air:
     ``air`` (`weatheralign.calibrate.ground.simulated_ground_statistics`; the worker reads the scans itself)."""
     ids = ds.ids("clear")
     return simulated_ground_statistics([ds.load_scan(i) for i in ids], ids, kind, (depth_m,),
-                                       air.lidar.noise_floor, air, air.lidar.intensity_noise_std)[0]
+                                       air.lidar.noise_floor, air, air.lidar.intensity_noise_std,
+                                       None if air.lidar.floor_range_m is None else air.lidar.floor_scale)[0]
 
 
 @task(name="precipitation-rate", cache_policy=NO_CACHE, retries=0)
@@ -58,7 +59,7 @@ def precipitation_statistics_task(ds: ReferenceDataset, kind: str, rate_mm_h: fl
     seeded from its id)."""
     ids = ds.ids("clear")
     scans = grounded_scans([ds.load_scan(i) for i in ids], ids, kind, ground_depth_m, lidar.noise_floor,
-                           lidar.intensity_noise_std)
+                           lidar.intensity_noise_std, None if lidar.floor_range_m is None else lidar.floor_scale)
     return simulated_statistics(scans, kind, (rate_mm_h,), lidar, particles, ids)[0]
 
 

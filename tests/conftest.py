@@ -83,14 +83,17 @@ def prefect_home(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def make_lidar(**overrides: object) -> LidarModel:
-    """An HDL-32E-like `LidarModel` for physics tests: 3 mrad divergence, τ_H = 10 ns, 120 m, noise floor 0.5 on
-    0..255, a noise-free detector (the published models have none), the synthetic world's intensity model and firing
-    grid (1085 columns, per-point columns stored). ``overrides``: any `LidarModel` field; ``pulse_half_width_s`` /
-    ``pulse`` set the pulse; ``max_range_m`` moves the pulse's maximum range too."""
+    """An HDL-32E-like `LidarModel` for physics tests: 3 mrad divergence, τ_H = 10 ns, 120 m, a constant noise floor
+    0.5 on 0..255, a noise-free detector (the published models have none), the intensity model ``255 ρ min(1, 10 m /
+    R)`` (the reference's) and the world's firing grid (1085 columns, per-point columns stored). ``overrides``: any
+    `LidarModel` field (``floor_range_m`` for a raw-power detector); ``pulse_half_width_s`` / ``pulse`` set the pulse;
+    ``max_range_m`` moves the pulse's maximum range too."""
     from weatheralign.config import LidarConfig
     from weatheralign.sensors import lidar_model_from_params, with_overrides
 
-    base = lidar_model_from_params(LidarConfig(max_range_m=120.0, range_noise_std_m=0.0))
+    base = lidar_model_from_params(LidarConfig(
+        max_range_m=120.0, range_noise_std_m=0.0, min_detectable_intensity=0.5, floor_range_m=None,
+        intensity_scale=255.0, intensity_r_ref_m=10.0, intensity_falloff=1.0))
     pulse = overrides.pop("pulse", None)
     model = with_overrides(base, dict(overrides))
     if pulse is not None:

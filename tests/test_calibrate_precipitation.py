@@ -98,12 +98,15 @@ def grounded_reference(tmp_path_factory):
     return params, ds, reference_lidar_model(params, ds), json.loads(sealed_truth_path(data).read_text())
 
 
-@pytest.mark.parametrize("kind, grid", [("rain", (15.0, 45.0, 135.0)), ("snow", (0.6, 1.8, 5.4))])
-def test_the_hidden_rate_is_found_when_the_clear_scans_carry_the_splits_ground(grounded_reference, kind,
-                                                                               grid) -> None:
-    """The reference's wet road and snow cover move the open-path statistic (weak wet returns near the floor look
-    isolated; lifted, brighter snow closes beams): a rate grid over bare clear scans misses the hidden rate by far, one
-    over the clear scans carrying the split's ground (the stage's task) finds it."""
+@pytest.mark.parametrize("kind, grid, bare_miss", [("rain", (15.0, 45.0, 135.0), None),
+                                                   ("snow", (0.6, 1.8, 5.4), 0.4)])
+def test_the_hidden_rate_is_found_when_the_clear_scans_carry_the_splits_ground(grounded_reference, kind, grid,
+                                                                               bare_miss) -> None:
+    """The reference's snow cover moves the open-path statistic (lifted, brighter snow closes beams): a rate grid over
+    bare clear scans misses the hidden snow rate by far (``bare_miss``), one over the clear scans carrying the
+    split's ground (the stage's task) finds it. The wet road no longer does so for rain: under the reference's
+    raw-power detector (a floor that falls towards the sensor) its weak returns near the sensor stay detected, and the
+    bare grid misses by about 12 %, the grounded one by about 27 % on these 4 frames a split."""
     from tasks.calibrate import precipitation_statistics_task
 
     params, ds, lidar, truth = grounded_reference
@@ -116,4 +119,4 @@ def test_the_hidden_rate_is_found_when_the_clear_scans_carry_the_splits_ground(g
                          for rate in grid])
     bare_error = fit_rate(reference, bare, grid, num_bootstrap=10).rate_mm_h / hidden - 1.0
     error = fit_rate(reference, grounded, grid, num_bootstrap=10).rate_mm_h / hidden - 1.0
-    assert abs(error) < 0.3 and abs(bare_error) > 0.4, (error, bare_error)
+    assert abs(error) < 0.3 and (bare_miss is None or abs(bare_error) > bare_miss), (error, bare_error)

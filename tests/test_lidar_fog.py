@@ -193,7 +193,8 @@ def test_fast_response_matches_naive_integral(alpha: float) -> None:
     # the fused kernel used on point clouds evaluates the same I(R_0) as the table
     r0 = np.array(r0s)
     beta = 0.05 / r0.max() ** 2  # keeps i_soft below saturation
-    got = fog_intensities(r0, np.full(len(r0), 100.0, np.float32), alpha, beta, intensity=RAW, sensor=SENSOR, noise_floor=None)
+    got = fog_intensities(r0, np.full(len(r0), 100.0, np.float32), alpha, beta, intensity=RAW, sensor=SENSOR,
+                          noise_floor=None)
     soft = fast_i * 100.0 * r0**2 * beta / SENSOR.beta_0
     hard = np.exp(-2 * alpha * r0) * 100.0
     assert soft.max() < 255.0
@@ -232,7 +233,8 @@ def test_alpha_006_fog_peak_saturates_near_4_6_m() -> None:
 def test_published_crossover_ranges(alpha: float) -> None:
     """The published figures come from the published code, i.e. β = 9.21e-4 for every α (its trap)."""
     r0 = np.arange(0.5, 300.0, 0.01)
-    res = fog_intensities(r0, np.full(len(r0), 100.0, np.float32), alpha, REFERENCE_CODE_BETA, intensity=RAW, sensor=SENSOR,
+    res = fog_intensities(r0, np.full(len(r0), 100.0, np.float32), alpha, REFERENCE_CODE_BETA, intensity=RAW,
+                          sensor=SENSOR,
                           noise_floor=None)
     cross = _crossover(alpha, REFERENCE_CODE_BETA, r0, res.labels)
     assert abs(cross - PUBLISHED_CROSSOVER[alpha]) <= 0.75, cross
@@ -241,7 +243,8 @@ def test_published_crossover_ranges(alpha: float) -> None:
     gap = lambda r: g_star * r * r * REFERENCE_CODE_BETA / SENSOR.beta_0 - math.exp(-2.0 * alpha * r)  # noqa: E731
     assert brentq(gap, 10.0, 400.0) == pytest.approx(cross, abs=0.05)
     # the crossover does not depend on the intensity (below saturation)
-    res_dim = fog_intensities(r0, np.full(len(r0), 3.0, np.float32), alpha, REFERENCE_CODE_BETA, intensity=RAW, sensor=SENSOR,
+    res_dim = fog_intensities(r0, np.full(len(r0), 3.0, np.float32), alpha, REFERENCE_CODE_BETA, intensity=RAW,
+                              sensor=SENSOR,
                               noise_floor=None)
     assert _crossover(alpha, REFERENCE_CODE_BETA, r0, res_dim.labels) == cross
 
@@ -319,7 +322,8 @@ def test_intensity_scale_0_1_behaves_like_0_255() -> None:
         assert a.counts["SCATTERED"] > 0
         assert b.points[:, 3].max() <= 1.0
     # the sensor saturation applies on the input's scale: 255 on 0..255, 1 on 0..1
-    sat = fog_intensities([150.0], [255.0], 0.3, 1.0, intensity=RAW, sensor=SENSOR, noise_floor=None).intensity[0], fog_intensities(
+    sat = fog_intensities([150.0], [255.0], 0.3, 1.0, intensity=RAW, sensor=SENSOR,
+                          noise_floor=None).intensity[0], fog_intensities(
         [150.0], [1.0], 0.3, 1.0, intensity=RAW, sensor=SENSOR, noise_floor=None, intensity_max=1.0).intensity[0]
     assert sat == (255.0, 1.0)
 
@@ -350,10 +354,12 @@ def test_fog_echoes_get_the_sensors_range_noise_bounded_and_deterministic() -> N
     r_wild = np.linalg.norm(wild.points[:, :3].astype(np.float64) - origins[wild.source_index], axis=1)
     assert r_wild[wild.labels == FogLabel.SCATTERED].min() == pytest.approx(sensor.r1, abs=1e-5)
     with pytest.raises(ValueError, match="noise_keys"):
-        fog_point_arrays(scan.points, origins, 0.1, default_beta(0.1), intensity=FOG_LIDAR.intensity, sensor=sensor, noise_floor=None,
+        fog_point_arrays(scan.points, origins, 0.1, default_beta(0.1), intensity=FOG_LIDAR.intensity, sensor=sensor,
+                         noise_floor=None,
                          range_noise_std=0.05)
     with pytest.raises(ValueError, match="range_noise_std"):
-        fog_point_arrays(scan.points, origins, 0.1, default_beta(0.1), intensity=FOG_LIDAR.intensity, sensor=sensor, noise_floor=None,
+        fog_point_arrays(scan.points, origins, 0.1, default_beta(0.1), intensity=FOG_LIDAR.intensity, sensor=sensor,
+                         noise_floor=None,
                          range_noise_std=-1.0)
     with pytest.raises(ValueError):
         simulate_fog(scan, -0.1, 0.0, lidar=_lidar(sensor=sensor))
@@ -375,7 +381,8 @@ def test_detector_intensity_noise_has_the_missing_variance_of_each_reading() -> 
                                (20.0, 80.0, 0.03, 0.0)):  # no backscatter: the attenuated target
         r0, i0s = np.full(n, r), np.full(n, i0, np.float32)
         quiet = fog_intensities(r0, i0s, alpha, beta, intensity=RAW, sensor=SENSOR, noise_floor=None)
-        loud = fog_intensities(r0, i0s, alpha, beta, intensity=RAW, sensor=SENSOR, noise_floor=None, noise_std=s0, noise_rel=rel,
+        loud = fog_intensities(r0, i0s, alpha, beta, intensity=RAW, sensor=SENSOR, noise_floor=None, noise_std=s0,
+                               noise_rel=rel,
                                noise_normals=z)
         np.testing.assert_array_equal(quiet.labels, loud.labels)
         mean = quiet.intensity[0]
@@ -391,21 +398,25 @@ def test_detector_intensity_noise_has_the_missing_variance_of_each_reading() -> 
         assert (expected > 0.0).all()  # nothing clipped at 0 here
         np.testing.assert_allclose(loud.intensity, expected, rtol=1e-12)
     # α = 0: the clear reading stands, bit for bit; a noise-free detector is the old model
-    clear = fog_intensities(np.full(n, 30.0), np.full(n, 50.0, np.float32), 0.0, 0.0, intensity=RAW, sensor=SENSOR, noise_floor=None,
+    clear = fog_intensities(np.full(n, 30.0), np.full(n, 50.0, np.float32), 0.0, 0.0, intensity=RAW, sensor=SENSOR,
+                            noise_floor=None,
                             noise_std=s0, noise_rel=rel, noise_normals=z)
     assert (clear.labels == FogLabel.UNCHANGED).all() and (clear.intensity == 50.0).all()
     # the floor decides on the reading: attenuated to the floor itself, about half the readings fall below it
     r = 40.0
     floor = float(np.float32(math.exp(-2.0 * 0.03 * r) * 10.0))
-    weak = fog_intensities(np.full(n, r), np.full(n, 10.0, np.float32), 0.03, 0.0, intensity=RAW, sensor=SENSOR, noise_floor=floor,
+    weak = fog_intensities(np.full(n, r), np.full(n, 10.0, np.float32), 0.03, 0.0, intensity=RAW, sensor=SENSOR,
+                           noise_floor=floor,
                            noise_std=s0, noise_rel=rel, noise_normals=z)
     assert 0.45 < np.mean(weak.labels == FogLabel.LOST) < 0.55
     assert (weak.intensity[weak.labels != FogLabel.LOST] >= floor).all()
     with pytest.raises(ValueError, match="noise_normals"):
-        fog_intensities(np.full(3, r), np.full(3, 10.0, np.float32), 0.03, 0.0, intensity=RAW, sensor=SENSOR, noise_floor=None,
+        fog_intensities(np.full(3, r), np.full(3, 10.0, np.float32), 0.03, 0.0, intensity=RAW, sensor=SENSOR,
+                        noise_floor=None,
                         noise_std=s0)
     with pytest.raises(ValueError, match="noise"):
-        fog_intensities(np.full(3, r), np.full(3, 10.0, np.float32), 0.03, 0.0, intensity=RAW, sensor=SENSOR, noise_floor=None,
+        fog_intensities(np.full(3, r), np.full(3, 10.0, np.float32), 0.03, 0.0, intensity=RAW, sensor=SENSOR,
+                        noise_floor=None,
                         noise_std=-1.0)
 
 
@@ -427,7 +438,8 @@ def test_simulate_fog_reads_through_the_sensors_intensity_noise_deterministicall
     assert not np.array_equal(res.points[np.searchsorted(res.source_index, both), 3],
                               quiet.points[np.searchsorted(quiet.source_index, both), 3])
     r0 = np.linalg.norm(scan.points[:, :3].astype(np.float64) - origins, axis=1)
-    arr = fog_intensities(r0, scan.points[:, 3], alpha, beta, intensity=FOG_LIDAR.intensity, sensor=SENSOR, noise_floor=2.0, noise_std=1.5,
+    arr = fog_intensities(r0, scan.points[:, 3], alpha, beta, intensity=FOG_LIDAR.intensity, sensor=SENSOR,
+                          noise_floor=2.0, noise_std=1.5,
                           noise_rel=0.03, noise_normals=intensity_normals(point_noise_keys(scan)))
     np.testing.assert_array_equal(arr.labels, res.input_labels)
     np.testing.assert_array_equal(arr.intensity[res.source_index].astype(np.float32), res.points[:, 3])
@@ -449,7 +461,8 @@ def test_noise_floor_drops_undetectable_returns() -> None:
     assert (floored.points[weak, 3] >= i0[kept][weak]).all()
     assert np.array_equal(floored.points, full.points[kept])
     assert full.counts["LOST"] == 0  # a floor of 0 drops nothing ...
-    no_floor = fog_point_arrays(scan.points, None, 0.06, default_beta(0.06), intensity=FOG_LIDAR.intensity, sensor=SENSOR, noise_floor=None)
+    no_floor = fog_point_arrays(scan.points, None, 0.06, default_beta(0.06), intensity=FOG_LIDAR.intensity,
+                                sensor=SENSOR, noise_floor=None)
     assert no_floor.points.tobytes() == full.points.tobytes()  # ... exactly like no floor at all
 
 
@@ -472,12 +485,14 @@ def test_simulate_fog_takes_pulse_and_floor_from_the_explicit_lidar_model() -> N
         peaks[sensor.tau_h] = soft_target_response(0.06, sensor).r_peak
         assert fog.sum() > 0
         np.testing.assert_allclose(np.linalg.norm(res.points[fog, :3], axis=1), _reported(0.06, sensor), rtol=1e-5)
-        same = fog_point_arrays(scan.points, None, 0.06, default_beta(0.06), intensity=FOG_LIDAR.intensity, sensor=sensor, noise_floor=None)
+        same = fog_point_arrays(scan.points, None, 0.06, default_beta(0.06), intensity=FOG_LIDAR.intensity,
+                                sensor=sensor, noise_floor=None)
         assert same.points.tobytes() == res.points.tobytes()
     assert abs(peaks[10e-9] - peaks[20e-9]) > 0.5  # the pulse really is the model's
     floored = simulate_fog(scan, 0.06, default_beta(0.06), lidar=_lidar(20.0))
     assert floored.counts["LOST"] > 0
-    same = fog_point_arrays(scan.points, None, 0.06, default_beta(0.06), intensity=FOG_LIDAR.intensity, sensor=SENSOR, noise_floor=20.0)
+    same = fog_point_arrays(scan.points, None, 0.06, default_beta(0.06), intensity=FOG_LIDAR.intensity, sensor=SENSOR,
+                            noise_floor=20.0)
     assert same.points.tobytes() == floored.points.tobytes()
 
 
@@ -493,7 +508,8 @@ def test_beam_origins_and_moving_ego() -> None:
     r_fog = np.linalg.norm(res.points[fog, :3].astype(np.float64) - fast[fog], axis=1)
     np.testing.assert_allclose(r_fog, _reported(0.08), rtol=1e-5)
     # the array-level function with explicit origins is what simulate_fog runs
-    arr = fog_point_arrays(scan.points, fast, 0.08, default_beta(0.08), intensity=FOG_LIDAR.intensity, sensor=SENSOR, noise_floor=None)
+    arr = fog_point_arrays(scan.points, fast, 0.08, default_beta(0.08), intensity=FOG_LIDAR.intensity, sensor=SENSOR,
+                           noise_floor=None)
     assert arr.points.tobytes() == res.points.tobytes()
     fogged = res.apply_to(scan)
     assert isinstance(fogged, LidarScan) and fogged.points is res.points

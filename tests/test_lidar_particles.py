@@ -259,8 +259,9 @@ def _compare(fast: dict, naive: dict) -> None:
 def test_intensity_models_match_their_sources():
     rho = np.array([0.1, 0.5, 0.9])
     r = np.array([3.0, 10.0, 55.0])
-    # the synthetic world's renderer, exactly
-    np.testing.assert_allclose(SYNTHETIC_INTENSITY.intensity(rho, r), lidar_intensity(rho, np.ones(3), r), rtol=1e-6)
+    # the renderer (the reference's and the world's), exactly, for any intensity model
+    for model in (SYNTHETIC_INTENSITY, IntensityModel(100.0, 1.0, 0.0)):
+        np.testing.assert_allclose(model.intensity(rho, r), lidar_intensity(rho, np.ones(3), r, model), rtol=1e-6)
     # Hahner's published snow code: a flake reports 0.9 * 255 * ratio / r²
     np.testing.assert_allclose(HAHNER_INTENSITY.intensity(0.9, r, 0.01), 0.9 * 255 * 0.01 / r ** 2)
     np.testing.assert_allclose(CALIBRATED_INTENSITY.intensity(rho, r), 255 * rho)

@@ -20,7 +20,7 @@ from weatheralign.lidar.particles.strength import (
     winning_range,
 )
 from weatheralign.medium import ParticleField, RainSizeDistribution, SnowSizeDistribution, fall_velocity
-from weatheralign.sensors import HAHNER_INTENSITY, SYNTHETIC_INTENSITY
+from weatheralign.sensors import HAHNER_INTENSITY, SYNTHETIC_INTENSITY, IntensityModel
 
 
 def _raw_sensor(rated_m: float = 50.0, max_range: float = 120.0) -> EchoSensor:
@@ -49,6 +49,22 @@ def test_raw_detection_range_matches_its_closed_form():
     assert r_det[2] == pytest.approx(10.0, rel=0.01)  # the module docstring's 2 mm flake, 10 m
     on_floor = echo_intensity(diameters, r_det, 0.9, sensor)
     np.testing.assert_allclose(on_floor, 1.0, rtol=1e-9)
+
+
+def test_a_calibrated_sensor_with_a_raw_power_floor_detects_like_the_raw_sensor_of_its_rating():
+    """A sensor reporting calibrated reflectivity (``100 ρ``, no fall-off) whose detector decides on raw power (floor
+    10 at 35 m: a 10 % target on the floor there, `LidarModel.floor_range_m`) detects exactly what a raw-power sensor
+    rated 35 m on 10 % does: the same detection ranges and the same clutter, though their reported values differ."""
+    faithful = EchoSensor(IntensityModel(100.0, 1.0, 0.0), 10.0, 3e-3, 1.0, 120.0, floor_range_m=35.0)
+    raw = _raw_sensor(35.0)
+    diameters = np.array([0.3e-3, 1e-3, 2e-3, 5e-3])
+    np.testing.assert_allclose(detection_range(diameters, 0.9, faithful), detection_range(diameters, 0.9, raw),
+                               rtol=1e-9)
+    dist = SnowSizeDistribution(2.0, 1.5)
+    open_beams = np.full(3, np.inf), np.zeros(3)
+    np.testing.assert_allclose(expected_weather_echoes(*open_beams, dist, 0.9, faithful),
+                               expected_weather_echoes(*open_beams, dist, 0.9, raw), rtol=1e-6)
+    np.testing.assert_allclose(faithful.floor_at([3.5, 35.0, 70.0]), [0.1, 10.0, 40.0], rtol=1e-12)
 
 
 def test_detection_range_is_capped_and_zero_when_never_detected():

@@ -86,6 +86,23 @@ def test_scan_format_and_sensor_timing(tiny_world, nusc):
     assert frame.cameras["CAM_FRONT"].timestamp - frame.timestamp == pytest.approx(-0.0375, abs=2e-6)
 
 
+def test_the_world_lidar_reports_calibrated_reflectivity_through_a_raw_power_floor(tiny_world, nusc):
+    """The world's HDL-32E (configs/world_rig.yaml): every stored reading passed the floor at its range, which grows
+    as R² (a 10 % target at the floor at 35 m), read with noise that scales alike; intensities do not fall with
+    range (a calibrated reflectivity), so far returns are the bright ones and near ones span the whole scale."""
+    from weatheralign.sensors import lidar_model_from_params
+
+    lidar = lidar_model_from_params(tiny_world.params.world.lidar)
+    assert lidar.floor_range_m == 35.0 and lidar.intensity.falloff == 0.0
+    pts = load_frame(nusc, nusc.sample[0]["token"]).lidar.points
+    r = np.linalg.norm(pts[:, :3].astype(np.float64), axis=1)
+    sigma = lidar.intensity_noise_std * lidar.floor_scale(r)
+    assert np.all(pts[:, 3] + 0.5 + 5.0 * sigma >= lidar.floor_at(r))  # nothing clearly under the floor
+    near, far = pts[r < 10.0, 3], pts[r > 40.0, 3]
+    assert len(far) > 100 and np.median(far) > 3.0 * np.median(near)
+    assert np.mean(near < 1.0) > 0.01  # near the sensor, faint returns are detected
+
+
 def test_each_beam_leaves_the_sensor_where_it_was_at_its_firing_time(tiny_world, nusc):
     """Points are stored ego-motion compensated; from the sensor position at each firing time, every point lies
     exactly on its ring's elevation: the rolling sweep is geometrically consistent."""

@@ -178,8 +178,13 @@ class TrackingConfig(_Section):
 
 class LidarConfig(_Section):
     """The synthetic LIDAR_TOP, modelled on a Velodyne HDL-32E; `weatheralign.sensors.lidar_model_from_params` turns
-    it into the `LidarModel` written into the world's manifest (``min_detectable_intensity`` is its noise floor on
-    0..255, ``pulse_half_width_s`` its pulse τ_H, ``beam_divergence_rad`` its full divergence)."""
+    it into the `LidarModel` written into the world's manifest (``pulse_half_width_s`` its pulse τ_H,
+    ``beam_divergence_rad`` its full divergence). Intensity: ``intensity_scale ρ cos θ g(R)``, ``g(R) = min(1,
+    (intensity_r_ref_m / R)^intensity_falloff)`` (the HDL-32E reports a calibrated reflectivity, 0-100 for diffuse
+    targets of 0-100 %: scale 100, falloff 0). Detector: ``min_detectable_intensity`` is the reported value of a
+    target exactly at the floor at ``floor_range_m`` (a raw-power detector, `LidarModel.floor_range_m`; null: a
+    constant floor on the reported scale); ``intensity_noise_std`` the detector's noise there (both scale with
+    ``R² g(R)``). ``docs/physics.md`` section 3.5."""
 
     frequency_hz: Annotated[float, Field(gt=1.0, le=50.0)] = 20.0
     firings_per_ring: Annotated[int, Field(ge=90, le=4000)] = 1085
@@ -187,7 +192,11 @@ class LidarConfig(_Section):
     min_range_m: Annotated[float, Field(ge=0.0, le=5.0)] = 1.0
     range_noise_std_m: Annotated[float, Field(ge=0.0, le=0.1)] = 0.008
     intensity_noise_std: Annotated[float, Field(ge=0.0, le=20.0)] = 1.5
-    min_detectable_intensity: Annotated[float, Field(ge=0.0, le=50.0)] = 0.5
+    min_detectable_intensity: Annotated[float, Field(ge=0.0, le=50.0)] = 10.0
+    floor_range_m: Annotated[float, Field(gt=0.0, le=300.0)] | None = 35.0
+    intensity_scale: Annotated[float, Field(gt=0.0, le=255.0)] = 100.0
+    intensity_r_ref_m: Annotated[float, Field(gt=0.0, le=100.0)] = 1.0
+    intensity_falloff: Annotated[float, Field(ge=0.0, le=4.0)] = 0.0
     beam_divergence_rad: Annotated[float, Field(gt=0.0, le=0.02)] = 0.003
     pulse_half_width_s: Annotated[float, Field(gt=1e-9, le=1e-7)] = 1e-8
 
@@ -232,6 +241,7 @@ class SensorOverrides(_Section):
 
     divergence_rad: Annotated[float, Field(gt=0.0, le=0.02)] | None = None
     noise_floor: Annotated[float, Field(ge=0.0, le=50.0)] | None = None
+    floor_range_m: Annotated[float, Field(gt=0.0, le=300.0)] | None = None  # a raw-power detector: noise_floor there
     pulse_half_width_s: Annotated[float, Field(gt=1e-9, le=1e-7)] | None = None
     rotation_hz: Annotated[float, Field(gt=1.0, le=50.0)] | None = None
     max_range_m: Annotated[float, Field(gt=10.0, le=300.0)] | None = None
@@ -431,7 +441,9 @@ class ReferenceLidarConfig(_Section):
     simulator's sensor (`weatheralign.sensors.PulseSensor` of the reference LiDAR model); the overlap between them is
     the exact bi-static disc overlap with receiver/beam radius ratio ``overlap_fov_ratio``. Intensity noise: Gaussian of
     std ``sqrt(intensity_noise_std² + (intensity_noise_rel · P)²)`` at peak ``P``; ``noise_floor`` and
-    ``intensity_noise_std`` are on the 0..255 scale; ``receiver_step_m`` is the receiver-axis grid of the peak search.
+    ``intensity_noise_std`` are on the 0..255 scale, at ``floor_range_m`` for a raw-power detector (both scale with
+    ``R² g(R)``, `weatheralign.sensors.LidarModel.floor_range_m`; null: constant); ``receiver_step_m`` is the
+    receiver-axis grid of the peak search.
     """
 
     firings_per_ring: Annotated[int, Field(ge=90, le=4500)] = 1800
@@ -440,7 +452,8 @@ class ReferenceLidarConfig(_Section):
     range_noise_std_m: Annotated[float, Field(ge=0.0, le=0.1)] = 0.01
     intensity_noise_std: Annotated[float, Field(ge=0.0, le=20.0)] = 0.5
     intensity_noise_rel: Annotated[float, Field(ge=0.0, le=0.5)] = 0.03
-    noise_floor: Annotated[float, Field(ge=0.0, le=50.0)] = 1.0
+    noise_floor: Annotated[float, Field(ge=0.0, le=50.0)] = 5.1
+    floor_range_m: Annotated[float, Field(gt=0.0, le=300.0)] | None = 50.0
     tau_h_s: Annotated[float, Field(gt=1e-9, le=1e-7)] = 20e-9
     overlap_r1_m: Annotated[float, Field(gt=0.0, le=5.0)] = 0.9
     overlap_r2_m: Annotated[float, Field(gt=0.0, le=10.0)] = 1.0

@@ -463,20 +463,22 @@ def lidar_model_from_params(cfg: Any, mount_yaw: float = LIDAR_TOP_YAW) -> Lidar
     """The synthetic world's HDL-32E-like LIDAR_TOP from ``world.lidar`` params (a `config.LidarConfig`), mounted like
     nuScenes' (``mount_yaw``: its firing grid starts at the nuScenes sweep start in the ego frame).
 
-    New weather echoes get the renderer's range noise (``range_noise_std_m``), but their intensity is read without
-    noise: the renderer's ``intensity_noise_std`` (1.5) lies above its
-    floor ``min_detectable_intensity`` (0.5), and a detector whose floor is under its noise would report noise on
-    every beam; as a detector model that would make any particle echo, however faint, a detection one time in three
-    (and the result depend on the simulator's resolution threshold)."""
+    Its detector decides on raw power (``floor_range_m``, `LidarModel.floor_range_m`), so the floor and the intensity
+    noise both scale with ``R² g(R)``: the floor stays ``min_detectable_intensity / intensity_noise_std`` noise
+    standard deviations above zero at every range, and new weather echoes are read with the renderer's noise.
+    With a constant floor (``floor_range_m: null``) under the noise, a detector would report noise on every beam, so
+    new weather echoes are then read noise-free."""
+    raw_detector = cfg.floor_range_m is not None
     return LidarModel(
         elevations_deg=tuple(float(e) for e in HDL32E_ELEVATIONS_DEG), columns_per_ring=cfg.firings_per_ring,
         rotation_hz=cfg.frequency_hz, clockwise=True, start_azimuth_rad=sensor_start_azimuth(mount_yaw),
         laser_step_s=HDL32E_LASER_STEP_S, divergence_rad=cfg.beam_divergence_rad, max_range_m=cfg.max_range_m,
         min_range_m=cfg.min_range_m, noise_floor=cfg.min_detectable_intensity, intensity_max=255.0,
         range_noise_std_m=cfg.range_noise_std_m,
-        intensity=SYNTHETIC_INTENSITY,
+        intensity=IntensityModel(cfg.intensity_scale, cfg.intensity_r_ref_m, cfg.intensity_falloff),
         pulse=PulseSensor(tau_h=cfg.pulse_half_width_s, max_range=cfg.max_range_m),
-        firing_columns_stored=True, origin="params")
+        firing_columns_stored=True, origin="params", floor_range_m=cfg.floor_range_m,
+        intensity_noise_std=cfg.intensity_noise_std if raw_detector else 0.0)
 
 
 def ego_body_from_params(cfg: Any) -> EgoBody | None:
@@ -578,9 +580,10 @@ def _rotation_rate(scans: list[LidarScan], num_rings: int) -> float:
 
 
 DEFAULT_NOISE_FLOOR = 0.5
-"""Detector floor (0..255) of a real sensor whose scans do not show it: the synthetic world's HDL-32E floor. With
-the ``min(1, 10 m / R)`` intensity model it puts the snow share of a real scan in the band of WADS's labelled real
-snow, and the snow echoes' ranges within 1.2x of theirs (``docs/physics.md`` section 3.5)."""
+"""Detector floor (0..255), constant on the reported scale, of a real sensor whose scans do not show it. With the
+``min(1, 10 m / R)`` intensity model it puts the snow share of a real scan in the band of WADS's labelled real snow,
+and the snow echoes' ranges within 1.2x of theirs (``docs/physics.md`` section 3.5). A raw-power detector's floor is
+set with ``sensor_overrides.noise_floor`` and ``floor_range_m``."""
 
 CLAMP_SHARE = 0.01
 """Share of the points at exactly the smallest intensity above which that value is a clamp, not a floor."""
@@ -644,7 +647,7 @@ def estimate_lidar_model(scans: list[LidarScan], *, rotation_hz: float | None = 
         "laser_step_s": 0.0, "divergence_rad": divergence, "max_range_m": max_range, "min_range_m": 1.0,
         "noise_floor": estimate_noise_floor(np.concatenate(inten)), "intensity_max": imax,
         "intensity": CALIBRATED_INTENSITY if imax == 1.0 else SYNTHETIC_INTENSITY,
-        "firing_columns_stored": False, "origin": "estimated",
+        "firing_columns_stored": False, "origin": "estimated", "floor_range_m": None,
     }
     overrides = {k: v for k, v in (overrides or {}).items() if v is not None}
     tau = overrides.pop("pulse_half_width_s", tau)

@@ -23,7 +23,7 @@ over the grid) with a frame-bootstrap interval (`weatheralign.calibrate.precipit
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -104,19 +104,22 @@ class TunedAir:
 
 
 def grounded_scans(scans: Sequence[LidarScan], names: Sequence[str], kind: str, depth_m: float,
-                   noise_floor: float, noise_std: float = 0.0) -> list[LidarScan]:
+                   noise_floor: float, noise_std: float = 0.0,
+                   floor_scale: Callable[[F64], F64] | None = None) -> list[LidarScan]:
     """Each clear scan with the simulation's ground of ``kind`` at ``depth_m`` [m] (`edit_scan` on the scan's own
     surfaces, read by a detector of intensity noise ``noise_std`` and floor ``noise_floor`` (0..255; returns under
     it lost), the field seeded from the scan's name): what the weather split's air falls onto, so the rate's
-    statistic is measured over the ground the split has."""
+    statistic is measured over the ground the split has. ``floor_scale``: a raw-power detector's floor factor
+    (`weatheralign.sensors.LidarModel.floor_scale`; None: constant)."""
     return [edit_scan(scan, scan_surfaces(scan, off_ground=kind == "snow"),
-                      ground_state(kind, float(depth_m), ground_seed(name, kind), scan), noise_floor, noise_std).scan
+                      ground_state(kind, float(depth_m), ground_seed(name, kind), scan), noise_floor, noise_std,
+                      floor_scale).scan
             for scan, name in zip(scans, names)]
 
 
 def simulated_ground_statistics(scans: Sequence[LidarScan], names: Sequence[str], kind: str,
                                 depths_m: Sequence[float], noise_floor: float, air: TunedAir | None = None,
-                                noise_std: float = 0.0) -> F64:
+                                noise_std: float = 0.0, floor_scale: Callable[[F64], F64] | None = None) -> F64:
     """(D, F) `ground_statistic` of each clear scan with the simulation's ground of ``kind`` at each depth [m]
     (`edit_scan` on the scan's own surfaces, read by a detector of intensity noise ``noise_std`` and floor
     ``noise_floor`` (0..255; returns under it lost); the fields seeded from ``names``: the same wet patches and
@@ -126,7 +129,7 @@ def simulated_ground_statistics(scans: Sequence[LidarScan], names: Sequence[str]
         surfaces = scan_surfaces(scan, off_ground=kind == "snow")
         for d, depth in enumerate(depths_m):
             state = ground_state(kind, float(depth), ground_seed(name, kind), scan)
-            edited = edit_scan(scan, surfaces, state, noise_floor, noise_std).scan
+            edited = edit_scan(scan, surfaces, state, noise_floor, noise_std, floor_scale).scan
             if air is not None:
                 weather = simulate_particles(edited, field_spec(air.particles, kind, name, scan.timestamp).field(),
                                                lidar=air.lidar,

@@ -92,6 +92,6 @@ def reference_lidar_model(params: Params, reference: ReferenceDataset) -> LidarM
             intensity=SYNTHETIC_INTENSITY,
             pulse=PulseSensor(tau_h=lc.tau_h_s, r1=lc.overlap_r1_m, r2=lc.overlap_r2_m, max_range=lc.max_range_m),
             origin="params", intensity_noise_std=lc.intensity_noise_std, intensity_noise_rel=lc.intensity_noise_rel,
-            range_noise_std_m=lc.range_noise_std_m)
+            range_noise_std_m=lc.range_noise_std_m, floor_range_m=lc.floor_range_m)
     scans = [reference.load_frame(sample_id).lidar for sample_id in reference.ids("clear")[:8]]
     return estimate_lidar_model(scans, rotation_hz=10.0, overrides=cfg.sensor_overrides.as_dict())

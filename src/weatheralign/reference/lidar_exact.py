@@ -451,8 +451,9 @@ class Detector:
     Attributes:
         intensity_noise_std: electronic (signal-independent) Gaussian noise on the received peak.
         intensity_noise_rel: signal-proportional part: the noise std is ``sqrt(std² + (rel · P)²)`` at peak ``P``.
-        noise_floor: a peak whose measured value (with its noise) or whose quantised intensity is below the floor is
-            not detected: no point is ever reported below it.
+        noise_floor: a peak whose measured value (with its noise) is below the floor is not detected; with a constant
+            floor, neither is one whose quantised intensity is (no point is reported below it), while a raw-power
+            detector (``floor_range_m``) reports a detected reading that rounds under its floor, 0 included.
         range_noise_std: Gaussian range noise [m], clipped at ±2σ.
         intensity: the sensor's `IntensityModel` (the floor's range dependence).
         floor_range_m: None: the floor is ``noise_floor`` at every range. A range [m]: a raw-power detector, whose
@@ -500,8 +501,10 @@ def _detect(power: F64, r_peak: F64, sensor: ExactSensor, detector: Detector,
     reported = r_peak - 0.5 * sensor.pulse_length + jitter
     quantised = np.clip(np.rint(measured), 0.0, 255.0)
     floor = detector.noise_floor * scale
-    detected = ((measured >= floor) & (quantised >= floor)
-                & (reported >= sensor.min_range) & (reported <= sensor.max_range))
+    # a constant floor on the reported scale reports nothing under it; a raw-power detector's reading may round to a
+    # value under its floor at that range (0 included: "one step above noise", the HDL-32E manual)
+    rounded_ok = (quantised >= floor) if detector.floor_range_m is None else np.ones(n, dtype=bool)
+    detected = ((measured >= floor) & rounded_ok & (reported >= sensor.min_range) & (reported <= sensor.max_range))
     return detected, reported, quantised
 
 

@@ -106,7 +106,7 @@ from weatheralign.reference.records import (
     SubrayPattern,
     SubrayScratch,
 )
-from weatheralign.sensors import SYNTHETIC_INTENSITY, IntensityModel
+from weatheralign.sensors import SYNTHETIC_INTENSITY, IntensityModel, floor_scale
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -222,12 +222,14 @@ class ParticleReturns:
 # ------------------------------------------------------------------------------------------------ public helpers
 def resolved_diameter(r: ArrayLike, reflectivity: float, noise_floor: float, *, divergence_rad: float = 3e-3,
                       resolve_fraction: float = 0.05,
-                      intensity_model: IntensityModel = SYNTHETIC_INTENSITY) -> F64:
+                      intensity_model: IntensityModel = SYNTHETIC_INTENSITY,
+                      floor_range_m: float | None = None) -> F64:
     """``D_res(r)`` [m] (shape of ``r`` [m]): the smallest diameter that, centred in the beam at range ``r``, reaches
-    ``resolve_fraction · noise_floor`` alone: ``scale ρ min(1, (D / (r θ))²) g(r) >= resolve_fraction ·
-    noise_floor``; ``inf`` where even full coverage does not (or ρ = 0)."""
+    ``resolve_fraction`` of the floor at ``r`` alone: ``scale ρ min(1, (D / (r θ))²) g(r) >= resolve_fraction ·
+    floor(r)`` (``noise_floor``, scaled as ``R² g(R)`` from ``floor_range_m`` for a raw-power detector); ``inf``
+    where even full coverage does not (or ρ = 0)."""
     r = np.asarray(r, dtype=np.float64)
-    need = resolve_fraction * noise_floor
+    need = resolve_fraction * noise_floor * floor_scale(r, intensity_model, floor_range_m)
     full = intensity_model.scale * reflectivity * intensity_model.gain(r)
     with np.errstate(divide="ignore", invalid="ignore"):
         d = r * divergence_rad * np.sqrt(need / full)
@@ -283,7 +285,7 @@ def particle_returns(origin: ArrayLike, directions: ArrayLike, r0: ArrayLike, i0
                      t: float, reflectivity: float, sensor: ExactSensor, *, noise_floor: float,
                      divergence_rad: float = 3e-3, sub_rays: int = 64, resolve_fraction: float = 0.05,
                      intensity_model: IntensityModel = SYNTHETIC_INTENSITY, grid_step: float = 0.02,
-                     seed: int = 0) -> ParticleReturns:
+                     seed: int = 0, floor_range_m: float | None = None) -> ParticleReturns:
     """The strongest peak of every beam of one scan through ``field`` at time ``t`` (see the module docstring).
 
     Args:
@@ -294,7 +296,8 @@ def particle_returns(origin: ArrayLike, directions: ArrayLike, r0: ArrayLike, i0
         field: the snow / rain field; its particles at ``t`` [s] are the medium.
         reflectivity: particle reflectivity ρ in [0, 1] (snow 0.9, rain 0.02).
         sensor: pulse, overlap and listening window (`ExactSensor`).
-        noise_floor: detector noise floor (0..255, > 0) that sets ``D_res``.
+        noise_floor: detector noise floor (0..255, > 0) that sets ``D_res`` (at ``floor_range_m`` for a raw-power
+            detector: `resolved_diameter`).
         divergence_rad: full beam divergence θ [rad].
         sub_rays: sub-rays per beam K.
         resolve_fraction: share of the noise floor a resolved particle must reach alone.
@@ -325,7 +328,7 @@ def particle_returns(origin: ArrayLike, directions: ArrayLike, r0: ArrayLike, i0
     spec = field.spectrum
     edges = range_shells(sensor.listen_end)
     d_res = resolved_diameter(edges[:-1], rho, nf, divergence_rad=theta, resolve_fraction=frac,
-                              intensity_model=intensity_model)
+                              intensity_model=intensity_model, floor_range_m=floor_range_m)
     d_res[0] = np.inf  # the first shell, inside the housing, is continuum
     area = np.array([0.5 * spec.extinction(d_hi=float(min(dr, spec.d_max))) for dr in d_res])
     unresolved = Unresolved(edges, area)

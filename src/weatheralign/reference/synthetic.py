@@ -113,6 +113,7 @@ from weatheralign.reference.overcast import (
     overcast_radiance,
     visible_hemisphere,
 )
+from weatheralign.sensors import SYNTHETIC_INTENSITY
 from weatheralign.world.layout import generate_layout
 from weatheralign.world.raycast import WorldRaycaster
 from weatheralign.world.render import pixel_directions, sun_lit
@@ -291,7 +292,8 @@ def sensor_of(cfg: ReferenceConfig) -> tuple[ExactSensor, Detector]:
     lc = cfg.lidar
     sensor = ExactSensor(tau_h=lc.tau_h_s, r1=lc.overlap_r1_m, r2=lc.overlap_r2_m, fov_ratio=lc.overlap_fov_ratio,
                          min_range=lc.min_range_m, max_range=lc.max_range_m)
-    return sensor, Detector(lc.intensity_noise_std, lc.intensity_noise_rel, lc.noise_floor, lc.range_noise_std_m)
+    return sensor, Detector(lc.intensity_noise_std, lc.intensity_noise_rel, lc.noise_floor, lc.range_noise_std_m,
+                            SYNTHETIC_INTENSITY, lc.floor_range_m)
 
 
 @dataclass(frozen=True)
@@ -434,7 +436,7 @@ def render_frame(spec: FrameSpec, cfg: ReferenceConfig, medium: FogLevel | Parti
         pos = origins[hit] + dirs[hit] * r_true[hit, None]
         surf = texture(layout, pos, hits.normal[hit], hits.material[hit], hits.albedo[hit], hits.reflectivity[hit])
         cos_inc = np.einsum("ij,ij->i", hits.normal[hit].astype(np.float64), dirs[hit])
-        i0[hit] = lidar_intensity(surf.reflectivity, cos_inc, r_true[hit])
+        i0[hit] = lidar_intensity(surf.reflectivity, cos_inc, r_true[hit], SYNTHETIC_INTENSITY)
     ground = frame_ground_state(spec.level, spec.index, cfg, T_global_lidar)
     surfaces = None
     if ground is not None and len(hit):  # the wet or snowy ground under the air's weather (module docstring)
@@ -449,7 +451,8 @@ def render_frame(spec: FrameSpec, cfg: ReferenceConfig, medium: FogLevel | Parti
         reflectivity = pc.snow_reflectivity if spec.level == "snow" else pc.rain_reflectivity
         returns = particle_returns(T_global_lidar[:3, 3], dirs, r_echo, np.where(np.isfinite(r_echo), i0, 0.0),
                                    medium, spec.time, reflectivity, sensor, noise_floor=detector.noise_floor,
-                                   sub_rays=pc.lidar_sub_rays, grid_step=cfg.lidar.receiver_step_m,
+                                   floor_range_m=detector.floor_range_m, sub_rays=pc.lidar_sub_rays,
+                                   grid_step=cfg.lidar.receiver_step_m,
                                    seed=int(_noise_rng(cfg, spec, 3).integers(0, 2**31 - 1))).returns
     else:
         c = system_constants(np.where(has_target, r_true, np.inf), i0, grid.ring, sensor)

@@ -277,7 +277,8 @@ def render_sample(spec: SceneSpec, sample_index: int, cfg: WorldConfig, dataroot
     key_sweep: LidarSweep | None = None
     for j in range(cfg.sweeps_per_sample, -1, -1):
         t_us = t_key - j * SWEEP_PERIOD_US
-        sweep = render_lidar_sweep(caster, pattern, cfg.lidar, t_us * 1e-6, sensor_rng(spec.seed, t_us % 2**31, 1))
+        sweep = render_lidar_sweep(caster, pattern, lidar_model_from_params(cfg.lidar), t_us * 1e-6,
+                                   sensor_rng(spec.seed, t_us % 2**31, 1))
         folder = "samples" if j == 0 else "sweeps"
         fname = sensor_filename(folder, spec.log_name, "LIDAR_TOP", t_us, "pcd.bin")
         write_sweep(dataroot, fname, sweep)

@@ -8,9 +8,9 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from weatheralign.config import CameraConfig, LidarConfig
+from weatheralign.config import CameraConfig
 from weatheralign.geometry import apply, invert
-from weatheralign.sensors import FiringPattern
+from weatheralign.sensors import FiringPattern, LidarModel
 from weatheralign.world.layout import SceneLayout
 from weatheralign.world.raster import SunGrid, sun_grid
 from weatheralign.world.raycast import Hits, WorldRaycaster
@@ -78,12 +78,15 @@ def _sweep_points(origins: NDArray, dirs: NDArray, measured: NDArray, idx: NDArr
         out[k, 4] = ring[i]
 
 
-def render_lidar_sweep(caster: WorldRaycaster, pattern: FiringPattern, cfg: LidarConfig, timestamp: float,
+def render_lidar_sweep(caster: WorldRaycaster, pattern: FiringPattern, lidar: LidarModel, timestamp: float,
                        rng: np.random.Generator) -> LidarSweep:
-    """Render the sweep ending at ``timestamp`` [s]: each beam fires at its own time from where the sensor is then.
+    """Render the sweep of ``lidar`` (its firing ``pattern``) ending at ``timestamp`` [s]: each beam fires at its own
+    time from where the sensor is then.
 
-    Returns only beams with a detectable return within ``[min_range, max_range]``; range noise is Gaussian,
-    clipped to +-2 sigma, so no point crosses the sensor or the maximum range by noise.
+    Returns only beams with a detectable return within ``[min_range, max_range]`` (`lidar_returns`: the noise-free
+    intensity at or above the floor at the measured range); range noise is Gaussian, clipped to +-2 sigma, so no
+    point crosses the sensor or the maximum range by noise; the intensity is read with the detector's noise (its
+    constant part scaled with the floor, `LidarModel.floor_scale`) and rounded to whole values.
     """
     layout = caster.layout
     times = timestamp + pattern.time_offsets
@@ -95,12 +98,12 @@ def render_lidar_sweep(caster: WorldRaycaster, pattern: FiringPattern, cfg: Lida
                R @ T_EGO_LIDAR[:3, :3], origins, dirs)
     hits = caster.cast_rolling(origins, dirs, times)
 
-    sigma = cfg.range_noise_std_m
+    sigma = lidar.range_noise_std_m
     noise = np.clip(rng.normal(0.0, sigma, n), -2 * sigma, 2 * sigma) if sigma > 0 else np.zeros(n)
     idx, raw, surf_mat = lidar_returns(layout, origins, dirs, hits.range, noise, hits.normal, hits.material,
-                                       hits.albedo, hits.reflectivity, cfg.min_range_m, cfg.max_range_m,
-                                       cfg.min_detectable_intensity)
-    intensity = np.clip(np.round(raw + rng.normal(0.0, cfg.intensity_noise_std, len(idx))), 0, 255)
+                                       hits.albedo, hits.reflectivity, lidar)
+    std = lidar.intensity_noise_std * lidar.floor_scale(hits.range[idx] + noise[idx])
+    intensity = np.clip(np.round(raw + std * rng.normal(0.0, 1.0, len(idx))), 0, 255)
     T_lidar_global = invert(layout.T_global_ego(timestamp) @ T_EGO_LIDAR)
     points = np.empty((len(idx), 5), np.float32)
     _sweep_points(origins, dirs, hits.range + noise, idx, intensity, pattern.ring, T_lidar_global, points)

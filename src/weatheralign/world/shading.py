@@ -16,6 +16,8 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
+from weatheralign.lidar.detector import floor_scale
+from weatheralign.sensors import DetectorFloor, IntensityModel, LidarModel
 from weatheralign.world.layout import LANE_WIDTH, SceneLayout
 from weatheralign.world.materials import SPECULAR, Material, facade_window, road_marking, value_noise, wrap
 from weatheralign.world.raster import SunGrid, TriangleTable, blocked_at, sun_cells
@@ -437,21 +439,18 @@ def camera_frame(layout: SceneLayout, origin: NDArray, R: NDArray, K: NDArray, i
     return image, range_out.reshape(height, width), instance_out.reshape(height, width)
 
 
-def lidar_intensity(reflectivity: NDArray, cos_incidence: NDArray, ranges: NDArray) -> F32:
-    """Raw intensity on the 0..255 scale from reflectivity (N,), |cos incidence| (N,) and range (N,) [m].
-
-    Lambertian return ``rho cos(theta)`` with the sensor's partial range compensation, modelled as a 1/R fall-off
-    beyond 10 m (raw power falls as 1/R^2; the HDL-32E reports a range-compensated value).
-    """
-    falloff = np.minimum(1.0, 10.0 / np.maximum(ranges, 1e-3))
-    return (255.0 * reflectivity * np.abs(cos_incidence) * falloff).astype(np.float32)
+def lidar_intensity(reflectivity: NDArray, cos_incidence: NDArray, ranges: NDArray, model: IntensityModel) -> F32:
+    """Noise-free reported intensity on the 0..255 scale from reflectivity (N,), |cos incidence| (N,) and range (N,)
+    [m]: a Lambertian return ``ρ |cos θ|`` through the sensor's intensity ``model`` (``scale ρ cos θ g(R)``)."""
+    gain = np.minimum(1.0, (model.r_ref / np.maximum(ranges, 1e-3)) ** model.falloff)
+    return (model.scale * reflectivity * np.abs(cos_incidence) * gain).astype(np.float32)
 
 
 @njit(nogil=True, cache=True)
 def _lidar_returns_kernel(look: Look, origins: NDArray, dirs: NDArray, true_range: NDArray, noise: NDArray,
                           normals: NDArray, material: NDArray, albedo: NDArray, reflectivity: NDArray,
-                          min_range: float, max_range: float, min_intensity: float, idx_out: NDArray,
-                          raw_out: NDArray, mat_out: NDArray) -> int:
+                          min_range: float, max_range: float, scale: float, detector: DetectorFloor,
+                          idx_out: NDArray, raw_out: NDArray, mat_out: NDArray) -> int:
     m = 0
     for i in range(len(true_range)):
         t = true_range[i]
@@ -467,25 +466,27 @@ def _lidar_returns_kernel(look: Look, origins: NDArray, dirs: NDArray, true_rang
                                       (float(albedo[i, 0]), float(albedo[i, 1]), float(albedo[i, 2])),
                                       float(reflectivity[i]))
         cos_inc = normal[0] * d[0] + normal[1] * d[1] + normal[2] * d[2]
-        raw = np.float32(255.0 * np.float32(refl) * abs(cos_inc) * min(1.0, 10.0 / max(measured, 1e-3)))
-        if raw >= min_intensity:
+        r_ref, falloff = detector.r_ref, detector.falloff
+        raw = np.float32(scale * np.float32(refl) * abs(cos_inc) * min(1.0, (r_ref / max(measured, 1e-3)) ** falloff))
+        if raw >= detector.floor * floor_scale(measured, r_ref, falloff, detector.comp_ref):
             idx_out[m], raw_out[m], mat_out[m] = i, raw, mat
             m += 1
     return m
 
 
 def lidar_returns(layout: SceneLayout, origins: NDArray, dirs: NDArray, true_range: NDArray, noise: NDArray,
-                  normals: NDArray, material: NDArray, albedo: NDArray, reflectivity: NDArray, min_range: float,
-                  max_range: float, min_intensity: float) -> tuple[NDArray[np.int64], F32, NDArray[np.uint8]]:
+                  normals: NDArray, material: NDArray, albedo: NDArray, reflectivity: NDArray, lidar: LidarModel
+                  ) -> tuple[NDArray[np.int64], F32, NDArray[np.uint8]]:
     """The beams (rays from ``origins`` (N, 3) along unit ``dirs`` (N, 3)) that return: a hit (``true_range`` (N,)
-    [m] finite) whose measured range ``true_range + noise`` lies in [``min_range``, ``max_range``] and whose raw
-    intensity (`lidar_intensity` of the textured reflectivity (`texture`), |cos incidence| with the hit ``normals``
-    and the measured range) reaches ``min_intensity``. Returns their indices (M,), raw intensities (M,) float32 and
-    textured materials (M,) uint8."""
+    [m] finite) whose measured range ``true_range + noise`` lies in ``lidar``'s [``min_range_m``, ``max_range_m``]
+    and whose noise-free intensity (`lidar_intensity` of the textured reflectivity (`texture`), |cos incidence| with
+    the hit ``normals`` and the measured range, through ``lidar.intensity``) reaches the detector floor at that range
+    (`LidarModel.floor_at`). Returns their indices (M,), noise-free intensities (M,) float32 and textured materials
+    (M,) uint8."""
     n = len(true_range)
     idx, raw, mat = np.empty(n, np.int64), np.empty(n, np.float32), np.empty(n, np.uint8)
     m = _lidar_returns_kernel(scene_look(layout), np.asarray(origins, np.float64), np.asarray(dirs, np.float64),
                               true_range, np.broadcast_to(np.asarray(noise, np.float64), (n,)), normals, material,
-                              albedo, reflectivity, float(min_range), float(max_range), float(min_intensity), idx,
-                              raw, mat)
+                              albedo, reflectivity, float(lidar.min_range_m), float(lidar.max_range_m),
+                              float(lidar.intensity.scale), lidar.detector(), idx, raw, mat)
     return idx[:m], raw[:m], mat[:m]

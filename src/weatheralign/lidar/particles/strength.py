@@ -31,7 +31,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from weatheralign.medium.distributions import SizeDistribution
-from weatheralign.sensors import IntensityModel
+from weatheralign.sensors import IntensityModel, floor_scale
 
 F64 = NDArray[np.float64]
 
@@ -55,6 +55,8 @@ class EchoSensor:
         divergence_rad: full beam divergence θ [rad].
         min_range_m: echoes nearer than this are not reported [m].
         max_range_m: the sensor's maximum range [m]: beams without a target listen out to it.
+        floor_range_m: None: ``noise_floor`` at every range; a range [m]: a raw-power detector whose floor is
+            ``noise_floor`` there and scales as ``R² g(R)`` (`weatheralign.sensors.LidarModel.floor_range_m`).
     """
 
     intensity: IntensityModel
@@ -62,6 +64,11 @@ class EchoSensor:
     divergence_rad: float = 3e-3
     min_range_m: float = 1.0
     max_range_m: float = 120.0
+    floor_range_m: float | None = None
+
+    def floor_at(self, r: ArrayLike) -> F64:
+        """(any shape) the floor (0..255) at ranges ``r`` [m]."""
+        return self.noise_floor * floor_scale(r, self.intensity, self.floor_range_m)
 
     def __post_init__(self) -> None:
         checks = {
@@ -105,16 +112,16 @@ def echo_intensity(diameter: ArrayLike, range_m: ArrayLike, reflectivity: float,
 
 def detection_range(diameter: ArrayLike, reflectivity: float, sensor: EchoSensor, iterations: int = 60) -> F64:
     """``r_det(D)`` [m] (shape of ``diameter``): the largest range at which a lone particle's echo reaches the floor,
-    capped at the sensor's maximum range; 0 where it never does. `echo_intensity` is non-increasing in range, so
-    bisection in log-range (``iterations`` halvings of the ratio ``max_range / 1e-3 m``) finds it."""
+    capped at the sensor's maximum range; 0 where it never does. `echo_intensity` over the floor is non-increasing
+    in range, so bisection in log-range (``iterations`` halvings of the ratio ``max_range / 1e-3 m``) finds it."""
     d = np.asarray(diameter, dtype=np.float64)
     lo = np.full(d.shape, math.log(1e-3))
     hi = np.full(d.shape, math.log(sensor.max_range_m))
-    detected_far = echo_intensity(d, sensor.max_range_m, reflectivity, sensor) >= sensor.noise_floor
-    detected_near = echo_intensity(d, 1e-3, reflectivity, sensor) >= sensor.noise_floor
+    detected_far = echo_intensity(d, sensor.max_range_m, reflectivity, sensor) >= sensor.floor_at(sensor.max_range_m)
+    detected_near = echo_intensity(d, 1e-3, reflectivity, sensor) >= sensor.floor_at(1e-3)
     for _ in range(iterations):
         mid = 0.5 * (lo + hi)
-        ok = echo_intensity(d, np.exp(mid), reflectivity, sensor) >= sensor.noise_floor
+        ok = echo_intensity(d, np.exp(mid), reflectivity, sensor) >= sensor.floor_at(np.exp(mid))
         lo = np.where(ok, mid, lo)
         hi = np.where(ok, hi, mid)
     r = np.exp(lo)
@@ -191,7 +198,7 @@ def _capture_area(ranges: F64, target_raw: float, diameters: F64, counts: F64, r
     im = sensor.intensity
     w = ranges * sensor.half_tan  # (R,)
     peak = im.scale * reflectivity
-    need = np.maximum(sensor.noise_floor / (peak * im.gain(ranges)), target_raw * ranges ** 2 / peak)  # (R,)
+    need = np.maximum(sensor.floor_at(ranges) / (peak * im.gain(ranges)), target_raw * ranges ** 2 / peak)  # (R,)
     offset = offset_reaching(0.5 * diameters[None, :] / w[:, None], need[:, None])  # (R, K) beam radii
     return np.pi * w ** 2 * (offset ** 2 @ counts)
 
