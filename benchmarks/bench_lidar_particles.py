@@ -25,8 +25,8 @@ Fields: snow falls at 1.5 m/s; rain at the default fall speed of its rate (the M
 `rain_field_fall_speed`: 6.6 m/s at 50 mm/h), so the joint keyframe + sweeps workload shows why `simulate` runs fast
 rain scan by scan (`weatheralign.simulate.observe.JOINT_DRIFT_MAX_M`).
 
-The sensor (`_lidar`): the synthetic world's HDL-32E-like `LidarModel` (3 mrad divergence, τ_H = 10 ns, detector floor
-0.5 on 0..255, its 32 x 1085 firing grid) with each workload's maximum range and intensity model (the synthetic
+The sensor (`_lidar`): an HDL-32E-like `LidarModel` (3 mrad divergence, τ_H = 10 ns, a constant detector floor 0.5 on
+0..255, the world's 32 x 1085 firing grid) with each workload's maximum range and intensity model (the synthetic
 world's for its scan, Hahner's raw ``1/r²`` for STF); beams without return come from the stored firing columns of the
 synthetic scan and are reconstructed from the ring structure otherwise (STF, ring subsets).
 """
@@ -147,7 +147,7 @@ def _lidar(spec: dict, columns_stored: bool):
     from weatheralign.sensors import HAHNER_INTENSITY, SYNTHETIC_INTENSITY, lidar_model_from_params, with_overrides
 
     model = {"synthetic": SYNTHETIC_INTENSITY, "hahner": HAHNER_INTENSITY}[spec["intensity_model"]]
-    return with_overrides(lidar_model_from_params(LidarConfig()), {
+    return with_overrides(lidar_model_from_params(LidarConfig(floor_range_m=None)), {
         "max_range_m": float(spec["max_range"]), "divergence_rad": DIVERGENCE_RAD, "noise_floor": NOISE_FLOOR,
         "pulse_half_width_s": PULSE_HALF_WIDTH_S, "intensity": model, "firing_columns_stored": columns_stored})
 

@@ -644,14 +644,14 @@ def test_a_fog_echo_is_reported_through_the_compensation_at_its_own_range() -> N
 def test_a_raw_power_detector_has_a_floor_that_grows_with_the_reported_range() -> None:
     """`LidarModel.floor_range_m`: the floor on the reported scale is ``f R² g(R) / (r_f² g(r_f))`` (the kernels'
     scalar agrees with `LidarModel.floor_at`); attenuated targets are lost against the floor at their own range."""
-    from weatheralign.lidar.detector import floor_scale
+    from weatheralign.sensors import floor_factor
 
     lidar = _lidar(5.0, floor_range_m=35.0)
     r = np.array([0.5, 1.6, 10.0, 35.0, 80.0])
     g = lidar.intensity.gain(r)
     np.testing.assert_allclose(lidar.floor_at(r), 5.0 * r * r * g / (35.0 ** 2 * float(lidar.intensity.gain(35.0))))
     det = lidar.detector()
-    np.testing.assert_allclose([5.0 * floor_scale(x, det.r_ref, det.falloff, det.comp_ref) for x in r],
+    np.testing.assert_allclose([5.0 * floor_factor(x, det.r_ref, det.falloff, det.comp_ref) for x in r],
                                lidar.floor_at(r), rtol=1e-12)
     np.testing.assert_array_equal(_lidar(5.0).floor_at(r), 5.0)
     assert LidarModel.from_dict(lidar.to_dict()) == lidar and "floor_range_m" not in _lidar(5.0).to_dict()

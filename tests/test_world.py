@@ -100,7 +100,7 @@ def test_the_world_lidar_reports_calibrated_reflectivity_through_a_raw_power_flo
     assert np.all(pts[:, 3] + 0.5 + 5.0 * sigma >= lidar.floor_at(r))  # nothing clearly under the floor
     near, far = pts[r < 10.0, 3], pts[r > 40.0, 3]
     assert len(far) > 100 and np.median(far) > 3.0 * np.median(near)
-    assert np.mean(near < 1.0) > 0.01  # near the sensor, faint returns are detected
+    assert np.mean(near < lidar.noise_floor) > 0.5  # near the sensor, returns under the floor at 35 m are detected
 
 
 def test_each_beam_leaves_the_sensor_where_it_was_at_its_firing_time(tiny_world, nusc):

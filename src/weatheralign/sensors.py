@@ -21,6 +21,7 @@ from dataclasses import asdict, dataclass, replace
 from typing import Any, NamedTuple
 
 import numpy as np
+from numba import njit
 from numpy.typing import NDArray
 
 from weatheralign.data.frame import LidarScan
@@ -131,7 +132,8 @@ class IntensityModel:
 
 
 SYNTHETIC_INTENSITY = IntensityModel(255.0, 10.0, 1.0)
-"""The synthetic world's HDL-32E: ``255 ρ cos θ min(1, 10 m / R)`` (`world.shading.lidar_intensity`)."""
+"""The synthetic reference's HDL-64 (and the synthetic world's HDL-32E before it reported calibrated reflectivity):
+``255 ρ cos θ min(1, 10 m / R)`` (`world.shading.lidar_intensity`)."""
 
 HAHNER_INTENSITY = IntensityModel(255.0, 1.0, 2.0)
 """Hahner's published snow code: a particle reports ``255 ρ ratio / r²`` (raw power, calibrated at 1 m)."""
@@ -265,7 +267,7 @@ class LidarModel:
         return self.noise_floor * self.floor_scale(r)
 
     def detector(self) -> DetectorFloor:
-        """The floor as the numba kernels take it (`DetectorFloor`; ``weatheralign.lidar.detector``)."""
+        """The floor as the numba kernels take it (`DetectorFloor`, `floor_factor`)."""
         comp = 0.0 if self.floor_range_m is None else float(self.intensity.compensation(self.floor_range_m))
         return DetectorFloor(float(self.noise_floor), float(self.intensity.r_ref), float(self.intensity.falloff),
                              comp)
@@ -457,6 +459,23 @@ def floor_scale(r: NDArray | float, intensity: IntensityModel, floor_range_m: fl
     if floor_range_m is None:
         return np.ones(r.shape)
     return intensity.compensation(r) / float(intensity.compensation(floor_range_m))
+
+
+@njit(nogil=True, cache=True, inline="always")
+def compensation_at(r, r_ref, falloff):  # pragma: no cover
+    """``R² g(R)`` [m²] at range ``r`` [m], ``g(R) = min(1, (r_ref / R)^falloff)``: the numba kernels' scalar form of
+    `IntensityModel.compensation` (a raw power times it is the reported value, up to the sensor's scale)."""
+    r = max(r, 1e-9)
+    return r * r * min(1.0, (r_ref / r) ** falloff)
+
+
+@njit(nogil=True, cache=True, inline="always")
+def floor_factor(r, r_ref, falloff, comp_ref):  # pragma: no cover
+    """``floor(R) / floor`` at reported range ``r`` [m] (the fields of a `DetectorFloor`): 1 for a constant floor
+    (``comp_ref`` 0), else ``R² g(R) / comp_ref``: the numba kernels' scalar form of `floor_scale`."""
+    if comp_ref <= 0.0:
+        return 1.0
+    return compensation_at(r, r_ref, falloff) / comp_ref
 
 
 def lidar_model_from_params(cfg: Any, mount_yaw: float = LIDAR_TOP_YAW) -> LidarModel:
@@ -678,8 +697,8 @@ def camera_models(views: dict[str, Any], exposure_s: float) -> dict[str, CameraM
 
 __all__ = ["CALIBRATED_INTENSITY", "DEFAULT_NOISE_FLOOR", "HAHNER_INTENSITY", "SPEED_OF_LIGHT",
            "SYNTHETIC_INTENSITY", "CameraModel", "DetectorFloor", "FiringPattern", "IntensityModel", "LidarModel",
-           "PulseSensor", "SensorRig", "camera_models", "estimate_lidar_model", "estimate_noise_floor", "floor_scale",
-           "lidar_model_from_params", "with_overrides"]
+           "PulseSensor", "SensorRig", "camera_models", "compensation_at", "estimate_lidar_model",
+           "estimate_noise_floor", "floor_factor", "floor_scale", "lidar_model_from_params", "with_overrides"]
 
 
 ESTIMATION_SCANS = 8

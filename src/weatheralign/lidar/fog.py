@@ -12,7 +12,7 @@ point becomes a fog return along its ray, reported at ``R_e = R_fog - c τ_H / 2
 compensation there: ``i_soft = min(I(R_0) i_0 β / β_0 · R_e² g(R_e) / g(R_0), saturation)`` with ``g`` the
 `IntensityModel` gain (Hahner's published form, without the last factor, is that of a raw-power sensor,
 ``g = (1 m / R)²``, and reports the echo of a range-compensating sensor ``R_0² g(R_0) / (R_e² g(R_e))`` times too
-bright: about 150x for a 40 m target of the synthetic world's ``min(1, 10 m / R)``); else it keeps its position with
+bright: about 150x for a 40 m target of the reference's ``min(1, 10 m / R)``); else it keeps its position with
 ``i_hard``. With a raw-power detector (`LidarModel.floor_range_m`) the floor and the constant part of the noise are
 those at each reading's reported range. A sensor with intensity noise (``LidarModel.intensity_noise_std`` σ_0 and
 ``intensity_noise_rel``) reads each changed return again: a fog echo is a new reading (std
@@ -63,13 +63,13 @@ from numpy.typing import ArrayLike, NDArray
 
 from weatheralign.data.frame import LidarScan
 from weatheralign.lidar.beams import beam_origins, point_noise_keys, point_ranges
-from weatheralign.lidar.detector import compensation, floor_scale
 from weatheralign.lidar.labels import POINT_LABELS, WeatherLabel
 from weatheralign.lidar.pulse import SPEED_OF_LIGHT, PulseSensor, overlap
 from weatheralign.lidar.quantum import on_scale, scan_clear_readings
 from weatheralign.lidar.records import FogEchoRange, FogResponse
 from weatheralign.medium.field import normal_pair
 from weatheralign.medium.fog import DEFAULT_BETA_MOR, LN20
+from weatheralign.sensors import compensation_at, floor_factor
 
 if TYPE_CHECKING:
     from weatheralign.sensors import IntensityModel, LidarModel
@@ -361,11 +361,11 @@ def _fog_one(r0, i0, clear, model, z, integral, r_echo):  # pragma: no cover
     soft_raw = integral * i0_64 * r0 * r0 * soft_gain
     if soft_raw > i_hard:
         label = 2
-        scale_here = floor_scale(r_echo, r_ref, falloff, comp_ref)
-        out = min(soft_raw * compensation(r_echo, r_ref, falloff) / compensation(r0, r_ref, falloff), saturation)
+        scale_here = floor_factor(r_echo, r_ref, falloff, comp_ref)
+        out = min(soft_raw * compensation_at(r_echo, r_ref, falloff) / compensation_at(r0, r_ref, falloff), saturation)
         std = math.sqrt((noise_std * scale_here) ** 2 + (noise_rel * out) ** 2)
     else:
-        scale_here = floor_scale(r0, r_ref, falloff, comp_ref)
+        scale_here = floor_factor(r0, r_ref, falloff, comp_ref)
         out = i_hard
         label = 0 if np.float32(i_hard) == i0 else 1
         std = noise_std * scale_here * math.sqrt(max(1.0 - two_way * two_way, 0.0))

@@ -41,9 +41,10 @@ unobstructed response tabulated on the same 1 mm grid; on ``[R_0, R_0 + c τ_H]`
 soft tail) the sum is evaluated on a grid of ``step`` (2 cm) centred on the hard peak ``R_0 + c τ_H / 2`` and the
 maximum refined by a parabola through its neighbours. One fused numba loop over the beams.
 
-System constant per beam (the clear sensor's intensity calibration, as the fast simulator's): intensity is the
-received peak power in units where a clear hard target reports its clear intensity, so a target with clear
-intensity ``i_0`` (the intensity it would report with full overlap) at ``R_0`` has ``C = i_0 R_0² / β_0``. A beam
+System constant per beam (the clear sensor's intensity calibration, as the fast simulator's): the sensor chooses the
+strongest peak on raw power and reports it through its range compensation at the reported range ``R_e`` (``R_e²
+g(R_e)``, `IntensityModel.compensation`), so a target with clear intensity ``i_0`` (the intensity it would report
+with full overlap) at ``R_0`` has ``C = i_0 / (β_0 g(R_0))`` (a raw-power sensor's ``i_0 R_0² / β_0``). A beam
 without a hard target has no clear measurement to calibrate from; it gets its laser's typical constant, the median
 ``C`` of the returns of the same ring in the same scan.
 """

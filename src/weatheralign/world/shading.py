@@ -16,8 +16,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import NDArray
 
-from weatheralign.lidar.detector import floor_scale
-from weatheralign.sensors import DetectorFloor, IntensityModel, LidarModel
+from weatheralign.sensors import DetectorFloor, IntensityModel, LidarModel, floor_factor
 from weatheralign.world.layout import LANE_WIDTH, SceneLayout
 from weatheralign.world.materials import SPECULAR, Material, facade_window, road_marking, value_noise, wrap
 from weatheralign.world.raster import SunGrid, TriangleTable, blocked_at, sun_cells
@@ -468,7 +467,7 @@ def _lidar_returns_kernel(look: Look, origins: NDArray, dirs: NDArray, true_rang
         cos_inc = normal[0] * d[0] + normal[1] * d[1] + normal[2] * d[2]
         r_ref, falloff = detector.r_ref, detector.falloff
         raw = np.float32(scale * np.float32(refl) * abs(cos_inc) * min(1.0, (r_ref / max(measured, 1e-3)) ** falloff))
-        if raw >= detector.floor * floor_scale(measured, r_ref, falloff, detector.comp_ref):
+        if raw >= detector.floor * floor_factor(measured, r_ref, falloff, detector.comp_ref):
             idx_out[m], raw_out[m], mat_out[m] = i, raw, mat
             m += 1
     return m

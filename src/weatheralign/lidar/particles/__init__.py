@@ -42,12 +42,14 @@ model: a Lambertian target of reflectivity ρ filling the beam at normal inciden
 min(1, (r_ref / R)^falloff)`` being the range compensation the sensor applies to the raw ``1/R²`` power. In raw units
 (``i / (R² g(R))``) a particle — a disk of reflectivity ρ_p covering ``ratio`` of the footprint at range r — gives
 ``scale ρ_p ratio ξ(r) / r²``, the target ``i_0 ratio_t / (R_0² g(R_0))``, and the detector reports ``P* R² g(R)`` at
-the measured range R, so a clear target comes back as ``i_0`` exactly. The synthetic world's renderer is exactly ``scale
-= 255, r_ref = 10 m, falloff = 1`` (`weatheralign.sensors.SYNTHETIC_INTENSITY`, the synthetic world's model): there a
-flake filling the beam reports what a 0.9-reflectivity wall would. Hahner's published code is the case ``r_ref = 1 m,
-falloff = 2`` (`weatheralign.sensors.HAHNER_INTENSITY`: a flake reports ``0.9 · 255 · ratio / r²`` while the target is
-normalised at its own range), and a reflectance-calibrated sensor (KITTI) is ``falloff = 0``
-(`weatheralign.sensors.CALIBRATED_INTENSITY`).
+the measured range R, so a clear target comes back as ``i_0`` exactly. The synthetic reference's renderer is exactly
+``scale = 255, r_ref = 10 m, falloff = 1`` (`weatheralign.sensors.SYNTHETIC_INTENSITY`), the synthetic world's HDL-32E
+``scale = 100, falloff = 0`` (a calibrated reflectivity, configs/world_rig.yaml): there a flake filling the beam
+reports what a 0.9-reflectivity wall would. Every floor test reads the floor at the echo's reported range (a
+raw-power detector's grows as ``R² g(R)``, `weatheralign.sensors.LidarModel.floor_range_m`). Hahner's published code
+is the case ``r_ref = 1 m, falloff = 2`` (`weatheralign.sensors.HAHNER_INTENSITY`: a flake reports ``0.9 · 255 ·
+ratio / r²`` while the target is normalised at its own range), and a reflectance-calibrated sensor (KITTI) is
+``falloff = 0`` (`weatheralign.sensors.CALIBRATED_INTENSITY`).
 
 Dense fields. Physical densities (~166 flakes/m³ at 2 mm/h, ~4000 drops/m³ at 50 mm/h: ~10^8 particles within the
 sensor's reach) cannot all be tested against every beam. A particle that would cover less than ``ratio_threshold``

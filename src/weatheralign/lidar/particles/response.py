@@ -14,9 +14,9 @@ import math
 import numpy as np
 from numba import njit
 
-from weatheralign.lidar.detector import floor_scale
 from weatheralign.lidar.labels import WeatherLabel
 from weatheralign.medium.field import normal_pair
+from weatheralign.sensors import floor_factor
 
 
 @njit(nogil=True, cache=True, inline="always")
@@ -359,7 +359,7 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
         tau_target = _optical_depth(length, medium) if (ret or hidden) else 0.0
         x0 = clear[b] if rounded else i0[b]  # the clear value the reading i0 stood for
         # the floor where the target is reported (a raw-power detector's grows with range; < 0: none)
-        floor_t = floor * floor_scale(length, r_ref, falloff, comp_ref) if floor >= 0.0 else -1.0
+        floor_t = floor * floor_factor(length, r_ref, falloff, comp_ref) if floor >= 0.0 else -1.0
         c_peak, c_r = _continuum_at(length, continuum)
         if c_peak > 0.0 and k_hits == 0 and (ret or hidden) and length > 0.0:  # the target beats the continuum?
             if c_peak <= i0[b] * math.exp(-2.0 * tau_target) / (length * length * _gain(length, r_ref, falloff)):
@@ -440,7 +440,7 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
         if continuum_wins:  # the continuum's crest is the strongest: read it
             r_c = max(c_r - 0.5 * pulse_len, 1e-9)
             val = min(c_peak * r_c * r_c * _gain(r_c, r_ref, falloff), saturation)
-            at_echo = floor_scale(r_c, r_ref, falloff, comp_ref)
+            at_echo = floor_factor(r_c, r_ref, falloff, comp_ref)
             if noisy:
                 val, r_c = _reading(val, r_c, noise_key[b], noise_std * at_echo, noise_rel, range_noise, saturation,
                                     length)
@@ -495,7 +495,7 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
         r_out = min(max(r_meas, 0.0), length)
         g1 = _gain(max(r_out, 1e-9), r_ref, falloff)
         val = min(p_peak * r_out * r_out * g1, saturation)
-        at_echo = floor_scale(r_out, r_ref, falloff, comp_ref)
+        at_echo = floor_factor(r_out, r_ref, falloff, comp_ref)
         if noisy and dom >= 0:  # the detector's reading of the particle echo
             val, r_out = _reading(val, r_out, noise_key[b], noise_std * at_echo, noise_rel, range_noise, saturation,
                                   length)
