@@ -60,7 +60,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.integrate import cumulative_trapezoid
 
 from weatheralign.reference.records import FogGrid, FogMedium, FogPeaks, SensorOptics
-from weatheralign.sensors import SPEED_OF_LIGHT, SYNTHETIC_INTENSITY, IntensityModel, PulseSensor
+from weatheralign.sensors import SPEED_OF_LIGHT, SYNTHETIC_INTENSITY, IntensityModel, PulseSensor, floor_scale
 
 F64 = NDArray[np.float64]
 
@@ -471,10 +471,7 @@ class Detector:
 
     def floor_scale(self, r: ArrayLike) -> F64:
         """(any shape) the floor's and the constant noise's factor at reported ranges ``r`` [m] (1 when constant)."""
-        r = np.asarray(r, dtype=np.float64)
-        if self.floor_range_m is None:
-            return np.ones(r.shape)
-        return self.intensity.compensation(r) / float(self.intensity.compensation(self.floor_range_m))
+        return floor_scale(r, self.intensity, self.floor_range_m)
 
 
 @dataclass(frozen=True)
