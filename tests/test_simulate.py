@@ -538,18 +538,20 @@ def test_fog_snow_lidar_is_the_composition_of_its_media(world):
     emptied it is exactly fog (same labels and points as simulate_fog); with the fog removed, exactly snow; with
     both, flakes still scatter (with ids), dimmer than in snow alone (the fog attenuates their echoes), and fog echoes
     appear (without ids). Dense fog's echoes land where `simulate_fog` puts them (the particle path
-    once reported them at the raw power peak, 1.5 m farther). A noise-free reading of the world's sensor; its floor
-    100x lower where fog echoes are wanted (under its own floor they are never reported: docs/physics.md 3.5)."""
+    once reported them at the raw power peak, 1.5 m farther). The world's sensor with its intensity noise (both paths
+    decide the floor on the noisy reading), at its own floor and 100x lower where fog echoes are wanted (under its own
+    floor they are never reported: docs/physics.md 3.5)."""
     tw, nusc, fields, frame, _, sensors, scenes = world
-    quiet = replace(sensors.lidar, intensity_noise_std=0.0)
-    sensors = replace(sensors, lidar=replace(quiet, noise_floor=quiet.noise_floor / 100))
+    assert sensors.lidar.intensity_noise_std > 0.0
     scan = frame.lidar
     mixed = replace(_media("fog_snow", scenes, fields).for_scene(scenes[0], True), ground=None)  # the air alone
     snow = replace(_media("snow", scenes, fields).for_scene(scenes[0], True), ground=None)
     no_field = replace(mixed, field=replace(mixed.field, rate_mm_h=0.0))
     a = observe_lidar(scan, no_field, sensors.lidar)
     fog = simulate_fog(scan, mixed.lidar_alpha, mixed.lidar_beta, lidar=sensors.lidar)
+    assert fog.counts["LOST"] > 100  # returns lost to the fog, on noisy readings
     assert np.array_equal(a.labels, fog.labels) and np.array_equal(a.scan.points, fog.points)
+    sensors = replace(sensors, lidar=replace(sensors.lidar, noise_floor=sensors.lidar.noise_floor / 100))
     # dense fog: its echoes too, reported by both paths at the peak minus c tau_H / 2 with each beam's range noise
     dense = replace(no_field, lidar_alpha=0.06, lidar_beta=0.046 * 0.06 / np.log(20.0))
     a = observe_lidar(scan, dense, sensors.lidar)
@@ -562,7 +564,7 @@ def test_fog_snow_lidar_is_the_composition_of_its_media(world):
     both = observe_lidar(scan, replace(mixed, lidar_alpha=0.04, lidar_beta=0.046 * 0.04 / np.log(20.0)),
                          sensors.lidar)
     scattered = both.labels == 2
-    assert (scattered & (both.particle_id >= 0)).sum() > 50 and (scattered & (both.particle_id < 0)).sum() > 50
+    assert (scattered & (both.particle_id >= 0)).sum() > 50 and (scattered & (both.particle_id < 0)).sum() > 20
     # the fog dims the flakes' echoes (their targets more: behind the fog more flakes beat them)
     flakes_fog, flakes = scattered & (both.particle_id >= 0), (c.labels == 2) & (c.particle_id >= 0)
     assert np.median(both.scan.points[flakes_fog, 3]) < np.median(c.scan.points[flakes, 3])

@@ -21,9 +21,9 @@ moves along its beam to the measured range (SCATTERED, with the id of the partic
 particle echo below the detector noise floor is not detected: the target's own echo then decides, and a return the
 weather pushed below the floor is LOST (points that were below the floor in clear weather were detected nevertheless and
 are kept, as in the fog model), decided on the value an integer clear reading stood for before the sensor rounded it
-(`weatheralign.lidar.quantum`). Beams without return can return a particle: SCATTERED clutter with ``source_index`` -1
-(the reference code never simulates those beams). Echoes measured nearer than the sensor's minimum range are not
-reported.
+(`weatheralign.lidar.quantum`) and, with intensity noise, on the noisy reading (as the fog model decides). Beams
+without return can return a particle: SCATTERED clutter with ``source_index`` -1 (the reference code never simulates
+those beams). Echoes measured nearer than the sensor's minimum range are not reported.
 
 The unresolved particles (below) return light too: a smooth waveform peaking a few metres out
 (`api.unresolved_continuum`, tabulated once per run over the beam length). The receiver compares the summed waveform at

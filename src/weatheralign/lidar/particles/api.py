@@ -393,17 +393,20 @@ def _fog_backscatter(beams: Beams, response: _Response, fog: FogMedium, opt: _Op
 
 
 def _read_attenuated(beams: Beams, response: _Response, opt: _Options, clear: F64 | None = None) -> None:
-    """The detector's reading of each target kept at its range (ATTENUATED, in place on ``response.outcome``): its
-    clear intensity ``i_0`` carries its clear reading's noise, scaled with the signal by the transmission ``k =
-    i / i_0``; the reading lacks ``σ_0² (1 - k²)`` of its variance (``intensity_noise_std`` σ_0; the proportional
-    part scales exactly), added from the beam's noise stream (the first normal, unused by a kept target), as
-    `weatheralign.lidar.fog` does. A reading the weather pushed below the floor (and below ``i_0``) is LOST, tested
-    on the clear value ``clear`` (B,) the rounded ``i_0`` stood for (`beam_clear_readings`; None: ``i_0``) carried
-    through ``k`` (`weatheralign.lidar.quantum.attenuated_reading`)."""
+    """The detector's reading of each target kept at its range (in place on ``response.outcome``: the kernel's
+    ATTENUATED, and its LOST whose noise-free value it left at the target's range): its clear intensity ``i_0``
+    carries its clear reading's noise, scaled with the signal by the transmission ``k = i / i_0``; the reading lacks
+    ``σ_0² (1 - k²)`` of its variance (``intensity_noise_std`` σ_0; the proportional part scales exactly), added from
+    the beam's noise stream (the first normal, unused by a kept target), as `weatheralign.lidar.fog` does. The floor
+    then decides on the reading, as in fog: LOST if the weather pushed it below the floor at the target (and below
+    ``i_0``), else ATTENUATED, tested on the clear value ``clear`` (B,) the rounded ``i_0`` stood for
+    (`beam_clear_readings`; None: ``i_0``) carried through ``k`` (`weatheralign.lidar.quantum.attenuated_reading`).
+    A noise-free detector keeps the kernel's decision (the same test on the same value)."""
     if opt.intensity_noise_std <= 0.0:
         return
     out = response.outcome
-    b = np.flatnonzero((out.state == WeatherLabel.ATTENUATED) & beams.has_return & (beams.intensity0 > 0.0))
+    at_range = (out.state == WeatherLabel.ATTENUATED) | ((out.state == WeatherLabel.LOST) & np.isfinite(out.range))
+    b = np.flatnonzero(at_range & beams.has_return & (beams.intensity0 > 0.0))
     if not len(b):
         return
     i0 = beams.intensity0[b]
@@ -417,7 +420,7 @@ def _read_attenuated(beams: Beams, response: _Response, opt: _Options, clear: F6
         x = i0 if clear is None else clear[b]
         seen = attenuated_reading(reading, i0, x, k)
         lost = (seen < opt.noise_floor * at_target) & (seen.astype(np.float32) < x.astype(np.float32))
-        out.state[b[lost]] = WeatherLabel.LOST
+        out.state[b] = np.where(lost, WeatherLabel.LOST, WeatherLabel.ATTENUATED)
 
 
 def _assemble(beams: Beams, points: NDArray[np.float32], T_global_out: F64, intensity_max: float, hits: HitArrays,

@@ -319,8 +319,9 @@ def response_kernel(hits, hit_off, beams, pulse, medium, continuum, ratio, out):
     the beam's stream ``beams.noise_key``) is added to its peak and range before the floor decides whether it is
     detected; an echo measured nearer than ``pulse.min_range`` is not. A target kept at its range keeps the noise of
     its clear measurement (scaled with it) here; the reading's missing variance is added afterwards
-    (`weatheralign.lidar.particles.api._read_attenuated`). Whether the weather pushed a kept target under the floor
-    is decided on the clear value its rounded reading stood for (``beams.clear``, `_keep_or_lost`). Every floor test
+    (`weatheralign.lidar.particles.api._read_attenuated`, which decides again on the noisy reading). Whether the
+    weather pushed a kept target under the floor is decided on the clear value its rounded reading stood for
+    (``beams.clear``, `_keep_or_lost`; LOST keeps the noise-free value at the target's range). Every floor test
     uses the floor at the echo's noise-free reported range (``pulse.comp_ref``: a raw-power detector's grows with
     range, `weatheralign.sensors.LidarModel.floor_range_m`), and a new echo's constant noise scales with it.
     """
