@@ -18,7 +18,8 @@ Sensors (`SENSORS`): what decides whether a particle echo is reported, the inten
 - ``world``: the synthetic world's HDL-32E (configs/world_rig.yaml): calibrated ``100 ρ``, a raw-power detector with
   a 10 % target at the floor at 35 m (floor ``10 (r / 35 m)²``);
 - ``world_constant_floor``: the world's earlier sensor, ``255 ρ min(1, 10 m / r)`` with a constant floor 0.5;
-- ``reference``: the same intensity model with the reference's floor 1.0 (noise-free here);
+- ``reference``: the synthetic reference's HDL-64 (`weatheralign.config.ReferenceLidarConfig`): the same intensity
+  model with a raw-power detector, floor 5.1 at 50 m (the HDL-64E datasheet's 10 % target at 50 m; noise-free here);
 - ``hahner_floor0.5``: Hahner's raw ``255 ρ (1 m / r)²`` with the floor 0.5 (the sensor of the issue's comparison);
 - ``raw_rated<R>m``: raw power (``1 / r²``) with the floor at which a 10 % target is detected out to R m
   (`rated_intensity`, floor 1); the sensitivity sweep runs R = 12.5 … 200 m. Hahner's intensity with the floor 0.5
@@ -33,7 +34,9 @@ the weather scan, as labelled real scans report it.
 cloud, medium, rate_mm_h, counts}``), measured outside this repository with their own code; they are stored with
 the results and drawn on the figure (the cloud workloads run our fast simulator on the same clouds, and count the
 snow points DROR finds in CADC's box around the car, `dror_outliers`, to compare with CADC's per-drive counts). Real
-measurements: `REAL_FIGURES`. ``--clouds-only`` reruns the cloud workloads alone; ``--replot`` redraws the figure.
+measurements: `REAL_FIGURES`. ``--clouds-only`` reruns the cloud workloads alone; ``--sensors NAME ...`` reruns the
+street-scene entries of those sensors (and the clouds), keeping the other entries of ``--out``; ``--replot`` redraws
+the figure.
 """
 
 from __future__ import annotations
@@ -50,7 +53,7 @@ import numpy as np
 
 from benchmarks.common import REAL, STF_ID
 from weatheralign.atomic import write_json
-from weatheralign.config import LidarConfig
+from weatheralign.config import LidarConfig, ReferenceLidarConfig
 from weatheralign.lidar.particles.strength import EchoSensor, expected_weather_points, rated_intensity
 from weatheralign.sensors import HAHNER_INTENSITY, SYNTHETIC_INTENSITY, lidar_model_from_params
 
@@ -122,11 +125,12 @@ def scenes() -> dict[str, StreetScene]:
 
 def sensors(max_range_m: float) -> dict[str, EchoSensor]:
     """The sensor variants of the module docstring for a scene's maximum range."""
-    world = lidar_model_from_params(LidarConfig())
+    world, ref = lidar_model_from_params(LidarConfig()), ReferenceLidarConfig()
     out = {"world": EchoSensor(world.intensity, world.noise_floor, DIVERGENCE_RAD, 1.0, max_range_m,
                                world.floor_range_m),
            "world_constant_floor": EchoSensor(SYNTHETIC_INTENSITY, 0.5, DIVERGENCE_RAD, 1.0, max_range_m),
-           "reference": EchoSensor(SYNTHETIC_INTENSITY, 1.0, DIVERGENCE_RAD, 1.0, max_range_m),
+           "reference": EchoSensor(SYNTHETIC_INTENSITY, ref.noise_floor, DIVERGENCE_RAD, 1.0, max_range_m,
+                                   ref.floor_range_m),
            "hahner_floor0.5": EchoSensor(HAHNER_INTENSITY, 0.5, DIVERGENCE_RAD, 1.0, max_range_m)}
     for rated in RATED_RANGES:
         out[f"raw_rated{rated:g}m"] = EchoSensor(rated_intensity(RATED_REFLECTIVITY, rated, 1.0), 1.0, DIVERGENCE_RAD,
@@ -274,6 +278,7 @@ def _rate_entries(scene: StreetScene, sensor_names: list[str], rates: dict[str, 
             for rate in medium_rates:
                 entry = {"workload": f"{scene.name}_{sensor_name}_{medium}_{rate:g}mmh", "scene": scene.name,
                          "sensor": sensor_name, "noise_floor": sensor.noise_floor,
+                         "floor_range_m": sensor.floor_range_m,
                          "intensity_model": vars(sensor.intensity), "medium": medium, "rate_mm_h": rate,
                          "targets": int(np.isfinite(beams.target_range).sum()),
                          "beams": int(len(beams.directions)),
@@ -352,13 +357,14 @@ def run_cloud(name: str, scan: Any, columns: np.ndarray | None, lidar: Any, medi
     counts = _fast_counts(result, None, lidar.floor_at, int(len(scan.points)))
     return {"workload": f"cloud_{name}_{medium}_{rate:g}mmh", "cloud": name, "medium": medium, "rate_mm_h": rate,
             "points": int(len(scan.points)), "noise_floor": float(lidar.noise_floor),
+            "floor_range_m": lidar.floor_range_m,
             "intensity_model": vars(lidar.intensity),
             "fast": {**counts, "dror_box_snow": dror, "seconds": seconds, "cpu_seconds": cpu}}
 
 
 SENSOR_STYLE = {"world": ("tab:blue", "world HDL-32E (raw-power floor: 10 % at 35 m)"),
                 "world_constant_floor": ("tab:cyan", "earlier world sensor (constant floor 0.5)"),
-                "reference": ("tab:green", "reference sensor (floor 1)"),
+                "reference": ("tab:green", "reference HDL-64 (raw floor, 10 % at 50 m)"),
                 "hahner_floor0.5": ("tab:red", "Hahner's 1/r² intensity, floor 0.5 (rated 7 m)"),
                 "raw_rated100m": ("tab:purple", "raw power, rated 100 m on 10 %")}
 
@@ -501,6 +507,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--figure", type=Path, default=FIGURE)
     parser.add_argument("--clouds-only", action="store_true",
                         help="rerun only the cloud workloads and merge them into --out")
+    parser.add_argument("--sensors", nargs="+", default=None, metavar="NAME",
+                        help="rerun only these sensors' street-scene entries (and the clouds), merged into --out")
     parser.add_argument("--replot", action="store_true",
                         help="only redraw the figure from --out (with --peers: store those peers first)")
     args = parser.parse_args(argv)
@@ -512,13 +520,17 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         draw_figure(result, args.figure)
         print(f"wrote {args.figure}")
         return result
+    unknown = sorted(set(args.sensors or ()) - set(sensors(100.0)))
+    if unknown:
+        parser.error(f"--sensors: unknown {unknown}; expected some of {sorted(sensors(100.0))}")
     rates = ({"snow": (2.0,), "rain": (50.0,)} if args.quick else {"snow": SNOW_RATES, "rain": RAIN_RATES})
     entries = []
+    chosen = (lambda names: names) if args.sensors is None else (lambda names: [n for n in names if n in args.sensors])
     for scene in ([] if args.clouds_only else scenes().values()):
-        entries += _rate_entries(scene, ["world", "world_constant_floor", "reference", "hahner_floor0.5",
-                                         "raw_rated100m"], rates, exact=True, sub_rays=args.sub_rays)
+        entries += _rate_entries(scene, chosen(["world", "world_constant_floor", "reference", "hahner_floor0.5",
+                                                "raw_rated100m"]), rates, exact=True, sub_rays=args.sub_rays)
         if not args.quick:
-            entries += _rate_entries(scene, [f"raw_rated{r:g}m" for r in RATED_RANGES if r != 100.0],
+            entries += _rate_entries(scene, chosen([f"raw_rated{r:g}m" for r in RATED_RANGES if r != 100.0]),
                                      {"snow": (2.0,), "rain": (50.0,)}, exact=True, sub_rays=args.sub_rays)
     clouds = []
     for name, (scan, columns, lidar) in cloud_scans().items():
@@ -526,8 +538,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             for rate in medium_rates:
                 clouds.append(run_cloud(name, scan, columns, lidar, medium, rate))
                 print(f"{clouds[-1]['workload']:40s} fast {clouds[-1]['fast']['weather_share']:.4f}", flush=True)
-    previous = json.loads(args.out.read_text()) if args.clouds_only else {}
-    entries = previous.get("entries", entries)
+    previous = json.loads(args.out.read_text()) if args.clouds_only or args.sensors is not None else {}
+    if args.sensors is not None:  # the other sensors' entries as they were, these sensors' in their place
+        entries = [e for e in previous.get("entries", []) if e["sensor"] not in args.sensors] + entries
+    else:
+        entries = previous.get("entries", entries)
     peers = json.loads(args.peers.read_text()) if args.peers is not None else previous.get("peers", [])
     result = {"entries": entries, "clouds": clouds, "peers": peers, "real": REAL_FIGURES,
               "settings": {"divergence_rad": DIVERGENCE_RAD, "pulse_half_width_s": PULSE_HALF_WIDTH_S,
