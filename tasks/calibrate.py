@@ -59,7 +59,8 @@ def precipitation_statistics_task(ds: ReferenceDataset, kind: str, rate_mm_h: fl
     seeded from its id)."""
     ids = ds.ids("clear")
     scans = grounded_scans([ds.load_scan(i) for i in ids], ids, kind, ground_depth_m, lidar.noise_floor,
-                           lidar.intensity_noise_std, None if lidar.floor_range_m is None else lidar.floor_scale)
+                           lidar.intensity_noise_std, None if lidar.floor_range_m is None else lidar.floor_scale,
+                           lidar)
     return simulated_statistics(scans, kind, (rate_mm_h,), lidar, particles, ids)[0]
 
 

@@ -4,15 +4,26 @@ edits the pixels the LiDAR's edited returns land on."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from weatheralign.data.frame import LidarScan
 from weatheralign.ground.camera import CameraGeometry
-from weatheralign.ground.edit import GroundState, edit_image, edit_scan, scan_surfaces
-from weatheralign.ground.snow import SnowCover, TireTracks
+from weatheralign.ground.edit import (
+    GroundState,
+    UnseenBeams,
+    edit_image,
+    edit_scan,
+    road_reflectivity,
+    scan_surfaces,
+)
+from weatheralign.ground.snow import SnowCover, TireTracks, snow_coverage
 from weatheralign.ground.surfaces import mask_agreement
 from weatheralign.ground.wet import WetRoad, incidence_angle, water_depth, wet_ground
+from weatheralign.lidar.beams import detector_noise_keys
+from weatheralign.sensors import SYNTHETIC_INTENSITY
 
 HEIGHT_M = 1.8
 
@@ -254,3 +265,52 @@ def test_the_wet_edits_noise_is_each_beams_own_and_apart_from_the_airs_draws() -
     air = np.array([normal_pair(k) for k in keys])
     for c in range(2):
         assert abs(np.corrcoef(z, air[:, c])[0, 1]) < 4 / np.sqrt(len(z))
+
+
+def dark_ring_beams(elevations_deg: tuple[float, ...], columns: int = 360) -> UnseenBeams:
+    """Beams without return from `street_scan`'s sensor (the scan's frame, origin at the sensor), ``columns`` per
+    ring at each elevation, reported by the synthetic reference's intensity model."""
+    az = np.tile(np.linspace(-np.pi, np.pi, columns, endpoint=False), len(elevations_deg))
+    el = np.radians(np.repeat(elevations_deg, columns))
+    d = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+    times = np.linspace(0.0, 0.1, len(d))
+    ring = np.repeat(np.arange(len(elevations_deg), dtype=np.float64), columns) + 40.0
+    return UnseenBeams(np.zeros_like(d), d, times, ring, detector_noise_keys(times, d, ring), 120.0,
+                       SYNTHETIC_INTENSITY)
+
+
+def test_snow_on_a_road_the_clear_beams_missed_returns_where_its_reading_clears_the_floor() -> None:
+    """A road of reflectivity 0.1 (read exactly by the near returns) under 0.1 m of even snow: a beam 4 deg down
+    meets it at 25.8 m, where the bare road reads 0.69 (under the floor of 1) and the snow 5.3x that: every such beam
+    returns, from the snow's top, (h - d) / sin 4 deg away; 2 deg down (51.6 m) the snow reads 0.92: none; beams
+    above the horizon and a wet road add nothing."""
+    scan = street_scan()
+    surfaces = scan_surfaces(scan, off_ground=False)
+    xyz = scan.points[:, :3].astype(np.float64)
+    r = np.linalg.norm(xyz, axis=1)
+    cos_in = np.cos(incidence_angle(xyz, np.zeros(3), np.asarray(surfaces.plane.normal)))
+    points = scan.points.copy()
+    points[:, 3] = np.where(surfaces.on_ground, SYNTHETIC_INTENSITY.intensity(0.1, r) * cos_in, points[:, 3])
+    scan = replace(scan, points=points)
+    assert road_reflectivity(scan, surfaces, SYNTHETIC_INTENSITY) == pytest.approx(0.1, rel=1e-5)
+    cover = SnowCover(depth_m=0.1, variation=0.0)
+    state = GroundState(cover=cover, seed=1)
+    unseen = dark_ring_beams((-4.0, -2.0, 1.0))
+    edited = edit_scan(scan, surfaces, state, noise_floor=1.0, unseen=unseen)
+    n = len(scan.points)
+    added = edited.scan.points[n:]
+    assert edited.added == len(added) == 360 and set(added[:, 4].tolist()) == {40.0}
+    np.testing.assert_array_equal(edited.source_index[n:], -1)
+    assert edited.changed[n:].all() and len(edited.edited) == n
+    ring = unseen.directions[:360]
+    descent = -(ring @ np.asarray(surfaces.plane.normal))  # cos of the incidence on the fitted plane
+    reach = surfaces.plane.offset / descent  # the plane lies offset (about 1.8 m) under the sensor
+    np.testing.assert_allclose(np.linalg.norm(added[:, :3], axis=1), reach - 0.1 / descent, rtol=1e-5)
+    bare = SYNTHETIC_INTENSITY.intensity(0.1, reach) * descent
+    coverage, _ = snow_coverage(np.array([0.1]), np.array([1.0]), cover)
+    ratio = cover.snow_reflectivity / cover.pavement_reflectivity
+    np.testing.assert_allclose(added[:, 3], bare * (1.0 - coverage[0] + coverage[0] * ratio), rtol=1e-5)
+    bare = bare[0]
+    assert 0.6 < bare < 1.0 < added[0, 3]
+    wet = edit_scan(scan, surfaces, GroundState(road=WetRoad(), seed=1), noise_floor=1.0, unseen=unseen)
+    assert wet.added == 0 and len(wet.scan.points) <= n

@@ -27,7 +27,7 @@ from weatheralign.data.nuscenes import (
     open_nuscenes,
     read_point_extras,
 )
-from weatheralign.ground.edit import edit_scan, scan_surfaces
+from weatheralign.ground.edit import edit_scan, scan_surfaces, unseen_beams
 from weatheralign.ground.snow import TireTracks
 from weatheralign.lidar import simulate_fog, simulate_particle_scans
 from weatheralign.lidar.labels import WeatherLabel
@@ -592,7 +592,8 @@ def test_fog_snow_cameras_see_fog_and_prefogged_flakes(world):
 def test_the_lidar_sees_the_ground_first_then_the_air(world):
     """With a ground, each scan is edited on its surfaces first (`edit_scan`) and the air's weather runs on what is
     left: the same points as the air alone on the edited scan, rows told in the input's numbering, the points the
-    ground alone changed labelled GROUND, every input point counted once."""
+    ground alone changed labelled GROUND, every input point and every return the snow adds on a road its clear beam
+    missed (`unseen_beams`) counted once."""
     tw, nusc, fields, frame, _, sensors, scenes = world
     scans = [frame.lidar, *(load_lidar(nusc, sd["token"]) for sd in sweep_records(nusc, frame.token))]
     for condition in ("snow", "rain"):
@@ -602,7 +603,8 @@ def test_the_lidar_sees_the_ground_first_then_the_air(world):
         state = media.ground.state(camera=False, tracks=TireTracks.along_heading(scans[0].T_global_lidar))
         lidar = sensors.lidar
         edited = [edit_scan(scan, scan_surfaces(scan, off_ground=state.kind == "snow"), state, lidar.noise_floor,
-                            lidar.intensity_noise_std, None if lidar.floor_range_m is None else lidar.floor_scale)
+                            lidar.intensity_noise_std, None if lidar.floor_range_m is None else lidar.floor_scale,
+                            unseen_beams(scan, lidar) if state.kind == "snow" else None)
                   for scan in scans]
         air = observe_lidar_scans([e.scan for e in edited], replace(media, ground=None), sensors.lidar)
         for lw, e, a, scan in zip(got, edited, air, scans):
@@ -614,7 +616,10 @@ def test_the_lidar_sees_the_ground_first_then_the_air(world):
             assert (lw.labels[ground_only] == WeatherLabel.GROUND).all()
             points = sum(lw.counts[k] for k in ("UNCHANGED", "ATTENUATED", "SCATTERED", "LOST", "GROUND",
                                                   "GROUND_LOST"))
-            assert points == len(scan.points) and lw.counts["GROUND_LOST"] == e.lost
+            assert points == len(scan.points) + e.added and lw.counts["GROUND_LOST"] == e.lost
+            assert lw.counts["GROUND_ADDED"] == e.added
+        if condition == "snow":  # the snow on a road the HDL-32E's clear beams missed under the floor returns
+            assert all(e.added > 0 for e in edited)
         if condition == "rain":
             assert sum(e.lost for e in edited) > 0  # the film pushes the weakest ground returns under the floor
 

@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 from weatheralign.calibrate.precipitation import bootstrap_fit
 from weatheralign.config import ParticlesConfig
 from weatheralign.data.frame import LidarScan
-from weatheralign.ground.edit import GroundState, edit_scan, scan_surfaces
+from weatheralign.ground.edit import GroundState, UnseenBeams, edit_scan, scan_surfaces, unseen_beams
 from weatheralign.ground.snow import SnowCover, TireTracks
 from weatheralign.ground.wet import WetRoad
 from weatheralign.lidar.particles import RAIN_REFLECTIVITY, SNOW_REFLECTIVITY, simulate_particles
@@ -105,16 +105,23 @@ class TunedAir:
 
 def grounded_scans(scans: Sequence[LidarScan], names: Sequence[str], kind: str, depth_m: float,
                    noise_floor: float, noise_std: float = 0.0,
-                   floor_scale: Callable[[F64], F64] | None = None) -> list[LidarScan]:
+                   floor_scale: Callable[[F64], F64] | None = None,
+                   lidar: LidarModel | None = None) -> list[LidarScan]:
     """Each clear scan with the simulation's ground of ``kind`` at ``depth_m`` [m] (`edit_scan` on the scan's own
     surfaces, read by a detector of intensity noise ``noise_std`` and floor ``noise_floor`` (0..255; returns under
     it lost), the field seeded from the scan's name): what the weather split's air falls onto, so the rate's
     statistic is measured over the ground the split has. ``floor_scale``: a raw-power detector's floor factor
-    (`weatheralign.sensors.LidarModel.floor_scale`; None: constant)."""
+    (`weatheralign.sensors.LidarModel.floor_scale`; None: constant). ``lidar``: the sensor whose beams without return
+    meet the snow on a dark road (`unseen_beams`, as `simulate` does); None: no return added."""
     return [edit_scan(scan, scan_surfaces(scan, off_ground=kind == "snow"),
                       ground_state(kind, float(depth_m), ground_seed(name, kind), scan), noise_floor, noise_std,
-                      floor_scale).scan
+                      floor_scale, _unseen(scan, kind, lidar)).scan
             for scan, name in zip(scans, names)]
+
+
+def _unseen(scan: LidarScan, kind: str, lidar: LidarModel | None) -> UnseenBeams | None:
+    """The beams without return of ``scan`` where snow may add returns (`unseen_beams`), else None."""
+    return unseen_beams(scan, lidar) if kind == "snow" and lidar is not None else None
 
 
 def simulated_ground_statistics(scans: Sequence[LidarScan], names: Sequence[str], kind: str,
@@ -127,9 +134,10 @@ def simulated_ground_statistics(scans: Sequence[LidarScan], names: Sequence[str]
     out = np.empty((len(depths_m), len(scans)))
     for f, (scan, name) in enumerate(zip(scans, names)):
         surfaces = scan_surfaces(scan, off_ground=kind == "snow")
+        unseen = _unseen(scan, kind, None if air is None else air.lidar)
         for d, depth in enumerate(depths_m):
             state = ground_state(kind, float(depth), ground_seed(name, kind), scan)
-            edited = edit_scan(scan, surfaces, state, noise_floor, noise_std, floor_scale).scan
+            edited = edit_scan(scan, surfaces, state, noise_floor, noise_std, floor_scale, unseen).scan
             if air is not None:
                 weather = simulate_particles(edited, field_spec(air.particles, kind, name, scan.timestamp).field(),
                                                lidar=air.lidar,

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,6 +22,7 @@ from scipy.ndimage import gaussian_filter
 
 from weatheralign.camera.fog import affine_edit_u8, decode_srgb_u8, range_guided_upsample
 from weatheralign.data.frame import LidarScan
+from weatheralign.geometry import invert
 from weatheralign.ground.camera import CameraGeometry, snow_cover_layers, wet_road_layer_pair, wet_road_layers
 from weatheralign.ground.snow import SnowCover, TireTracks, snow_covered_ground, surface_snow
 from weatheralign.ground.surfaces import (
@@ -34,9 +35,12 @@ from weatheralign.ground.surfaces import (
     point_normals,
 )
 from weatheralign.ground.wet import WetRoad, film_depth, incidence_angle, puddle_margin, water_depth, wet_ground
-from weatheralign.lidar.beams import beam_origins, point_noise_keys, point_ranges
+from weatheralign.lidar.beams import beam_origins, beams_from_scan, detector_noise_keys, point_noise_keys, point_ranges
 from weatheralign.lidar.ground_plane import GroundPlane, fit_ground_plane
 from weatheralign.lidar.quantum import reading_uniforms, scan_clear_readings
+
+if TYPE_CHECKING:
+    from weatheralign.sensors import IntensityModel, LidarModel
 
 F64 = NDArray[np.float64]
 Mask = NDArray[np.bool_]
@@ -130,22 +134,120 @@ def scan_surfaces(scan: LidarScan, tolerance_m: float = 0.2, off_ground: bool = 
 class EditedScan(NamedTuple):
     """A scan after the ground edit."""
 
-    scan: LidarScan  # the returns left (lost ones removed)
-    source_index: NDArray[np.int64]  # (M,) row of the input scan of each
-    changed: Mask  # (M,) the ground edit changed it (intensity, position)
+    scan: LidarScan  # the returns left (lost ones removed), then the snow's returns from beams that had none
+    source_index: NDArray[np.int64]  # (M,) row of the input scan of each; -1: a return the snow added
+    changed: Mask  # (M,) the ground edit changed or added it (intensity, position)
     edited: Mask  # (N,) per input return: on a wet or snow-covered surface (lost ones included)
     lost: int  # returns pushed under the detector floor
+    added: int = 0  # returns of snow on the road where the clear beam returned nothing
+
+
+class UnseenBeams(NamedTuple):
+    """The beams of a scan that returned nothing (`unseen_beams`), in the scan's frame."""
+
+    origins: F64  # (K, 3) [m] the sensor at each beam's firing time
+    directions: F64  # (K, 3) unit
+    time_offsets: F64  # (K,) [s] after the scan's timestamp
+    ring: F64  # (K,)
+    noise_keys: NDArray[np.uint64]  # (K,) each beam's detector-noise stream (`detector_noise_keys`)
+    max_range_m: float
+    intensity: IntensityModel  # how the sensor reports a surface's reflectivity at a range
+
+
+def unseen_beams(scan: LidarScan, lidar: LidarModel) -> UnseenBeams:
+    """The beams of ``scan`` without return as the particle simulation finds them
+    (`weatheralign.lidar.beams.beams_from_scan`: the firing grid where the dataset stores columns, else reconstructed
+    from the ring/azimuth gaps), moved to the scan's frame, with their detector-noise streams."""
+    beams = beams_from_scan(scan, lidar=lidar)
+    none = beams.select(~beams.has_return)
+    T = invert(scan.T_global_lidar)
+    return UnseenBeams(none.origins @ T[:3, :3].T + T[:3, 3], none.directions @ T[:3, :3].T,
+                       none.times - scan.timestamp, none.ring.astype(np.float64),
+                       detector_noise_keys(none.times, none.directions, none.ring), float(none.max_range),
+                       lidar.intensity)
+
+
+NEAR_ROAD_M = (3.0, 15.0)
+"""Ranges [m] of the ground returns whose reflectivity stands for the bare road's (`snow_on_unseen_road`): near enough
+that the detector sees all of it."""
+
+MIN_NEAR_ROAD_RETURNS = 50
+"""Fewer ground returns than this within `NEAR_ROAD_M`: the bare road is taken to read half the floor."""
+
+
+def road_reflectivity(scan: LidarScan, surfaces: ScanSurfaces, intensity: IntensityModel) -> float | None:
+    """The bare road's reflectivity: the median over the returns on the fitted ground within `NEAR_ROAD_M` of their
+    intensity divided by what a reflectivity of 1 reads there (``intensity``: ``scale cos θ g(R)``, θ the incidence
+    on the plane); None with fewer than `MIN_NEAR_ROAD_RETURNS` of them."""
+    xyz = scan.points[:, :3].astype(np.float64)
+    r = np.linalg.norm(xyz, axis=1)
+    near = surfaces.on_ground & (r >= NEAR_ROAD_M[0]) & (r <= NEAR_ROAD_M[1])
+    if near.sum() < MIN_NEAR_ROAD_RETURNS:
+        return None
+    cos_in = np.cos(incidence_angle(xyz[near], np.zeros(3), np.asarray(surfaces.plane.normal)))
+    unit = intensity.intensity(1.0, r[near]) * np.maximum(cos_in, 1e-3)
+    return float(np.median(scan.intensity_255()[near].astype(np.float64) / unit))
+
+
+def snow_on_unseen_road(scan: LidarScan, surfaces: ScanSurfaces, state: GroundState, unseen: UnseenBeams,
+                        noise_floor: float, noise_std: float = 0.0,
+                        floor_scale: Callable[[F64], F64] | None = None) -> tuple[NDArray[np.float32], F64]:
+    """The snow's returns from beams that returned nothing on a dark road: (M, 5) points (x, y, z [m], intensity on
+    ``scan``'s scale, ring) in the scan's frame and their firing-time offsets (M,) [s].
+
+    A beam of ``unseen`` that points below the horizon onto the fitted ground plane within the maximum range met the
+    bare road under the detector floor: at grazing incidence and long range the road reads ``scale ρ cos θ g(R)``
+    (``unseen.intensity``) with ``ρ`` the near road's (`road_reflectivity`; unknown: half the floor), capped at the
+    floor at the beam's range (it returned nothing). Under ``state``'s snow the beam's footprint is covered over the
+    share `surface_snow` gives there, the surface raised and brightened as for a seen return (`snow_covered_ground`),
+    and read by a detector of intensity noise ``noise_std`` (0..255; the beam's `wet_reading_normals`): the returns
+    at or over the floor ``noise_floor`` (0..255) are kept. ``floor_scale``: the floor's and the noise's factor at a
+    range (None: constant)."""
+    empty = (np.zeros((0, 5), dtype=np.float32), np.zeros(0))
+    if state.cover is None or not len(unseen.origins):
+        return empty
+    normal = np.asarray(surfaces.plane.normal, dtype=np.float64)
+    height = unseen.origins @ normal + surfaces.plane.offset
+    descent = -(unseen.directions @ normal)
+    down = (height > 0.0) & (descent > 0.0)
+    reach = np.where(down, height / np.where(down, descent, 1.0), np.inf)
+    on = np.flatnonzero(reach < unseen.max_range_m)
+    if not len(on):
+        return empty
+    hits = unseen.origins[on] + unseen.directions[on] * reach[on, None]
+    T = scan.T_global_lidar
+    world_xy = (hits @ T[:3, :3].T + T[:3, 3])[:, :2]
+    cos_up = np.full(len(on), abs(float((T[:3, :3] @ normal)[2])))
+    coverage, depth = surface_snow(world_xy, cos_up, state.cover, state.seed, state.tracks)
+    covered = coverage > 0.0
+    on, hits, coverage, depth = on[covered], hits[covered], coverage[covered], depth[covered]
+    reach, descent = reach[on], descent[on]
+    floor = noise_floor * (np.ones(len(on)) if floor_scale is None else floor_scale(reach))
+    rho = road_reflectivity(scan, surfaces, unseen.intensity)
+    bare = 0.5 * floor if rho is None else np.minimum(unseen.intensity.intensity(rho, reach) * descent, floor)
+    effect = snow_covered_ground(hits, unseen.origins[on], normal, bare, depth, state.cover, coverage=coverage)
+    reading = effect.intensity
+    if noise_std > 0.0:
+        reading = np.clip(reading + noise_std * (floor / noise_floor if noise_floor > 0.0 else 1.0)
+                          * wet_reading_normals(unseen.noise_keys[on]), 0.0, 255.0)
+    seen = reading >= floor
+    points = np.column_stack([effect.points[seen], reading[seen] * (scan.intensity_max / 255.0),
+                              unseen.ring[on][seen]]).astype(np.float32)
+    return points, unseen.time_offsets[on][seen]
 
 
 def edit_scan(scan: LidarScan, surfaces: ScanSurfaces, state: GroundState, noise_floor: float,
-              noise_std: float = 0.0, floor_scale: Callable[[F64], F64] | None = None) -> EditedScan:
+              noise_std: float = 0.0, floor_scale: Callable[[F64], F64] | None = None,
+              unseen: UnseenBeams | None = None) -> EditedScan:
     """``scan`` with ``state``'s ground: wet ground returns dimmed by the film (`wet_ground`: an integer-quantised
     scan's readings spread over their rounding intervals, `weatheralign.lidar.quantum.scan_clear_readings`; read
     again by a detector of intensity noise ``noise_std`` (0..255), each with its beam's `wet_reading_normals`), the
     ones under ``noise_floor`` (0..255) lost; snow-covered returns raised onto the snow along their beams and
-    brightened over the covered share (`snow_covered_ground`). ``floor_scale``: the factor of the floor and of the
-    noise's constant part at a range (a raw-power detector's, `weatheralign.sensors.LidarModel.floor_scale`), taken
-    at each return's range from its beam origin; None: both constant."""
+    brightened over the covered share (`snow_covered_ground`), and with ``unseen`` (the scan's beams without return)
+    the snow's returns on the road those beams met under the floor appended (`snow_on_unseen_road`; not for a scan of
+    aggregated sweeps). ``floor_scale``: the factor of the floor and of the noise's constant part at a range (a
+    raw-power detector's, `weatheralign.sensors.LidarModel.floor_scale`), taken at each return's range from its beam
+    origin; None: both constant."""
     points = scan.points.copy()
     intensity = scan.intensity_255().astype(np.float64)
     keep = np.ones(len(points), dtype=bool)
@@ -179,10 +281,17 @@ def edit_scan(scan: LidarScan, surfaces: ScanSurfaces, state: GroundState, noise
         changed = covered
     points[:, 3] = (intensity * (scan.intensity_max / 255.0)).astype(np.float32)
     rows = np.nonzero(keep)[0]
-    out = replace(scan, points=np.ascontiguousarray(points[rows]),
-                  time_offsets=None if scan.time_offsets is None else scan.time_offsets[rows],
+    new, new_offsets = (np.zeros((0, 5), dtype=np.float32), np.zeros(0))
+    if unseen is not None and scan.sweep_index is None:
+        new, new_offsets = snow_on_unseen_road(scan, surfaces, state, unseen, noise_floor, noise_std, floor_scale)
+    offsets = None
+    if scan.time_offsets is not None:
+        offsets = np.concatenate([scan.time_offsets[rows], new_offsets.astype(scan.time_offsets.dtype)])
+    out = replace(scan, points=np.ascontiguousarray(np.concatenate([points[rows], new])), time_offsets=offsets,
                   sweep_index=None if scan.sweep_index is None else scan.sweep_index[rows])
-    return EditedScan(out, rows.astype(np.int64), changed[rows], edited, int((~keep).sum()))
+    return EditedScan(out, np.concatenate([rows, np.full(len(new), -1)]).astype(np.int64),
+                      np.concatenate([changed[rows], np.ones(len(new), dtype=bool)]), edited, int((~keep).sum()),
+                      len(new))
 
 
 class EditedImage(NamedTuple):
@@ -312,6 +421,7 @@ def ground_layers(linear: F64, range_map: F64, camera: CameraGeometry, exact_ran
     return GroundLayers(gain, offset, coverage > SNOW_EDIT_MIN_COVERAGE)
 
 
-__all__ = ["EditedImage", "EditedScan", "GroundLayers", "GroundState", "SNOW_EDIT_MIN_COVERAGE", "ScanSurfaces",
-           "WET_NOISE_COUNTER", "WORK_STRIDE", "edit_image", "edit_image_u8", "edit_scan", "ground_layers", "odd_px",
-           "scan_surfaces", "wet_reading_normals"]
+__all__ = ["EditedImage", "EditedScan", "GroundLayers", "GroundState", "MIN_NEAR_ROAD_RETURNS", "NEAR_ROAD_M",
+           "SNOW_EDIT_MIN_COVERAGE", "ScanSurfaces", "UnseenBeams", "WET_NOISE_COUNTER", "WORK_STRIDE", "edit_image",
+           "edit_image_u8", "edit_scan", "ground_layers", "odd_px", "road_reflectivity", "scan_surfaces",
+           "snow_on_unseen_road", "unseen_beams", "wet_reading_normals"]

@@ -44,7 +44,15 @@ from weatheralign.camera.splat import (
 from weatheralign.data.frame import CameraView, Frame, LidarScan
 from weatheralign.geometry import invert
 from weatheralign.ground.camera import CameraGeometry
-from weatheralign.ground.edit import EditedScan, GroundState, ScanSurfaces, edit_image_u8, edit_scan, scan_surfaces
+from weatheralign.ground.edit import (
+    EditedScan,
+    GroundState,
+    ScanSurfaces,
+    edit_image_u8,
+    edit_scan,
+    scan_surfaces,
+    unseen_beams,
+)
 from weatheralign.ground.snow import TireTracks
 from weatheralign.ground.surfaces import mask_agreement
 from weatheralign.lidar import simulate_fog, simulate_particle_scans
@@ -54,9 +62,12 @@ from weatheralign.metrics.reprojection import CameraParticles, lidar_particles, 
 from weatheralign.sensors import CameraModel, LidarModel, SensorRig
 from weatheralign.simulate.media import SceneMedia
 
-COUNT_KEYS: tuple[str, ...] = (*(label.name for label in POINT_LABELS), "CLUTTER", "GROUND", "GROUND_LOST")
-"""Keys of `LidarWeather.counts`: input points per label, clutter points added on beams without return, points the
-ground alone changed (`WeatherLabel.GROUND`) and points the ground pushed under the detector floor."""
+COUNT_KEYS: tuple[str, ...] = (*(label.name for label in POINT_LABELS), "CLUTTER", "GROUND", "GROUND_LOST",
+                               "GROUND_ADDED")
+"""Keys of `LidarWeather.counts`: points per label, clutter points added on beams without return, points the ground
+alone changed or added (`WeatherLabel.GROUND`), points the ground pushed under the detector floor and returns the
+snow added on a road the clear beams missed (`weatheralign.ground.edit.snow_on_unseen_road`; they are counted under
+their label as well)."""
 
 
 @dataclass(frozen=True)
@@ -159,7 +170,8 @@ def observe_lidar_scans(scans: list[LidarScan], media: SceneMedia, lidar: LidarM
         state = media.ground.state(camera=False, tracks=TireTracks.along_heading(scans[0].T_global_lidar))
         surfaces = [scan_surfaces(scan, off_ground=state.kind == "snow") for scan in scans]
         grounded = [edit_scan(scan, found, state, lidar.noise_floor, lidar.intensity_noise_std,
-                              None if lidar.floor_range_m is None else lidar.floor_scale)
+                              None if lidar.floor_range_m is None else lidar.floor_scale,
+                              unseen_beams(scan, lidar) if state.kind == "snow" else None)
                      for scan, found in zip(scans, surfaces)]
         scans = [g.scan for g in grounded]
     fog = FogMedium(media.lidar_alpha, media.lidar_beta) if media.lidar_alpha > 0.0 else None
@@ -182,7 +194,8 @@ def observe_lidar_scans(scans: list[LidarScan], media: SceneMedia, lidar: LidarM
 
 def _with_ground(lw: LidarWeather, grounded: EditedScan, surfaces: ScanSurfaces) -> LidarWeather:
     """The air's weather ``lw`` of a ground-edited scan, told in the rows of the scan before the ground edit: source
-    rows mapped back, points the ground alone changed labelled `WeatherLabel.GROUND`, the ground's counts added."""
+    rows mapped back (-1 for the returns the ground added), points the ground alone changed or added labelled
+    `WeatherLabel.GROUND`, the ground's counts added."""
     src = lw.source_index
     kept = src >= 0
     source = np.where(kept, grounded.source_index[np.where(kept, src, 0)], -1)
@@ -192,6 +205,7 @@ def _with_ground(lw: LidarWeather, grounded: EditedScan, surfaces: ScanSurfaces)
     counts["UNCHANGED"] -= int(ground_only.sum())
     counts["GROUND"] = int(ground_only.sum())
     counts["GROUND_LOST"] = grounded.lost
+    counts["GROUND_ADDED"] = grounded.added
     return replace(lw, labels=labels, source_index=source.astype(np.int64), counts=counts, ground_surfaces=surfaces,
                    ground_edited=grounded.edited)
 

@@ -512,6 +512,7 @@ def summarise(records: list[dict]) -> dict:
         "points_unchanged": counts["UNCHANGED"], "points_attenuated": counts["ATTENUATED"],
         "points_scattered": counts["SCATTERED"] + counts["CLUTTER"], "points_clutter": counts["CLUTTER"],
         "points_lost": counts["LOST"], "points_ground": counts["GROUND"], "points_ground_lost": counts["GROUND_LOST"],
+        "points_ground_added": counts["GROUND_ADDED"],
         "ground_iou_mean": float(np.mean(ious)) if ious else None,
         "particles_rendered": sum(r["particles_rendered"] for r in records),
         "reprojection_mean_px": float(errors.mean()) if errors.size else None,
