@@ -35,7 +35,14 @@ from weatheralign.ground.surfaces import (
     point_normals,
 )
 from weatheralign.ground.wet import WetRoad, film_depth, incidence_angle, puddle_margin, water_depth, wet_ground
-from weatheralign.lidar.beams import beam_origins, beams_from_scan, detector_noise_keys, point_noise_keys, point_ranges
+from weatheralign.lidar.beams import (
+    beam_origins,
+    beams_from_scan,
+    detector_noise_keys,
+    point_noise_keys,
+    point_ranges,
+    ray_plane_ranges,
+)
 from weatheralign.lidar.ground_plane import GroundPlane, fit_ground_plane
 from weatheralign.lidar.quantum import reading_uniforms, scan_clear_readings
 
@@ -207,10 +214,7 @@ def snow_on_unseen_road(scan: LidarScan, surfaces: ScanSurfaces, state: GroundSt
     if state.cover is None or not len(unseen.origins):
         return empty
     normal = np.asarray(surfaces.plane.normal, dtype=np.float64)
-    height = unseen.origins @ normal + surfaces.plane.offset
-    descent = -(unseen.directions @ normal)
-    down = (height > 0.0) & (descent > 0.0)
-    reach = np.where(down, height / np.where(down, descent, 1.0), np.inf)
+    reach = ray_plane_ranges(unseen.origins, unseen.directions, surfaces.plane)
     on = np.flatnonzero(reach < unseen.max_range_m)
     if not len(on):
         return empty
@@ -221,15 +225,16 @@ def snow_on_unseen_road(scan: LidarScan, surfaces: ScanSurfaces, state: GroundSt
     coverage, depth = surface_snow(world_xy, cos_up, state.cover, state.seed, state.tracks)
     covered = coverage > 0.0
     on, hits, coverage, depth = on[covered], hits[covered], coverage[covered], depth[covered]
-    reach, descent = reach[on], descent[on]
-    floor = noise_floor * (np.ones(len(on)) if floor_scale is None else floor_scale(reach))
+    reach = reach[on]
+    descent = -(unseen.directions[on] @ normal)  # cos of the incidence on the plane
+    scale = np.ones(len(on)) if floor_scale is None else floor_scale(reach)
+    floor = noise_floor * scale
     rho = road_reflectivity(scan, surfaces, unseen.intensity)
     bare = 0.5 * floor if rho is None else np.minimum(unseen.intensity.intensity(rho, reach) * descent, floor)
     effect = snow_covered_ground(hits, unseen.origins[on], normal, bare, depth, state.cover, coverage=coverage)
     reading = effect.intensity
     if noise_std > 0.0:
-        reading = np.clip(reading + noise_std * (floor / noise_floor if noise_floor > 0.0 else 1.0)
-                          * wet_reading_normals(unseen.noise_keys[on]), 0.0, 255.0)
+        reading = np.clip(reading + noise_std * scale * wet_reading_normals(unseen.noise_keys[on]), 0.0, 255.0)
     seen = reading >= floor
     points = np.column_stack([effect.points[seen], reading[seen] * (scan.intensity_max / 255.0),
                               unseen.ring[on][seen]]).astype(np.float32)

@@ -495,9 +495,15 @@ def scan_ground_plane(scan: LidarScan) -> GroundPlane | None:
 def plane_ranges(beams: Beams, plane: GroundPlane) -> F64:
     """(N,) the range [m] at which each beam meets ``plane`` (global frame, normal up) from above, going down: the
     beams that point below the plane's horizon from an origin above it; inf for the others."""
+    return ray_plane_ranges(beams.origins, beams.directions, plane)
+
+
+def ray_plane_ranges(origins: F64, directions: F64, plane: GroundPlane) -> F64:
+    """(N,) the range [m] at which rays from ``origins`` (N, 3) [m] along unit ``directions`` (N, 3) meet ``plane``
+    (the same frame, normal up) from above, going down; inf for the others."""
     normal = np.asarray(plane.normal, dtype=np.float64)
-    height = beams.origins @ normal + plane.offset  # the origins' height above the plane
-    descent = -(beams.directions @ normal)  # the height lost per metre along the beam
+    height = origins @ normal + plane.offset  # the origins' height above the plane
+    descent = -(directions @ normal)  # the height lost per metre along the ray
     down = (height > 0.0) & (descent > 0.0)
     return np.where(down, height / np.where(down, descent, 1.0), np.inf)
 
