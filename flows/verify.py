@@ -71,7 +71,7 @@ from weatheralign.verify.classifier import (  # noqa: E402
     ensemble_report,
     fused_features,
     held_out_split,
-    train_weather_classifier,
+    train_fitted_classifiers,
 )
 from weatheralign.verify.figures import (  # noqa: E402
     confusion_figure,
@@ -215,11 +215,11 @@ def verify_flow(params: Params) -> dict:
         labels = np.concatenate([np.full(len(real[level]), CLASS_OF_LEVEL[level]) for level in levels])
         nan = np.full((3, *hw), np.nan, dtype=np.float32)
         displaced = np.stack([nan if r[3] is None else r[3] for level in levels for r in real[level]])
-        trained = [train_weather_classifier(
-            inputs, labels, CLASSES, held_out_fraction=cfg.held_out_fraction, steps=cfg.steps,
-            batch_size=cfg.batch_size, lr=cfg.lr, seed=cfg.seed + k, device=cfg.device,
-            correspondence_weight=cfg.correspondence_weight, embedding=cfg.embedding, displaced=displaced,
-            held_out=held_idx, progress=show) for k in range(cfg.classifiers)]
+        trained, rejected = train_fitted_classifiers(
+            inputs, labels, CLASSES, cfg.classifiers, seed=cfg.seed, min_train_accuracy=cfg.min_train_accuracy,
+            max_rejected=cfg.max_rejected, held_out_fraction=cfg.held_out_fraction, steps=cfg.steps,
+            batch_size=cfg.batch_size, lr=cfg.lr, device=cfg.device, correspondence_weight=cfg.correspondence_weight,
+            embedding=cfg.embedding, displaced=displaced, held_out=held_idx, progress=show)
         models = [m for m, _ in trained]
         member_accuracy = [r.accuracy for _, r in trained]
         report = ensemble_report(models, [r for _, r in trained], inputs, labels, device=cfg.device)
@@ -227,7 +227,8 @@ def verify_flow(params: Params) -> dict:
         print(f"verify: {len(models)} weather classifiers, held-out accuracy {report.accuracy:.3f} (each "
               f"{', '.join(f'{a:.3f}' for a in member_accuracy)}) on {len(report.held_out)} frames "
               f"({t_train - t_sim:.0f} s; {int(np.isfinite(displaced).all(axis=(1, 2, 3)).sum())} frames with "
-              f"displaced-particle negatives)")
+              f"displaced-particle negatives); trainings rejected (seed: training accuracy): "
+              f"{', '.join(f'{r.seed}: {r.train_accuracy:.3f}' for r in rejected) or 'none'}")
 
         def features(x: np.ndarray) -> np.ndarray:
             """(classifiers, n, embedding): every classifier's fused features of the inputs x."""
@@ -288,6 +289,10 @@ def verify_flow(params: Params) -> dict:
                          "ground_depth_m": dict(severity.ground_depth_m), "overcast": dict(severity.overcast)},
             "classifier_accuracy": report.accuracy, "classifier_held_out": int(len(report.held_out)),
             "classifiers": len(models), "classifier_accuracy_each": member_accuracy,
+            "classifier_seeds": [s for s in range(cfg.seed, cfg.seed + len(models) + len(rejected))
+                                 if s not in {r.seed for r in rejected}],
+            "classifier_train_accuracy_each": [r.train_accuracy for _, r in trained],
+            "classifiers_rejected": [{"seed": r.seed, "train_accuracy": r.train_accuracy} for r in rejected],
             "classifier_confusion": report.confusion.tolist(), "classes": list(CLASSES),
             "control_mmd": min(m["control_mmd"] for m in per_condition.values()),
             "control_p": control_p, "control_detected": bool(control_p < 0.01),

@@ -13,6 +13,8 @@ from weatheralign.verify.classifier import (
     fused_features,
     held_out_split,
     mismatched_pairs,
+    predict_classes,
+    train_fitted_classifiers,
     train_weather_classifier,
 )
 from weatheralign.verify.features import FUSED_CHANNELS
@@ -53,6 +55,36 @@ def test_classifier_learns_toy_weather_and_reports_held_out_frames() -> None:
         train_weather_classifier(x, y + 5, ("clear", "fog", "snow"), steps=1)
 
 
+def test_the_training_accuracy_is_measured_on_the_training_frames_alone() -> None:
+    torch.set_num_threads(1)
+    x, y = toy_weather(60, seed=1)
+    held = held_out_split(y, 0.25, seed=0)[1]
+    model, report = train_weather_classifier(x, y, ("clear", "fog", "snow"), steps=5, width=8, embedding=8,
+                                             held_out=held)
+    train = np.setdiff1d(np.arange(len(y)), held)
+    assert report.train_accuracy == pytest.approx(float(np.mean(predict_classes(model, x[train]) == y[train])))
+
+
+def test_trainings_that_do_not_fit_their_training_frames_are_replaced_by_the_next_seeds() -> None:
+    torch.set_num_threads(1)
+    x, y = toy_weather(90, seed=2)
+    held = held_out_split(y, 0.25, seed=0)[1]
+    kw = dict(steps=40, width=8, embedding=8, held_out=held)  # short: some starts fit the toy weather, some do not
+    accuracy = {seed: train_weather_classifier(x, y, ("clear", "fog", "snow"), seed=seed, **kw)[1].train_accuracy
+                for seed in range(3, 9)}
+    bar = sorted(accuracy.values())[3]  # three of the six trainings reach it (ties aside)
+    expected_kept = [s for s in range(3, 9) if accuracy[s] >= bar][:2]
+    expected_rejected = [s for s in range(3, expected_kept[-1]) if accuracy[s] < bar]
+    assert expected_rejected, "the toy trainings must include poor fits for this test to test anything"
+    kept, rejected = train_fitted_classifiers(x, y, ("clear", "fog", "snow"), 2, seed=3, min_train_accuracy=bar,
+                                              max_rejected=len(expected_rejected), **kw)
+    assert [r.train_accuracy for _, r in kept] == [accuracy[s] for s in expected_kept]
+    assert [(r.seed, r.train_accuracy) for r in rejected] == [(s, accuracy[s]) for s in expected_rejected]
+    with pytest.raises(ValueError, match=f"{len(expected_rejected)} classifier trainings"):  # one rejection too many
+        train_fitted_classifiers(x, y, ("clear", "fog", "snow"), 2, seed=3, min_train_accuracy=bar,
+                                 max_rejected=len(expected_rejected) - 1, **kw)
+
+
 def test_an_ensemble_report_averages_class_probabilities_on_the_shared_held_out_frames() -> None:
     torch.set_num_threads(1)
     x, y = toy_weather(120, seed=3)
@@ -66,6 +98,7 @@ def test_an_ensemble_report_averages_class_probabilities_on_the_shared_held_out_
     assert (report.held_out == held).all() and report.confusion.sum() == len(held)
     assert report.accuracy == pytest.approx(float(np.mean(probs.argmax(axis=1) == y[held])))
     assert report.final_loss == pytest.approx(np.mean([r.final_loss for r in reports]))
+    assert report.train_accuracy == pytest.approx(np.mean([r.train_accuracy for r in reports]))
     other = train_weather_classifier(x, y, ("clear", "fog", "snow"), steps=2, width=8, embedding=8, seed=5)
     with pytest.raises(ValueError, match="same held-out"):
         ensemble_report([*models, other[0]], [*reports, other[1]], x, y)

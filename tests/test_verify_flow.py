@@ -91,7 +91,7 @@ def test_verify_and_rate_calibration_on_an_stf_layout_tree_with_snow_and_rain(tm
             "tracking.enabled=false", "run.show_progress=false", "simulate.fog_levels=params",
             "simulate.precipitation_rates=params", "verify.steps=8",
             "verify.image_hw=[32, 64]", "verify.classifiers=2", "verify.permutations=100", "verify.resamples=20",
-            "verify.batch_size=4",
+            "verify.batch_size=4", "verify.min_train_accuracy=0",  # 8 steps fit nothing: keep every training
             "reference.sensor_overrides.noise_floor=1.0"]
     run = subprocess.run([sys.executable, "-m", "flows.verify", *[a for s in sets for a in ("--set", s)]],
                          cwd=REPO, capture_output=True, text=True, timeout=HANG_GUARD_S,
@@ -120,6 +120,8 @@ def test_verify_and_rate_calibration_on_an_stf_layout_tree_with_snow_and_rain(tm
                                    "overcast": {kind: PARAMS_LIGHT for kind in ("snow", "rain")}}  # params' light
     assert 0.0 <= metrics["classifier_accuracy"] <= 1.0 and len(metrics["classifier_confusion"]) == 4
     assert metrics["classifiers"] == 2 and len(metrics["classifier_accuracy_each"]) == 2  # the run's ensemble
+    assert metrics["classifier_seeds"] == [0, 1] and metrics["classifiers_rejected"] == []
+    assert all(0.0 <= a <= 1.0 for a in metrics["classifier_train_accuracy_each"])
     for m in metrics["conditions"].values():
         assert len(m["control_p_each_classifier"]) == len(m["mmd_aligned_each_classifier"]) == 2
         each = m["mmd_aligned_each_classifier"]

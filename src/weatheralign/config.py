@@ -657,7 +657,9 @@ class VerifyConfig(_Section):
     correspondence objective at
     ``correspondence_weight`` (0: weather labels only); its penultimate layer (``embedding`` wide) is the fused
     feature (a wide one dilutes the correspondence in the kernel: measured, 64 missed the control). ``classifiers``
-    classifiers train alike from seeds ``seed``, ``seed + 1``, ...; the MMDs use the mean of their kernels
+    classifiers train alike from seeds ``seed``, ``seed + 1``, ... (a training under ``min_train_accuracy`` on its own
+    training frames did not optimise and the next seed replaces it, at most ``max_rejected`` times:
+    `weatheralign.verify.classifier.train_fitted_classifiers`); the MMDs use the mean of their kernels
     (`weatheralign.verify.mmd.pooled_kernel`) and the accuracy their mean class probabilities. MMD tests:
     ``permutations`` permutations, ``resamples`` bootstrap resamples (frames and classifiers) at ``confidence``.
     ``device``: the torch device of the classifier (``cpu``, ``cuda``, ``cuda:N``, ``mps``); KID features as in
@@ -674,6 +676,8 @@ class VerifyConfig(_Section):
     correspondence_weight: Annotated[float, Field(ge=0.0, le=100.0)] = 1.0
     embedding: Annotated[int, Field(ge=2, le=1024)] = 16
     classifiers: Annotated[int, Field(ge=1, le=32)] = 5
+    min_train_accuracy: Annotated[float, Field(ge=0.0, le=1.0)] = 0.9
+    max_rejected: Annotated[int, Field(ge=0, le=32)] = 5
     permutations: Annotated[int, Field(ge=100, le=100_000)] = 1000
     resamples: Annotated[int, Field(ge=10, le=100_000)] = 1000
     confidence: Annotated[float, Field(gt=0.5, lt=1.0)] = 0.95
@@ -839,8 +843,8 @@ SETUP_FILES: dict[tuple[str, str], tuple[str, ...]] = {
     ("calibrate_fog", "setup"): ("fine_points", "max_nelder_mead", "num_bootstrap", "confidence", "inception_path",
                                  "device"),
     ("verify", "setup"): ("image_hw", "steps", "batch_size", "lr", "held_out_fraction", "correspondence_weight",
-                          "embedding", "classifiers", "permutations", "resamples", "confidence", "exposure_s",
-                          "device"),
+                          "embedding", "classifiers", "min_train_accuracy", "max_rejected", "permutations",
+                          "resamples", "confidence", "exposure_s", "device"),
     ("detect", "setup"): ("device", "image_size", "bev_range_m", "bev_cell_m", "batch_size", "finetune_lr",
                           "weight_decay", "modality_dropout", "lidar_drop_share", "camera_only_loss",
                           "depth_loss_weight", "scene_block", "mix_weather_fraction", "eval_every", "score_threshold",

@@ -25,13 +25,23 @@ from weatheralign.verify.features import FUSED_CHANNELS, LIDAR_CHANNELS, Weather
 @dataclass(frozen=True)
 class ClassifierReport:
     """Held-out ``accuracy``, ``confusion`` (C, C) counts (rows: true class, columns: predicted, in ``classes``
-    order), the held-out frame indices, and the last training loss."""
+    order), the held-out frame indices, the last training loss, and the accuracy on the frames it trained on
+    (``train_accuracy``: how well the optimisation fit them)."""
 
     classes: tuple[str, ...]
     accuracy: float
     confusion: NDArray[np.int64]
     held_out: NDArray[np.int64]
     final_loss: float
+    train_accuracy: float
+
+
+@dataclass(frozen=True)
+class RejectedTraining:
+    """A classifier training that did not fit its own training frames: its ``seed`` and ``train_accuracy``."""
+
+    seed: int
+    train_accuracy: float
 
 
 def _check(inputs: NDArray, labels: NDArray, classes: Sequence[str]) -> None:
@@ -121,14 +131,42 @@ def train_weather_classifier(inputs: NDArray, labels: NDArray, classes: Sequence
     predicted = predict_classes(model, inputs[test_idx], device=device)
     confusion = confusion_matrix(labels[test_idx], predicted, labels=np.arange(len(classes))).astype(np.int64)
     accuracy = float(np.trace(confusion) / max(confusion.sum(), 1))
+    train_accuracy = float(np.mean(predict_classes(model, inputs[train_idx], device=device) == labels[train_idx]))
     return model, ClassifierReport(tuple(classes), accuracy, confusion, np.sort(test_idx).astype(np.int64),
-                                   float(loss.detach()))
+                                   float(loss.detach()), train_accuracy)
+
+
+def train_fitted_classifiers(inputs: NDArray, labels: NDArray, classes: Sequence[str], count: int, *, seed: int,
+                             min_train_accuracy: float, max_rejected: int, **training: object
+                             ) -> tuple[list[tuple[WeatherClassifier, ClassifierReport]], list[RejectedTraining]]:
+    """``count`` classifiers (`train_weather_classifier` with ``training``) from seeds ``seed``, ``seed + 1``, ...,
+    and the trainings rejected on the way: a training whose accuracy on its own training frames stays under
+    ``min_train_accuracy`` did not optimise (a start that stalls on a few classes while others from the same data fit
+    them), so its features are noise, not a view of the data; the next unused seed replaces it. The test uses only the
+    training frames, never the held-out ones the MMDs compare. More than ``max_rejected`` rejections raise ValueError
+    (the setup, not the start, is then at fault)."""
+    kept: list[tuple[WeatherClassifier, ClassifierReport]] = []
+    rejected: list[RejectedTraining] = []
+    next_seed = seed
+    while len(kept) < count:
+        model, report = train_weather_classifier(inputs, labels, classes, seed=next_seed, **training)
+        if report.train_accuracy >= min_train_accuracy:
+            kept.append((model, report))
+        else:
+            rejected.append(RejectedTraining(next_seed, report.train_accuracy))
+            if len(rejected) > max_rejected:
+                raise ValueError(f"{len(rejected)} classifier trainings stayed under the training accuracy "
+                                 f"{min_train_accuracy} (seed: accuracy "
+                                 f"{', '.join(f'{r.seed}: {r.train_accuracy:.3f}' for r in rejected)}); more steps "
+                                 f"or another lr in configs/verify.yaml")
+        next_seed += 1
+    return kept, rejected
 
 
 def ensemble_report(models: Sequence[WeatherClassifier], reports: Sequence[ClassifierReport], inputs: NDArray,
                     labels: NDArray, device: str = "cpu") -> ClassifierReport:
     """The held-out report of classifiers trained on one split (their ``reports`` share the held-out frames): class
-    probabilities averaged over ``models``; the final loss is their mean."""
+    probabilities averaged over ``models``; the final loss and the training accuracy are their means."""
     held = reports[0].held_out
     if any(not np.array_equal(r.held_out, held) for r in reports) or len(models) != len(reports) or not models:
         raise ValueError("an ensemble report needs one report per model, all on the same held-out frames")
@@ -139,7 +177,8 @@ def ensemble_report(models: Sequence[WeatherClassifier], reports: Sequence[Class
     confusion = confusion_matrix(np.asarray(labels)[held], probs.argmax(axis=1),
                                  labels=np.arange(len(classes))).astype(np.int64)
     return ClassifierReport(classes, float(np.trace(confusion) / max(confusion.sum(), 1)), confusion, held,
-                            float(np.mean([r.final_loss for r in reports])))
+                            float(np.mean([r.final_loss for r in reports])),
+                            float(np.mean([r.train_accuracy for r in reports])))
 
 
 def mismatched_pairs(x: torch.Tensor, rng: np.random.Generator, displaced: torch.Tensor | None = None
@@ -197,5 +236,6 @@ def broken_pairs(inputs: NDArray, seed: int = 0) -> NDArray[np.float32]:
     return out
 
 
-__all__ = ["ClassifierReport", "broken_pairs", "ensemble_report", "fused_features", "held_out_split",
-           "mismatched_pairs", "predict_classes", "train_weather_classifier"]
+__all__ = ["ClassifierReport", "RejectedTraining", "broken_pairs", "ensemble_report", "fused_features",
+           "held_out_split", "mismatched_pairs", "predict_classes", "train_fitted_classifiers",
+           "train_weather_classifier"]

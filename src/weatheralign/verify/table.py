@@ -39,6 +39,15 @@ def _sources(severity: Mapping[str, Any]) -> str:
     return ", ".join(f"{k} {v}" for k, v in rates.items()) or "params"
 
 
+def _rejected(metrics: Mapping[str, Any]) -> str:
+    """The trainings that did not fit their training frames and were replaced, as a clause ('' when none)."""
+    rejected = metrics.get("classifiers_rejected") or []
+    if not rejected:
+        return ""
+    each = ", ".join(f"seed {r['seed']}: {r['train_accuracy']:.2f}" for r in rejected)
+    return f"; {len(rejected)} training(s) replaced for fitting their own training frames poorly ({each})"
+
+
 def table_markdown(metrics: Mapping[str, Any]) -> str:
     """Markdown: ours per verified condition (re-projection, MMD² aligned / unaligned with p-values and intervals,
     the paired difference, the control, D_KS, KID), then the paper's real-data row per weather."""
@@ -49,7 +58,8 @@ def table_markdown(metrics: Mapping[str, Any]) -> str:
              f"from {metrics['severity']['fog_levels']}, snow {metrics['severity']['snow_rate_mm_h']:.3g} mm/h, rain "
              f"{metrics['severity']['rain_rate_mm_h']:.3g} mm/h (rates: {_sources(metrics['severity'])}). "
              f"{metrics.get('classifiers', 1)} weather classifier(s), held-out accuracy "
-             f"{metrics['classifier_accuracy']:.3f} ({metrics['classifier_held_out']} frames). MMD² is the unbiased "
+             f"{metrics['classifier_accuracy']:.3f} ({metrics['classifier_held_out']} frames){_rejected(metrics)}. "
+             "MMD² is the unbiased "
              "estimator on the classifiers' fused features (Gaussian kernel, median heuristic on the pooled, "
              "standardised features of each classifier, the kernels averaged over the classifiers); p: permutation "
              "p-value; brackets: bootstrap interval over frames and classifiers (their training noise included); "
