@@ -104,6 +104,13 @@ def weather_roots(params: Params, version: str) -> dict[str, Path]:
     return roots
 
 
+def input_digests(params: Params, variants: list[str]) -> dict[str, str]:
+    """Manifest name -> content digest of every dataset the stage reads (the world and the weather copies), recorded in
+    details.json so that a report can tell detect's figures from copies simulated again since."""
+    names = ["world"] + [f"simulate-{v}" for v in variants]
+    return {name: read_manifest(manifest_path(params.paths.data, name)).content_digest for name in names}
+
+
 MODALITY_LABELS = {"fused": "", "lidar": "-lidar_only", "camera": "-camera_only"}
 SHUFFLED_LABEL = "-shuffled_images"
 
@@ -707,7 +714,7 @@ def detect_flow(params: Params) -> dict:
             "parameters": count_parameters(BEVFusionDetector(run.model_config)), "device": str(run.device),
             "image_size": list(cfg.image_size), "val_samples": len(run.tokens["val"]),
             "train_samples": len(run.tokens["train"]), "sweeps": params.simulate.sweeps,
-            "seconds": round(time.time() - t_stage, 1)}
+            "input_digests": input_digests(params, variants), "seconds": round(time.time() - t_stage, 1)}
         reports = tracker.reports
         atomic.write_text(reports / "table_alignment.md", table_alignment(metrics, [
             v.rsplit("-", 1)[0] for v in variants if v.endswith("-aligned")]))

@@ -17,7 +17,7 @@ from flows.detect import camera_weather_set
 from flows.detect import headline as headline_of
 from weatheralign.conditions import CONDITIONS, variant_name
 from weatheralign.data.nuscenes import load_frame, open_nuscenes
-from weatheralign.manifest import DatasetManifest, dataset_digest, manifest_path, write_manifest
+from weatheralign.manifest import DatasetManifest, dataset_digest, manifest_path, read_manifest, write_manifest
 from weatheralign.sensors import SensorRig, camera_models, lidar_model_from_params
 
 from .conftest import HANG_GUARD_S, REPO, write_params_file
@@ -119,6 +119,9 @@ def test_metrics_layout_and_reports(stage_run):
     for name in ("table_alignment.md", "table_finetune.md", "learning_curve.png", "predictions_bev.png"):
         assert (reports / "detect" / name).stat().st_size > 0
     assert "paper" in (reports / "detect" / "table_alignment.md").read_text()
+    names = ["world", *(f"simulate-{v}" for v in variants)]
+    assert metrics["input_digests"] == {name: read_manifest(manifest_path(data, name)).content_digest
+                                        for name in names}
 
 
 def test_headline_metrics_and_plot_data(stage_run):
