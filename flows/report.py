@@ -21,6 +21,7 @@ from tasks.tracking import StageTracker, mlflow_run_url, tracking_client
 from weatheralign import atomic
 from weatheralign.config import Params
 from weatheralign.data.errors import read_json_file
+from weatheralign.manifest import manifest_path, read_manifest
 from weatheralign.report import StageCost, StageSource, findings, markdown_to_html, summary_markdown
 
 STAGES_READ = {"world": "world", "calibrate_fog": "calibrate_fog", "simulate": "simulate_summary", "detect": "detect"}
@@ -141,6 +142,12 @@ def read_inputs(params: Params) -> tuple[dict[str, dict[str, Any]], dict[str, An
     return metrics, truth, tables
 
 
+def dataset_digests(data: Path) -> dict[str, str]:
+    """Manifest name -> content digest of every dataset the stages handed on (``data/manifests/*.json``)."""
+    folder = manifest_path(data, "world").parent
+    return {path.stem: read_manifest(path).content_digest for path in sorted(folder.glob("*.json"))}
+
+
 def severity_figures(reports: Path) -> dict[str, str]:
     """The severity curves ``python -m flows.severity curve`` drew from ``dvc exp show`` (``reports/severity/*.png``),
     caption -> path under ``reports``. They are made outside the pipeline, so DVC does not track them as a dependency:
@@ -168,7 +175,8 @@ def report_flow(params: Params) -> dict:
         figures = {caption: path for caption, path in FIGURES if (reports / path).is_file()}
         figures.update(severity_figures(reports))
         runs = latest_stage_runs(params)
-        text = summary_markdown(metrics, truth, tables, figures, run_costs(params, runs), stage_sources(runs))
+        text = summary_markdown(metrics, truth, tables, figures, run_costs(params, runs), stage_sources(runs),
+                                dataset_digests(params.paths.data))
         atomic.write_text(reports / "summary.md", text)
         page = markdown_to_html(text, reports, "weatheralign: run summary")
         atomic.write_text(reports / "summary.html", page)

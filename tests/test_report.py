@@ -19,6 +19,7 @@ from weatheralign.report import (
     earlier_stages,
     findings,
     markdown_to_html,
+    outdated_inputs,
     redam_table,
     reprojection_table,
     source_line,
@@ -118,6 +119,26 @@ def test_figures_of_a_stage_this_tracking_store_never_ran_are_labelled_an_earlie
     assert "computed by this run;" not in text and "those of `detect` come from an earlier run" in text
     assert text.count("`detect`: an earlier run") == 1  # under Table 2
     assert "computed by this run;" in summary_markdown(metrics, None, ["## Table 2"], {}, [])  # tracking off
+
+
+def test_figures_computed_from_datasets_simulated_again_since_are_labelled():
+    """A stage whose recorded input digests differ from the manifests' current ones is named with the changed datasets,
+    in the opening line and under its tables, even when its run is in the tracking store; current inputs claim
+    nothing."""
+    sources = {s: StageSource(s, s, f"http://x/runs/{s}", "workspace") for s in ("detect", "verify")}
+    recorded = {"world": "aa", "simulate-snow-aligned": "bb", "simulate-rain-aligned": "cc"}
+    metrics = {"detect": {"input_digests": recorded}, "verify": {}}
+    current = {**recorded, "simulate-snow-aligned": "b2", "simulate-fog_light-aligned": "dd"}
+    assert outdated_inputs(metrics, current) == {"detect": ("simulate-snow-aligned",)}
+    assert outdated_inputs(metrics, {"world": "aa"}) == {"detect": ("simulate-rain-aligned", "simulate-snow-aligned")}
+    assert outdated_inputs(metrics, recorded) == {}
+    tables = ["## Table 2\n\n| a |\n| --- |\n| 1 |"]
+    text = summary_markdown(metrics, None, tables, {}, [], sources, current)
+    assert "computed by this run;" not in text
+    assert "**the figures of `detect` are computed from an earlier version of `simulate-snow-aligned`**" in text
+    assert text.count("`detect`: computed from an earlier version of `simulate-snow-aligned`") == 1  # under Table 2
+    assert "computed by this run;" in summary_markdown(metrics, None, tables, {}, [], sources, recorded)
+    assert "computed by this run;" in summary_markdown(metrics, None, tables, {}, [], sources)  # not checked
 
 
 def test_cost_table_totals():

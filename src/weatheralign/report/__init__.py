@@ -14,6 +14,7 @@ from weatheralign.report.summary import (
     cost_table,
     earlier_stages,
     findings,
+    outdated_inputs,
     rate_table,
     redam_table,
     reprojection_table,
@@ -22,4 +23,4 @@ from weatheralign.report.summary import (
 )
 
 __all__ = ["PAPER_TABLE1", "StageCost", "StageSource", "cost_table", "earlier_stages", "findings", "markdown_to_html",
-           "rate_table", "redam_table", "reprojection_table", "source_line", "summary_markdown"]
+           "outdated_inputs", "rate_table", "redam_table", "reprojection_table", "source_line", "summary_markdown"]

@@ -7,6 +7,7 @@ stage's tables) are shown beside ours and labelled as the paper's real-data figu
 from __future__ import annotations
 
 import re
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -141,21 +142,43 @@ class StageSource:
     dvc_experiment: str
 
 
-def source_line(sources: dict[str, StageSource], *stages: str, earlier: frozenset[str] = frozenset()) -> str:
+def source_line(sources: dict[str, StageSource], *stages: str, earlier: frozenset[str] = frozenset(),
+                outdated: Mapping[str, Sequence[str]] | None = None) -> str:
     """One Markdown line naming, for each of ``stages`` with a known source, its MLflow run (a link) and its DVC
-    experiment, and for each in ``earlier`` (figures present but no run of it in this tracking store) that it comes
-    from an earlier run; empty when neither (tracking off)."""
+    experiment, for each in ``earlier`` (figures present but no run of it in this tracking store) that it comes from
+    an earlier run, and for each in ``outdated`` (`outdated_inputs`) the datasets that changed since it read them;
+    empty when none of these (tracking off, inputs current)."""
+    outdated = outdated or {}
     items = [f"`{s.stage}`: MLflow run [{s.run_name}]({s.run_url}), DVC experiment `{s.dvc_experiment}`"
              for s in (sources[name] for name in stages if name in sources)]
     items += [f"`{name}`: an earlier run, not in this MLflow store (its inputs may differ from this run's: "
               "`dvc status` lists what to rerun)" for name in stages if name in earlier and name not in sources]
+    items += [f"`{name}`: computed from an earlier version of {_names(outdated[name])} (`dvc repro` reruns it)"
+              for name in stages if name in outdated]
     return "*From " + "; ".join(items) + ".*" if items else ""
+
+
+def _names(names: Sequence[str]) -> str:
+    return ", ".join(f"`{n}`" for n in names)
 
 
 def earlier_stages(metrics: dict[str, dict[str, Any]], sources: dict[str, StageSource]) -> frozenset[str]:
     """The stages whose figures ``metrics`` holds but whose run this tracking store does not (an earlier run's
     reports, e.g. after a rerun of some stages only); none without tracking (``sources`` empty)."""
     return frozenset(name for name in metrics if sources and name not in sources)
+
+
+def outdated_inputs(metrics: dict[str, dict[str, Any]], digests: Mapping[str, str]) -> dict[str, tuple[str, ...]]:
+    """Per stage whose figures record the datasets they were computed from (``input_digests``: manifest name ->
+    content digest) the names of those whose current manifest (``digests``, the same mapping) differs or is gone;
+    stages whose inputs are all current are left out."""
+    out = {}
+    for stage, figures in metrics.items():
+        changed = tuple(name for name, digest in sorted(figures.get("input_digests", {}).items())
+                        if digests.get(name) != digest)
+        if changed:
+            out[stage] = changed
+    return out
 
 
 def cost_table(costs: list[StageCost]) -> str:
@@ -172,19 +195,24 @@ def cost_table(costs: list[StageCost]) -> str:
 
 def summary_markdown(metrics: dict[str, dict[str, Any]], truth: dict[str, Any] | None, detect_tables: list[str],
                      figures: dict[str, str], costs: list[StageCost],
-                     sources: dict[str, StageSource] | None = None) -> str:
+                     sources: dict[str, StageSource] | None = None, digests: Mapping[str, str] | None = None) -> str:
     """The whole summary. ``metrics``: per stage (``world``, ``calibrate_fog``, ``simulate``, ``detect``) its
     figures (``details.json``; a missing stage: its section says so); ``truth``: the reference's sealed truth (None
     for real data); ``detect_tables``: the detect stage's Markdown tables (Tables 2 and 3); ``figures``: caption ->
     image path relative to the summary; ``costs``: per stage; ``sources``: per stage its MLflow run and DVC
-    experiment, named under each table."""
+    experiment, named under each table; ``digests``: manifest name -> content digest of the datasets as they are now
+    (`outdated_inputs`; None: not checked)."""
     sources = sources or {}
     earlier = earlier_stages(metrics, sources)
+    outdated = outdated_inputs(metrics, digests) if digests is not None else {}
     world = metrics.get("world", {})
-    provenance = ("Every figure below is computed by this run" if not earlier else
-                  "Every figure below is computed by the run named under its table; those of "
-                  + ", ".join(f"`{name}`" for name in sorted(earlier)) + " come from an earlier run whose inputs may "
-                  "differ from this run's")
+    provenance = ("Every figure below is computed by this run" if not earlier and not outdated else
+                  "Every figure below is computed by the run named under its table")
+    if earlier:
+        provenance += f"; those of {_names(sorted(earlier))} come from an earlier run whose inputs may differ from " \
+                      "this run's"
+    provenance += "".join(f"; **the figures of `{stage}` are computed from an earlier version of {_names(names)}**, "
+                          "simulated again since (`dvc repro` reruns it)" for stage, names in sorted(outdated.items()))
     parts = ["# weatheralign: run summary", "",
              f"Dataset: {world.get('source', '?')} world, {world.get('num_scenes', '?')} scenes, "
              f"{world.get('num_samples', '?')} keyframe samples, {world.get('num_sweeps', '?')} sweeps. {provenance}; "
@@ -195,8 +223,8 @@ def summary_markdown(metrics: dict[str, dict[str, Any]], truth: dict[str, Any] |
               f"({metrics.get('detect', {}).get('confidence', 0.95):.0%}); those exceeding the noise first.", ""]
     found = findings(metrics.get("detect", {}))
     parts += [f"- {f}" for f in found] if found else ["- (no detect metrics in this run)"]
-    if found and "detect" in earlier:
-        parts += ["", source_line(sources, "detect", earlier=earlier)]
+    if found and ("detect" in earlier or "detect" in outdated):
+        parts += ["", source_line(sources, "detect", earlier=earlier, outdated=outdated)]
     verify = metrics.get("verify", {})
     mmd_half = (re.sub(r"^(#+) ", r"##\1 ", verify["table_markdown"], flags=re.MULTILINE) if "table_markdown" in verify
                 else "The MMD of fused features (the paper's second half of Table 1) needs the `verify` stage, which "
@@ -205,23 +233,23 @@ def summary_markdown(metrics: dict[str, dict[str, Any]], truth: dict[str, Any] |
               "Re-projection: each particle the LiDAR saw, projected into every camera that drew it, against where the "
               "camera drew it.", "",
               reprojection_table(metrics.get("simulate", {})), "", mmd_half, "",
-              source_line(sources, "simulate", "verify", earlier=earlier), "",
+              source_line(sources, "simulate", "verify", earlier=earlier, outdated=outdated), "",
               "## ReDAM: fog severity tuned to the reference", "",
               "The LiDAR fog parameters tuned so that the simulated intensity distribution matches the reference's "
               "(two-sample Kolmogorov-Smirnov distance, frame-bootstrap interval); the cameras get the same α. For "
               "the synthetic reference, the hidden levels it was tuned blind to are beside.", "",
               redam_table(metrics.get("calibrate_fog", {}), truth), "",
-              source_line(sources, "calibrate_fog", earlier=earlier), ""]
+              source_line(sources, "calibrate_fog", earlier=earlier, outdated=outdated), ""]
     if "calibrate_precipitation" in metrics:
         parts += ["## ReDAM for snow and rain: rates tuned to the reference", "",
                   "The snow and rain rates tuned so that the fast simulator's statistic "
                   f"({metrics['calibrate_precipitation'].get('statistic', 'an echo rate')}) matches the reference's "
                   "(frame-bootstrap interval). For the synthetic reference, the hidden rates it was tuned blind to "
                   "are beside.", "", rate_table(metrics["calibrate_precipitation"], truth), "",
-                  source_line(sources, "calibrate_precipitation", earlier=earlier), ""]
+                  source_line(sources, "calibrate_precipitation", earlier=earlier, outdated=outdated), ""]
     for table in detect_tables:
         parts += [re.sub(r"^(#+) ", r"#\1 ", table, flags=re.MULTILINE), "",  # one level below the summary
-                  source_line(sources, "detect", earlier=earlier), ""]
+                  source_line(sources, "detect", earlier=earlier, outdated=outdated), ""]
     parts += ["## Figures", ""]
     parts += [f"![{caption}]({path})\n\n*{caption}*\n" for caption, path in figures.items()]
     parts += ["## What the run cost", "", "Wall time of each stage's latest tracked run (MLflow) and the disk its "
