@@ -12,12 +12,17 @@ import pytest
 from weatheralign.data.frame import LidarScan
 from weatheralign.ground.camera import CameraGeometry
 from weatheralign.ground.edit import (
+    BLOCKED_REACH_SHARE,
+    BRIGHT_ROAD_FLOORS,
+    NEIGHBOUR_WINDOW_STEPS,
     GroundState,
     UnseenBeams,
+    dark_road_misses,
     edit_image,
     edit_scan,
     road_reflectivity,
     scan_surfaces,
+    unseen_beams,
 )
 from weatheralign.ground.snow import SnowCover, TireTracks, snow_coverage
 from weatheralign.ground.surfaces import mask_agreement
@@ -276,7 +281,7 @@ def dark_ring_beams(elevations_deg: tuple[float, ...], columns: int = 360) -> Un
     times = np.linspace(0.0, 0.1, len(d))
     ring = np.repeat(np.arange(len(elevations_deg), dtype=np.float64), columns) + 40.0
     return UnseenBeams(np.zeros_like(d), d, times, ring, detector_noise_keys(times, d, ring), 120.0,
-                       SYNTHETIC_INTENSITY)
+                       SYNTHETIC_INTENSITY, 2.0 * np.pi / columns)
 
 
 def test_snow_on_a_road_the_clear_beams_missed_returns_where_its_reading_clears_the_floor() -> None:
@@ -314,3 +319,59 @@ def test_snow_on_a_road_the_clear_beams_missed_returns_where_its_reading_clears_
     assert 0.6 < bare < 1.0 < added[0, 3]
     wet = edit_scan(scan, surfaces, GroundState(road=WetRoad(), seed=1), noise_floor=1.0, unseen=unseen)
     assert wet.added == 0 and len(wet.scan.points) <= n
+
+
+def test_only_beams_whose_neighbours_leave_the_road_dark_and_unblocked_are_dark_road_misses() -> None:
+    """Beams without return between same-ring returns: the road's neighbours at the beam's reach reading under the
+    bright-road bar explain the miss; one neighbour standing nearer than `BLOCKED_REACH_SHARE` of the reach (the beam
+    met that object) or reading the road bright (a dropout) does not; neighbours farther than the window, or on
+    another ring at the same azimuth, do not count."""
+    step = np.radians(0.2)
+    reach, floor = 30.0, 2.0
+    ring_of = {0: 0.0, 1: 1.0, 2: 2.0, 3: 3.0, 4: 4.0, 5: 5.0}
+
+    def ret(ring: float, az: float, r: float, reading: float) -> list[float]:
+        return [r * np.cos(az), r * np.sin(az), -1.0, reading, ring]
+
+    beams_az = np.radians([10.0, 20.0, 30.0, 40.0, 50.0, 60.0])
+    points = [
+        ret(0, beams_az[0] - step, reach, 0.5 * floor), ret(0, beams_az[0] + step, reach * 1.05, 3.9 * floor),
+        ret(1, beams_az[1] - step, reach, floor), ret(1, beams_az[1] + step, 0.7 * reach, floor),  # a car in front
+        ret(2, beams_az[2] + step, reach, 4.1 * floor),  # bright road beside: a dropout
+        ret(3, beams_az[3] - (NEIGHBOUR_WINDOW_STEPS + 0.5) * step, 0.1 * reach, floor),  # outside the window
+        ret(4, beams_az[4], 0.1 * reach, 10 * floor),  # another ring's return in front, same azimuth
+        ret(5, beams_az[5] + step, BLOCKED_REACH_SHARE * reach, BRIGHT_ROAD_FLOORS * floor - 1e-3),  # at the bars
+    ]
+    scan = LidarScan(np.array(points, dtype=np.float32), 0.0, np.eye(4), np.eye(4))
+    ring = np.array([ring_of[k] for k in range(6)])
+    ring[4] = 6.0  # the beam of "ring 4"'s azimuth lies on ring 6: ring 4's return is not its neighbour
+    directions = np.column_stack([np.cos(beams_az), np.sin(beams_az), np.full(6, -0.06)])
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    explained = dark_road_misses(scan, ring, directions, np.full(6, reach), np.full(6, floor), step)
+    assert explained.tolist() == [True, False, False, True, True, True]
+    brighter = dark_road_misses(scan, ring, directions, np.full(6, reach), np.full(6, floor / 2), step)
+    assert brighter.tolist() == [False, False, False, True, True, False]  # a lower floor makes the same road bright
+    assert dark_road_misses(scan, ring[:0], directions[:0], np.zeros(0), np.zeros(0), step).shape == (0,)
+
+
+def test_snow_on_a_real_scan_adds_returns_only_on_its_dark_road() -> None:
+    """The shared Seeing Through Fog HDL-64 scan under 5 cm of snow: its beams without return (reconstructed from the
+    ring gaps, about 11 % of its low rings) lie almost all beside returns of nearer objects or of a road read far
+    above the floor, so the snow adds under 0.1 % of the scan's returns, not one per gap."""
+    from tests.conftest import SHARED_REAL
+    from weatheralign.data.stf import load_stf_frame
+    from weatheralign.lidar.beams import ray_plane_ranges
+    from weatheralign.sensors import estimate_lidar_model
+
+    stf = SHARED_REAL / "stf"
+    if not stf.exists():
+        pytest.skip(f"real sample not available: {stf}")
+    scan = load_stf_frame(stf, "2019-09-11_19-13-44_00960", camera_folder=None).lidar
+    lidar = estimate_lidar_model([scan], rotation_hz=10.0, overrides={"noise_floor": 1.0})
+    surfaces = scan_surfaces(scan, off_ground=True)
+    unseen = unseen_beams(scan, lidar)
+    reach = ray_plane_ranges(unseen.origins, unseen.directions, surfaces.plane)
+    assert (reach < unseen.max_range_m).sum() > 0.05 * len(scan.points)  # gaps on the ground: 11 % of the returns
+    edited = edit_scan(scan, surfaces, GroundState(cover=SnowCover(depth_m=0.05), seed=2), lidar.noise_floor,
+                       unseen=unseen)
+    assert 0 <= edited.added < 0.001 * len(scan.points)

@@ -159,6 +159,7 @@ class UnseenBeams(NamedTuple):
     noise_keys: NDArray[np.uint64]  # (K,) each beam's detector-noise stream (`detector_noise_keys`)
     max_range_m: float
     intensity: IntensityModel  # how the sensor reports a surface's reflectivity at a range
+    azimuth_step_rad: float  # the firing grid's azimuth step: the scale of a beam's same-ring neighbourhood
 
 
 def unseen_beams(scan: LidarScan, lidar: LidarModel) -> UnseenBeams:
@@ -171,7 +172,7 @@ def unseen_beams(scan: LidarScan, lidar: LidarModel) -> UnseenBeams:
     return UnseenBeams(none.origins @ T[:3, :3].T + T[:3, 3], none.directions @ T[:3, :3].T,
                        none.times - scan.timestamp, none.ring.astype(np.float64),
                        detector_noise_keys(none.times, none.directions, none.ring), float(none.max_range),
-                       lidar.intensity)
+                       lidar.intensity, 2.0 * np.pi / lidar.columns_per_ring)
 
 
 NEAR_ROAD_M = (3.0, 15.0)
@@ -180,6 +181,48 @@ that the detector sees all of it."""
 
 MIN_NEAR_ROAD_RETURNS = 50
 """Fewer ground returns than this within `NEAR_ROAD_M`: the bare road is taken to read half the floor."""
+
+
+NEIGHBOUR_WINDOW_STEPS = 2.0
+"""The returns of a beam's own ring within this many azimuth steps of it are its neighbours (`dark_road_misses`)."""
+
+BLOCKED_REACH_SHARE = 0.8
+"""A neighbour nearer than this share of a beam's reach to the ground stands in front of the road: the beam most likely
+met the same object (a dark car, a pole), not the road behind it."""
+
+BRIGHT_ROAD_FLOORS = 4.0
+"""A neighbour on the road reading this many detector floors: the road there is far brighter than a beam-to-beam
+texture contrast can hide, so the beam's missing return is a dropout (no measurement), not a dark road."""
+
+
+def dark_road_misses(scan: LidarScan, ring: F64, directions: F64, reach: F64, floor: F64,
+                     azimuth_step_rad: float) -> Mask:
+    """(K,) True for the beams without return (``ring`` (K,), unit ``directions`` (K, 3) in the scan's frame) whose
+    missing return the dark road explains: every same-ring return of ``scan`` within `NEIGHBOUR_WINDOW_STEPS`
+    azimuth steps (``azimuth_step_rad``) of the beam lies at `BLOCKED_REACH_SHARE` of its ground reach ``reach`` (K,)
+    [m] or farther (else an object in front of the road blocked it) and reads under `BRIGHT_ROAD_FLOORS` times its
+    floor ``floor`` (K,) (0..255; else the road there is bright: a dropout). A beam without neighbours (inside a long
+    run of missing returns) is explained. Azimuths and ranges are taken from the scan frame's origin; a ring's ends
+    do not wrap around."""
+    explained = np.ones(len(ring), dtype=bool)
+    if not len(ring) or not len(scan.points):
+        return explained
+    xyz = scan.points[:, :3].astype(np.float64)
+    key = 8.0 * scan.points[:, 4].astype(np.float64) + np.arctan2(xyz[:, 1], xyz[:, 0]) + np.pi  # ring-major:
+    order = np.argsort(key, kind="stable")  # azimuth + pi lies in [0, 2 pi] < 8
+    key = key[order]
+    ranges = np.linalg.norm(xyz[order], axis=1)
+    reading = scan.intensity_255().astype(np.float64)[order]
+    beam_key = 8.0 * ring + np.arctan2(directions[:, 1], directions[:, 0]) + np.pi
+    window = NEIGHBOUR_WINDOW_STEPS * azimuth_step_rad
+    low = np.searchsorted(key, beam_key - window, side="left")
+    count = np.searchsorted(key, beam_key + window, side="right") - low
+    for j in range(int(count.max())):  # a few neighbours at most: one pass per neighbour slot
+        has = count > j
+        at = low[has] + j
+        explained[has] &= (ranges[at] >= BLOCKED_REACH_SHARE * reach[has]) & (
+            reading[at] < BRIGHT_ROAD_FLOORS * floor[has])
+    return explained
 
 
 def road_reflectivity(scan: LidarScan, surfaces: ScanSurfaces, intensity: IntensityModel) -> float | None:
@@ -202,8 +245,9 @@ def snow_on_unseen_road(scan: LidarScan, surfaces: ScanSurfaces, state: GroundSt
     """The snow's returns from beams that returned nothing on a dark road: (M, 5) points (x, y, z [m], intensity on
     ``scan``'s scale, ring) in the scan's frame and their firing-time offsets (M,) [s].
 
-    A beam of ``unseen`` that points below the horizon onto the fitted ground plane within the maximum range met the
-    bare road under the detector floor: at grazing incidence and long range the road reads ``scale ρ cos θ g(R)``
+    A beam of ``unseen`` that points below the horizon onto the fitted ground plane within the maximum range, and whose
+    same-ring neighbours neither stand in front of the road nor read it bright (`dark_road_misses`), met the bare road
+    under the detector floor: at grazing incidence and long range the road reads ``scale ρ cos θ g(R)``
     (``unseen.intensity``) with ``ρ`` the near road's (`road_reflectivity`; unknown: half the floor), capped at the
     floor at the beam's range (it returned nothing). Under ``state``'s snow the beam's footprint is covered over the
     share `surface_snow` gives there, the surface raised and brightened as for a seen return (`snow_covered_ground`),
@@ -216,6 +260,9 @@ def snow_on_unseen_road(scan: LidarScan, surfaces: ScanSurfaces, state: GroundSt
     normal = np.asarray(surfaces.plane.normal, dtype=np.float64)
     reach = ray_plane_ranges(unseen.origins, unseen.directions, surfaces.plane)
     on = np.flatnonzero(reach < unseen.max_range_m)
+    floor = noise_floor * (np.ones(len(on)) if floor_scale is None else floor_scale(reach[on]))
+    on = on[dark_road_misses(scan, unseen.ring[on], unseen.directions[on], reach[on], floor,
+                             unseen.azimuth_step_rad)]
     if not len(on):
         return empty
     hits = unseen.origins[on] + unseen.directions[on] * reach[on, None]
