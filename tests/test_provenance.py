@@ -83,3 +83,73 @@ def test_a_stage_fingerprint_follows_its_declared_params_and_setup_files() -> No
     assert stage_fingerprint("simulate", base, "another world") != fingerprint
     assert stage_fingerprint("detect", params_from_dict({"detect": {"batch_size": 4}})) != stage_fingerprint(
         "detect", base)
+
+
+def _imported_modules(package_root: Path, parts: tuple[str, ...]) -> set[str]:
+    """Every ``weatheralign`` module the modules of ``parts`` import, transitively (read from their ``import``
+    statements, not by importing them)."""
+    import ast
+
+    def source(module: str) -> Path | None:
+        path = package_root.parent / Path(*module.split("."))
+        return path / "__init__.py" if (path / "__init__.py").is_file() else (
+            path.with_suffix(".py") if path.with_suffix(".py").is_file() else None)
+
+    todo = []
+    for part in parts:
+        files = [package_root / part] if part.endswith(".py") else sorted((package_root / part).rglob("*.py"))
+        todo += [".".join(("weatheralign", *f.relative_to(package_root).with_suffix("").parts)).removesuffix(
+            ".__init__") for f in files]
+    seen: set[str] = set()
+    while todo:
+        module = todo.pop()
+        if module in seen or (path := source(module)) is None:
+            continue
+        seen.add(module)
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("weatheralign"):
+                todo += [node.module, *(f"{node.module}.{a.name}" for a in node.names)]
+            elif isinstance(node, ast.Import):
+                todo += [a.name for a in node.names if a.name.startswith("weatheralign")]
+    return seen
+
+
+def test_the_detectors_fingerprint_covers_all_the_code_it_runs_and_none_of_the_weathers() -> None:
+    """A finished detector model is kept while `DETECTOR_CODE` is unchanged: that code must be everything the
+    detector's modules import (but the modules that change no result), and none of the simulators'."""
+    from weatheralign.detect.protocol import DETECTOR_CODE
+    from weatheralign.provenance import PACKAGE_ROOT
+
+    def inside(module: str) -> bool:
+        rel = module.removeprefix("weatheralign.").replace(".", "/")
+        return any(rel == p.removesuffix(".py") or rel.startswith(p + "/") or rel == p for p in DETECTOR_CODE)
+
+    imported = _imported_modules(PACKAGE_ROOT, DETECTOR_CODE)
+    assert "weatheralign.detect.model" in imported and "weatheralign.data.nuscenes" in imported
+    outside = {m for m in imported if not inside(m)}
+    assert outside <= {"weatheralign", "weatheralign.atomic", "weatheralign.config", "weatheralign.provenance"}, outside
+
+
+def test_a_weather_code_edit_keeps_the_detectors_fingerprint(tmp_path: Path) -> None:
+    """The detector's code digest over a copy of the package: an edit of the ground's or the simulator's code keeps
+    it, an edit of the detector's or of the readers it goes through changes it."""
+    import shutil
+
+    from weatheralign.detect.protocol import DETECTOR_CODE
+    from weatheralign.provenance import PACKAGE_ROOT
+
+    package = tmp_path / "weatheralign"
+    shutil.copytree(PACKAGE_ROOT, package, ignore=shutil.ignore_patterns("__pycache__"))
+    digest = source_digest(*DETECTOR_CODE, root=package)
+    for weather in ("ground/edit.py", "simulate/observe.py", "lidar/__init__.py", "camera/overcast.py"):
+        with (package / weather).open("a") as f:
+            f.write("# edited\n")
+        assert source_digest(*DETECTOR_CODE, root=package) == digest, weather
+    for detector in ("detect/model.py", "data/nuscenes.py", "geometry.py"):
+        before = source_digest(*DETECTOR_CODE, root=package)
+        with (package / detector).open("a") as f:
+            f.write("# edited\n")
+        assert source_digest(*DETECTOR_CODE, root=package) != before, detector
+    base = params_from_dict({})
+    assert stage_fingerprint("detect", base, "world", code=DETECTOR_CODE) != stage_fingerprint(
+        "detect", params_from_dict({"detect": {"batch_size": 4}}), "world", code=DETECTOR_CODE)

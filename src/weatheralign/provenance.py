@@ -109,15 +109,17 @@ def stage_code_digest(stage: str) -> str:
     return source_digest()  # pragma: no cover - installed without the repository
 
 
-def stage_fingerprint(stage: str, params: object, *extra: str) -> str:
+def stage_fingerprint(stage: str, params: object, *extra: str, code: tuple[str, ...] | None = None) -> str:
     """16 hex digits over the code (`stage_code`) and the params values (`stage_params`) ``stage`` declares in
     dvc.yaml, plus ``extra`` strings (e.g. an input dataset's content digest): what a resume record must match.
 
-    Outside a source tree (no dvc.yaml beside the package) the whole package's code is hashed instead.
+    ``code``: the package parts (`source_digest`'s) whose code makes the record, when that is less than the stage
+    runs (a stage that also reads other stages' outputs, whose code reaches it only through those files). Outside a
+    source tree (no dvc.yaml beside the package) the whole package's code is hashed when ``code`` is None.
     """
     import json
 
-    code = stage_code_digest(stage)
+    code = stage_code_digest(stage) if code is None else source_digest(*code)
     keys = stage_params(stage) if (REPO_ROOT / "dvc.yaml").is_file() else []
     tree = params.model_dump(mode="json") if hasattr(params, "model_dump") else {}
     values = {}
