@@ -8,7 +8,13 @@ from pathlib import Path
 import pytest
 
 from weatheralign.config import params_from_dict
-from weatheralign.provenance import file_stamps, source_digest, stage_fingerprint, stage_params
+from weatheralign.provenance import (
+    file_stamps,
+    imported_modules,
+    source_digest,
+    stage_fingerprint,
+    stage_params,
+)
 
 
 def _tree(root: Path) -> Path:
@@ -85,71 +91,55 @@ def test_a_stage_fingerprint_follows_its_declared_params_and_setup_files() -> No
         "detect", base)
 
 
-def _imported_modules(package_root: Path, parts: tuple[str, ...]) -> set[str]:
-    """Every ``weatheralign`` module the modules of ``parts`` import, transitively (read from their ``import``
-    statements, not by importing them)."""
-    import ast
 
-    def source(module: str) -> Path | None:
-        path = package_root.parent / Path(*module.split("."))
-        return path / "__init__.py" if (path / "__init__.py").is_file() else (
-            path.with_suffix(".py") if path.with_suffix(".py").is_file() else None)
-
-    todo = []
-    for part in parts:
-        files = [package_root / part] if part.endswith(".py") else sorted((package_root / part).rglob("*.py"))
-        todo += [".".join(("weatheralign", *f.relative_to(package_root).with_suffix("").parts)).removesuffix(
-            ".__init__") for f in files]
-    seen: set[str] = set()
-    while todo:
-        module = todo.pop()
-        if module in seen or (path := source(module)) is None:
-            continue
-        seen.add(module)
-        for node in ast.walk(ast.parse(path.read_text())):
-            if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("weatheralign"):
-                todo += [node.module, *(f"{node.module}.{a.name}" for a in node.names)]
-            elif isinstance(node, ast.Import):
-                todo += [a.name for a in node.names if a.name.startswith("weatheralign")]
-    return seen
-
-
-def test_the_detectors_fingerprint_covers_all_the_code_it_runs_and_none_of_the_weathers() -> None:
-    """A finished detector model is kept while `DETECTOR_CODE` is unchanged: that code must be everything the
-    detector's modules import (but the modules that change no result), and none of the simulators'."""
-    from weatheralign.detect.protocol import DETECTOR_CODE
-    from weatheralign.provenance import PACKAGE_ROOT
-
-    def inside(module: str) -> bool:
-        rel = module.removeprefix("weatheralign.").replace(".", "/")
-        return any(rel == p.removesuffix(".py") or rel.startswith(p + "/") or rel == p for p in DETECTOR_CODE)
-
-    imported = _imported_modules(PACKAGE_ROOT, DETECTOR_CODE)
-    assert "weatheralign.detect.model" in imported and "weatheralign.data.nuscenes" in imported
-    outside = {m for m in imported if not inside(m)}
-    assert outside <= {"weatheralign", "weatheralign.atomic", "weatheralign.config", "weatheralign.provenance"}, outside
+def test_imported_modules_follows_the_imports_transitively(tmp_path: Path) -> None:
+    """A module's import closure within its package: direct, transitive, ``from package import module``, imports
+    inside functions, the packages above each; not the modules nothing imports, nor other packages."""
+    pkg = tmp_path / "weatheralign"
+    for rel, text in {"__init__.py": "", "a.py": "from weatheralign.b import f\n", "b.py": "import numpy\n\n"
+                      "def f():\n    from weatheralign import c\n", "c.py": "import weatheralign.sub.d\n",
+                      "sub/__init__.py": "", "sub/d.py": "x = 1\n", "unused.py": "import weatheralign.a\n"}.items():
+        (pkg / rel).parent.mkdir(parents=True, exist_ok=True)
+        (pkg / rel).write_text(text)
+    assert imported_modules("weatheralign.a", root=pkg) == ["__init__.py", "a.py", "b.py", "c.py", "sub/__init__.py",
+                                                              "sub/d.py"]
+    assert imported_modules("weatheralign.sub.d", root=pkg) == ["__init__.py", "sub/__init__.py", "sub/d.py"]
+    with pytest.raises(FileNotFoundError, match="weatheralign.nothing"):
+        imported_modules("weatheralign.nothing", root=pkg)
 
 
 def test_a_weather_code_edit_keeps_the_detectors_fingerprint(tmp_path: Path) -> None:
-    """The detector's code digest over a copy of the package: an edit of the ground's or the simulator's code keeps
-    it, an edit of the detector's or of the readers it goes through changes it."""
+    """detect's models are kept for the code of `DETECTOR_MODULES` and their imports: on a copy of the package an
+    edit of the ground's, the LiDAR's or the simulator's code keeps that code's digest, an edit of the detector's or
+    of the readers it goes through changes it; the params still count."""
     import shutil
 
-    from weatheralign.detect.protocol import DETECTOR_CODE
+    from weatheralign.detect.protocol import DETECTOR_MODULES
     from weatheralign.provenance import PACKAGE_ROOT
 
     package = tmp_path / "weatheralign"
     shutil.copytree(PACKAGE_ROOT, package, ignore=shutil.ignore_patterns("__pycache__"))
-    digest = source_digest(*DETECTOR_CODE, root=package)
-    for weather in ("ground/edit.py", "simulate/observe.py", "lidar/__init__.py", "camera/overcast.py"):
+    parts = imported_modules(*DETECTOR_MODULES, root=package)
+    assert {"detect/model.py", "detect/image_features.py", "data/nuscenes.py"} <= set(parts)
+    assert not any(p.startswith(("ground/", "simulate/", "lidar/", "camera/", "medium/")) for p in parts)
+
+    def digest() -> str:
+        return source_digest(*imported_modules(*DETECTOR_MODULES, root=package), root=package)
+
+    before = digest()
+    for weather in ("ground/edit.py", "simulate/observe.py", "lidar/__init__.py", "camera/overcast.py", "viz.py"):
         with (package / weather).open("a") as f:
             f.write("# edited\n")
-        assert source_digest(*DETECTOR_CODE, root=package) == digest, weather
+        assert digest() == before, weather
     for detector in ("detect/model.py", "data/nuscenes.py", "geometry.py"):
-        before = source_digest(*DETECTOR_CODE, root=package)
+        before = digest()
         with (package / detector).open("a") as f:
             f.write("# edited\n")
-        assert source_digest(*DETECTOR_CODE, root=package) != before, detector
+        assert digest() != before, detector
     base = params_from_dict({})
-    assert stage_fingerprint("detect", base, "world", code=DETECTOR_CODE) != stage_fingerprint(
-        "detect", params_from_dict({"detect": {"batch_size": 4}}), "world", code=DETECTOR_CODE)
+    fingerprint = stage_fingerprint("detect", base, "world", made_by=DETECTOR_MODULES)
+    assert stage_fingerprint("detect", params_from_dict({"detect": {"batch_size": 4}}), "world",
+                             made_by=DETECTOR_MODULES) != fingerprint  # the params' values count, not config.py
+    assert stage_fingerprint("detect", params_from_dict({"simulate": {"jpeg_quality": 80}}), "world",
+                             made_by=DETECTOR_MODULES) == fingerprint
+    assert stage_fingerprint("detect", base, "world") != fingerprint  # the whole stage's code
