@@ -23,8 +23,10 @@ matrix (``<paths.data>/simulate/<condition>-<aligned|unaligned>``), caches each 
 
 Every training and evaluation is an MLflow child run tagged ``model``, ``seed``, ``weather``, ``alignment``. Finished
 models (``<paths.data>/detect/models/seed<k>/<model>.pt``) and evaluations (``<paths.data>/detect/evals/``) are kept
-with the fingerprint of the code, params and the data each was made from (the cache keys of its training or
-evaluation split, which change with any file of it, and the model it started from): an interrupted run resumes after
+with the fingerprint of the detector's code (`weatheralign.detect.protocol.DETECTOR_MODULES`, not the weather's: a
+change of the simulators retrains only what a changed copy feeds), params and the data each was made from (the cache
+keys of its training or evaluation split, which change with any file of it, and the model it started from): an
+interrupted run resumes after
 the last finished one, a training stopped midway from its last saved state, and a weather copy simulated again
 retrains and re-evaluates what used it. Checkpoints are read as tensors and plain data only.
 """
@@ -167,7 +169,8 @@ class DetectRun:
         self.tokens = {split: scene_split(self.nusc, self.clean_root, self.version, split)
                        for split in ("train", "val")}
         self.out = params.paths.data / "detect"
-        self.fingerprint = stage_fingerprint("detect", params, world.content_digest)
+        self.fingerprint = stage_fingerprint("detect", params, world.content_digest,
+                                             made_by=protocol.DETECTOR_MODULES)
         self.model_config = protocol.detector_config(cfg)
         self.caches: dict[tuple[str, str], Path] = {}
         self.data_keys: dict[tuple[str, str], str] = {}

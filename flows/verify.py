@@ -19,6 +19,8 @@ snow, rain):
    kernels (`pooled_kernel`), so that no single training draw decides a verdict (the control's p-value and the
    MMD^2 of each classifier alone are reported beside it), and the bootstrap intervals resample the classifiers as
    well as the frames (`member_weights`: the training noise is in the intervals);
+   every training is kept in ``<paths.data>/verify/classifiers`` with a key over its code, inputs and settings, so
+   that a rerun or an interrupted run loads the finished ones instead of training them again;
    ``verify.held_out_fraction`` of every reference level (at least two frames) is held out of its training
    (`held_out_split`): the classifier's accuracy is measured on them, and the MMDs below compare only held-out
    reference frames and simulations of held-out clear frames. (Measured: with the MMD's reference frames among the
@@ -219,7 +221,8 @@ def verify_flow(params: Params) -> dict:
             inputs, labels, CLASSES, cfg.classifiers, seed=cfg.seed, min_train_accuracy=cfg.min_train_accuracy,
             max_rejected=cfg.max_rejected, held_out_fraction=cfg.held_out_fraction, steps=cfg.steps,
             batch_size=cfg.batch_size, lr=cfg.lr, device=cfg.device, correspondence_weight=cfg.correspondence_weight,
-            embedding=cfg.embedding, displaced=displaced, held_out=held_idx, progress=show)
+            embedding=cfg.embedding, displaced=displaced, held_out=held_idx, progress=show,
+            store=params.paths.data / "verify" / "classifiers")
         models = [m for m, _ in trained]
         member_accuracy = [r.accuracy for _, r in trained]
         report = ensemble_report(models, [r for _, r in trained], inputs, labels, device=cfg.device)

@@ -85,6 +85,51 @@ def test_trainings_that_do_not_fit_their_training_frames_are_replaced_by_the_nex
                                  max_rejected=len(expected_rejected) - 1, **kw)
 
 
+
+def test_a_stored_training_is_loaded_instead_of_trained_again(tmp_path, monkeypatch) -> None:
+    """With a store, a rerun loads every finished training (kept and rejected) with the same weights and report; a
+    change of the inputs or of a setting trains again; an unreadable file is trained again, not trusted."""
+    import weatheralign.verify.classifier as classifier
+
+    torch.set_num_threads(1)
+    x, y = toy_weather(90, seed=2)
+    classes = ("clear", "fog", "snow")
+    kw = dict(steps=40, width=8, embedding=8, held_out=held_out_split(y, 0.25, seed=0)[1])
+    first, _ = train_fitted_classifiers(x, y, classes, 4, seed=0, min_train_accuracy=0.0, max_rejected=0,
+                                        store=tmp_path, **kw)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"seed{s}.pt" for s in range(4)]
+    accuracy = [r.train_accuracy for _, r in first]
+    bar = sorted(accuracy)[2]  # two of the four reach it (ties aside): the others are rejected on the rerun
+    trained: list[int] = []
+    original = classifier.train_weather_classifier
+
+    def counting(*args, **kwargs):
+        trained.append(kwargs["seed"])
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(classifier, "train_weather_classifier", counting)
+    again, rejected = train_fitted_classifiers(x, y, classes, 2, seed=0, min_train_accuracy=bar, max_rejected=2,
+                                               store=tmp_path, **kw)
+    assert trained == []
+    kept = [s for s in range(4) if accuracy[s] >= bar][:2]
+    assert [(r.seed, r.train_accuracy) for r in rejected] == [(s, accuracy[s]) for s in range(kept[-1])
+                                                               if accuracy[s] < bar]
+    for s, (model, report) in zip(kept, again, strict=True):
+        np.testing.assert_array_equal(fused_features(first[s][0], x), fused_features(model, x))
+        r1 = first[s][1]
+        assert (r1.classes, r1.accuracy, r1.final_loss, r1.train_accuracy) == (
+            report.classes, report.accuracy, report.final_loss, report.train_accuracy)
+        np.testing.assert_array_equal(r1.confusion, report.confusion)
+        np.testing.assert_array_equal(r1.held_out, report.held_out)
+    changed = x.copy()
+    changed[0, 0, 0, 0] += 0.5
+    once = dict(min_train_accuracy=0.0, max_rejected=0, store=tmp_path)
+    train_fitted_classifiers(changed, y, classes, 1, seed=0, **once, **kw)
+    train_fitted_classifiers(x, y, classes, 1, seed=0, **once, **{**kw, "steps": 41})
+    (tmp_path / "seed0.pt").write_bytes(b"not a checkpoint")
+    train_fitted_classifiers(x, y, classes, 1, seed=0, **once, **kw)
+    assert trained == [0, 0, 0]
+
 def test_an_ensemble_report_averages_class_probabilities_on_the_shared_held_out_frames() -> None:
     torch.set_num_threads(1)
     x, y = toy_weather(120, seed=3)

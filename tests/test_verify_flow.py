@@ -121,6 +121,8 @@ def test_verify_and_rate_calibration_on_an_stf_layout_tree_with_snow_and_rain(tm
     assert 0.0 <= metrics["classifier_accuracy"] <= 1.0 and len(metrics["classifier_confusion"]) == 4
     assert metrics["classifiers"] == 2 and len(metrics["classifier_accuracy_each"]) == 2  # the run's ensemble
     assert metrics["classifier_seeds"] == [0, 1] and metrics["classifiers_rejected"] == []
+    stored = sorted(p.name for p in (data / "verify" / "classifiers").iterdir())
+    assert stored == ["seed0.pt", "seed1.pt"]  # kept for a rerun (test_verify_classifier: they are loaded)
     assert all(0.0 <= a <= 1.0 for a in metrics["classifier_train_accuracy_each"])
     for m in metrics["conditions"].values():
         assert len(m["control_p_each_classifier"]) == len(m["mmd_aligned_each_classifier"]) == 2

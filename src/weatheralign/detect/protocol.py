@@ -29,6 +29,11 @@ from weatheralign.detect.evaluate import bootstrap_intervals, predictions_to_eva
 from weatheralign.detect.model import BEVFusionDetector, DetectorConfig, Modality, train_step
 from weatheralign.detect.types import SampleDetections
 
+DETECTOR_MODULES: tuple[str, ...] = ("weatheralign.detect.protocol", "weatheralign.detect.data")
+"""The modules that cache the data, train, predict and score, with what they import
+(`weatheralign.provenance.imported_modules`): the code a finished model or evaluation is kept for. The weather's
+code is not in it: a weather copy reaches a model only through its files, which the cache keys stamp."""
+
 #: The paper's Table 2, BEV-F (BEVFusion) rows: (mAP, NDS) of the pretrained model on real nuScenes-mini with the
 #: paper's simulated weather, unaligned vs aligned. The paper's figures, for comparison only.
 PAPER_TABLE2: dict[str, dict[str, tuple[float, float]]] = {
@@ -353,7 +358,7 @@ def detections_from_arrays(arrays: dict[str, np.ndarray]) -> list[SampleDetectio
                              arrays["attributes"][a:b]) for t, a, b in zip(arrays["tokens"], starts, ends)]
 
 
-__all__ = ["EvalSet", "PAPER_TABLE2", "PAPER_TABLE3", "PAPER_WEATHER_OF", "PredictJob", "TrainJob",
+__all__ = ["DETECTOR_MODULES", "EvalSet", "PAPER_TABLE2", "PAPER_TABLE3", "PAPER_WEATHER_OF", "PredictJob", "TrainJob",
            "detections_from_arrays", "detections_to_arrays", "detector_config", "eval_boxes", "evaluate",
            "epoch_batches", "load_checkpoint", "point_range", "predict", "resolve_device", "Resume", "run_predict_job",
            "run_train_job", "save_checkpoint", "train", "training_dataset"]

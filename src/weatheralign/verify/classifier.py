@@ -4,13 +4,19 @@ features it gives, and the sensitivity control's broken pairs (`verify`).
 Inputs are (N, 6, h, w) float32 stacks of `weatheralign.verify.features.fused_input`, one per frame and camera,
 labelled with class indices. The held-out frames are drawn per stratum (`held_out_split`: the reference level in
 `verify`, whose MMDs compare only them) and never trained on; horizontal flips (all six channels together, so that the
-sensors stay registered) are the only augmentation. Deterministic for a seed on the CPU.
+sensors stay registered) are the only augmentation. Deterministic for a seed on the CPU. `train_fitted_classifiers`
+keeps each finished training in a folder when given one (`stored_training`), so that a rerun or an interrupted
+verify loads it instead of training it again.
 """
 
 from __future__ import annotations
 
+import hashlib
+import io
+import json
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -19,6 +25,8 @@ from numpy.typing import NDArray
 from sklearn.metrics import confusion_matrix
 from tqdm import tqdm
 
+from weatheralign import atomic
+from weatheralign.provenance import imported_modules, source_digest
 from weatheralign.verify.features import FUSED_CHANNELS, LIDAR_CHANNELS, WeatherClassifier
 
 
@@ -136,20 +144,82 @@ def train_weather_classifier(inputs: NDArray, labels: NDArray, classes: Sequence
                                    float(loss.detach()), train_accuracy)
 
 
+def training_key(inputs: NDArray, labels: NDArray, classes: Sequence[str], training: dict[str, object]) -> str:
+    """16 hex digits over everything a training's result follows but its seed: this module's code and what it
+    imports, the ``inputs`` and ``labels`` (values, shapes, dtypes), the ``classes``, every argument of ``training``
+    (`train_weather_classifier`'s; arrays by their values; ``progress`` aside) and torch's CPU threads."""
+    h = hashlib.sha256(source_digest(*imported_modules(__name__)).encode())
+    settings: dict[str, object] = {"classes": list(classes), "threads": torch.get_num_threads()}
+    for name, value in sorted({"inputs": inputs, "labels": labels, **training}.items()):
+        if name == "progress":
+            continue
+        if isinstance(value, np.ndarray | list | tuple) or value is None:
+            array = np.ascontiguousarray(np.asarray(value)) if value is not None else None
+            settings[name] = None if array is None else [array.shape, str(array.dtype)]
+            h.update(b"" if array is None else array.tobytes())
+        else:
+            settings[name] = value
+    h.update(json.dumps(settings, sort_keys=True, default=str).encode())
+    return h.hexdigest()[:16]
+
+
+def stored_training(folder: Path, key: str, seed: int, device: str = "cpu"
+                    ) -> tuple[WeatherClassifier, ClassifierReport] | None:
+    """The training of ``seed`` kept in ``folder`` (``seed<k>.pt``) when it was made with ``key`` (`training_key`),
+    else None (also for a file this module did not write). Read as tensors and plain data only: a received file
+    cannot run code."""
+    path = Path(folder) / f"seed{seed}.pt"
+    if not path.is_file():
+        return None
+    try:
+        stored = torch.load(path, map_location=device, weights_only=True)
+        meta = stored["meta"]
+    except Exception:  # noqa: BLE001 - not a training this module wrote (unreadable, foreign): train it again
+        return None
+    if not isinstance(meta, dict) or meta.get("key") != key:
+        return None
+    model = WeatherClassifier(len(meta["classes"]), meta["width"], meta["embedding"]).to(device)
+    model.load_state_dict(stored["state"])
+    model.eval()
+    return model, ClassifierReport(tuple(meta["classes"]), meta["accuracy"], np.asarray(meta["confusion"], np.int64),
+                                   np.asarray(meta["held_out"], np.int64), meta["final_loss"], meta["train_accuracy"])
+
+
+def store_training(folder: Path, key: str, seed: int, model: WeatherClassifier, report: ClassifierReport) -> None:
+    """Keep a finished training in ``folder`` (``seed<k>.pt``: weights and its report), written atomically."""
+    meta = {"key": key, "classes": list(report.classes), "accuracy": report.accuracy,
+            "confusion": report.confusion.tolist(), "held_out": report.held_out.tolist(),
+            "final_loss": report.final_loss, "train_accuracy": report.train_accuracy,
+            "width": model.features[0][0].out_channels, "embedding": model.logits.in_features}
+    buf = io.BytesIO()
+    torch.save({"state": {k: v.cpu() for k, v in model.state_dict().items()}, "meta": meta}, buf)
+    Path(folder).mkdir(parents=True, exist_ok=True)
+    atomic.write_bytes(Path(folder) / f"seed{seed}.pt", buf.getvalue())
+
+
 def train_fitted_classifiers(inputs: NDArray, labels: NDArray, classes: Sequence[str], count: int, *, seed: int,
-                             min_train_accuracy: float, max_rejected: int, **training: object
+                             min_train_accuracy: float, max_rejected: int, store: Path | None = None,
+                             **training: object
                              ) -> tuple[list[tuple[WeatherClassifier, ClassifierReport]], list[RejectedTraining]]:
     """``count`` classifiers (`train_weather_classifier` with ``training``) from seeds ``seed``, ``seed + 1``, ...,
     and the trainings rejected on the way: a training whose accuracy on its own training frames stays under
     ``min_train_accuracy`` did not optimise (a start that stalls on a few classes while others from the same data fit
     them), so its features are noise, not a view of the data; the next unused seed replaces it. The test uses only the
     training frames, never the held-out ones the MMDs compare. More than ``max_rejected`` rejections raise ValueError
-    (the setup, not the start, is then at fault)."""
+    (the setup, not the start, is then at fault). ``store``: a folder where every training, rejected ones too, is
+    kept and from which one made from the same code, inputs and settings (`training_key`) is loaded instead."""
     kept: list[tuple[WeatherClassifier, ClassifierReport]] = []
     rejected: list[RejectedTraining] = []
+    key = training_key(inputs, labels, classes, training) if store is not None else ""
+    device = str(training.get("device", "cpu"))
     next_seed = seed
     while len(kept) < count:
-        model, report = train_weather_classifier(inputs, labels, classes, seed=next_seed, **training)
+        finished = stored_training(store, key, next_seed, device) if store is not None else None
+        if finished is None:
+            finished = train_weather_classifier(inputs, labels, classes, seed=next_seed, **training)
+            if store is not None:
+                store_training(store, key, next_seed, *finished)
+        model, report = finished
         if report.train_accuracy >= min_train_accuracy:
             kept.append((model, report))
         else:
@@ -237,5 +307,5 @@ def broken_pairs(inputs: NDArray, seed: int = 0) -> NDArray[np.float32]:
 
 
 __all__ = ["ClassifierReport", "RejectedTraining", "broken_pairs", "ensemble_report", "fused_features",
-           "held_out_split", "mismatched_pairs", "predict_classes", "train_fitted_classifiers",
-           "train_weather_classifier"]
+           "held_out_split", "mismatched_pairs", "predict_classes", "store_training", "stored_training",
+           "train_fitted_classifiers", "train_weather_classifier", "training_key"]
