@@ -55,6 +55,7 @@ from tasks.detect import paired_task, predict_task, train_task  # noqa: E402
 from tasks.detector_model import detector_pyfunc, input_example  # noqa: E402
 from tasks.tracking import REGISTERED_MODEL_PREFIX, ChildRun, LoggedDetector, StageTracker  # noqa: E402
 from weatheralign import atomic  # noqa: E402
+from weatheralign.code_closure import closure_fingerprint  # noqa: E402
 from weatheralign.conditions import CONDITIONS, condition_tags, variant_name  # noqa: E402
 from weatheralign.config import Params  # noqa: E402
 from weatheralign.data.errors import DataFormatError  # noqa: E402
@@ -79,7 +80,6 @@ from weatheralign.detect.figures import (  # noqa: E402
 from weatheralign.detect.model import BEVFusionDetector, count_parameters  # noqa: E402
 from weatheralign.detect.results import write_submission  # noqa: E402
 from weatheralign.manifest import manifest_path, read_manifest  # noqa: E402
-from weatheralign.provenance import stage_fingerprint  # noqa: E402
 from weatheralign.simulate.media import media_path, read_media  # noqa: E402
 
 CLEAN = "clean"
@@ -169,8 +169,7 @@ class DetectRun:
         self.tokens = {split: scene_split(self.nusc, self.clean_root, self.version, split)
                        for split in ("train", "val")}
         self.out = params.paths.data / "detect"
-        self.fingerprint = stage_fingerprint("detect", params, world.content_digest,
-                                             made_by=protocol.DETECTOR_MODULES)
+        self.fingerprint = closure_fingerprint(protocol.DETECTOR_MODULES, "detect", params, world.content_digest)
         self.model_config = protocol.detector_config(cfg)
         self.caches: dict[tuple[str, str], Path] = {}
         self.data_keys: dict[tuple[str, str], str] = {}

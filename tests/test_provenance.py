@@ -8,13 +8,7 @@ from pathlib import Path
 import pytest
 
 from weatheralign.config import params_from_dict
-from weatheralign.provenance import (
-    file_stamps,
-    imported_modules,
-    source_digest,
-    stage_fingerprint,
-    stage_params,
-)
+from weatheralign.provenance import file_stamps, source_digest, stage_fingerprint, stage_params
 
 
 def _tree(root: Path) -> Path:
@@ -89,57 +83,3 @@ def test_a_stage_fingerprint_follows_its_declared_params_and_setup_files() -> No
     assert stage_fingerprint("simulate", base, "another world") != fingerprint
     assert stage_fingerprint("detect", params_from_dict({"detect": {"batch_size": 4}})) != stage_fingerprint(
         "detect", base)
-
-
-
-def test_imported_modules_follows_the_imports_transitively(tmp_path: Path) -> None:
-    """A module's import closure within its package: direct, transitive, ``from package import module``, imports
-    inside functions, the packages above each; not the modules nothing imports, nor other packages."""
-    pkg = tmp_path / "weatheralign"
-    for rel, text in {"__init__.py": "", "a.py": "from weatheralign.b import f\n", "b.py": "import numpy\n\n"
-                      "def f():\n    from weatheralign import c\n", "c.py": "import weatheralign.sub.d\n",
-                      "sub/__init__.py": "", "sub/d.py": "x = 1\n", "unused.py": "import weatheralign.a\n"}.items():
-        (pkg / rel).parent.mkdir(parents=True, exist_ok=True)
-        (pkg / rel).write_text(text)
-    assert imported_modules("weatheralign.a", root=pkg) == ["__init__.py", "a.py", "b.py", "c.py", "sub/__init__.py",
-                                                              "sub/d.py"]
-    assert imported_modules("weatheralign.sub.d", root=pkg) == ["__init__.py", "sub/__init__.py", "sub/d.py"]
-    with pytest.raises(FileNotFoundError, match="weatheralign.nothing"):
-        imported_modules("weatheralign.nothing", root=pkg)
-
-
-def test_a_weather_code_edit_keeps_the_detectors_fingerprint(tmp_path: Path) -> None:
-    """detect's models are kept for the code of `DETECTOR_MODULES` and their imports: on a copy of the package an
-    edit of the ground's, the LiDAR's or the simulator's code keeps that code's digest, an edit of the detector's or
-    of the readers it goes through changes it; the params still count."""
-    import shutil
-
-    from weatheralign.detect.protocol import DETECTOR_MODULES
-    from weatheralign.provenance import PACKAGE_ROOT
-
-    package = tmp_path / "weatheralign"
-    shutil.copytree(PACKAGE_ROOT, package, ignore=shutil.ignore_patterns("__pycache__"))
-    parts = imported_modules(*DETECTOR_MODULES, root=package)
-    assert {"detect/model.py", "detect/image_features.py", "data/nuscenes.py"} <= set(parts)
-    assert not any(p.startswith(("ground/", "simulate/", "lidar/", "camera/", "medium/")) for p in parts)
-
-    def digest() -> str:
-        return source_digest(*imported_modules(*DETECTOR_MODULES, root=package), root=package)
-
-    before = digest()
-    for weather in ("ground/edit.py", "simulate/observe.py", "lidar/__init__.py", "camera/overcast.py", "viz.py"):
-        with (package / weather).open("a") as f:
-            f.write("# edited\n")
-        assert digest() == before, weather
-    for detector in ("detect/model.py", "data/nuscenes.py", "geometry.py"):
-        before = digest()
-        with (package / detector).open("a") as f:
-            f.write("# edited\n")
-        assert digest() != before, detector
-    base = params_from_dict({})
-    fingerprint = stage_fingerprint("detect", base, "world", made_by=DETECTOR_MODULES)
-    assert stage_fingerprint("detect", params_from_dict({"detect": {"batch_size": 4}}), "world",
-                             made_by=DETECTOR_MODULES) != fingerprint  # the params' values count, not config.py
-    assert stage_fingerprint("detect", params_from_dict({"simulate": {"jpeg_quality": 80}}), "world",
-                             made_by=DETECTOR_MODULES) == fingerprint
-    assert stage_fingerprint("detect", base, "world") != fingerprint  # the whole stage's code

@@ -45,44 +45,6 @@ def source_digest(*parts: str, root: Path = PACKAGE_ROOT) -> str:
     return h.hexdigest()[:16]
 
 
-def imported_modules(*modules: str, root: Path = PACKAGE_ROOT) -> list[str]:
-    """The package parts (`source_digest`'s, e.g. ``"detect/model.py"``) of ``modules`` (dotted names of the package
-    whose sources lie in ``root``, e.g. ``"weatheralign.detect.protocol"``) and of every module of the package they
-    import, transitively, with the packages above each (whose ``__init__`` an import runs): read from their
-    ``import`` statements (those inside functions too), not by importing them.
-    What a record made by that code depends on, and nothing the stage runs beside it (its figures, its tracking).
-
-    Raises:
-        FileNotFoundError: a module of ``modules`` has no source under ``root``.
-    """
-    import ast
-
-    package = Path(root).name
-
-    def source(module: str) -> Path | None:
-        path = Path(root).joinpath(*module.split(".")[1:])
-        if (path / "__init__.py").is_file():
-            return path / "__init__.py"
-        return path.with_suffix(".py") if path.with_suffix(".py").is_file() else None
-
-    missing = [m for m in modules if source(m) is None]
-    if missing:
-        raise FileNotFoundError(f"imported_modules: no source under {root} for {missing}")
-    todo, seen = list(modules), {}
-    while todo:
-        module = todo.pop()
-        if module in seen or (path := source(module)) is None:
-            continue
-        seen[module] = path
-        todo += [module.rsplit(".", k)[0] for k in range(1, module.count(".") + 1)]  # importing runs the parents
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
-            if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == package:
-                todo += [node.module, *(f"{node.module}.{a.name}" for a in node.names)]
-            elif isinstance(node, ast.Import):
-                todo += [a.name for a in node.names if a.name.split(".")[0] == package]
-    return sorted(str(path.relative_to(root)) for path in seen.values())
-
-
 def file_stamps(root: Path, relpaths: Iterable[str]) -> str:
     """16 hex digits of SHA-256 over (relative path, size, mtime ns) of input files under ``root``.
 
@@ -147,20 +109,15 @@ def stage_code_digest(stage: str) -> str:
     return source_digest()  # pragma: no cover - installed without the repository
 
 
-def stage_fingerprint(stage: str, params: object, *extra: str, made_by: tuple[str, ...] = ()) -> str:
+def stage_fingerprint(stage: str, params: object, *extra: str) -> str:
     """16 hex digits over the code (`stage_code`) and the params values (`stage_params`) ``stage`` declares in
     dvc.yaml, plus ``extra`` strings (e.g. an input dataset's content digest): what a resume record must match.
 
-    ``made_by``: the package's modules that make the record, when that is less than the stage runs (a stage that
-    also reads other stages' outputs, whose code reaches the record only through those files): then the code hashed
-    is theirs and what they import (`imported_modules`) but ``config.py``, whose values for the stage are hashed
-    themselves (any project's param added there would otherwise redo the work). Outside a source tree (no dvc.yaml
-    beside the package) the whole package's code is hashed when ``made_by`` is empty.
+    Outside a source tree (no dvc.yaml beside the package) the whole package's code is hashed instead.
     """
     import json
 
-    code = source_digest(*(p for p in imported_modules(*made_by) if p != "config.py")) if made_by \
-        else stage_code_digest(stage)
+    code = stage_code_digest(stage)
     keys = stage_params(stage) if (REPO_ROOT / "dvc.yaml").is_file() else []
     tree = params.model_dump(mode="json") if hasattr(params, "model_dump") else {}
     values = {}

@@ -31,7 +31,7 @@ from weatheralign.detect.types import SampleDetections
 
 DETECTOR_MODULES: tuple[str, ...] = ("weatheralign.detect.protocol", "weatheralign.detect.data")
 """The modules that cache the data, train, predict and score, with what they import
-(`weatheralign.provenance.imported_modules`): the code a finished model or evaluation is kept for. The weather's
+(`weatheralign.code_closure.imported_modules`): the code a finished model or evaluation is kept for. The weather's
 code is not in it: a weather copy reaches a model only through its files, which the cache keys stamp."""
 
 #: The paper's Table 2, BEV-F (BEVFusion) rows: (mAP, NDS) of the pretrained model on real nuScenes-mini with the

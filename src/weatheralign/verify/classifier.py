@@ -26,7 +26,7 @@ from sklearn.metrics import confusion_matrix
 from tqdm import tqdm
 
 from weatheralign import atomic
-from weatheralign.provenance import imported_modules, source_digest
+from weatheralign.code_closure import closure_digest
 from weatheralign.verify.features import FUSED_CHANNELS, LIDAR_CHANNELS, WeatherClassifier
 
 
@@ -148,7 +148,7 @@ def training_key(inputs: NDArray, labels: NDArray, classes: Sequence[str], train
     """16 hex digits over everything a training's result follows but its seed: this module's code and what it
     imports, the ``inputs`` and ``labels`` (values, shapes, dtypes), the ``classes``, every argument of ``training``
     (`train_weather_classifier`'s; arrays by their values; ``progress`` aside) and torch's CPU threads."""
-    h = hashlib.sha256(source_digest(*imported_modules(__name__)).encode())
+    h = hashlib.sha256(closure_digest(__name__).encode())
     settings: dict[str, object] = {"classes": list(classes), "threads": torch.get_num_threads()}
     for name, value in sorted({"inputs": inputs, "labels": labels, **training}.items()):
         if name == "progress":
