@@ -26,9 +26,9 @@ models (``<paths.data>/detect/models/seed<k>/<model>.pt``) and evaluations (``<p
 with the fingerprint of the detector's code (`weatheralign.detect.protocol.DETECTOR_MODULES`, not the weather's: a
 change of the simulators retrains only what a changed copy feeds), params and the data each was made from (the cache
 keys of its training or evaluation split, which change with any file of it, and the model it started from): an
-interrupted run resumes after
-the last finished one, a training stopped midway from its last saved state, and a weather copy simulated again
-retrains and re-evaluates what used it. Checkpoints are read as tensors and plain data only.
+interrupted run resumes after the last finished one, a training stopped midway from its last saved state, and a
+weather copy simulated again retrains and re-evaluates what used it. Checkpoints are read as tensors and plain data
+only.
 """
 
 from __future__ import annotations
